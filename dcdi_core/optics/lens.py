@@ -1,0 +1,267 @@
+"""The lens model: a validated sequential prescription plus its sensor.
+
+Loaded from the TOML files in ``lenses/`` (schema: ``lenses/SCHEMA.md``).
+Every violation of the schema raises :class:`LensFileError` naming the file,
+the surface (1-based), the field and the allowed values.
+"""
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+import re
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import LensFileError, OpticsError, UnknownGlassError
+from .materials import AIR, Material, get_material
+from .surfaces import Surface
+
+D_LINE_NM = 587.5618
+
+_TOP_KEYS = {"schema_version", "id", "name", "source", "notes", "wavelength_nm",
+             "sensor", "stated", "surface"}
+_SENSOR_KEYS = {"semi_diagonal_mm", "resolution_px", "pixel_pitch_mm"}
+_STATED_KEYS = {"effective_focal_length_mm", "f_number", "field_of_view_deg",
+                "field_of_view_note", "image_semi_diameter_mm", "back_focal_length_mm",
+                "sensor_semi_diagonal_mm", "sensor_note", "pixel_pitch_mm", "resolution_px"}
+_SURFACE_KEYS = {"label", "radius_mm", "thickness_mm", "material", "semi_diameter_mm",
+                 "conic", "aspheric_coefficients", "stop"}
+_ID_RE = re.compile(r"^[a-z0-9][a-z0-9-]*$")
+
+
+def lens_dirs() -> list[Path]:
+    """Folders searched for lens ids: $DCDI_LENS_PATH (os.pathsep-separated),
+    then the repository's ``lenses/`` (also bundled beside ``dcdi_core`` in
+    the Blender add-on)."""
+    dirs = [Path(p) for p in os.environ.get("DCDI_LENS_PATH", "").split(os.pathsep) if p]
+    here = Path(__file__).resolve().parent.parent
+    dirs += [here.parent / "lenses", here / "lenses"]
+    return [d for d in dirs if d.is_dir()]
+
+
+def available_lenses() -> list[str]:
+    """Ids of the lenses found in :func:`lens_dirs`."""
+    ids = []
+    for d in lens_dirs():
+        ids += [p.stem for p in sorted(d.glob("*.toml")) if p.stem not in ids]
+    return ids
+
+
+@dataclass(frozen=True)
+class Sensor:
+    """Image sensor: field 1.0 is ``semi_diagonal_mm`` from the axis."""
+
+    semi_diagonal_mm: float
+    resolution_px: tuple[int, int] | None = None   # (rows, columns)
+    pixel_pitch_mm: float | None = None
+
+
+@dataclass(frozen=True)
+class Lens:
+    """A rotationally symmetric sequential lens (lengths in mm).
+
+    ``vertex_z_mm[i]`` is the axial position of surface i's vertex (the first
+    vertex at 0); ``sensor_z_mm`` the sensor plane. Depths (object distances)
+    are measured from the first vertex, in metres, as DESIGN.md states.
+    """
+
+    id: str
+    name: str
+    surfaces: tuple[Surface, ...]
+    sensor: Sensor
+    stated: dict = field(default_factory=dict)
+    source: str = ""
+    notes: str = ""
+    wavelength_nm: float = D_LINE_NM
+    path: str = "<dict>"
+    content_hash: str = ""
+
+    @property
+    def vertex_z_mm(self) -> np.ndarray:
+        t = np.array([0.0] + [s.thickness_mm for s in self.surfaces[:-1]])
+        return np.cumsum(t)
+
+    @property
+    def sensor_z_mm(self) -> float:
+        return float(sum(s.thickness_mm for s in self.surfaces))
+
+    @property
+    def stop_index(self) -> int:
+        return next(i for i, s in enumerate(self.surfaces) if s.stop)
+
+    @property
+    def total_track_mm(self) -> float:
+        """First vertex to sensor, mm."""
+        return self.sensor_z_mm
+
+    def refractive_indices(self, wavelength_nm) -> np.ndarray:
+        """Indices (n_surfaces + 1, *wavelength shape): object space first,
+        then the medium after each surface."""
+        wl = np.asarray(wavelength_nm, dtype=np.float64)
+        cache: dict[int, np.ndarray] = {}
+        rows = [AIR.refractive_index(wl) * np.ones_like(wl)]
+        for s in self.surfaces:
+            key = id(s.material)
+            if key not in cache:
+                cache[key] = np.asarray(s.material.refractive_index(wl), dtype=np.float64) * np.ones_like(wl)
+            rows.append(cache[key])
+        return np.stack(rows)
+
+    def with_surfaces(self, surfaces) -> "Lens":
+        """A copy with other surfaces (used by perturbation and refocusing)."""
+        return Lens(self.id, self.name, tuple(surfaces), self.sensor, self.stated, self.source,
+                    self.notes, self.wavelength_nm, self.path, "")
+
+    # ------------------------------------------------------------------ loading
+    @classmethod
+    def from_dict(cls, d: dict, path: str | os.PathLike = "<dict>", content_hash: str = "") -> "Lens":
+        """Validate a prescription dict (the TOML layout) and build the lens."""
+        path = str(path)
+
+        def err(msg, **kw):
+            return LensFileError(path, msg, **kw)
+
+        if not isinstance(d, dict):
+            raise err("a prescription must be a table")
+        unknown = set(d) - _TOP_KEYS
+        if unknown:
+            raise err("unknown top-level key", field=sorted(unknown)[0], allowed=sorted(_TOP_KEYS))
+        if d.get("schema_version") != 1:
+            raise err("unsupported schema version", field="schema_version",
+                      value=d.get("schema_version"), allowed="1")
+        lens_id = d.get("id")
+        if not isinstance(lens_id, str) or not _ID_RE.match(lens_id):
+            raise err("id must be lower-case letters, digits and '-'", field="id", value=lens_id)
+        wl = _number(d.get("wavelength_nm", D_LINE_NM), err, "wavelength_nm", None, lo=200.0, hi=2500.0)
+
+        sensor = _sensor(d.get("sensor"), err)
+        stated = d.get("stated", {})
+        if not isinstance(stated, dict):
+            raise err("must be a table", field="stated")
+        bad = set(stated) - _STATED_KEYS
+        if bad:
+            raise err("unknown key in [stated]", field=sorted(bad)[0], allowed=sorted(_STATED_KEYS))
+
+        raw = d.get("surface")
+        if not isinstance(raw, list) or not raw:
+            raise err("at least one [[surface]] is needed", field="surface")
+        materials: dict = {}
+        surfaces = [_surface(i + 1, s, err, materials) for i, s in enumerate(raw)]
+        stops = [i for i, s in enumerate(surfaces) if s.stop]
+        if len(stops) != 1:
+            raise err("exactly one surface must have stop = true",
+                      field="stop", value=[i + 1 for i in stops])
+        return cls(id=lens_id, name=str(d.get("name", lens_id)), surfaces=tuple(surfaces),
+                   sensor=sensor, stated=dict(stated), source=str(d.get("source", "")),
+                   notes=str(d.get("notes", "")), wavelength_nm=wl, path=path,
+                   content_hash=content_hash)
+
+    @classmethod
+    def from_toml(cls, path: str | os.PathLike) -> "Lens":
+        path = Path(path)
+        try:
+            data = path.read_bytes()
+        except OSError as e:
+            raise LensFileError(path, f"cannot read the file: {e.strerror}") from None
+        try:
+            d = tomllib.loads(data.decode("utf-8"))
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+            raise LensFileError(path, f"not valid TOML: {e}") from None
+        return cls.from_dict(d, path, hashlib.sha256(data).hexdigest())
+
+
+def load_lens(name_or_path: str | os.PathLike) -> Lens:
+    """A lens by id (searched in :func:`lens_dirs`) or by path to a TOML file."""
+    p = Path(name_or_path)
+    if p.suffix == ".toml" or p.exists():
+        return Lens.from_toml(p)
+    for d in lens_dirs():
+        cand = d / f"{name_or_path}.toml"
+        if cand.exists():
+            return Lens.from_toml(cand)
+    raise OpticsError(f"no lens {str(name_or_path)!r}: not a file, and not an id in "
+                      f"{[str(d) for d in lens_dirs()]} (known ids: {', '.join(available_lenses())})")
+
+
+# ---------------------------------------------------------------- validation
+def _number(v, err, name, surface, lo=None, hi=None, lo_open=False, allow_inf=False):
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise err("must be a number", surface=surface, field=name, value=v)
+    v = float(v)
+    if math.isnan(v) or (math.isinf(v) and not allow_inf):
+        raise err("must be finite", surface=surface, field=name, value=v)
+    rng = f"{'(' if lo_open else '['}{lo}, {hi}]"
+    if lo is not None and (v < lo or (lo_open and v == lo)):
+        raise err("out of range", surface=surface, field=name, value=v, allowed=rng)
+    if hi is not None and v > hi:
+        raise err("out of range", surface=surface, field=name, value=v, allowed=rng)
+    return v
+
+
+def _sensor(s, err) -> Sensor:
+    if not isinstance(s, dict):
+        raise err("a [sensor] table with semi_diagonal_mm is needed", field="sensor")
+    bad = set(s) - _SENSOR_KEYS
+    if bad:
+        raise err("unknown key in [sensor]", field=sorted(bad)[0], allowed=sorted(_SENSOR_KEYS))
+    sd = _number(s.get("semi_diagonal_mm"), err, "sensor.semi_diagonal_mm", None, lo=0.0, lo_open=True)
+    res = s.get("resolution_px")
+    if res is not None:
+        if (not isinstance(res, list) or len(res) != 2
+                or not all(isinstance(r, int) and not isinstance(r, bool) and r > 0 for r in res)):
+            raise err("must be [rows, columns], positive integers", field="sensor.resolution_px", value=res)
+        res = (int(res[0]), int(res[1]))
+    pitch = s.get("pixel_pitch_mm")
+    if pitch is not None:
+        pitch = _number(pitch, err, "sensor.pixel_pitch_mm", None, lo=0.0, lo_open=True)
+    if pitch is not None and res is not None:
+        implied = 0.5 * pitch * math.hypot(*res)
+        if abs(implied - sd) > 0.01 * sd:
+            raise err("semi_diagonal_mm disagrees with pixel_pitch_mm x resolution_px by more than 1 %",
+                      field="sensor.semi_diagonal_mm", value=sd, allowed=f"{implied:.4f} +- 1 %")
+    return Sensor(sd, res, pitch)
+
+
+def _surface(num, s, err, materials) -> Surface:
+    if not isinstance(s, dict):
+        raise err("a surface must be a table", surface=num)
+    bad = set(s) - _SURFACE_KEYS
+    if bad:
+        raise err("unknown key", surface=num, field=sorted(bad)[0], allowed=sorted(_SURFACE_KEYS))
+    for key in ("radius_mm", "thickness_mm", "semi_diameter_mm"):
+        if key not in s:
+            raise err("missing", surface=num, field=key)
+    radius = _number(s["radius_mm"], err, "radius_mm", num, allow_inf=True)
+    thickness = _number(s["thickness_mm"], err, "thickness_mm", num, lo=0.0)
+    sd = _number(s["semi_diameter_mm"], err, "semi_diameter_mm", num, lo=0.0, lo_open=True)
+    conic = _number(s.get("conic", 0.0), err, "conic", num)
+    coeffs = s.get("aspheric_coefficients", [])
+    if not isinstance(coeffs, list):
+        raise err("must be a list of numbers", surface=num, field="aspheric_coefficients", value=coeffs)
+    coeffs = tuple(_number(a, err, "aspheric_coefficients", num) for a in coeffs)
+    while coeffs and coeffs[-1] == 0.0:
+        coeffs = coeffs[:-1]
+    stop = s.get("stop", False)
+    if not isinstance(stop, bool):
+        raise err("must be true or false", surface=num, field="stop", value=stop)
+    spec = s.get("material", "air")
+    key = repr(sorted(spec.items())) if isinstance(spec, dict) else str(spec).lower()
+    if key not in materials:
+        try:
+            materials[key] = get_material(spec)
+        except UnknownGlassError as e:
+            raise err(str(e), surface=num, field="material") from None
+        except (ValueError, TypeError) as e:
+            raise err(str(e), surface=num, field="material", value=spec) from None
+    c = 0.0 if (radius == 0 or math.isinf(radius)) else 1.0 / radius
+    if c != 0.0 and not coeffs and (1.0 + conic) * c * c * sd * sd > 1.0:
+        raise err("semi-diameter exceeds the surface's sag domain (the sphere/conic closes before it)",
+                  surface=num, field="semi_diameter_mm", value=sd,
+                  allowed=f"<= {1.0 / math.sqrt(max((1.0 + conic) * c * c, 1e-300)):.6g}")
+    return Surface(radius_mm=radius, thickness_mm=thickness, material=materials[key],
+                   semi_diameter_mm=sd, conic=conic, aspheric_coefficients=coeffs, stop=stop,
+                   label=str(s.get("label", "")))

@@ -1,0 +1,118 @@
+"""Refracting surfaces: sphere, plane, conic and even asphere.
+
+A surface is described in its local frame (vertex at the origin, axis +z):
+
+    z(r) = c r^2 / (1 + sqrt(1 - (1 + k) c^2 r^2)) + sum_i a_i r^(2 i),   i = 1, 2, ...
+
+with curvature c = 1/R (1/mm; 0 for a plane), conic constant k and even
+aspheric coefficients a_i (mm^(1 - 2 i)). All lengths in millimetres.
+
+The intersection is written after Spencer & Murty (JOSA 52, 1962) and
+rayoptics: the ray is first moved to the vertex plane, then the quadratic of
+the conic is solved in the form -C / (B + sign(B) sqrt(B^2 - A C)), which has
+no cancellation and tends to the plane solution as c -> 0 (it stays valid at
+c = 0 and at radius 1e15). Aspheres start from the conic root and are refined
+by a bounded number of Newton steps.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .materials import Material
+
+# Ray status codes; a ray keeps the first reason it died for.
+OK = 0
+MISSED = 1          # no intersection with the surface sheet that holds the vertex
+VIGNETTED = 2       # outside the surface's semi-diameter
+TIR = 3             # total internal reflection
+NOT_CONVERGED = 4   # Newton refinement on an asphere did not converge
+BACKWARD = 5        # the surface lies behind the ray, or the ray does not travel forward (+z)
+AIM_FAILED = 6      # ray aiming found no real chief ray for this field / depth
+
+STATUS_NAMES = {
+    OK: "ok",
+    MISSED: "missed surface",
+    VIGNETTED: "vignetted (outside semi-diameter)",
+    TIR: "total internal reflection",
+    NOT_CONVERGED: "asphere intersection not converged",
+    BACKWARD: "travelling backwards / surface behind the ray",
+    AIM_FAILED: "ray aiming failed (no real chief ray)",
+}
+
+# A ray whose z direction cosine is below this cannot reach a plane a finite
+# distance ahead without overflowing: it is treated as not travelling forward.
+MIN_FORWARD_COSINE = 1e-9
+
+
+@dataclass(frozen=True)
+class Surface:
+    """One refracting surface of a sequential lens.
+
+    ``material`` is the medium after the surface; ``thickness_mm`` the axial
+    distance from this vertex to the next vertex (or to the sensor).
+    """
+
+    radius_mm: float
+    thickness_mm: float
+    material: Material
+    semi_diameter_mm: float
+    conic: float = 0.0
+    aspheric_coefficients: tuple[float, ...] = field(default_factory=tuple)
+    stop: bool = False
+    label: str = ""
+
+    @property
+    def curvature(self) -> float:
+        """Vertex curvature c = 1/R in 1/mm (0 for a plane, R = inf or 0)."""
+        if self.radius_mm == 0 or math.isinf(self.radius_mm):
+            return 0.0
+        return 1.0 / self.radius_mm
+
+    @property
+    def is_aspheric(self) -> bool:
+        return any(a != 0.0 for a in self.aspheric_coefficients)
+
+    @property
+    def is_plane(self) -> bool:
+        return self.curvature == 0.0 and not self.is_aspheric
+
+    def sag(self, r2):
+        """Sag z (mm) at squared radial distance r2 (mm^2); NaN-free: r2 beyond
+        the conic's domain gives the sag at the domain edge (callers mask it)."""
+        r2 = np.asarray(r2, dtype=np.float64)
+        c, k = self.curvature, self.conic
+        root = np.sqrt(np.maximum(1.0 - (1.0 + k) * c * c * r2, 0.0))
+        z = c * r2 / (1.0 + root)
+        power = r2
+        for a in self.aspheric_coefficients:
+            z = z + a * power
+            power = power * r2
+        return z
+
+    def max_abs_sag(self) -> float:
+        """Largest |sag| over the clear aperture (mm), sampled finely."""
+        r2 = np.linspace(0.0, self.semi_diameter_mm ** 2, 257)
+        return float(np.max(np.abs(self.sag(r2))))
+
+
+def sag_and_slope(c, k, coeffs, r2):
+    """Sag z(r2) and dz/d(r2) of a conic + even asphere, arrays of r2 (mm^2).
+
+    Returns (z, dzdr2, domain_ok) where domain_ok is False where
+    1 - (1+k) c^2 r^2 < 0 (the conic is not defined there)."""
+    arg = 1.0 - (1.0 + k) * (c * c) * r2
+    domain_ok = arg >= 0.0
+    root = np.sqrt(np.maximum(arg, 0.0))
+    z = c * r2 / (1.0 + root)
+    # dz/d(r2) = c / (2 sqrt(arg)); bounded where arg -> 0 by the domain mask
+    dz = c / (2.0 * np.maximum(root, 1e-12))
+    if coeffs:
+        power = np.ones_like(r2)
+        for i, a in enumerate(coeffs, start=1):
+            dz = dz + i * a * power
+            power = power * r2
+            z = z + a * power
+    return z, dz, domain_ok

@@ -1,0 +1,64 @@
+"""The `dcdi` command as a user calls it."""
+import json
+import subprocess
+import sys
+
+import pytest
+
+from dcdi_core.cli import main
+
+
+def _run(capsys, *argv):
+    code = main(list(argv))
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def test_help_explains_units():
+    out = subprocess.run([sys.executable, "-m", "dcdi_core", "--help"], capture_output=True, text=True)
+    assert out.returncode == 0
+    assert "metres" in out.stdout and "nm" in out.stdout and "mm" in out.stdout
+
+
+def test_lens_info_json_keys(capsys):
+    code, out, _ = _run(capsys, "lens", "info", "mos-s1", "--json")
+    assert code == 0
+    info = json.loads(out)
+    for key in ("effective_focal_length_mm", "back_focal_length_mm", "f_number",
+                "entrance_pupil_position_mm", "entrance_pupil_diameter_mm",
+                "in_focus_object_distance_m", "stated"):
+        assert key in info
+    assert info["stated"]["effective_focal_length_mm"] == 20.0
+    assert info["in_focus_object_distance_m"] < 0 and info["in_focus_is_virtual"]
+    assert info["wavelength_nm"] == pytest.approx(587.5618)
+
+
+def test_lens_info_wavelength_changes_focal_length(capsys):
+    _, a, _ = _run(capsys, "lens", "info", "mos-s1", "--json", "--paraxial-only", "--wavelength", "450")
+    _, b, _ = _run(capsys, "lens", "info", "mos-s1", "--json", "--paraxial-only", "--wavelength", "650")
+    assert json.loads(a)["effective_focal_length_mm"] < json.loads(b)["effective_focal_length_mm"]
+
+
+def test_spot_json(capsys):
+    code, out, _ = _run(capsys, "spot", "mos-s1", "--field", "0", "--depth", "inf",
+                        "--wavelength", "587.56", "--rays", "32", "--json")
+    assert code == 0
+    r = json.loads(out)
+    assert r["chief_ray_height_mm"] == 0.0
+    assert r["centroid_mm"] == pytest.approx([0.0, 0.0], abs=1e-12)
+    assert r["rms_radius_mm"] > 0 and r["vignetted_fraction"] == 0.0
+    code, out, _ = _run(capsys, "spot", "mos-s1", "--angle", "20", "--depth", "2",
+                        "--wavelength", "500", "--json", "--rays", "16")
+    r = json.loads(out)
+    assert r["angle_deg"] == pytest.approx(20.0) and r["chief_ray_height_mm"] > 5
+
+
+def test_unknown_lens_is_a_clean_error(capsys):
+    code, _, err = _run(capsys, "lens", "info", "nope")
+    assert code == 2 and "no lens 'nope'" in err
+
+
+def test_bad_depth_is_an_argparse_error(capsys):
+    with pytest.raises(SystemExit):
+        main(["spot", "mos-s1", "--field", "0", "--depth", "-3", "--wavelength", "500"])
+    assert "depth must be > 0" in capsys.readouterr().err
