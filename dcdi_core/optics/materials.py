@@ -202,9 +202,9 @@ class CatalogueGlass(Material):
     def _index(self, wl_nm: np.ndarray) -> np.ndarray:
         l2 = (wl_nm * 1e-3) ** 2  # um^2, the catalogues' unit
         if self.formula == "sellmeier":
-            # Broadcast the three resonance terms over a trailing axis.
-            l2e = l2[..., None]
-            n2 = 1.0 + np.sum(self._b * l2e / (l2e - self._c), axis=-1)
+            b, c = self._b, self._c
+            # Three resonance terms written out: no (..., 3) temporary for large ray batches.
+            n2 = 1.0 + b[0] * l2 / (l2 - c[0]) + b[1] * l2 / (l2 - c[1]) + b[2] * l2 / (l2 - c[2])
         else:
             a = self._a
             inv = 1.0 / l2
@@ -293,9 +293,10 @@ def _model_number(field, value, lo, allowed):
 # ---------------------------------------------------------------------------
 # Catalogue data.
 #
-# Coefficients are copied from the files named in each source string and were
-# checked at import-review time to reproduce the catalogue nd (to < 4e-6) and
-# vd (to < 0.005); tests/test_materials.py re-checks every glass.
+# Coefficients were copied programmatically from the files named in each
+# source string (and cross-checked against a second copy where one exists);
+# each reproduces its catalogue nd to < 4e-6 and vd to < 0.005, which
+# tests/test_materials.py re-checks for every glass.
 
 _SCHOTT_2018 = (
     "SCHOTT optical glass catalogue, status 2018-06-01: Zemax AGF 'SCHOTT. preferred. inquiry and "
@@ -379,8 +380,8 @@ _CATALOGUE = (
     ("SF11", "sellmeier", (1.73848403, 0.311168974, 1.17490871, 0.0136068604, 0.0615960463, 121.922711),
      1.78472, 25.76, _S18, _SCHOTT_2018, (390, 2500), "lead-containing"),
     # --- SCHOTT, discontinued (Zemax 2008 obsolete section) --------------------
-    # nd/vd are the AGF values; SCHOTT's printed values were 1.74400/44.72 (LAF2)
-    # and 1.55232/63.46 (PSK3).
+    # nd/vd are the values in the AGF NM lines (glass codes 744447 and 552635);
+    # AGF status 2 = obsolete.
     ("LAF2", "sellmeier", _sellmeier_agf(1.75302282, 0.00957243296, 0.213978997, 0.0402787459, 1.09939444, 102.533259),
      1.744002, 44.719972, _OBS, _SCHOTT_2008_OBSOLETE, (334, 2325),
      "discontinued lead-containing lanthanum flint (glass code 744447); NOT N-LAF2 (744449)"),
