@@ -17,6 +17,7 @@ def atomic_path(path: str | os.PathLike):
     os.close(fd)
     try:
         yield Path(tmp)
+        os.chmod(tmp, 0o644)  # mkstemp makes files owner-only
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -26,4 +27,5 @@ def atomic_path(path: str | os.PathLike):
 
 def write_text(path, text: str) -> None:
     with atomic_path(path) as tmp:
-        tmp.write_text(text, encoding="utf-8")
+        with open(tmp, "w", encoding="utf-8", newline="\n") as f:
+            f.write(text)

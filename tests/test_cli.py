@@ -62,3 +62,32 @@ def test_bad_depth_is_an_argparse_error(capsys):
     with pytest.raises(SystemExit):
         main(["spot", "mos-s1", "--field", "0", "--depth", "-3", "--wavelength", "500"])
     assert "depth must be > 0" in capsys.readouterr().err
+
+
+def test_lens_import_writes_a_loadable_toml(tmp_path, capsys):
+    from test_zemax import singlet_text, write_utf16
+
+    src = tmp_path / "My Singlet.zmx"
+    write_utf16(src, singlet_text())
+    out = tmp_path / "lenses" / "mine.toml"
+    code, stdout, _ = _run(capsys, "lens", "import", str(src), "-o", str(out))
+    assert code == 0 and out.exists()
+    code, info, _ = _run(capsys, "lens", "info", str(out), "--json", "--paraxial-only")
+    assert code == 0 and json.loads(info)["effective_focal_length_mm"] > 0
+
+
+def test_lens_import_refusal_names_the_line(tmp_path, capsys):
+    from test_zemax import singlet_text, write_ascii
+
+    src = tmp_path / "bad.zmx"
+    write_ascii(src, singlet_text().replace("TYPE STANDARD", "TYPE TOROIDAL", 1))
+    out = tmp_path / "bad.toml"
+    code, _, err = _run(capsys, "lens", "import", str(src), "-o", str(out))
+    assert code == 2 and "bad.zmx:" in err and "TOROIDAL" in err
+    assert not out.exists()
+
+
+def test_bench_trace_runs_and_reports(capsys):
+    code, out, _ = _run(capsys, "bench", "trace", "--rays", "3000", "--repeat", "1")
+    assert code == 0
+    assert "M ray-surface/s" in out and "baseline" in out and "float32 vs float64" in out

@@ -37,11 +37,11 @@ import codecs
 import math
 import os
 import re
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from .errors import ZemaxImportError
+from ..atomic import write_text
 from .prescription_toml import dumps_prescription
 
 __all__ = ["read_zmx", "write_toml", "decode_zmx"]
@@ -425,21 +425,7 @@ def read_zmx(path: str | os.PathLike) -> dict:
 
 def write_toml(d: dict, out_path: str | os.PathLike) -> Path:
     """Write ``d`` as TOML to ``out_path`` atomically (temporary file in the
-    same folder, then ``os.replace``); returns the path."""
+    same folder, then rename; the folder is created); returns the path."""
     out_path = Path(out_path)
-    text = dumps_prescription(d)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out_path.name}.", suffix=".tmp", dir=out_path.parent)
-    try:
-        os.chmod(tmp, 0o644)   # mkstemp makes it owner-only
-        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, out_path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    write_text(out_path, dumps_prescription(d))
     return out_path
