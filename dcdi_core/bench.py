@@ -70,7 +70,89 @@ def bench_trace(n_rays: int, repeat: int) -> int:
     return 0
 
 
+def bench_psflib(quick: bool = False) -> int:
+    """MOS-S1: 64 fields x 20 depth bins (19 finite + infinity) x RGB from 9
+    wavelengths x 128^2 rays, no cache. Baseline: the simple way, one PSF at a
+    time with an unchunked single-thread trace and a per-ray np.add.at deposit
+    of the pixel-integrated Gaussian, timed on a few PSFs in the same process."""
+    import tempfile
+
+    from .optics import trace as T
+    from .optics.aiming import launch, pupil_rays, sources, stop_grid
+    from .optics.lens import load_lens
+    from .psf.compute import PSFSettings, pixel_pitch_mm, spectral_samples
+    from .psf.deposit import gaussian_sigma_px
+    from .psf.library import LibraryGrid, PSFLibrary, text_progress
+
+    lens = load_lens("mos-s1")
+    settings = PSFSettings()
+    grid = LibraryGrid(n_fields=8 if quick else 64, n_depths=2 if quick else 19)
+    n_psf = grid.n_fields * (grid.n_depths + 1)
+    n_p = len(stop_grid(lens, settings.pupil_samples))
+    wl, w = spectral_samples(settings, None)
+    n_rays = n_psf * n_p * wl.size
+    print(f"bench psflib: mos-s1, {grid.n_fields} fields x {grid.n_depths + 1} depth bins = {n_psf} RGB PSFs "
+          f"{settings.kernel_size}x{settings.kernel_size}, {wl.size} wavelengths x {n_p:,} rays in the stop "
+          f"({settings.pupil_samples}^2 grid) = {n_rays:,} rays, {os.cpu_count()} CPU(s)")
+    lib = PSFLibrary(lens, settings, grid, None)
+    t = time.perf_counter()
+    lib.build(progress=text_progress("  building"))
+    total = time.perf_counter() - t
+    with tempfile.TemporaryDirectory() as d:
+        t = time.perf_counter()
+        lib.save(os.path.join(d, "lib.npz"))
+        io_s = time.perf_counter() - t
+    tm = lib.last_timings_s
+    other = total - tm["aim"] - tm["trace"] - tm["deposit"]
+    print(f"  total {total:.1f} s = {n_rays / total / 1e6:.2f} M rays/s "
+          f"({n_rays * (len(lens.surfaces) + 1) / total / 1e6:.1f} M ray-surface/s)")
+    print(f"  where the time goes: aim {tm['aim']:.1f} s, trace {tm['trace']:.1f} s, "
+          f"deposit {tm['deposit']:.1f} s, other {other:.1f} s; writing the file (I/O) {io_s:.2f} s")
+    # baseline, on a few sources
+    pitch = pixel_pitch_mm(lens, settings)
+    k = settings.kernel_size
+    sig = gaussian_sigma_px()
+    import math as _m
+    erf = np.vectorize(_m.erf)
+    aimed = sources(lens, [2.0], field=[0.3, 0.6, 0.9])
+    saved = T.CHUNK
+    t = time.perf_counter()
+    try:
+        T.CHUNK = 1 << 30
+        for i in range(aimed.p.shape[0]):
+            from .optics.aiming import Aimed
+            a = Aimed(aimed.depth_mm[i], aimed.p[i], aimed.v_chief[i], aimed.ok[i], aimed.z_ep)
+            o, dd, st, _ = pupil_rays(lens, a, stop_grid(lens, settings.pupil_samples))
+            oc, dc = launch(lens, a.depth_mm, a.p, 0.0, a.v_chief, a.z_ep)
+            cy = T.trace(lens, oc, dc, lens.wavelength_nm, apertures=False).position_mm[0, 1]
+            kern = np.zeros((3, k, k))
+            for j, lam in enumerate(wl):
+                b = T.trace(lens, o, dd, lam, status=st)
+                v = b.valid[0]
+                x = b.position_mm[0, v, 0] / pitch + k / 2
+                y = (b.position_mm[0, v, 1] - cy) / pitch + k / 2
+                ix0, iy0 = np.floor(x).astype(int) - 2, np.floor(y).astype(int) - 2
+                for dx_ in range(5):
+                    gx = erf((ix0 + dx_ + 1 - x) / (sig * _m.sqrt(2))) - erf((ix0 + dx_ - x) / (sig * _m.sqrt(2)))
+                    for dy_ in range(5):
+                        gy = erf((iy0 + dy_ + 1 - y) / (sig * _m.sqrt(2))) - erf((iy0 + dy_ - y) / (sig * _m.sqrt(2)))
+                        ii, jj = iy0 + dy_, ix0 + dx_
+                        ok = (ii >= 0) & (ii < k) & (jj >= 0) & (jj < k)
+                        for c in range(3):
+                            np.add.at(kern[c], (ii[ok], jj[ok]), 0.25 * gx[ok] * gy[ok] * w[j, c])
+    finally:
+        T.CHUNK = saved
+    per_base = (time.perf_counter() - t) / aimed.p.shape[0]
+    per = total / n_psf
+    print(f"  baseline (one PSF at a time, 1 thread, np.add.at deposit): {per_base * 1e3:.0f} ms/PSF "
+          f"vs {per * 1e3:.1f} ms/PSF here: x{per_base / per:.1f}; the baseline would take "
+          f"{per_base * n_psf:.0f} s for this library")
+    return 0
+
+
 def run(what: str, args) -> int:
     if what == "trace":
         return bench_trace(args.rays, args.repeat)
+    if what == "psflib":
+        return bench_psflib(getattr(args, "quick", False))
     raise ValueError(f"unknown benchmark {what!r}")

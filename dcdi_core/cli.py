@@ -110,6 +110,106 @@ def cmd_spot(args) -> int:
     return 0
 
 
+def _psf_settings(args):
+    from .psf.compute import PSFSettings
+    return PSFSettings(kernel_size=args.kernel, pupil_samples=args.rays, n_wavelengths=args.wavelengths,
+                       precision="float32" if args.float32 else "float64",
+                       pixel_pitch_mm=args.pixel_pitch, focus_distance_m=args.focus)
+
+
+def _response(args):
+    if getattr(args, "response", None):
+        from .psf.spectral import load_response
+        return load_response(args.response)
+    return None
+
+
+def cmd_psf(args) -> int:
+    import numpy as np
+    from .atomic import atomic_path
+    from .optics.lens import load_lens
+    from .psf.compute import pixel_pitch_mm, psf
+    from .psf.plots import depth_label, psf_grid_png
+    lens = load_lens(args.lens)
+    settings = _psf_settings(args)
+    r = psf(lens, depth_m=args.depth, field=args.field, angle_deg=args.angle, settings=settings,
+            response=_response(args), wavelength_nm=args.wavelength)
+    pitch = pixel_pitch_mm(lens, settings)
+    if r.zero_energy:
+        print(f"dcdi: error: no ray of this field reaches the sensor (fully vignetted or beyond the "
+              f"image circle); the kernel would be empty", file=sys.stderr)
+        return 2
+    res = {
+        "lens": lens.id, "depth_m": args.depth, "field": args.field, "angle_deg": args.angle,
+        "wavelength_nm": args.wavelength, "kernel_size": settings.kernel_size, "pixel_pitch_mm": pitch,
+        "chief_ray_height_mm": float(r.chief_ray_height_mm),
+        "relative_illumination": float(r.relative_illumination),
+        "energy_outside": float(r.energy_outside.max()),
+    }
+    for c, name in enumerate("RGB"):
+        res[name] = {"centroid_mm": [float(v) for v in r.centroid_mm[c]],
+                     "rms_radius_mm": float(r.rms_radius_mm[c]),
+                     "energy_outside": float(r.energy_outside[c]),
+                     "vignetted_fraction": float(r.vignetted_fraction[c])}
+    if args.out:
+        with atomic_path(args.out) as tmp:
+            with open(tmp, "wb") as f:
+                np.savez(f, psf=r.psf, pixel_pitch_mm=np.float64(pitch))
+    if args.png:
+        where = f"field {args.field}" if args.field is not None else f"{args.angle} deg"
+        psf_grid_png(r.psf[None, None], [where], [depth_label(args.depth)], args.png,
+                     f"{lens.name}", pitch)
+    print(_dump(res) if args.json else "\n".join(f"{k:<22} {v}" for k, v in res.items()))
+    return 0
+
+
+def cmd_psflib_build(args) -> int:
+    import time
+    from .optics.lens import load_lens
+    from .psf.library import LibraryGrid, PSFLibrary, text_progress
+    lens = load_lens(args.lens)
+    grid = LibraryGrid(n_fields=args.fields, n_depths=args.depths, near_m=args.near, far_m=args.far)
+    lib = PSFLibrary.open(lens, _psf_settings(args), grid, _response(args), cache=not args.no_cache)
+    t = time.perf_counter()
+    done = lib.build(progress=text_progress(f"psflib {lens.id}"))
+    lib.save(args.output)
+    print(f"wrote {args.output}: {len(lib.depths_m)} depth bins x {len(lib.fields)} fields x 3 x "
+          f"{lib.kernel_size} x {lib.kernel_size}; computed {len(done)} bins in "
+          f"{time.perf_counter() - t:.1f} s ({len(lib.depths_m) - len(done)} from the cache)")
+    return 0
+
+
+def cmd_psflib_show(args) -> int:
+    import math
+    import numpy as np
+    from .optics.lens import load_lens
+    from .psf.library import LibraryGrid, PSFLibrary
+    from .psf.plots import depth_label, psf_grid_png
+    if args.library.endswith(".npz"):
+        lib = PSFLibrary.load(args.library)
+    else:
+        lib = PSFLibrary.open(load_lens(args.library), _psf_settings(args))
+    fields = np.array(args.show_fields)
+    depths = np.array(args.show_depths)
+    if lib.lens is None:   # a file: show the bins it holds, nearest to what was asked
+        keep = np.flatnonzero(lib.computed)
+        di = [int(keep[np.argmin(np.abs(lib.diopters[keep] - (0 if math.isinf(d) else 1 / d)))]) for d in depths]
+        fi = [int(np.argmin(np.abs(lib.fields - f))) for f in fields]
+        kernels = lib.psf[np.ix_(di, fi)].swapaxes(0, 1)
+        depths, fields = lib.depths_m[di], lib.fields[fi]
+    else:
+        kernels = lib.at(fields[:, None], depths[None, :], clamp_near=False)
+    psf_grid_png(kernels, [f"field {f:.2f}" for f in fields], [depth_label(d) for d in depths],
+                 args.png, f"PSF library: {lib.meta['lens_id']}", lib.pixel_pitch_mm)
+    print(f"wrote {args.png}")
+    return 0
+
+
+def cmd_report(args) -> int:
+    from .psf.accuracy import run_report
+    return run_report(args.lens, args.out, quick=args.quick)
+
+
 def cmd_bench(args) -> int:
     from . import bench
     return bench.run(args.what, args)
@@ -158,10 +258,69 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--json", action="store_true", help="print JSON")
     q.set_defaults(func=cmd_spot)
 
+    def psf_options(q, required_depth=True):
+        q.add_argument("--kernel", type=_positive_int, default=41, metavar="K", help="kernel size K x K px, odd (default 41)")
+        q.add_argument("--rays", type=_positive_int, default=128, metavar="N", help="pupil grid N x N (default 128)")
+        q.add_argument("--wavelengths", type=_positive_int, default=9, metavar="W",
+                       help="wavelength samples over 400-700 nm (default 9)")
+        q.add_argument("--float32", action="store_true", help="trace in float32 (default float64)")
+        q.add_argument("--pixel-pitch", type=float, default=None, metavar="MM",
+                       help="pixel pitch in mm (default: the lens's sensor)")
+        q.add_argument("--focus", type=_depth, default=None, metavar="D",
+                       help="move the sensor to focus depth D metres (default: as prescribed)")
+        q.add_argument("--response", default=None, metavar="CSV",
+                       help="sensor spectral response CSV (wavelength_nm,r,g,b); default: shipped curves")
+
+    q = sub.add_parser("psf", help="the RGB PSF of one field and depth",
+                       description="RGB PSF on the sensor's pixel grid, centred on the chief ray. " + UNITS)
+    q.add_argument("lens", help="lens id or .toml path")
+    g = q.add_mutually_exclusive_group(required=True)
+    g.add_argument("--field", type=float, metavar="F", help="normalised image height (1 = sensor semi-diagonal)")
+    g.add_argument("--angle", type=float, metavar="DEG", help="field angle in object space, degrees")
+    q.add_argument("--depth", type=_depth, required=True, metavar="D", help="object depth in metres, or inf")
+    q.add_argument("--wavelength", type=float, default=None, metavar="NM",
+                   help="monochromatic kernel at NM nm (all three channels alike)")
+    q.add_argument("--out", default=None, metavar="FILE.npz", help="write psf (3,k,k) and pixel_pitch_mm")
+    q.add_argument("--png", default=None, metavar="FILE.png", help="write a picture of the kernel")
+    q.add_argument("--json", action="store_true", help="print JSON")
+    psf_options(q)
+    q.set_defaults(func=cmd_psf)
+
+    q = sub.add_parser("psflib", help="PSF libraries (fields x depths): build, show")
+    psub = q.add_subparsers(dest="psflib_command", required=True, metavar="SUBCOMMAND")
+    b = psub.add_parser("build", help="build a lens's PSF library and write it to a file",
+                        description="Depth bins uniform in 1/depth from --near to --far, plus infinity. " + UNITS)
+    b.add_argument("lens", help="lens id or .toml path")
+    b.add_argument("-o", "--output", required=True, metavar="FILE.npz", help="the library file to write")
+    b.add_argument("--fields", type=_positive_int, default=64, help="fields over [0, 1] (default 64)")
+    b.add_argument("--depths", type=_positive_int, default=20, help="finite depth bins (default 20), plus infinity")
+    b.add_argument("--near", type=float, default=0.7, metavar="M", help="nearest depth bin, metres (default 0.7)")
+    b.add_argument("--far", type=float, default=10.0, metavar="M",
+                   help="farthest finite bin, metres (default 10); farther = infinity")
+    b.add_argument("--no-cache", action="store_true", help="do not read or write the cache")
+    psf_options(b)
+    b.set_defaults(func=cmd_psflib_build)
+    s_ = psub.add_parser("show", help="a PNG grid of PSFs across field and depth")
+    s_.add_argument("library", help="a library file (.npz from psflib build) or a lens id")
+    s_.add_argument("--png", required=True, metavar="FILE.png")
+    s_.add_argument("--show-fields", type=float, nargs="+", default=[0.0, 0.5, 0.7, 1.0], metavar="F")
+    s_.add_argument("--show-depths", type=_depth, nargs="+", default=[0.7, 1.0, 2.0, 5.0, math.inf], metavar="D")
+    psf_options(s_)
+    s_.set_defaults(func=cmd_psflib_show)
+
+    q = sub.add_parser("report", help="accuracy reports (error against run time)")
+    rsub = q.add_subparsers(dest="report_command", required=True, metavar="REPORT")
+    r = rsub.add_parser("psf-accuracy", help="PSF error vs build time for rays, wavelengths, bins, precision")
+    r.add_argument("lens", help="lens id or .toml path")
+    r.add_argument("--out", default="out/report", help="folder for the table (Markdown) and plot (PNG)")
+    r.add_argument("--quick", action="store_true", help="a smaller reference and sweep (for tests)")
+    r.set_defaults(func=cmd_report)
+
     q = sub.add_parser("bench", help="benchmarks (times, not tests)")
-    q.add_argument("what", choices=["trace"], help="what to benchmark")
+    q.add_argument("what", choices=["trace", "psflib"], help="what to benchmark")
     q.add_argument("--rays", type=_positive_int, default=1 << 20, help="rays per trace (default 2^20)")
     q.add_argument("--repeat", type=_positive_int, default=3, help="timed repetitions (best is kept)")
+    q.add_argument("--quick", action="store_true", help="psflib: a small library (for tests)")
     q.set_defaults(func=cmd_bench)
 
     q = sub.add_parser("demo", help="the demo job: lens reports and spot diagrams of all lenses")

@@ -198,6 +198,25 @@ def stop_grid(lens: Lens, n: int) -> np.ndarray:
     return np.stack([x[keep], y[keep]], axis=-1)
 
 
+def chief_jacobian(lens: Lens, aimed: Aimed, wavelength_nm=None) -> np.ndarray:
+    """d(stop x, y) / d(u, v) at each chief ray (..., 2, 2), by finite differences:
+    how the first vertex plane maps onto the real stop around the chief ray."""
+    wl = lens.wavelength_nm if wavelength_nm is None else wavelength_nm
+    dep = aimed.depth_mm[..., None]
+    p = aimed.p[..., None]
+    v0 = aimed.v_chief[..., None]
+    h = 1e-6 * max(lens.surfaces[lens.stop_index].semi_diameter_mm, 1e-3)
+    uu = np.concatenate([np.zeros_like(v0), np.full_like(v0, h), np.zeros_like(v0)], axis=-1)
+    vv = np.concatenate([v0, v0, v0 + h], axis=-1)
+    sx, sy, _ = _stop_xy(lens, dep, p, uu, vv, aimed.z_ep, wl)
+    j = np.empty(aimed.p.shape + (2, 2))
+    j[..., 0, 0] = (sx[..., 1] - sx[..., 0]) / h
+    j[..., 1, 0] = (sy[..., 1] - sy[..., 0]) / h
+    j[..., 0, 1] = (sx[..., 2] - sx[..., 0]) / h
+    j[..., 1, 1] = (sy[..., 2] - sy[..., 0]) / h
+    return j
+
+
 def pupil_rays(lens: Lens, aimed: Aimed, targets: np.ndarray, wavelength_nm=None, *,
                tol_mm: float = 1e-7, max_iter: int = 8):
     """Rays from each source that meet the stop at ``targets`` (P, 2).
@@ -212,15 +231,7 @@ def pupil_rays(lens: Lens, aimed: Aimed, targets: np.ndarray, wavelength_nm=None
     p = aimed.p[..., None]
     v0 = aimed.v_chief[..., None]
     h = 1e-6 * max(lens.surfaces[lens.stop_index].semi_diameter_mm, 1e-3)
-    # Jacobian d(stop xy)/d(u, v) at the chief ray, by finite differences
-    uu = np.concatenate([np.zeros_like(v0), np.full_like(v0, h), np.zeros_like(v0)], axis=-1)
-    vv = np.concatenate([v0, v0, v0 + h], axis=-1)
-    sx, sy, _ = _stop_xy(lens, dep, p, uu, vv, z_ep, wl)
-    j = np.empty(aimed.p.shape + (2, 2))
-    j[..., 0, 0] = (sx[..., 1] - sx[..., 0]) / h
-    j[..., 1, 0] = (sy[..., 1] - sy[..., 0]) / h
-    j[..., 0, 1] = (sx[..., 2] - sx[..., 0]) / h
-    j[..., 1, 1] = (sy[..., 2] - sy[..., 0]) / h
+    j = chief_jacobian(lens, aimed, wl)
     det = j[..., 0, 0] * j[..., 1, 1] - j[..., 0, 1] * j[..., 1, 0]
     good = aimed.ok & np.isfinite(det) & (np.abs(det) > 1e-12)
     det = np.where(good, det, 1.0)

@@ -104,10 +104,27 @@ def paraxial_image_height_mm(lens: Lens, field_angle_deg, wavelength_nm: float |
     """Paraxial chief-ray height on the sensor plane for an object at infinity
     at ``field_angle_deg`` (the chief ray through the paraxial entrance pupil)."""
     fo = first_order(lens, wavelength_nm)
-    (a, b), _ = fo.lens_matrix
-    (_, _), (c, d) = fo.lens_matrix
+    (a, b), (c, d) = fo.lens_matrix
     u0 = np.tan(np.radians(np.asarray(field_angle_deg, dtype=np.float64)))
     y0 = -fo.entrance_pupil_position_mm * u0
     y_last = a * y0 + b * u0
     u_last = c * y0 + d * u0
     return y_last + fo.sensor_distance_mm * u_last
+
+
+def refocused(lens: Lens, focus_distance_m: float, wavelength_nm: float | None = None) -> Lens:
+    """The lens with its sensor moved (last thickness changed) so that an axial
+    object at ``focus_distance_m`` metres (``inf`` allowed) is in paraxial focus."""
+    from dataclasses import replace
+
+    from .errors import InputRangeError
+
+    if not (focus_distance_m > 0):
+        raise InputRangeError("focus_distance_m", focus_distance_m, "> 0 metres, or inf")
+    q = float(image_distance_mm(lens, focus_distance_m, wavelength_nm))
+    if not (math.isfinite(q) and q > 0):
+        raise InputRangeError("focus_distance_m", focus_distance_m,
+                              f"a distance whose image is real and behind the lens (image distance {q:.4g} mm)")
+    surfaces = list(lens.surfaces)
+    surfaces[-1] = replace(surfaces[-1], thickness_mm=q)
+    return lens.with_surfaces(surfaces)

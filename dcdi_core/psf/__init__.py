@@ -1,0 +1,1 @@
+"""Point spread functions: ray-traced RGB PSFs of a lens, their spectral weighting and library."""

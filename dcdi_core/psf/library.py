@@ -1,0 +1,347 @@
+"""The PSF library: RGB PSFs over fields x depths, cached on disk, built lazily.
+
+Rotational symmetry: one radial line of fields (normalised image height 0..1
+along sensor +y) is enough; a renderer rotates each kernel to its azimuth.
+Depth bins are uniform in inverse depth (diopters) from ``near_m`` to
+``far_m`` plus infinity; as DESIGN.md fixes, any depth at or beyond ``far_m``
+(including ``inf`` and Blender's 1e10 background) uses the infinity PSF. A
+depth below ``near_m`` is an error unless the caller asks to clamp it.
+
+Interpolation is linear in field and in inverse depth. Only the depth bins
+that a query (a list of depths or a depth map) touches are computed; results
+are cached in a file keyed by the lens's optical content and every setting,
+written atomically and checked on load (checksum, key, shapes, finiteness):
+a corrupt or stale cache is rebuilt, never used.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import sys
+import time
+import warnings
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..atomic import atomic_path
+from ..optics.aiming import sources
+from ..optics.errors import InputRangeError, OpticsError
+from ..optics.lens import Lens
+from .compute import PSFSettings, compute_sources, focused_lens, pixel_pitch_mm, spectral_samples, warn_if_clipped
+from .spectral import SpectralResponse, default_response
+
+FORMAT_VERSION = 1
+# bumped whenever the PSF computation changes what it produces
+ALGORITHM_VERSION = 1
+
+
+class CacheWarning(UserWarning):
+    """A cache file was unusable (corrupt or stale) and is being rebuilt."""
+
+
+@dataclass(frozen=True)
+class LibraryGrid:
+    """Where the library samples: ``n_fields`` fields over [0, 1] and
+    ``n_depths`` finite depth bins uniform in 1/depth over [near_m, far_m],
+    plus infinity."""
+
+    n_fields: int = 64
+    n_depths: int = 20
+    near_m: float = 0.7
+    far_m: float = 10.0
+
+    def __post_init__(self):
+        if self.n_fields < 2:
+            raise InputRangeError("n_fields", self.n_fields, ">= 2")
+        if self.n_depths < 2:
+            raise InputRangeError("n_depths", self.n_depths, ">= 2 (near and far at least)")
+        if not (0 < self.near_m < self.far_m < math.inf):
+            raise InputRangeError("near_m, far_m", (self.near_m, self.far_m), "0 < near < far < inf metres")
+
+    @property
+    def fields(self) -> np.ndarray:
+        return np.linspace(0.0, 1.0, self.n_fields)
+
+    @property
+    def diopters(self) -> np.ndarray:
+        """Inverse depths of the bins (1/m), decreasing, the last one 0 (infinity)."""
+        return np.append(np.linspace(1.0 / self.near_m, 1.0 / self.far_m, self.n_depths), 0.0)
+
+    @property
+    def depths_m(self) -> np.ndarray:
+        d = self.diopters
+        with np.errstate(divide="ignore"):
+            return np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), np.inf)
+
+
+def lens_fingerprint(lens: Lens) -> str:
+    """sha256 of everything optical about the lens (surfaces, glass indices at
+    three wavelengths, sensor): two lenses with the same fingerprint image alike."""
+    wl = np.array([450.0, 550.0, 650.0])
+    n = lens.refractive_indices(wl)
+    parts = [repr([(s.radius_mm, s.thickness_mm, s.semi_diameter_mm, s.conic, s.aspheric_coefficients, s.stop)
+                   for s in lens.surfaces]),
+             np.round(n, 12).tobytes().hex(), repr(lens.sensor), repr(lens.wavelength_nm)]
+    return hashlib.sha256("|".join(parts).encode()).hexdigest()
+
+
+def default_cache_dir() -> Path:
+    env = os.environ.get("DCDI_CACHE_DIR")
+    base = Path(env) if env else Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "dcdi"
+    return base / "psflib"
+
+
+class PSFLibrary:
+    """PSFs of one lens over ``grid`` (depth bins x fields), computed on demand.
+
+    Arrays (first axis: depth bin, last bin = infinity; second: field):
+    ``psf`` (D+1, F, 3, k, k) float32; ``energy_outside`` and
+    ``vignetted_fraction`` (D+1, F, 3); ``relative_illumination``,
+    ``chief_ray_height_mm``, ``zero_energy``, ``kernel_size_needed`` (D+1, F);
+    ``computed`` (D+1,) says which bins hold data.
+    """
+
+    ARRAYS = ("psf", "energy_outside", "vignetted_fraction", "relative_illumination",
+              "chief_ray_height_mm", "zero_energy", "kernel_size_needed", "computed")
+
+    def __init__(self, lens: Lens | None, settings: PSFSettings, grid: LibraryGrid,
+                 response: SpectralResponse | None, *, cache_dir: str | os.PathLike | None = None,
+                 meta: dict | None = None):
+        self.lens = lens
+        self.settings = settings
+        self.grid = grid
+        self.response = response
+        self.fields = grid.fields
+        self.depths_m = grid.depths_m
+        self.diopters = grid.diopters
+        if meta is None:
+            wl, w = spectral_samples(settings, response)
+            resp = response or default_response()
+            self.lens_fingerprint = lens_fingerprint(lens)
+            meta = {
+                "format": FORMAT_VERSION, "algorithm": ALGORITHM_VERSION,
+                "lens_id": lens.id, "lens_file": lens.path, "lens_fingerprint": self.lens_fingerprint,
+                "settings": settings.as_dict(), "grid": asdict(grid),
+                "pixel_pitch_mm": pixel_pitch_mm(focused_lens(lens, settings), settings),
+                "wavelengths_nm": wl.tolist(), "channel_weights": w.tolist(),
+                "response": {"name": resp.name, "source": resp.source, "sha256": resp.content_hash(),
+                             "wavelength_nm": resp.wavelength_nm.tolist(), "rgb": resp.rgb.tolist()},
+            }
+        self.meta = meta
+        self.key = hashlib.sha256(json.dumps(
+            {k: meta[k] for k in ("format", "algorithm", "lens_fingerprint", "settings", "grid")}
+            | {"response": meta["response"]["sha256"]}, sort_keys=True).encode()).hexdigest()
+        k = settings.kernel_size
+        nd, nf = len(self.depths_m), len(self.fields)
+        self.psf = np.zeros((nd, nf, 3, k, k), np.float32)
+        self.energy_outside = np.zeros((nd, nf, 3))
+        self.vignetted_fraction = np.zeros((nd, nf, 3))
+        self.relative_illumination = np.zeros((nd, nf))
+        self.chief_ray_height_mm = np.zeros((nd, nf))
+        self.zero_energy = np.zeros((nd, nf), bool)
+        self.kernel_size_needed = np.zeros((nd, nf), np.int64)
+        self.computed = np.zeros(nd, bool)
+        self.cache_path = None
+        if cache_dir is not None:
+            self.cache_path = Path(cache_dir) / f"{meta['lens_id']}-{self.key[:20]}.npz"
+            if self.cache_path.exists():
+                self._load_into(self.cache_path)
+
+    # ----------------------------------------------------------- properties
+    @property
+    def pixel_pitch_mm(self) -> float:
+        return float(self.meta["pixel_pitch_mm"])
+
+    @property
+    def kernel_size(self) -> int:
+        return self.settings.kernel_size
+
+    @property
+    def wavelengths_nm(self) -> np.ndarray:
+        return np.asarray(self.meta["wavelengths_nm"])
+
+    # ---------------------------------------------------------------- query
+    def depth_bins(self, depth_m, *, clamp_near: bool = False):
+        """For each depth: (lower bin, upper bin, weight of the upper bin), in
+        inverse depth. Depths >= far_m use the infinity bin alone."""
+        d = np.asarray(depth_m, dtype=np.float64)
+        bad = ~(d > 0)          # NaN, 0, negative
+        if bad.any():
+            raise InputRangeError("depth_m", float(d[bad].ravel()[0]),
+                                  "> 0 metres or inf (mask invalid depths before asking for PSFs)")
+        near = self.grid.near_m
+        if (d < near).any() and not clamp_near:
+            raise InputRangeError("depth_m", float(d.min()),
+                                  f">= the library's near limit {near} m (or pass clamp_near=True)")
+        d = np.maximum(d, near)
+        far = d >= self.grid.far_m
+        x = np.where(far, 0.0, 1.0 / np.where(far, 1.0, d))
+        finite = self.diopters[:-1]                       # decreasing
+        n = len(finite)
+        pos = (finite[0] - x) / (finite[0] - finite[-1]) * (n - 1)
+        i0 = np.clip(np.floor(pos).astype(np.int64), 0, n - 2)
+        t = np.clip(pos - i0, 0.0, 1.0)
+        i1 = np.where(far, n, i0 + 1)
+        i0 = np.where(far, n, i0)
+        t = np.where(far, 0.0, t)
+        return i0, i1, t
+
+    def bins_needed(self, depth_m, *, clamp_near: bool = False) -> np.ndarray:
+        """Sorted indices of the depth bins that these depths interpolate from
+        (bins whose weight is exactly 0 are left out)."""
+        i0, i1, t = self.depth_bins(depth_m, clamp_near=clamp_near)
+        need = np.concatenate([i0[t < 1.0].ravel(), i1[t > 0.0].ravel()])
+        return np.unique(need)
+
+    def ensure(self, depth_m=None, *, bins=None, clamp_near: bool = False, progress=None) -> list[int]:
+        """Compute (or load) the bins that ``depth_m`` needs, or ``bins``;
+        returns the bins that were computed now."""
+        if self.lens is None:
+            raise OpticsError("this library was loaded without its lens: it can only serve computed bins")
+        want = np.asarray(bins if bins is not None else self.bins_needed(depth_m, clamp_near=clamp_near), int)
+        todo = [int(b) for b in want if not self.computed[b]]
+        if not todo:
+            return []
+        lens_f = focused_lens(self.lens, self.settings)
+        aimed = sources(lens_f, self.depths_m[todo], field=self.fields)     # (F, n_todo)
+        wl, w = np.asarray(self.meta["wavelengths_nm"]), np.asarray(self.meta["channel_weights"])
+        plain = PSFSettings(**{**self.settings.as_dict(), "band_nm": tuple(self.settings.band_nm),
+                               "focus_distance_m": None})
+        batch = compute_sources(lens_f, aimed, plain, wl, w, progress=progress)
+        for j, b in enumerate(todo):
+            self.psf[b] = batch.psf[:, j]
+            self.energy_outside[b] = batch.energy_outside[:, j]
+            self.vignetted_fraction[b] = batch.vignetted_fraction[:, j]
+            self.relative_illumination[b] = batch.relative_illumination[:, j]
+            self.chief_ray_height_mm[b] = batch.chief_ray_height_mm[:, j]
+            self.zero_energy[b] = batch.zero_energy[:, j]
+            self.kernel_size_needed[b] = batch.kernel_size_needed[:, j]
+            self.computed[b] = True
+        self.last_timings_s = batch.timings_s
+        warn_if_clipped(batch, self.kernel_size, f"PSF library of {self.meta['lens_id']}")
+        if self.cache_path is not None:
+            t = time.perf_counter()
+            self.save(self.cache_path)
+            self.last_timings_s["io"] = time.perf_counter() - t
+        return todo
+
+    def build(self, progress=None) -> list[int]:
+        """Compute every bin."""
+        return self.ensure(bins=np.arange(len(self.depths_m)), progress=progress)
+
+    def field_weights(self, field):
+        f = np.asarray(field, dtype=np.float64)
+        if not np.isfinite(f).all() or (f < 0).any() or (f > 1.0 + 1e-9).any():
+            raise InputRangeError("field", float(np.nanmax(np.abs(f))), "[0, 1] (1 = sensor half-diagonal)")
+        pos = np.clip(f, 0.0, 1.0) * (len(self.fields) - 1)
+        j0 = np.clip(np.floor(pos).astype(np.int64), 0, len(self.fields) - 2)
+        return j0, j0 + 1, pos - j0
+
+    def at(self, field, depth_m, *, clamp_near: bool = False) -> np.ndarray:
+        """PSFs (..., 3, k, k) at fields x depths (broadcast together), linear in
+        field and in inverse depth; computes the bins it needs."""
+        field, depth_m = np.broadcast_arrays(np.asarray(field, float), np.asarray(depth_m, float))
+        i0, i1, t = self.depth_bins(depth_m, clamp_near=clamp_near)
+        self.ensure(bins=np.unique(np.concatenate([i0.ravel(), i1.ravel()])))
+        j0, j1, u = self.field_weights(field)
+        t = t[..., None, None, None].astype(np.float32)
+        u = u[..., None, None, None].astype(np.float32)
+        p = self.psf
+        lo = (1 - u) * p[i0, j0] + u * p[i0, j1]
+        hi = (1 - u) * p[i1, j0] + u * p[i1, j1]
+        return (1 - t) * lo + t * hi
+
+    # -------------------------------------------------------------- storage
+    def save(self, path: str | os.PathLike) -> None:
+        """Write the library (all arrays, metadata and a checksum) atomically."""
+        arrays = {name: getattr(self, name) for name in self.ARRAYS}
+        meta = dict(self.meta, key=self.key, checksum=_checksum(arrays))
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as f:
+                np.savez(f, meta=np.array(json.dumps(meta)), **arrays)
+
+    def _load_into(self, path: Path) -> bool:
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                meta = json.loads(str(z["meta"]))
+                arrays = {name: z[name] for name in self.ARRAYS}
+            if meta.get("key") != self.key:
+                raise ValueError("key mismatch (stale: lens or settings changed)")
+            if meta.get("checksum") != _checksum(arrays):
+                raise ValueError("checksum mismatch (corrupt)")
+            for name in self.ARRAYS:
+                if arrays[name].shape != getattr(self, name).shape:
+                    raise ValueError(f"array {name} has shape {arrays[name].shape}")
+            if not np.isfinite(arrays["psf"]).all():
+                raise ValueError("non-finite PSF values")
+        except Exception as e:  # noqa: BLE001 - any failure means: do not use it
+            warnings.warn(f"PSF cache {path} is unusable ({e}); rebuilding it", CacheWarning, stacklevel=3)
+            try:
+                path.unlink()
+            except OSError:
+                pass
+            return False
+        for name in self.ARRAYS:
+            getattr(self, name)[...] = arrays[name]
+        return True
+
+    @classmethod
+    def open(cls, lens: Lens, settings: PSFSettings | None = None, grid: LibraryGrid | None = None,
+             response: SpectralResponse | None = None, *, cache: bool = True,
+             cache_dir: str | os.PathLike | None = None) -> "PSFLibrary":
+        """The library of ``lens`` for these settings, backed by the disk cache."""
+        cd = (cache_dir or default_cache_dir()) if cache else None
+        return cls(lens, settings or PSFSettings(), grid or LibraryGrid(), response, cache_dir=cd)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, lens: Lens | None = None) -> "PSFLibrary":
+        """A library file written by :meth:`save` (``dcdi psflib build -o``).
+        Without ``lens`` it serves only the bins it holds."""
+        path = Path(path)
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                meta = json.loads(str(z["meta"]))
+        except Exception as e:  # noqa: BLE001
+            raise OpticsError(f"{path}: not a PSF library file ({e})") from None
+        s = dict(meta["settings"])
+        s["band_nm"] = tuple(s["band_nm"])
+        settings = PSFSettings(**s)
+        grid = LibraryGrid(**meta["grid"])
+        if lens is not None and lens_fingerprint(lens) != meta["lens_fingerprint"]:
+            raise OpticsError(f"{path}: built for another lens or version of it "
+                              f"({meta['lens_id']}, {meta['lens_file']})")
+        lib = cls(lens, settings, grid, None, meta=meta)
+        if not lib._load_into(path):
+            raise OpticsError(f"{path}: corrupt PSF library file")
+        return lib
+
+
+def _checksum(arrays: dict) -> str:
+    h = hashlib.sha256()
+    for name in sorted(arrays):
+        a = np.ascontiguousarray(arrays[name])
+        h.update(name.encode())
+        h.update(str(a.dtype).encode() + str(a.shape).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def text_progress(label: str, stream=sys.stderr):
+    """A progress callback printing a bar with rate and ETA to ``stream``."""
+    t0 = time.perf_counter()
+
+    def report(done: int, total: int) -> None:
+        el = time.perf_counter() - t0
+        frac = done / max(total, 1)
+        eta = el / frac - el if frac > 0 else 0.0
+        bar = "#" * int(30 * frac)
+        stream.write(f"\r{label} [{bar:<30}] {done}/{total} PSFs  {done / max(el, 1e-9):.1f}/s  "
+                     f"elapsed {el:.1f} s  ETA {eta:.1f} s")
+        if done >= total:
+            stream.write("\n")
+        stream.flush()
+    return report
