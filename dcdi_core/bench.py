@@ -71,29 +71,38 @@ def bench_trace(n_rays: int, repeat: int) -> int:
 
 
 def bench_psflib(quick: bool = False) -> int:
-    """MOS-S1: 64 fields x 20 depth bins (19 finite + infinity) x RGB from 9
-    wavelengths x 128^2 rays, no cache. Baseline: the simple way, one PSF at a
-    time with an unchunked single-thread trace and a per-ray np.add.at deposit
-    of the pixel-integrated Gaussian, timed on a few PSFs in the same process."""
-    import tempfile
-
-    from .optics import trace as T
-    from .optics.aiming import launch, pupil_rays, sources, stop_grid
+    """MOS-S1: 64 fields x 20 depth bins (19 finite + infinity), RGB, no cache;
+    first the issue's workload (9 wavelengths x 128^2 rays), then the library
+    defaults. Baseline: the simple way, one PSF at a time with an unchunked
+    single-thread float64 trace and a per-ray np.add.at deposit of the
+    pixel-integrated Gaussian, timed on 3 PSFs in the same process."""
     from .optics.lens import load_lens
-    from .psf.compute import PSFSettings, pixel_pitch_mm, spectral_samples
-    from .psf.deposit import gaussian_sigma_px
-    from .psf.library import LibraryGrid, PSFLibrary, text_progress
+    from .psf.compute import PSFSettings
+    from .psf.library import LibraryGrid
 
     lens = load_lens("mos-s1")
-    settings = PSFSettings()
     grid = LibraryGrid(n_fields=8 if quick else 64, n_depths=2 if quick else 19)
+    workload = PSFSettings(pupil_samples=128, n_wavelengths=9)
+    per_psf = _bench_library(lens, workload, grid)
+    _bench_library(lens, PSFSettings(), grid)
+    _bench_baseline(lens, workload, grid, per_psf)
+    return 0
+
+
+def _bench_library(lens, settings, grid):
+    import tempfile
+
+    from .optics.aiming import stop_grid
+    from .psf.compute import spectral_samples
+    from .psf.library import PSFLibrary, text_progress
+
     n_psf = grid.n_fields * (grid.n_depths + 1)
     n_p = len(stop_grid(lens, settings.pupil_samples))
     wl, w = spectral_samples(settings, None)
     n_rays = n_psf * n_p * wl.size
     print(f"bench psflib: mos-s1, {grid.n_fields} fields x {grid.n_depths + 1} depth bins = {n_psf} RGB PSFs "
           f"{settings.kernel_size}x{settings.kernel_size}, {wl.size} wavelengths x {n_p:,} rays in the stop "
-          f"({settings.pupil_samples}^2 grid) = {n_rays:,} rays, {os.cpu_count()} CPU(s)")
+          f"({settings.pupil_samples}^2 grid, {settings.precision}) = {n_rays:,} rays, {os.cpu_count()} CPU(s)")
     lib = PSFLibrary(lens, settings, grid, None)
     t = time.perf_counter()
     lib.build(progress=text_progress("  building"))
@@ -108,7 +117,18 @@ def bench_psflib(quick: bool = False) -> int:
           f"({n_rays * (len(lens.surfaces) + 1) / total / 1e6:.1f} M ray-surface/s)")
     print(f"  where the time goes: aim {tm['aim']:.1f} s, trace {tm['trace']:.1f} s, "
           f"deposit {tm['deposit']:.1f} s, other {other:.1f} s; writing the file (I/O) {io_s:.2f} s")
-    # baseline, on a few sources
+    return total / n_psf
+
+
+def _bench_baseline(lens, settings, grid, per: float) -> None:
+    """The simple way, timed on 3 PSFs: see bench_psflib."""
+    from .optics import trace as T
+    from .optics.aiming import Aimed, launch, pupil_rays, sources, stop_grid
+    from .psf.compute import pixel_pitch_mm, spectral_samples
+    from .psf.deposit import gaussian_sigma_px
+
+    wl, w = spectral_samples(settings, None)
+    n_psf = grid.n_fields * (grid.n_depths + 1)
     pitch = pixel_pitch_mm(lens, settings)
     k = settings.kernel_size
     sig = gaussian_sigma_px()
@@ -120,7 +140,6 @@ def bench_psflib(quick: bool = False) -> int:
     try:
         T.CHUNK = 1 << 30
         for i in range(aimed.p.shape[0]):
-            from .optics.aiming import Aimed
             a = Aimed(aimed.depth_mm[i], aimed.p[i], aimed.v_chief[i], aimed.ok[i], aimed.z_ep)
             o, dd, st, _ = pupil_rays(lens, a, stop_grid(lens, settings.pupil_samples))
             oc, dc = launch(lens, a.depth_mm, a.p, 0.0, a.v_chief, a.z_ep)
@@ -143,11 +162,9 @@ def bench_psflib(quick: bool = False) -> int:
     finally:
         T.CHUNK = saved
     per_base = (time.perf_counter() - t) / aimed.p.shape[0]
-    per = total / n_psf
-    print(f"  baseline (one PSF at a time, 1 thread, np.add.at deposit): {per_base * 1e3:.0f} ms/PSF "
-          f"vs {per * 1e3:.1f} ms/PSF here: x{per_base / per:.1f}; the baseline would take "
-          f"{per_base * n_psf:.0f} s for this library")
-    return 0
+    print(f"baseline (one PSF at a time, float64, 1 thread, np.add.at deposit; 128^2 rays, 9 wavelengths): "
+          f"{per_base * 1e3:.0f} ms/PSF vs {per * 1e3:.1f} ms/PSF for the same workload above: "
+          f"x{per_base / per:.1f}; the baseline would take {per_base * n_psf:.0f} s for this library")
 
 
 def run(what: str, args) -> int:

@@ -112,8 +112,11 @@ def cmd_spot(args) -> int:
 
 def _psf_settings(args):
     from .psf.compute import PSFSettings
-    return PSFSettings(kernel_size=args.kernel, pupil_samples=args.rays, n_wavelengths=args.wavelengths,
-                       precision="float32" if args.float32 else "float64",
+    base = PSFSettings()
+    return PSFSettings(kernel_size=args.kernel or base.kernel_size,
+                       pupil_samples=args.rays or base.pupil_samples,
+                       n_wavelengths=args.wavelengths or base.n_wavelengths,
+                       precision=args.precision or base.precision,
                        pixel_pitch_mm=args.pixel_pitch, focus_distance_m=args.focus)
 
 
@@ -258,12 +261,17 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--json", action="store_true", help="print JSON")
     q.set_defaults(func=cmd_spot)
 
-    def psf_options(q, required_depth=True):
-        q.add_argument("--kernel", type=_positive_int, default=41, metavar="K", help="kernel size K x K px, odd (default 41)")
-        q.add_argument("--rays", type=_positive_int, default=128, metavar="N", help="pupil grid N x N (default 128)")
-        q.add_argument("--wavelengths", type=_positive_int, default=9, metavar="W",
-                       help="wavelength samples over 400-700 nm (default 9)")
-        q.add_argument("--float32", action="store_true", help="trace in float32 (default float64)")
+    def psf_options(q):
+        from .psf.compute import PSFSettings
+        d = PSFSettings()
+        q.add_argument("--kernel", type=_positive_int, default=None, metavar="K",
+                       help=f"kernel size K x K px, odd (default {d.kernel_size})")
+        q.add_argument("--rays", type=_positive_int, default=None, metavar="N",
+                       help=f"pupil grid N x N over the real stop (default {d.pupil_samples})")
+        q.add_argument("--wavelengths", type=_positive_int, default=None, metavar="W",
+                       help=f"wavelength samples over 400-700 nm (default {d.n_wavelengths})")
+        q.add_argument("--precision", choices=["float32", "float64"], default=None,
+                       help=f"ray tracing precision (default {d.precision})")
         q.add_argument("--pixel-pitch", type=float, default=None, metavar="MM",
                        help="pixel pitch in mm (default: the lens's sensor)")
         q.add_argument("--focus", type=_depth, default=None, metavar="D",

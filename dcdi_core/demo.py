@@ -67,6 +67,32 @@ def spot_figure(lens, spots, path) -> None:
     plt.close(fig)
 
 
+PSF_FIELDS = [0.0, 0.5, 0.7, 1.0]
+PSF_DEPTHS_M = [0.7, 1.0, 2.0, 5.0, math.inf]
+
+
+def psf_figure(lens, path) -> str:
+    """RGB PSFs across field and depth at the lens's pixel pitch; returns a
+    one-line note of what the kernel clips."""
+    import warnings
+
+    from .optics.aiming import sources
+    from .psf.compute import PSFSettings, compute_sources, pixel_pitch_mm, spectral_samples
+    from .psf.plots import depth_label, psf_grid_png
+
+    settings = PSFSettings()
+    aimed = sources(lens, PSF_DEPTHS_M, field=PSF_FIELDS)
+    wl, w = spectral_samples(settings, None)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        b = compute_sources(lens, aimed, settings, wl, w)
+    psf_grid_png(b.psf, [f"field {f:g}" for f in PSF_FIELDS], [depth_label(d) for d in PSF_DEPTHS_M],
+                 path, f"{lens.name}: RGB PSFs", pixel_pitch_mm(lens, settings))
+    worst = float(b.energy_outside.max())
+    return (f"kernel {settings.kernel_size} px clips at most {worst:.1%} of a channel's energy"
+            + (f" (needs {int(b.kernel_size_needed.max())} px)" if worst > 0.01 else ""))
+
+
 def run(out: str | Path) -> int:
     from .optics.analysis import spot_diagram
     from .optics.lens import available_lenses, load_lens
@@ -88,6 +114,7 @@ def run(out: str | Path) -> int:
              for k, v in info.items()}, indent=2) + "\n")
         spots = spot_diagram(lens, DEPTHS_M, WAVELENGTHS_NM, field=FIELDS, rays=64)
         spot_figure(lens, spots, out / f"{lid}_spots.png")
+        clip = psf_figure(lens, out / f"{lid}_psfs.png")
         st = info["stated"]
         summary.append(
             f"| {lid} | {info['effective_focal_length_mm']:.3f} ({st.get('effective_focal_length_mm', '-')}) "
@@ -95,9 +122,10 @@ def run(out: str | Path) -> int:
             f"| {info['field_of_view_deg']:.2f} ({st.get('field_of_view_deg', '-')}) "
             f"| {info['in_focus_object_distance_m'] if isinstance(info['in_focus_object_distance_m'], str) else round(info['in_focus_object_distance_m'], 4)} "
             f"| {spots.rms_radius_mm[0, -1, 1] * 1000:.2f} |")
-        print(f"  {lid}: report, info JSON and spot diagrams in {time.perf_counter() - t0:.1f} s")
+        print(f"  {lid}: report, info JSON, spot diagrams and PSFs in {time.perf_counter() - t0:.1f} s; {clip}")
     summary += ["", "Per lens: `<id>_report.txt` (text), `<id>_info.json` (all figures), "
-                "`<id>_spots.png` (spot diagrams across field and depth).", ""]
+                "`<id>_spots.png` (spot diagrams across field and depth), `<id>_psfs.png` (RGB PSFs "
+                "at the sensor's pixel pitch across field and depth).", ""]
     write_text(out / "report.md", "\n".join(summary))
     print(f"  summary: {out / 'report.md'}")
     return 0

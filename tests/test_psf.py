@@ -41,7 +41,7 @@ def cartesian_lens(pitch=0.002, defocus_mm=0.0):
 def test_perfect_lens_kernel_is_the_gaussian_deposit_alone():
     lens = cartesian_lens()
     r = psf(lens, field=0.0, depth_m=math.inf, wavelength_nm=587.5618,
-            settings=PSFSettings(kernel_size=9, pupil_samples=32))
+            settings=PSFSettings(kernel_size=9, pupil_samples=32, precision="float64"))
     assert r.rms_radius_mm[1] < 1e-9          # the rays really meet in a point
     # independent: the pixel integral of a Gaussian of sigma sqrt(2)/3 px, by math.erf
     s = math.sqrt(2.0) / 3.0
@@ -56,13 +56,13 @@ def test_second_moment_matches_ray_rms_radius():
     # monochromatic, a blur of several pixels: kernel variance = ray variance
     # + Gaussian deposit (2 sigma^2) + pixel sampling (2/12 px^2) + binning (2/(12 s^2) px^2)
     lens = load_lens("mos-s1")
-    st = PSFSettings(kernel_size=61, pupil_samples=128)
+    st = PSFSettings(kernel_size=61, pupil_samples=128, precision="float64")
     for field, depth in [(0.0, math.inf), (0.5, 2.0)]:
         r = psf(lens, field=field, depth_m=depth, wavelength_nm=587.5618, settings=st)
         pitch = 0.0122
         _, _, var = _moments(r.psf[1].astype(np.float64), pitch)
         sig = gaussian_sigma_px() * pitch
-        expected = r.rms_radius_mm[1] ** 2 + 2 * sig ** 2 + 2 * pitch ** 2 / 12 + 2 * pitch ** 2 / (12 * 81)
+        expected = r.rms_radius_mm[1] ** 2 + 2 * sig ** 2 + 2 * pitch ** 2 / 12 + 2 * pitch ** 2 / (12 * st.oversample ** 2)
         assert r.energy_outside.max() < 1e-4
         assert abs(var / expected - 1.0) < 0.02, (field, depth, var, expected)
 

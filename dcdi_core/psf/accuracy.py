@@ -61,11 +61,19 @@ def run_report(lens_id: str, out: str | Path, *, quick: bool = False) -> int:
         sweeps = {"pupil_samples": [16, 32], "n_wavelengths": [3, 9], "precision": ["float32"],
                   "oversample": [3, 9]}
         depth_bins, field_counts = [3, 6], [8, 16]
+        combos = [dict(pupil_samples=32, n_wavelengths=5, precision="float32")]
     else:
         ref_settings = replace(base, pupil_samples=512, n_wavelengths=31, oversample=15)
         sweeps = {"pupil_samples": [16, 32, 64, 128, 256], "n_wavelengths": [3, 5, 9, 15, 31],
                   "precision": ["float32", "float64"], "oversample": [3, 5, 9, 15]}
         depth_bins, field_counts = [5, 10, 20, 40], [8, 16, 32, 64, 128]
+        # candidate defaults: the sweeps show which errors dominate; these rows
+        # measure the combinations, since one-at-a-time rows keep the others' error floor
+        combos = [dict(pupil_samples=128, n_wavelengths=9, precision="float64"),
+                  dict(pupil_samples=64, n_wavelengths=15, precision="float32"),
+                  dict(pupil_samples=96, n_wavelengths=15, precision="float32"),
+                  dict(pupil_samples=64, n_wavelengths=31, precision="float32"),
+                  dict(pupil_samples=128, n_wavelengths=31, precision="float32")]
     print(f"psf-accuracy {lens.id}: reference {ref_settings.pupil_samples}^2 rays, "
           f"{ref_settings.n_wavelengths} wavelengths, float64 at {len(TEST_FIELDS)} fields x "
           f"{len(TEST_DEPTHS_M)} depths", flush=True)
@@ -82,6 +90,16 @@ def run_report(lens_id: str, out: str | Path, *, quick: bool = False) -> int:
             rows.append((name, f"{v}{tag}", l1, psnr, t / n))
             print(f"  {name:<14} {str(v) + tag:<18} L1 {l1:.4f}  PSNR {psnr:6.2f} dB  {t / n * 1e3:7.1f} ms/PSF",
                   flush=True)
+    for combo in combos:
+        s = replace(base, **combo)
+        p, t, n = _direct(lens, s, TEST_FIELDS, TEST_DEPTHS_M)
+        l1, psnr = errors(p, ref)
+        label = f"{combo['pupil_samples']} rays, {combo['n_wavelengths']} wl, {combo['precision']}"
+        if all(defaults[k_] == v for k_, v in combo.items()):
+            label += " (default)"
+        rows.append(("combination", label, l1, psnr, t / n))
+        print(f"  combination    {label:<34} L1 {l1:.4f}  PSNR {psnr:6.2f} dB  {t / n * 1e3:7.1f} ms/PSF",
+              flush=True)
     # interpolation in depth: libraries with n bins (3 fields on the grid), against direct PSFs off-grid
     direct_d, _, _ = _direct(lens, base, TEST_FIELDS, INTERP_DEPTHS_M)
     for n in depth_bins:

@@ -330,18 +330,20 @@ def _checksum(arrays: dict) -> str:
     return h.hexdigest()
 
 
-def text_progress(label: str, stream=sys.stderr):
-    """A progress callback printing a bar with rate and ETA to ``stream``."""
+def text_progress(label: str, stream=None):
+    """A progress callback printing a bar with rate and ETA to ``stream``
+    (standard error by default)."""
     t0 = time.perf_counter()
 
     def report(done: int, total: int) -> None:
+        out = stream or sys.stderr
         el = time.perf_counter() - t0
         frac = done / max(total, 1)
         eta = el / frac - el if frac > 0 else 0.0
         bar = "#" * int(30 * frac)
-        stream.write(f"\r{label} [{bar:<30}] {done}/{total} PSFs  {done / max(el, 1e-9):.1f}/s  "
-                     f"elapsed {el:.1f} s  ETA {eta:.1f} s")
+        out.write(f"\r{label} [{bar:<30}] {done}/{total} PSFs  {done / max(el, 1e-9):.1f}/s  "
+                  f"elapsed {el:.1f} s  ETA {eta:.1f} s")
         if done >= total:
-            stream.write("\n")
-        stream.flush()
+            out.write("\n")
+        out.flush()
     return report
