@@ -262,7 +262,7 @@ class PSFLibrary:
         meta = dict(self.meta, key=self.key, checksum=_checksum(arrays))
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as f:
-                np.savez(f, meta=np.array(json.dumps(meta)), **arrays)
+                np.savez_compressed(f, meta=np.array(json.dumps(meta)), **arrays)
 
     def _load_into(self, path: Path) -> bool:
         try:
