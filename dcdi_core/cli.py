@@ -117,7 +117,7 @@ def _psf_settings(args):
                        pupil_samples=args.rays or base.pupil_samples,
                        n_wavelengths=args.wavelengths or base.n_wavelengths,
                        precision=args.precision or base.precision,
-                       pixel_pitch_mm=args.pixel_pitch, focus_distance_m=args.focus)
+                       pixel_pitch_mm=args.pixel_pitch, focus_distance_m=getattr(args, "focus", None))
 
 
 def _response(args):
@@ -208,6 +208,61 @@ def cmd_psflib_show(args) -> int:
     return 0
 
 
+def _read_rgbd(args):
+    import numpy as np
+    from .io.images import read_depth, read_image
+    img = read_image(args.image)
+    depth = read_depth(args.depth)
+    if depth.shape != img.shape[:2]:
+        from .optics.errors import InputRangeError
+        raise InputRangeError(f"depth map {args.depth}", depth.shape, f"{img.shape[:2]} (the image {args.image})")
+    return img, depth
+
+
+def _geometry(args, lens, img):
+    from .render.geometry import ImageGeometry
+    if args.image_pixel_pitch:
+        return ImageGeometry.from_pixel_pitch(lens, img.shape[0], img.shape[1], args.image_pixel_pitch)
+    return ImageGeometry.full_sensor(lens, img.shape[0], img.shape[1])
+
+
+def cmd_simulate(args) -> int:
+    from .io.images import write_image
+    from .optics.lens import load_lens
+    from .render.simulate import open_library, simulate
+    lens = load_lens(args.lens)
+    img, depth = _read_rgbd(args)
+    geom = _geometry(args, lens, img)
+    lib = open_library(lens, geom, _psf_settings(args))
+    noise = {"full_well_electrons": args.full_well, "read_noise_electrons": args.read_noise} if args.noise else None
+    r = simulate(img, depth, lens, geometry=geom, patch=args.patch, library=lib,
+                 fixed_depth_m=args.fixed_depth, distortion=not args.no_distortion, noise=noise, seed=args.seed)
+    write_image(args.output, r.image)
+    if args.sharp_out:
+        write_image(args.sharp_out, r.sharp)
+    print(_dump({"output": args.output, **r.info}))
+    return 0
+
+
+def cmd_bokeh(args) -> int:
+    import numpy as np
+    from .io.images import write_image
+    from .optics.lens import load_lens
+    from .render.simulate import bokeh, open_library
+    lens = load_lens(args.lens)
+    img, depth = _read_rgbd(args)
+    geom = _geometry(args, lens, img)
+    r = bokeh(img, depth, lens, keep=tuple(args.keep) if args.keep else None, focus_m=args.focus_at,
+              geometry=geom, patch=args.patch, occlusion=not args.plain, settings=_psf_settings(args))
+    write_image(args.output, r.image)
+    if args.side_by_side:
+        from .render.pictures import side_by_side
+        side_by_side(args.side_by_side, img, depth, r.image, f"{lens.name}: " + (
+            f"keep {args.keep[0]:g}-{args.keep[1]:g} m" if args.keep else f"focus {args.focus_at:g} m"))
+    print(_dump({"output": args.output, **r.info}))
+    return 0
+
+
 def cmd_report(args) -> int:
     from .psf.accuracy import run_report
     return run_report(args.lens, args.out, quick=args.quick)
@@ -261,7 +316,7 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--json", action="store_true", help="print JSON")
     q.set_defaults(func=cmd_spot)
 
-    def psf_options(q):
+    def psf_options(q, focus=True):
         from .psf.compute import PSFSettings
         d = PSFSettings()
         q.add_argument("--kernel", type=_positive_int, default=None, metavar="K",
@@ -274,8 +329,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help=f"ray tracing precision (default {d.precision})")
         q.add_argument("--pixel-pitch", type=float, default=None, metavar="MM",
                        help="pixel pitch in mm (default: the lens's sensor)")
-        q.add_argument("--focus", type=_depth, default=None, metavar="D",
-                       help="move the sensor to focus depth D metres (default: as prescribed)")
+        if focus:
+            q.add_argument("--focus", type=_depth, default=None, metavar="D",
+                           help="move the sensor to focus depth D metres (default: as prescribed)")
         q.add_argument("--response", default=None, metavar="CSV",
                        help="sensor spectral response CSV (wavelength_nm,r,g,b); default: shipped curves")
 
@@ -315,6 +371,39 @@ def build_parser() -> argparse.ArgumentParser:
     s_.add_argument("--show-depths", type=_depth, nargs="+", default=[0.7, 1.0, 2.0, 5.0, math.inf], metavar="D")
     psf_options(s_)
     s_.set_defaults(func=cmd_psflib_show)
+
+    def rgbd_options(q):
+        q.add_argument("--image", required=True, help="all-in-focus image (EXR linear, or PNG/JPEG sRGB)")
+        q.add_argument("--depth", required=True, help="metric depth map (EXR, metres from the lens; NaN/0/<0 invalid)")
+        q.add_argument("--lens", required=True, help="lens id or .toml path")
+        q.add_argument("-o", "--output", required=True, help="output image (.exr linear, or .png)")
+        q.add_argument("--patch", type=_positive_int, default=16, help="patch size m in pixels (default 16)")
+        q.add_argument("--image-pixel-pitch", type=float, default=None, metavar="MM",
+                       help="size of one image pixel on the sensor (default: the image spans the sensor diagonal)")
+        psf_options(q, focus=q.prog.split()[-1] != "bokeh")
+
+    q = sub.add_parser("simulate", help="depth-aware aberration simulation of an all-in-focus RGB-D image",
+                       description="Patch-wise depth-aware PSF convolution, lens distortion, optional noise. " + UNITS)
+    rgbd_options(q)
+    q.add_argument("--fixed-depth", type=_depth, default=None, metavar="D",
+                   help="depth-unaware baseline: one depth D metres for the whole image")
+    q.add_argument("--no-distortion", action="store_true", help="do not apply the lens's distortion")
+    q.add_argument("--sharp-out", default=None, help="also write the sharp image, distorted alike (aligned pair)")
+    q.add_argument("--noise", action="store_true", help="add shot and read noise (needs --seed)")
+    q.add_argument("--full-well", type=float, default=10000.0, help="electrons at 1.0 (default 10000)")
+    q.add_argument("--read-noise", type=float, default=3.0, help="read noise, electrons (default 3)")
+    q.add_argument("--seed", type=int, default=None, help="random seed (noise)")
+    q.set_defaults(func=cmd_simulate)
+
+    q = sub.add_parser("bokeh", help="the depth of field of a lens on an all-in-focus RGB-D image",
+                       description="Keep a depth range sharp (--keep) or focus at a distance (--focus-at). " + UNITS)
+    rgbd_options(q)
+    g = q.add_mutually_exclusive_group(required=True)
+    g.add_argument("--keep", type=float, nargs=2, metavar=("NEAR", "FAR"), help="depth range kept sharp, metres")
+    g.add_argument("--focus-at", type=_depth, metavar="D", help="focus the lens at D metres")
+    q.add_argument("--plain", action="store_true", help="plain patch-wise blur instead of occlusion-aware layers")
+    q.add_argument("--side-by-side", default=None, metavar="PNG", help="also write input | depth | result")
+    q.set_defaults(func=cmd_bokeh)
 
     q = sub.add_parser("report", help="accuracy reports (error against run time)")
     rsub = q.add_subparsers(dest="report_command", required=True, metavar="REPORT")

@@ -27,7 +27,8 @@ CHUNK = None   # set to force a chunk length in rays (the benchmark's baseline d
 _POOL: ThreadPoolExecutor | None = None
 
 
-def _pool() -> ThreadPoolExecutor:
+def thread_pool() -> ThreadPoolExecutor:
+    """The process-wide worker pool (numpy releases the GIL in its loops and FFTs)."""
     global _POOL
     if _POOL is None:
         _POOL = ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1))
@@ -291,7 +292,7 @@ def trace(lens, origins, directions, wavelength_nm, *, dtype=np.float64,
     chunk = CHUNK or max(1024, CHUNK_BYTES // dtype.itemsize)
     slices = [slice(i, min(i + chunk, n)) for i in range(0, n, chunk)]
     if len(slices) > 1:
-        list(_pool().map(run, slices))
+        list(thread_pool().map(run, slices))
     elif slices:
         run(slices[0])
     pos = np.stack([x, y, z], axis=-1).reshape(shape + (3,))

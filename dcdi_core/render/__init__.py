@@ -1,0 +1,1 @@
+"""Rendering: PSF maps, patch-wise convolution (aberrations, bokeh), distortion and sensor noise."""

@@ -1,0 +1,40 @@
+"""Side-by-side pictures: input | depth | result (PNG)."""
+from __future__ import annotations
+
+import numpy as np
+
+from ..atomic import atomic_path
+
+
+def _srgb(x):
+    x = np.clip(x, 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+def side_by_side(path, image, depth, result, title: str) -> None:
+    """A PNG with the all-in-focus input, its depth (log scale, invalid grey)
+    and the result, sRGB-encoded for viewing."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    h, w = image.shape[:2]
+    fig, axes = plt.subplots(1, 3, figsize=(12, 12 * h / w / 3 + 0.8))
+    axes[0].imshow(_srgb(image))
+    axes[0].set_title("all-in-focus input", fontsize=9)
+    d = np.asarray(depth, dtype=np.float64)
+    shown = np.where(d > 0, np.log10(np.clip(d, 0.1, 1e3)), np.nan)
+    im = axes[1].imshow(shown, cmap="viridis_r")
+    axes[1].set_title("depth (log10 m; grey = invalid)", fontsize=9)
+    axes[1].set_facecolor("0.5")
+    fig.colorbar(im, ax=axes[1], fraction=0.03)
+    axes[2].imshow(_srgb(result))
+    axes[2].set_title("result", fontsize=9)
+    for a in axes:
+        a.set_xticks([])
+        a.set_yticks([])
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100, format="png")
+    plt.close(fig)

@@ -1,0 +1,145 @@
+"""The PSF map of an image: one RGB kernel per m x m patch, for its field, azimuth and depth.
+
+Depth per patch: the paper averages the patch's depths (AvgPool); we average
+*inverse* depth over the patch's valid pixels, because blur scales with
+diopters and infinity (0 diopters) then needs no special case. Depth
+conventions (DESIGN.md): NaN, 0 and negative depths are invalid and left out
+of the average; >= the library's far limit, inf and Blender's 1e10 count as
+infinity. A patch with no valid depth keeps the identity kernel (it is left
+sharp) and is counted in the map's ``info``.
+
+The library is radial (fields along sensor +y, kernel rows along the radial
+direction); each patch's kernel is rotated so that its radial axis points
+from the optical axis to the patch centre (bilinear resampling, renormalised).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..optics.errors import InputRangeError
+
+
+def valid_depth_mask(depth: np.ndarray) -> np.ndarray:
+    """True where a depth value is usable: > 0 (inf included), not NaN."""
+    return depth > 0
+
+
+def patch_inverse_depth(depth: np.ndarray, m: int, far_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Mean inverse depth (1/m) of each m x m patch's valid pixels, and a mask
+    of patches that have any. Depths >= far_m count as 0 diopters."""
+    d = np.asarray(depth, dtype=np.float64)
+    if d.ndim != 2:
+        raise InputRangeError("depth map shape", d.shape, "(H, W)")
+    h, w = d.shape
+    nph, npw = math.ceil(h / m), math.ceil(w / m)
+    valid = valid_depth_mask(d)
+    inv = np.where(valid & (d < far_m), 1.0 / np.where(valid, d, 1.0), 0.0)
+    pad = ((0, nph * m - h), (0, npw * m - w))
+    inv = np.pad(inv, pad).reshape(nph, m, npw, m).sum(axis=(1, 3))
+    cnt = np.pad(valid.astype(np.float64), pad).reshape(nph, m, npw, m).sum(axis=(1, 3))
+    has = cnt > 0
+    return np.where(has, inv / np.maximum(cnt, 1), 0.0), has
+
+
+def rotate_radial_kernels(kernels: np.ndarray, outward: np.ndarray) -> np.ndarray:
+    """Rotate kernels (P, C, k, k) whose rows run along the radial direction so
+    that it points along ``outward`` (P, 2) = unit (row, col) vectors.
+    Bilinear, zero outside, each channel renormalised to its former sum."""
+    p, c, k, _ = kernels.shape
+    r = k // 2
+    dr, dc = np.meshgrid(np.arange(k) - r, np.arange(k) - r, indexing="ij")
+    ur, uc = outward[:, 0, None, None], outward[:, 1, None, None]
+    a = dr * ur + dc * uc + r            # along the radial axis -> source row
+    b = -dr * uc + dc * ur + r           # tangential -> source column (kernels mirror in it)
+    r0, c0 = np.floor(a).astype(np.int64), np.floor(b).astype(np.int64)
+    fr, fc = a - r0, b - c0
+    flat = kernels.reshape(p, c, k * k)
+    out = np.zeros((p, c, k, k), np.float64)
+    base = np.arange(p)[:, None, None]
+    for oy, ox, wgt in ((0, 0, (1 - fr) * (1 - fc)), (0, 1, (1 - fr) * fc), (1, 0, fr * (1 - fc)), (1, 1, fr * fc)):
+        rr, cc = r0 + oy, c0 + ox
+        ok = (rr >= 0) & (rr < k) & (cc >= 0) & (cc < k)
+        idx = np.where(ok, rr * k + cc, 0)
+        vals = flat[base, :, idx]                              # (P, k, k, C)
+        out += np.moveaxis(vals, -1, 1) * (wgt * ok)[:, None]
+    before = kernels.sum(axis=(-1, -2), keepdims=True)
+    after = out.sum(axis=(-1, -2), keepdims=True)
+    out *= np.where(after > 0, before / np.where(after > 0, after, 1.0), 0.0)
+    return out.astype(np.float32)
+
+
+@dataclass
+class PSFMap:
+    """Kernels (nph, npw, 3, k, k) for an image, with what was done to get them."""
+
+    kernels: np.ndarray
+    identity: np.ndarray          # (nph, npw) patches left sharp (no valid depth, or kept in focus)
+    patch: int
+    depth_m: np.ndarray           # (nph, npw) the depth each kernel is for (inf; nan where identity)
+    field: np.ndarray             # (nph, npw) normalised field of the patch centres
+    info: dict
+
+
+def identity_kernel(k: int) -> np.ndarray:
+    e = np.zeros((3, k, k), np.float32)
+    e[:, k // 2, k // 2] = 1.0
+    return e
+
+
+def psf_map(library, geometry, depth: np.ndarray, m: int = 16, *, fixed_depth_m: float | None = None,
+            keep_range_m: tuple[float, float] | None = None, clamp_near: bool = True) -> PSFMap:
+    """Kernels for every m x m patch of an image of ``geometry`` with ``depth``.
+
+    fixed_depth_m: one depth for every patch (the paper's depth-unaware
+    baseline). keep_range_m: patches whose depth lies in [near, far] get the
+    identity (kept sharp). Depths below the library's near limit are clamped
+    to it when ``clamp_near`` (the count is in ``info``), else an error."""
+    if m < 1:
+        raise InputRangeError("patch", m, ">= 1 pixel")
+    h, w = geometry.height, geometry.width
+    depth = np.asarray(depth, dtype=np.float64)
+    if depth.shape != (h, w):
+        raise InputRangeError("depth map shape", depth.shape, f"({h}, {w}), the image's")
+    nph, npw = math.ceil(h / m), math.ceil(w / m)
+    far = library.grid.far_m
+    near = library.grid.near_m
+    if fixed_depth_m is not None:
+        inv = np.full((nph, npw), 0.0 if fixed_depth_m >= far else 1.0 / fixed_depth_m)
+        has = np.ones((nph, npw), bool)
+    else:
+        inv, has = patch_inverse_depth(depth, m, far)
+    d = np.where(inv > 0, 1.0 / np.where(inv > 0, inv, 1.0), np.inf)
+    clamped = int(((d < near) & has).sum())
+    if clamped and not clamp_near:
+        raise InputRangeError("depth", float(d[has].min()), f">= the library's near limit {near} m")
+    d = np.where(has, np.maximum(d, near), np.nan)
+    # patch centres on the sensor
+    rows = np.minimum(np.arange(nph) * m + (m - 1) / 2.0, h - 1)
+    cols = np.minimum(np.arange(npw) * m + (m - 1) / 2.0, w - 1)
+    rr, cc = np.meshgrid(rows, cols, indexing="ij")
+    field = geometry.field(rr, cc)
+    if (field > 1.0 + 1e-9).any():
+        raise InputRangeError("image field", float(field.max()),
+                              "<= 1: the image must lie within the sensor (check its pixel pitch)")
+    field = np.minimum(field, 1.0)
+    keep = np.zeros((nph, npw), bool)
+    if keep_range_m is not None:
+        lo, hi = keep_range_m
+        keep = has & (d >= lo) & (d <= hi)
+    ident = ~has | keep
+    k = library.kernel_size
+    kernels = np.empty((nph, npw, 3, k, k), np.float32)
+    kernels[...] = identity_kernel(k)
+    todo = ~ident
+    if todo.any():
+        kr = library.at(field[todo], np.where(np.isfinite(d[todo]), d[todo], np.inf))
+        vec = np.stack([rr[todo] - geometry.center_px[0], cc[todo] - geometry.center_px[1]], -1)
+        norm = np.hypot(vec[:, 0], vec[:, 1])
+        outward = np.where(norm[:, None] > 1e-9, vec / np.maximum(norm, 1e-12)[:, None], [1.0, 0.0])
+        kernels[todo] = rotate_radial_kernels(kr, outward)
+    info = {"patches": int(nph * npw), "no_valid_depth": int((~has).sum()), "kept_sharp": int(keep.sum()),
+            "clamped_to_near_limit": clamped, "depth_bins_computed": int(library.computed.sum())}
+    return PSFMap(kernels, ident, m, np.where(has, d, np.nan), field, info)

@@ -1,0 +1,149 @@
+"""Patch-wise simulation and bokeh: identity, energy, a point source, seams, depth handling."""
+import math
+
+import numpy as np
+import pytest
+
+from dcdi_core.optics.errors import InputRangeError
+from dcdi_core.optics.lens import load_lens
+from dcdi_core.psf.compute import PSFSettings
+from dcdi_core.psf.library import LibraryGrid, PSFLibrary
+from dcdi_core.render.convolve import patch_convolve
+from dcdi_core.render.geometry import ImageGeometry
+from dcdi_core.render.psfmap import identity_kernel, psf_map
+from dcdi_core.render.simulate import bokeh, simulate
+
+FAST = PSFSettings(pupil_samples=24, n_wavelengths=3, kernel_size=21)
+
+
+@pytest.fixture(scope="module")
+def lens():
+    return load_lens("mos-s1")
+
+
+def _lib(lens, geom, **kw):
+    s = PSFSettings(**{**FAST.as_dict(), "band_nm": (400.0, 700.0), "pixel_pitch_mm": geom.pixel_pitch_mm, **kw})
+    return PSFLibrary(lens, s, LibraryGrid(n_fields=8, n_depths=4), None)
+
+
+def _geom(lens, h, w):
+    # a small image covering the central part of the sensor at the sensor's own pitch
+    return ImageGeometry.from_pixel_pitch(lens, h, w, 0.0122)
+
+
+def test_full_image_convolution_matches_patchwise_with_one_kernel():
+    rng = np.random.default_rng(0)
+    img = rng.random((45, 70, 3)).astype(np.float32)
+    k = 9
+    kern = rng.random((3, k, k))
+    kern /= kern.sum(axis=(1, 2), keepdims=True)
+    out = patch_convolve(img, np.broadcast_to(kern, (3, 5, 3, k, k)), 16)
+    r = k // 2
+    pad = np.pad(img, ((r, r), (r, r), (0, 0)), mode="reflect")
+    ref = np.zeros_like(img)
+    for c in range(3):
+        for dy in range(k):
+            for dx in range(k):
+                ref[..., c] += kern[c, dy, dx] * pad[2 * r - dy:2 * r - dy + 45, 2 * r - dx:2 * r - dx + 70, c]
+    assert np.abs(out - ref).max() < 1e-5
+
+
+def test_identity_psf_returns_the_image():
+    img = np.random.default_rng(1).random((33, 47, 3)).astype(np.float32)
+    kern = np.broadcast_to(identity_kernel(11), (3, 3, 3, 11, 11))
+    assert np.abs(patch_convolve(img, kern, 16) - img).max() < 1e-6
+
+
+@pytest.mark.parametrize("shape", [(64, 96), (37, 53), (5, 7), (1, 1)])
+def test_constant_image_stays_constant_odd_sizes(lens, shape):
+    h, w = shape
+    geom = _geom(lens, h, w)
+    depth = np.random.default_rng(2).uniform(0.7, 20.0, size=(h, w))
+    img = np.full((h, w, 3), 0.37, np.float32)
+    r = simulate(img, depth, lens, geometry=geom, library=_lib(lens, geom), distortion=False)
+    assert r.image.shape == (h, w, 3) and r.image.dtype == np.float32
+    assert np.abs(r.image - 0.37).max() < 1e-5
+
+
+def test_single_point_reproduces_the_psf(lens):
+    h = w = 96
+    geom = _geom(lens, h, w)
+    lib = _lib(lens, geom)
+    img = np.zeros((h, w, 3), np.float32)
+    y, x = 40, 57
+    img[y, x] = 1.0
+    depth = np.full((h, w), 2.0)
+    r = simulate(img, depth, lens, geometry=geom, library=lib, distortion=False, patch=16)
+    pm = r.psf_map
+    kern = pm.kernels[y // 16, x // 16]                       # the patch's own kernel
+    k = kern.shape[-1]
+    got = np.moveaxis(r.image[y - k // 2:y + k // 2 + 1, x - k // 2:x + k // 2 + 1], -1, 0)
+    # the point sits between patch centres: its kernel is the tent blend of its 4 neighbours'
+    # blending neighbouring patches' outputs conserves energy up to how much the kernels vary
+    assert abs(got.sum() - 3.0) < 0.03 * 3.0
+    assert np.abs(got - kern).max() < 0.25 * kern.max()
+
+
+def test_no_seam_on_a_smooth_image(lens):
+    h, w = 96, 128
+    geom = _geom(lens, h, w)
+    yy, xx = np.mgrid[0:h, 0:w]
+    img = np.stack([0.3 + 0.2 * np.sin(xx / 17.0), 0.5 + 0.1 * np.cos(yy / 23.0), 0.4 + 0.001 * xx], -1).astype(np.float32)
+    depth = 1.0 + 4.0 * xx / w                                   # depth varies across patches
+    r = simulate(img, depth, lens, geometry=geom, library=_lib(lens, geom), distortion=False)
+    # the second difference across a patch border is no larger than inside patches
+    d2 = np.abs(r.image[:, 2:] - 2 * r.image[:, 1:-1] + r.image[:, :-2]).mean(axis=(0, 2))
+    cols = np.arange(1, w - 1)
+    border = d2[(cols % 16 == 0) | (cols % 16 == 15)]
+    inner = d2[(cols % 16 > 2) & (cols % 16 < 13)]
+    assert border.max() < 2.0 * inner.max() + 1e-6
+
+
+def test_invalid_and_far_depths(lens):
+    h, w = 32, 48
+    geom = _geom(lens, h, w)
+    lib = _lib(lens, geom)
+    depth = np.full((h, w), 1e10)
+    depth[:16, :16] = np.nan
+    depth[:16, 16:32] = 0.0
+    depth[16:, :16] = -3.0
+    depth[16:, 16:32] = np.inf
+    pm = psf_map(lib, geom, depth, 16)
+    assert pm.identity[0, 0] and pm.identity[0, 1] and pm.identity[1, 0]     # no valid depth: left sharp
+    assert pm.info["no_valid_depth"] == 3
+    assert np.isfinite(pm.kernels).all()
+    # inf, 1e10 and anything beyond the far limit all take the infinity PSF
+    maps = [psf_map(lib, geom, np.full((h, w), v), 16).kernels for v in (np.inf, 1e10, 50.0)]
+    assert np.array_equal(maps[0], maps[1]) and np.array_equal(maps[0], maps[2])
+
+
+def test_depth_unaware_baseline_uses_one_depth(lens):
+    h, w = 32, 32
+    geom = _geom(lens, h, w)
+    depth = np.random.default_rng(3).uniform(0.8, 9.0, (h, w))
+    img = np.random.default_rng(4).random((h, w, 3)).astype(np.float32)
+    lib = _lib(lens, geom)
+    aware = simulate(img, depth, lens, geometry=geom, library=lib, distortion=False)
+    fixed = simulate(img, depth, lens, geometry=geom, library=lib, distortion=False, fixed_depth_m=2.0)
+    assert np.isfinite(fixed.image).all()
+    assert np.nanstd(fixed.psf_map.depth_m) == 0.0 and np.nanstd(aware.psf_map.depth_m) > 0
+    assert not fixed.info["depth_aware"]
+
+
+def test_bokeh_keeps_the_kept_range_unchanged(lens):
+    h, w = 64, 96
+    geom = _geom(lens, h, w)
+    lib = _lib(lens, geom, focus_distance_m=None)
+    rng = np.random.default_rng(5)
+    img = rng.random((h, w, 3)).astype(np.float32)
+    depth = np.full((h, w), 8.0)                  # background far
+    depth[20:44, 30:60] = 1.0                      # subject, kept sharp
+    for occ in (True, False):
+        r = bokeh(img, depth, lens, keep=(0.9, 1.1), geometry=geom, library=lib, occlusion=occ)
+        inside = r.image[20:44, 30:60]
+        if occ:   # nothing nearer covers the subject: exactly unchanged
+            assert np.abs(inside - img[20:44, 30:60]).max() < 1e-6
+        bg = r.image[:, :20]
+        assert np.abs(bg - img[:, :20]).mean() > 0.01       # the background is blurred
+    with pytest.raises(InputRangeError):
+        bokeh(img, depth, lens, geometry=geom, library=lib)
