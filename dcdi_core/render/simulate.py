@@ -130,7 +130,7 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
     if sharp_mask.any():
         order += [(float(inv[kept].mean()) if kept.any() else -1.0, sharp_mask, True)]
     order.sort(key=lambda t: t[0])                        # far (small diopters) first
-    for _, mask, is_sharp in order:
+    for n, (_, mask, is_sharp) in enumerate(order):
         a = mask.astype(np.float32)[..., None]
         if is_sharp:
             acc = img * a + acc * (1.0 - a)
@@ -140,6 +140,12 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
         rgba = np.concatenate([img * a, a], axis=-1)
         kern4 = np.concatenate([pm.kernels, pm.kernels[:, :, 1:2]], axis=2)   # coverage blurred as green
         blurred = patch_convolve(rgba, kern4, patch, identity=pm.identity)
-        acc = blurred[..., :3] + acc * (1.0 - np.clip(blurred[..., 3:], 0.0, 1.0))
+        cover = np.clip(blurred[..., 3:], 0.0, 1.0)
+        if n == 0:
+            # nothing lies behind the farthest layer: spread its own colour into
+            # its holes (normalised blur) instead of darkening them (no dark halo)
+            acc = np.where(cover > 1e-4, blurred[..., :3] / np.maximum(cover, 1e-4), 0.0).astype(np.float32)
+            continue
+        acc = blurred[..., :3] + acc * (1.0 - cover)
     info["layers"] = len(order)
     return RenderResult(acc, info)

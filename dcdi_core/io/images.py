@@ -1,0 +1,516 @@
+"""Read and write images and depth maps in the project's conventions.
+
+In memory an image is float32 ``(H, W, 3)`` linear light and a depth map is
+float32 ``(H, W)`` in metres, planar (DESIGN.md "Conventions"; NaN, 0 or a
+negative depth marks an invalid pixel, ``inf`` or Blender's 1e10 infinity;
+this module stores depths exactly as they are and leaves that reading to the
+caller).
+
+On disk:
+
+* EXR, Radiance HDR and floating-point TIFF hold linear values and are read as
+  stored; PNG, JPEG and 8- or 16-bit TIFF are taken to be sRGB-encoded and are
+  decoded with the exact (piecewise) sRGB curve.
+* A grey image becomes three equal channels; an alpha channel is dropped
+  (PNG alpha is read unassociated, so the colour is not multiplied by it).
+* Multi-part EXR files (Blender 5 writes multi-layer passes as separate parts)
+  are searched part by part, for the colour and for the depth channel.
+* Every write goes to a temporary file beside the target and is renamed onto
+  it only once complete, so a failed write never leaves a half-written file.
+  A non-finite value is never written to an image: it raises
+  :class:`ImageFileError`.
+
+OpenImageIO (``import OpenImageIO``) does the file work and is imported lazily,
+inside the functions, so that ``dcdi_core`` imports without it: inside Blender
+the add-on reads and writes images with Blender's own image API instead of this
+module.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..atomic import atomic_path
+from ..optics.errors import OpticsError
+
+__all__ = [
+    "ImageFileError",
+    "DEPTH_CHANNELS",
+    "read_image",
+    "write_image",
+    "read_depth",
+    "write_depth",
+    "srgb_to_linear",
+    "linear_to_srgb",
+]
+
+#: Depth channel names tried in this order (in every part of the file) when
+#: :func:`read_depth` is not told which channel to use.
+DEPTH_CHANNELS = ("Z", "depth.Z", "Depth.V", "V", "depth", "R", "Y")
+
+# Names of layers (the part of "ViewLayer.Combined.R" before ".R") preferred
+# when a file holds several RGB layers and no plain R, G, B channels.
+_PREFERRED_LAYERS = ("combined", "image", "rgba", "beauty")
+
+# OpenImageIO format names whose pixel values are linear light whatever their
+# storage type.
+_LINEAR_FORMATS = ("openexr", "hdr")
+
+# extension -> (OpenImageIO format name, allowed bit depths, default bit depth)
+_WRITE_FORMATS = {
+    ".exr": ("openexr", (32, 16), 32),
+    ".png": ("png", (8, 16), 8),
+    ".jpg": ("jpeg", (8,), 8),
+    ".jpeg": ("jpeg", (8,), 8),
+}
+
+_HALF_MAX = 65504.0
+_MAX_LISTED_CHANNELS = 24
+
+
+class ImageFileError(OpticsError, ValueError):
+    """An image or depth file that cannot be read or written as asked.
+
+    ``path`` is the file; the message says what is wrong with it (and which
+    channel or part, where that matters).
+    """
+
+    def __init__(self, path, message):
+        self.path = str(path)
+        super().__init__(f"{self.path}: {message}")
+
+
+# --------------------------------------------------------------------------
+# sRGB transfer functions
+# --------------------------------------------------------------------------
+
+def _float_result(x):
+    a = np.asarray(x)
+    dtype = np.result_type(a.dtype, np.float32) if a.dtype.kind in "fiub" else np.float64
+    return a.astype(np.float64), dtype
+
+
+def _finish(out, dtype):
+    out = out.astype(dtype, copy=False)
+    return out[()] if out.ndim == 0 else out
+
+
+def srgb_to_linear(x):
+    """The exact sRGB EOTF (IEC 61966-2-1), elementwise.
+
+    ``x / 12.92`` up to 0.04045, ``((x + 0.055) / 1.055) ** 2.4`` above; the
+    linear segment continues below 0 and the power segment above 1. float32 in,
+    float32 out (float64 for float64 input); NaN stays NaN.
+    """
+    v, dtype = _float_result(x)
+    out = np.where(v <= 0.04045, v / 12.92, ((np.maximum(v, 0.04045) + 0.055) / 1.055) ** 2.4)
+    return _finish(out, dtype)
+
+
+def linear_to_srgb(x):
+    """The exact inverse of :func:`srgb_to_linear`, elementwise.
+
+    ``12.92 * x`` up to 0.0031308, ``1.055 * x ** (1 / 2.4) - 0.055`` above.
+    """
+    v, dtype = _float_result(x)
+    out = np.where(v <= 0.0031308, 12.92 * v, 1.055 * np.maximum(v, 0.0031308) ** (1.0 / 2.4) - 0.055)
+    return _finish(out, dtype)
+
+
+# --------------------------------------------------------------------------
+# reading
+# --------------------------------------------------------------------------
+
+def _oiio():
+    try:
+        import OpenImageIO as oiio
+    except ImportError as exc:  # pragma: no cover - the venv has it
+        raise ImportError(
+            "reading and writing image files needs OpenImageIO (pip install OpenImageIO); "
+            "inside Blender the add-on uses Blender's image API instead"
+        ) from exc
+    return oiio
+
+
+@dataclass(frozen=True)
+class _Part:
+    index: int          # OpenImageIO subimage number = EXR part number
+    name: str           # EXR part name ('' when the file has none)
+    channels: tuple     # channel names in OpenImageIO's order
+    spec: object        # OpenImageIO.ImageSpec of the part
+
+    @property
+    def label(self):
+        return f"part {self.index} '{self.name}'" if self.name else f"part {self.index}"
+
+    def qualified(self, i):
+        """Channel ``i``'s name prefixed with the part name (once)."""
+        n = self.channels[i]
+        if not self.name or n.startswith(self.name + "."):
+            return n
+        return f"{self.name}.{n}"
+
+
+def _open(path: Path, oiio):
+    if not path.exists():
+        raise ImageFileError(path, "file not found")
+    if path.is_dir():
+        raise ImageFileError(path, "is a folder, not an image file")
+    config = oiio.ImageSpec()
+    # PNG: keep colour as stored instead of multiplying it by alpha.
+    config.attribute("oiio:UnassociatedAlpha", 1)
+    inp = oiio.ImageInput.open(str(path), config)
+    if inp is None:
+        raise ImageFileError(path, f"cannot be read as an image ({oiio.geterror() or 'unknown format'})")
+    return inp
+
+
+def _parts(inp, path):
+    parts = []
+    s = 0
+    while inp.seek_subimage(s, 0):
+        spec = inp.spec(s, 0)
+        name = spec.getattribute("oiio:subimagename") or ""
+        parts.append(_Part(s, str(name), tuple(spec.channelnames), spec))
+        s += 1
+    if not parts:
+        raise ImageFileError(path, "contains no image")
+    return parts
+
+
+def _describe(parts):
+    def chans(p):
+        names = list(p.channels)
+        if len(names) > _MAX_LISTED_CHANNELS:
+            names = names[:_MAX_LISTED_CHANNELS] + [f"... ({len(p.channels)} in all)"]
+        return ", ".join(names) if names else "(none)"
+
+    if len(parts) == 1:
+        return f"channels found: {chans(parts[0])}"
+    return "channels found: " + "; ".join(f"{p.label}: {chans(p)}" for p in parts)
+
+
+def _read_channels(inp, part, indices, path):
+    """Pixels of the given channels of one part, (h, w, len(indices)) float32."""
+    lo, hi = min(indices), max(indices) + 1
+    # Always the explicit (subimage, miplevel, chbegin, chend) form: in the
+    # OpenImageIO 3.0 Python binding, read_image(chbegin, chend, format) after
+    # seek_subimage() reads the wrong subimage or crashes.
+    data = inp.read_image(part.index, 0, lo, hi, "float")
+    if data is None:
+        raise ImageFileError(path, f"pixels of {part.label} cannot be read ({inp.geterror()})")
+    data = np.asarray(data, dtype=np.float32)
+    if data.ndim == 2:
+        data = data[..., None]
+    return data[..., [i - lo for i in indices]]
+
+
+def _to_display_window(data, spec, fill):
+    """Place the data window's pixels in the display window (EXR may differ)."""
+    x, y, w, h = spec.x, spec.y, spec.width, spec.height
+    fx, fy, fw, fh = spec.full_x, spec.full_y, spec.full_width, spec.full_height
+    if (x, y, w, h) == (fx, fy, fw, fh) or fw <= 0 or fh <= 0:
+        return data
+    out = np.full((fh, fw, data.shape[2]), fill, dtype=np.float32)
+    x0, x1 = max(x, fx), min(x + w, fx + fw)
+    y0, y1 = max(y, fy), min(y + h, fy + fh)
+    if x0 < x1 and y0 < y1:
+        out[y0 - fy:y1 - fy, x0 - fx:x1 - fx] = data[y0 - y:y1 - y, x0 - x:x1 - x]
+    return out
+
+
+def _find(names, wanted):
+    """Index of ``wanted`` in ``names``, exact first, then ignoring case."""
+    if wanted in names:
+        return names.index(wanted)
+    low = [n.lower() for n in names]
+    return low.index(wanted.lower()) if wanted.lower() in low else None
+
+
+def _rgb_indices(names):
+    idx = [_find(names, c) for c in "RGB"]
+    return None if None in idx else idx
+
+
+def _layer_rgb_indices(names):
+    """R, G, B of a layer such as 'ViewLayer.Combined.(R|G|B)'."""
+    layers = [n[:-2] for n in names
+              if n.endswith(".R") and n[:-2] + ".G" in names and n[:-2] + ".B" in names]
+    if not layers:
+        return None
+    layer = min(layers, key=lambda p: p.rsplit(".", 1)[-1].lower() not in _PREFERRED_LAYERS)
+    return [names.index(f"{layer}.{c}") for c in "RGB"]
+
+
+def _choose_colour(parts, fmt, path):
+    """(part, channel indices): three for colour, one for grey."""
+    for finder in (_rgb_indices, _layer_rgb_indices):
+        for part in parts:
+            idx = finder(part.channels)
+            if idx:
+                return part, idx
+    for part in parts:
+        i = _find(part.channels, "Y")
+        if i is not None:
+            return part, [i]
+    if fmt not in _LINEAR_FORMATS:  # formats whose channels are positional
+        part = parts[0]
+        n = len(part.channels)
+        alpha = part.spec.alpha_channel
+        if n == 1 or (n == 2 and alpha == 1):
+            return part, [0]
+        if n == 3 or (n == 4 and alpha == 3):
+            return part, [0, 1, 2]
+    raise ImageFileError(
+        path, f"no colour channels to read (need R, G, B, a layer's .R/.G/.B, or one grey channel Y); "
+              f"{_describe(parts)}")
+
+
+def _is_float(typedesc):
+    oiio = _oiio()
+    return typedesc.basetype in (oiio.BASETYPE.FLOAT, oiio.BASETYPE.HALF, oiio.BASETYPE.DOUBLE)
+
+
+def read_image(path) -> np.ndarray:
+    """Read an image file as float32 ``(H, W, 3)`` linear light.
+
+    EXR, HDR and floating-point TIFF values are returned as stored; 8- and
+    16-bit files (PNG, JPEG, TIFF) are decoded from sRGB. In an EXR the colour
+    is the first part holding R, G and B (else a layer's ``<layer>.R/G/B``,
+    preferring a 'Combined' layer, else a grey Y channel). Raises
+    :class:`ImageFileError` naming the file when it is missing, unreadable or
+    has no usable colour channels.
+    """
+    path = Path(path)
+    oiio = _oiio()
+    inp = _open(path, oiio)
+    try:
+        parts = _parts(inp, path)
+        fmt = inp.format_name()
+        part, indices = _choose_colour(parts, fmt, path)
+        data = _read_channels(inp, part, indices, path)
+    finally:
+        inp.close()
+    if not (fmt in _LINEAR_FORMATS or _is_float(part.spec.format)):
+        data = srgb_to_linear(data)
+    data = _to_display_window(data, part.spec, 0.0)
+    if data.shape[2] == 1:
+        data = np.repeat(data, 3, axis=2)
+    return np.ascontiguousarray(data, dtype=np.float32)
+
+
+def _choose_depth(parts, channel, path):
+    wanted = (channel,) if channel is not None else DEPTH_CHANNELS
+
+    def pick(name, matches):
+        if len(matches) > 1:
+            found = ", ".join(f"'{p.qualified(i)}' ({p.label})" for p, i in matches)
+            raise ImageFileError(
+                path, f"several channels match depth channel '{name}': {found}; "
+                      f"pass channel='<part>.<channel>' to choose one")
+        return matches[0] if matches else None
+
+    # 1. exact channel names, in order of preference, across every part
+    for name in wanted:
+        hit = pick(name, [(p, i) for p in parts for i, n in enumerate(p.channels) if n == name])
+        if hit:
+            return hit
+    # 2. ignoring case, with a part or layer prefix ('ViewLayer.Depth.Z' for
+    #    'depth.Z', part 'depth' + channel 'Z' for 'depth.Z'); undotted names
+    #    only match whole channel names, so 'Z' never takes 'Normal.Z'.
+    for name in wanted:
+        low = name.lower()
+        matches = []
+        for p in parts:
+            for i, n in enumerate(p.channels):
+                q = p.qualified(i).lower()
+                if n.lower() == low or q == low or ("." in name and q.endswith("." + low)):
+                    matches.append((p, i))
+        hit = pick(name, matches)
+        if hit:
+            return hit
+    if channel is not None:
+        raise ImageFileError(path, f"no channel '{channel}'; {_describe(parts)}")
+    raise ImageFileError(
+        path, f"no depth channel found (looked for {', '.join(DEPTH_CHANNELS)} in every part); "
+              f"{_describe(parts)}; pass channel=... to choose one")
+
+
+def _read_depth_npy(path: Path):
+    if not path.exists():
+        raise ImageFileError(path, "file not found")
+    try:
+        arr = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise ImageFileError(path, f"cannot be read as a .npy array ({exc})") from exc
+    return _as_depth(arr, path)
+
+
+def _as_depth(arr, path):
+    arr = np.asarray(arr)
+    if arr.ndim == 3 and arr.shape[2] == 1:
+        arr = arr[..., 0]
+    if arr.ndim != 2:
+        raise ImageFileError(path, f"a depth map must be a 2-D (H, W) array; got shape {arr.shape}")
+    if arr.dtype.kind not in "fiu":
+        raise ImageFileError(path, f"a depth map must hold real numbers (metres); got dtype {arr.dtype}")
+    return np.ascontiguousarray(arr, dtype=np.float32)
+
+
+def read_depth(path, *, channel=None) -> np.ndarray:
+    """Read a depth map as float32 ``(H, W)`` metres from an EXR (or ``.npy``).
+
+    The channel is ``channel`` when given (a channel name, or
+    ``'<part>.<channel>'``), else the first of :data:`DEPTH_CHANNELS` found,
+    searching every part of a multi-part EXR; a layer prefix is allowed
+    (Blender's 'ViewLayer.Depth.Z' matches 'depth.Z'). Values come back as
+    stored: inf, 1e10, NaN, 0 and negatives are kept for the caller to
+    interpret. Pixels outside an EXR's data window are NaN (invalid).
+    Integer-valued image files are refused: they cannot hold metres.
+    """
+    path = Path(path)
+    if path.suffix.lower() == ".npy":
+        return _read_depth_npy(path)
+    oiio = _oiio()
+    inp = _open(path, oiio)
+    try:
+        parts = _parts(inp, path)
+        part, index = _choose_depth(parts, channel, path)
+        formats = part.spec.channelformats
+        ctype = formats[index] if formats else part.spec.format
+        if not _is_float(ctype):
+            raise ImageFileError(
+                path, f"depth channel '{part.qualified(index)}' ({part.label}) holds {ctype} values; "
+                      f"depth must be stored as floating-point metres (EXR or .npy)")
+        data = _read_channels(inp, part, [index], path)
+    finally:
+        inp.close()
+    data = _to_display_window(data, part.spec, np.nan)[..., 0]
+    return np.ascontiguousarray(data, dtype=np.float32)
+
+
+# --------------------------------------------------------------------------
+# writing
+# --------------------------------------------------------------------------
+
+def _as_rgb(image, path):
+    a = np.asarray(image)
+    if a.dtype.kind != "f":
+        raise ImageFileError(
+            path, f"the image to write must be floating-point linear light; got dtype {a.dtype} "
+                  f"(for 8-bit sRGB data use srgb_to_linear(x / 255))")
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[..., 0]
+    if a.ndim == 2:
+        a = np.repeat(a[..., None], 3, axis=2)
+    if a.ndim != 3 or a.shape[2] != 3:
+        raise ImageFileError(path, f"the image to write must have shape (H, W) or (H, W, 3); got {np.shape(image)}")
+    if a.shape[0] == 0 or a.shape[1] == 0:
+        raise ImageFileError(path, f"the image to write is empty (shape {np.shape(image)})")
+    a = np.ascontiguousarray(a, dtype=np.float32)
+    _check_finite(a, path, "the image")
+    return a
+
+
+def _check_finite(a, path, what):
+    bad = ~np.isfinite(a)
+    if bad.any():
+        where = np.argwhere(bad)[0]
+        at = f"row {where[0]}, column {where[1]}"
+        if a.ndim == 3:
+            at += f", channel {'RGB'[where[2]]}"
+        raise ImageFileError(
+            path, f"refusing to write {what} with {int(bad.sum())} non-finite value(s) (NaN or inf "
+                  f"as float32); the first is {a[tuple(where)]} at {at}")
+
+
+def _write(path: Path, fmt, pixels, typename, channelnames, attributes):
+    """Write (h, w, c) ``pixels`` atomically with OpenImageIO's ``fmt`` writer."""
+    oiio = _oiio()
+    pixels = np.ascontiguousarray(pixels)
+    # OpenImageIO's Python write_image misreads a 2-D array for a one-channel
+    # image (it wants (h, w, c)); callers always pass three dimensions.
+    assert pixels.ndim == 3
+    h, w, c = pixels.shape
+    with atomic_path(path) as tmp:
+        # The writer is chosen by format name, not by the temporary's suffix
+        # (which ends in the real extension anyway: '.name.XXXX.tmp.png').
+        out = oiio.ImageOutput.create(fmt)
+        if out is None:
+            raise ImageFileError(path, f"OpenImageIO cannot write {fmt} files ({oiio.geterror()})")
+        spec = oiio.ImageSpec(w, h, c, oiio.TypeDesc(typename))
+        spec.channelnames = tuple(channelnames)
+        for key, value in attributes.items():
+            spec.attribute(key, value)
+        if not out.open(str(tmp), spec):
+            raise ImageFileError(path, f"cannot be written ({out.geterror()})")
+        ok = out.write_image(pixels)
+        err = out.geterror() if not ok else ""
+        closed = out.close()
+        if not ok or not closed:
+            raise ImageFileError(path, f"cannot be written ({err or out.geterror() or 'write failed'})")
+
+
+def write_image(path, image, *, bit_depth=None) -> None:
+    """Write a linear-light image, the format chosen by the extension.
+
+    ``.exr``: linear RGB, float32 (half with ``bit_depth=16``); ``.png``:
+    sRGB-encoded, clipped to [0, 1], 8-bit (16 with ``bit_depth=16``);
+    ``.jpg``/``.jpeg``: 8-bit sRGB. ``image`` is ``(H, W)`` (grey, written as
+    three equal channels) or ``(H, W, 3)``, floating point. A NaN or inf
+    anywhere raises :class:`ImageFileError` and writes nothing. Missing folders
+    are created; the file appears only once completely written.
+    """
+    path = Path(path)
+    ext = path.suffix.lower()
+    if ext not in _WRITE_FORMATS:
+        raise ImageFileError(
+            path, f"cannot write images with extension '{path.suffix}'; allowed: "
+                  f"{', '.join(_WRITE_FORMATS)}")
+    fmt, allowed, default = _WRITE_FORMATS[ext]
+    bits = default if bit_depth is None else bit_depth
+    if bits not in allowed:
+        raise ImageFileError(
+            path, f"bit_depth={bit_depth!r} is not supported for {ext} files; allowed: "
+                  f"{', '.join(map(str, allowed))}")
+    rgb = _as_rgb(image, path)
+    if fmt == "openexr":
+        if bits == 16:
+            big = np.abs(rgb) > _HALF_MAX
+            if big.any():
+                raise ImageFileError(
+                    path, f"{int(big.sum())} value(s) exceed the half-float range "
+                          f"(|x| <= {_HALF_MAX:g}; largest {float(np.abs(rgb).max()):g}); "
+                          f"write float32 (bit_depth=None) instead")
+        _write(path, fmt, rgb, "half" if bits == 16 else "float", "RGB", {"compression": "zip"})
+        return
+    top = 65535 if bits == 16 else 255
+    encoded = linear_to_srgb(np.clip(rgb.astype(np.float64), 0.0, 1.0))
+    pixels = np.rint(encoded * top).astype(np.uint16 if bits == 16 else np.uint8)
+    attributes = {"oiio:ColorSpace": "sRGB"}
+    if fmt == "jpeg":
+        attributes["Compression"] = "jpeg:95"
+    _write(path, fmt, pixels, "uint16" if bits == 16 else "uint8", "RGB", attributes)
+
+
+def write_depth(path, depth) -> None:
+    """Write a float32 ``(H, W)`` depth map (metres) as a one-channel 'Z' EXR.
+
+    Values are stored as given: inf (infinity) and NaN (invalid pixel) are
+    kept. A ``.npy`` path writes a NumPy array instead. Atomic, like
+    :func:`write_image`.
+    """
+    path = Path(path)
+    d = _as_depth(depth, path)
+    ext = path.suffix.lower()
+    if ext == ".npy":
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as f:
+                np.save(f, d, allow_pickle=False)
+        return
+    if ext != ".exr":
+        raise ImageFileError(path, f"depth maps are written as .exr (or .npy); got extension '{path.suffix}'")
+    _write(path, "openexr", d[..., None], "float", ("Z",), {"compression": "zip"})
+
