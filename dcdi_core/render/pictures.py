@@ -7,8 +7,8 @@ from ..atomic import atomic_path
 
 
 def _srgb(x):
-    x = np.clip(x, 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+    from ..io.images import linear_to_srgb
+    return linear_to_srgb(np.clip(x, 0.0, 1.0))
 
 
 def side_by_side(path, image, depth, result, title: str) -> None:

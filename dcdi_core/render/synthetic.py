@@ -24,7 +24,7 @@ def _texture(rng, h, w, scale):
     return np.clip(0.7 * smooth + 0.3 * fine, 0.0, 1.0)
 
 
-def test_scene(height: int = 240, width: int = 360, seed: int = 0):
+def synthetic_rgbd(height: int = 240, width: int = 360, seed: int = 0):
     """(image (H, W, 3) float32 linear, depth (H, W) float32 metres)."""
     rng = np.random.default_rng(seed)
     h, w = height, width
