@@ -268,6 +268,11 @@ def cmd_report(args) -> int:
     return run_report(args.lens, args.out, quick=args.quick)
 
 
+def cmd_report_sim(args) -> int:
+    from .render.accuracy import run_report
+    return run_report(args.lens, args.out, quick=args.quick)
+
+
 def cmd_bench(args) -> int:
     from . import bench
     return bench.run(args.what, args)
@@ -412,9 +417,14 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", default="out/report", help="folder for the table (Markdown) and plot (PNG)")
     r.add_argument("--quick", action="store_true", help="a smaller reference and sweep (for tests)")
     r.set_defaults(func=cmd_report)
+    r = rsub.add_parser("simulation-accuracy", help="patch-wise simulation vs a per-pixel reference; bokeh at depth edges")
+    r.add_argument("--lens", default="mos-s1", help="lens id (default mos-s1)")
+    r.add_argument("--out", default="out/report", help="folder for the table (Markdown)")
+    r.add_argument("--quick", action="store_true", help="a small image and sweep (for tests)")
+    r.set_defaults(func=cmd_report_sim)
 
     q = sub.add_parser("bench", help="benchmarks (times, not tests)")
-    q.add_argument("what", choices=["trace", "psflib"], help="what to benchmark")
+    q.add_argument("what", choices=["trace", "psflib", "render"], help="what to benchmark")
     q.add_argument("--rays", type=_positive_int, default=1 << 20, help="rays per trace (default 2^20)")
     q.add_argument("--repeat", type=_positive_int, default=3, help="timed repetitions (best is kept)")
     q.add_argument("--quick", action="store_true", help="psflib: a small library (for tests)")

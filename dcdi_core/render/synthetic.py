@@ -24,8 +24,10 @@ def _texture(rng, h, w, scale):
     return np.clip(0.7 * smooth + 0.3 * fine, 0.0, 1.0)
 
 
-def synthetic_rgbd(height: int = 240, width: int = 360, seed: int = 0):
-    """(image (H, W, 3) float32 linear, depth (H, W) float32 metres)."""
+def synthetic_rgbd(height: int = 240, width: int = 360, seed: int = 0, *, disk: bool = True):
+    """(image (H, W, 3) float32 linear, depth (H, W) float32 metres).
+    ``disk=False`` leaves out the red disk: the scene behind it, which the
+    occlusion measurement uses as ground truth."""
     rng = np.random.default_rng(seed)
     h, w = height, width
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
@@ -44,9 +46,10 @@ def synthetic_rgbd(height: int = 240, width: int = 360, seed: int = 0):
     depth = np.where(board, 3.0, depth)
     stripes = 0.5 + 0.5 * np.sign(np.sin(xx / 3.0))
     img = np.where(board[..., None], np.stack([0.2 + 0.6 * stripes, 0.2 + 0.6 * stripes, 0.2 + 0.5 * stripes], -1), img)
-    disk = (xx - 0.62 * w) ** 2 + (yy - 0.5 * h) ** 2 < (0.14 * h) ** 2
+    disk = ((xx - 0.62 * w) ** 2 + (yy - 0.5 * h) ** 2 < (0.14 * h) ** 2) & disk
     depth = np.where(disk, 1.2, depth)
-    img = np.where(disk[..., None], np.array([0.8, 0.08, 0.05]) * (0.6 + 0.4 * _texture(rng, h, w, 6))[..., None], img)
+    disk_tex = _texture(rng, h, w, 6)       # drawn either way: the same seed gives the same scene behind
+    img = np.where(disk[..., None], np.array([0.8, 0.08, 0.05]) * (0.6 + 0.4 * disk_tex)[..., None], img)
     for _ in range(6):                                       # small bright lights at 6 m
         cy, cx = rng.uniform(0.1, 0.45) * h, rng.uniform(0.05, 0.95) * w
         spot = (yy - cy) ** 2 + (xx - cx) ** 2 < 1.5 ** 2
