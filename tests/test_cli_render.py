@@ -47,3 +47,21 @@ def test_mismatched_depth_is_a_clear_error(scene, capsys):
                  "-o", str(d / "x.exr"), *FAST])
     assert code == 2 and "small.exr" in capsys.readouterr().err
     assert not (d / "x.exr").exists()
+
+
+@pytest.mark.slow
+def test_simulation_accuracy_report_quick(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("DCDI_CACHE_DIR", str(tmp_path / "cache"))
+    code = main(["report", "simulation-accuracy", "--quick", "--out", str(tmp_path)])
+    assert code == 0
+    md = (tmp_path / "simulation-accuracy-mos-s1.md").read_text()
+    assert "per-pixel reference" in md and "occlusion-aware layers" in md
+
+
+@pytest.mark.slow
+def test_bench_render_quick(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("DCDI_CACHE_DIR", str(tmp_path / "cache"))
+    code = main(["bench", "render", "--quick"])
+    assert code == 0
+    out = capsys.readouterr().out
+    assert "baseline" in out and "peak memory" in out
