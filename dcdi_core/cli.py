@@ -231,6 +231,10 @@ def cmd_simulate(args) -> int:
     from .optics.lens import load_lens
     from .render.simulate import open_library, simulate
     lens = load_lens(args.lens)
+    record = None
+    if args.perturb is not None:
+        from .optics.perturb import perturb_lens
+        lens, record = perturb_lens(lens, seed=args.perturb, fraction=args.perturb_fraction)
     img, depth = _read_rgbd(args)
     geom = _geometry(args, lens, img)
     lib = open_library(lens, geom, _psf_settings(args))
@@ -240,7 +244,7 @@ def cmd_simulate(args) -> int:
     write_image(args.output, r.image)
     if args.sharp_out:
         write_image(args.sharp_out, r.sharp)
-    print(_dump({"output": args.output, **r.info}))
+    print(_dump({"output": args.output, **r.info, "perturbation": record}))
     return 0
 
 
@@ -252,13 +256,13 @@ def cmd_bokeh(args) -> int:
     lens = load_lens(args.lens)
     img, depth = _read_rgbd(args)
     geom = _geometry(args, lens, img)
-    r = bokeh(img, depth, lens, keep=tuple(args.keep) if args.keep else None, focus_m=args.focus_at,
+    r = bokeh(img, depth, lens, keep=tuple(args.keep) if args.keep else None, focus_m=args.focus,
               geometry=geom, patch=args.patch, occlusion=not args.plain, settings=_psf_settings(args))
     write_image(args.output, r.image)
     if args.side_by_side:
         from .render.pictures import side_by_side
         side_by_side(args.side_by_side, img, depth, r.image, f"{lens.name}: " + (
-            f"keep {args.keep[0]:g}-{args.keep[1]:g} m" if args.keep else f"focus {args.focus_at:g} m"))
+            f"keep {args.keep[0]:g}-{args.keep[1]:g} m" if args.keep else f"focus {args.focus:g} m"))
     print(_dump({"output": args.output, **r.info}))
     return 0
 
@@ -398,14 +402,18 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--full-well", type=float, default=10000.0, help="electrons at 1.0 (default 10000)")
     q.add_argument("--read-noise", type=float, default=3.0, help="read noise, electrons (default 3)")
     q.add_argument("--seed", type=int, default=None, help="random seed (noise)")
+    q.add_argument("--perturb", type=int, default=None, metavar="SEED",
+                   help="domain randomisation: perturb radii and thicknesses with this seed (recorded in the output)")
+    q.add_argument("--perturb-fraction", type=float, default=0.10, metavar="F",
+                   help="largest relative change of each perturbed value (default 0.10)")
     q.set_defaults(func=cmd_simulate)
 
     q = sub.add_parser("bokeh", help="the depth of field of a lens on an all-in-focus RGB-D image",
-                       description="Keep a depth range sharp (--keep) or focus at a distance (--focus-at). " + UNITS)
+                       description="Keep a depth range sharp (--keep) or focus at a distance (--focus). " + UNITS)
     rgbd_options(q)
     g = q.add_mutually_exclusive_group(required=True)
     g.add_argument("--keep", type=float, nargs=2, metavar=("NEAR", "FAR"), help="depth range kept sharp, metres")
-    g.add_argument("--focus-at", type=_depth, metavar="D", help="focus the lens at D metres")
+    g.add_argument("--focus", type=_depth, metavar="D", help="focus the lens at D metres")
     q.add_argument("--plain", action="store_true", help="plain patch-wise blur instead of occlusion-aware layers")
     q.add_argument("--side-by-side", default=None, metavar="PNG", help="also write input | depth | result")
     q.set_defaults(func=cmd_bokeh)

@@ -26,10 +26,26 @@ def test_simulate_writes_exr_and_reports(scene, capsys):
                  "-o", str(d / "sim.exr"), "--sharp-out", str(d / "sharp.exr"), "--noise", "--seed", "3", *FAST])
     assert code == 0
     info = json.loads(capsys.readouterr().out)
-    assert info["depth_aware"] and info["noise"]["seed"] == 3
+    assert info["depth_aware"] and info["noise"]["seed"] == 3 and info["perturbation"] is None
     out = read_image(d / "sim.exr")
     assert out.shape == img.shape and np.isfinite(out).all()
     assert read_image(d / "sharp.exr").shape == img.shape
+
+
+def test_simulate_with_perturbed_lens_records_it(scene, capsys):
+    d, img = scene
+    code = main(["simulate", "--image", str(d / "aif.exr"), "--depth", str(d / "depth.exr"), "--lens", "mos-s2",
+                 "-o", str(d / "p.exr"), "--perturb", "7", "--no-distortion", *FAST])
+    assert code == 0
+    rec = json.loads(capsys.readouterr().out)["perturbation"]
+    assert rec["seed"] == 7 and rec["changes"]
+
+
+def test_bokeh_focus_distance(scene, capsys):
+    d, img = scene
+    code = main(["bokeh", "--image", str(d / "aif.exr"), "--depth", str(d / "depth.exr"), "--lens", "6p",
+                 "--focus", "2", "-o", str(d / "f.exr"), *FAST])
+    assert code == 0 and read_image(d / "f.exr").shape == img.shape
 
 
 def test_bokeh_png_and_side_by_side(scene, capsys):
