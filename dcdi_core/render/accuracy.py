@@ -4,8 +4,8 @@
    reference (every pixel convolved with its own PSF, for its own field,
    azimuth and depth: the limit of patch size 1) on the synthetic scene with
    depth edges, for patch sizes 8 / 16 / 32 / 64 and kernel sizes, with
-   times. The image sits off axis (fields about 0.2 to 0.7) at twice the
-   MOS-S1 pixel pitch so that the PSFs vary across it.
+   times. The image is a crop at the sensor's own pixel pitch, off axis
+   (fields about 0.3 to 0.6), so that the PSFs are large and vary across it.
 2. Bokeh at depth discontinuities: a sharp subject (kept range) in front of a
    blurred background. Ground truth: the subject pasted over the background
    scene rendered *without* the subject (which the synthetic scene knows).
@@ -86,7 +86,7 @@ def run_report(lens_id: str, out: str | Path, *, quick: bool = False) -> int:
     out = Path(out)
     h, w = (64, 96) if quick else (160, 240)
     img, depth = synthetic_rgbd(h, w, seed=0)
-    pitch = 2 * (lens.sensor.pixel_pitch_mm or 0.0122)
+    pitch = lens.sensor.pixel_pitch_mm or 0.0122
     off = 0.45 * lens.sensor.semi_diagonal_mm / pitch / math.sqrt(2)
     geom = ImageGeometry.from_pixel_pitch(lens, h, w, pitch, center_px=((h - 1) / 2 - off, (w - 1) / 2 - off))
     grid = LibraryGrid(n_fields=32, n_depths=10)

@@ -44,31 +44,43 @@ def patch_inverse_depth(depth: np.ndarray, m: int, far_m: float) -> tuple[np.nda
     return np.where(has, inv / np.maximum(cnt, 1), 0.0), has
 
 
-def rotate_radial_kernels(kernels: np.ndarray, outward: np.ndarray) -> np.ndarray:
+def rotate_radial_kernels(kernels: np.ndarray, outward: np.ndarray, chunk: int = 256) -> np.ndarray:
     """Rotate kernels (P, C, k, k) whose rows run along the radial direction so
     that it points along ``outward`` (P, 2) = unit (row, col) vectors.
-    Bilinear, zero outside, each channel renormalised to its former sum."""
+    Bilinear, zero outside, each channel renormalised to its former sum.
+    Chunks run on the thread pool (float32 throughout)."""
+    from ..optics.trace import thread_pool
+
     p, c, k, _ = kernels.shape
     r = k // 2
-    dr, dc = np.meshgrid(np.arange(k) - r, np.arange(k) - r, indexing="ij")
-    ur, uc = outward[:, 0, None, None], outward[:, 1, None, None]
-    a = dr * ur + dc * uc + r            # along the radial axis -> source row
-    b = -dr * uc + dc * ur + r           # tangential -> source column (kernels mirror in it)
-    r0, c0 = np.floor(a).astype(np.int64), np.floor(b).astype(np.int64)
-    fr, fc = a - r0, b - c0
-    flat = kernels.reshape(p, c, k * k)
-    out = np.zeros((p, c, k, k), np.float64)
-    base = np.arange(p)[:, None, None]
-    for oy, ox, wgt in ((0, 0, (1 - fr) * (1 - fc)), (0, 1, (1 - fr) * fc), (1, 0, fr * (1 - fc)), (1, 1, fr * fc)):
-        rr, cc = r0 + oy, c0 + ox
-        ok = (rr >= 0) & (rr < k) & (cc >= 0) & (cc < k)
-        idx = np.where(ok, rr * k + cc, 0)
-        vals = flat[base, :, idx]                              # (P, k, k, C)
-        out += np.moveaxis(vals, -1, 1) * (wgt * ok)[:, None]
-    before = kernels.sum(axis=(-1, -2), keepdims=True)
-    after = out.sum(axis=(-1, -2), keepdims=True)
-    out *= np.where(after > 0, before / np.where(after > 0, after, 1.0), 0.0)
-    return out.astype(np.float32)
+    dr, dc = np.meshgrid(np.arange(k, dtype=np.float32) - r, np.arange(k, dtype=np.float32) - r, indexing="ij")
+    dr, dc = dr.ravel(), dc.ravel()
+    flat = np.ascontiguousarray(kernels, dtype=np.float32).reshape(p, c, k * k)
+    out = np.empty((p, c, k * k), np.float32)
+
+    def work(sl):
+        ur = outward[sl, 0, None].astype(np.float32)
+        uc = outward[sl, 1, None].astype(np.float32)
+        a = dr * ur + dc * uc + r            # along the radial axis -> source row
+        b = -dr * uc + dc * ur + r           # tangential -> source column (kernels mirror in it)
+        r0, c0 = np.floor(a), np.floor(b)
+        fr, fc = a - r0, b - c0
+        r0, c0 = r0.astype(np.int64), c0.astype(np.int64)
+        src = flat[sl]
+        acc = np.zeros(src.shape, np.float32)
+        for oy, ox, wgt in ((0, 0, (1 - fr) * (1 - fc)), (0, 1, (1 - fr) * fc),
+                            (1, 0, fr * (1 - fc)), (1, 1, fr * fc)):
+            rr, cc = r0 + oy, c0 + ox
+            ok = (rr >= 0) & (rr < k) & (cc >= 0) & (cc < k)
+            idx = np.where(ok, rr * k + cc, 0)[:, None, :]
+            acc += np.take_along_axis(src, idx, axis=2) * (wgt * ok)[:, None, :]
+        before = src.sum(axis=-1, keepdims=True)
+        after = acc.sum(axis=-1, keepdims=True)
+        acc *= np.where(after > 0, before / np.where(after > 0, after, 1.0), 0.0)
+        out[sl] = acc
+
+    list(thread_pool().map(work, [slice(i, min(i + chunk, p)) for i in range(0, p, chunk)]))
+    return out.reshape(p, c, k, k)
 
 
 @dataclass
