@@ -198,7 +198,7 @@ def bench_render(quick: bool = False) -> int:
     pm = psf_map(lib, geom, depth, m)
     t_map = time.perf_counter() - t
     t = time.perf_counter()
-    conv = patch_convolve(img, pm.kernels, m, identity=pm.identity)
+    patch_convolve(img, pm.kernels, m, identity=pm.identity)
     t_conv = time.perf_counter() - t
     tracemalloc.start()
     t = time.perf_counter()

@@ -139,8 +139,8 @@ def cmd_psf(args) -> int:
             response=_response(args), wavelength_nm=args.wavelength)
     pitch = pixel_pitch_mm(lens, settings)
     if r.zero_energy:
-        print(f"dcdi: error: no ray of this field reaches the sensor (fully vignetted or beyond the "
-              f"image circle); the kernel would be empty", file=sys.stderr)
+        print("dcdi: error: no ray of this field reaches the sensor (fully vignetted or beyond the "
+              "image circle); the kernel would be empty", file=sys.stderr)
         return 2
     res = {
         "lens": lens.id, "depth_m": args.depth, "field": args.field, "angle_deg": args.angle,
@@ -167,7 +167,6 @@ def cmd_psf(args) -> int:
 
 
 def cmd_psflib_build(args) -> int:
-    import time
     from .optics.lens import load_lens
     from .psf.library import LibraryGrid, PSFLibrary, text_progress
     lens = load_lens(args.lens)
@@ -186,7 +185,7 @@ def cmd_psflib_show(args) -> int:
     import math
     import numpy as np
     from .optics.lens import load_lens
-    from .psf.library import LibraryGrid, PSFLibrary
+    from .psf.library import PSFLibrary
     from .psf.plots import depth_label, psf_grid_png
     if args.library.endswith(".npz"):
         lib = PSFLibrary.load(args.library)
@@ -209,7 +208,6 @@ def cmd_psflib_show(args) -> int:
 
 
 def _read_rgbd(args):
-    import numpy as np
     from .io.images import read_depth, read_image
     img = read_image(args.image)
     depth = read_depth(args.depth)
@@ -249,10 +247,9 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_bokeh(args) -> int:
-    import numpy as np
     from .io.images import write_image
     from .optics.lens import load_lens
-    from .render.simulate import bokeh, open_library
+    from .render.simulate import bokeh
     lens = load_lens(args.lens)
     img, depth = _read_rgbd(args)
     geom = _geometry(args, lens, img)

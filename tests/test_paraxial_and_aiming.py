@@ -23,7 +23,7 @@ def _axis_crossing(lens, h, depth_mm=math.inf):
     a = aim_chief(lens, np.array([depth_mm]), np.array([0.0]))
     o, d, st, _ = pupil_rays(lens, a, np.array([[0.0, h]]))
     b = trace(lens, o, d, lens.wavelength_nm, apertures=False, status=st)
-    (x, y, z), (dx, dy, dz) = b.position_mm[0, 0], b.direction[0, 0]
+    (_, y, z), (_, dy, dz) = b.position_mm[0, 0], b.direction[0, 0]
     return z - y * dz / dy, b.direction[0, 0]
 
 

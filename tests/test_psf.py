@@ -1,6 +1,5 @@
 """PSFs against independent truth: ray moments, a perfect lens, the thin-lens CoC."""
 import math
-import warnings
 
 import numpy as np
 import pytest

@@ -1,12 +1,11 @@
 """The PSF library: interpolation, laziness, the disk cache."""
 import math
-import warnings
 
 import numpy as np
 import pytest
 
 from dcdi_core.optics.errors import InputRangeError
-from dcdi_core.optics.lens import Lens, load_lens
+from dcdi_core.optics.lens import load_lens
 from dcdi_core.psf import library as L
 from dcdi_core.psf.compute import PSFSettings, psf
 from dcdi_core.psf.library import CacheWarning, LibraryGrid, PSFLibrary

@@ -1,5 +1,4 @@
 """Patch-wise simulation and bokeh: identity, energy, a point source, seams, depth handling."""
-import math
 
 import numpy as np
 import pytest

@@ -14,7 +14,6 @@ really is, whatever the pupil aberrations.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np

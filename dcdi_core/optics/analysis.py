@@ -10,10 +10,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import surfaces as S
 from .aiming import Aimed, aim_chief, chief_ray_sensor_y, launch, pupil_rays, sources, stop_grid
 from .lens import Lens
-from .paraxial import first_order, paraxial_image_height_mm
+from .paraxial import paraxial_image_height_mm
 from .trace import RayBundle, trace
 
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import LensFileError, OpticsError, UnknownGlassError
-from .materials import AIR, Material, get_material
+from .materials import AIR, get_material
 from .surfaces import Surface
 
 D_LINE_NM = 587.5618

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 
 from .analysis import best_focus_depth_m, distortion, real_field_angle_deg, working_f_number
 from .lens import Lens

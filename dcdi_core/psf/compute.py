@@ -13,11 +13,10 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
-from ..optics import surfaces as S
 from ..optics.aiming import (Aimed, aim_chief, chief_jacobian, chief_ray_sensor_y, launch, pupil_rays,
                              sources, stop_grid)
 from ..optics.errors import InputRangeError, OpticsError
@@ -267,7 +266,7 @@ def psf(lens: Lens, *, depth_m: float, field: float | None = None, angle_deg: fl
     aimed = sources(lens_f, [depth_m], **kw)
     single = Aimed(aimed.depth_mm[0, 0], aimed.p[0, 0], aimed.v_chief[0, 0], aimed.ok[0, 0], aimed.z_ep)
     wl, w = spectral_samples(settings, response, wavelength_nm)
-    plain = PSFSettings(**{**settings.as_dict(), "band_nm": tuple(settings.band_nm), "focus_distance_m": None})
+    plain = replace(settings, focus_distance_m=None)
     batch = compute_sources(lens_f, _as_array(single), plain, wl, w)
     out = PSFBatch(*(getattr(batch, f)[0] for f in ("psf", "energy_outside", "vignetted_fraction",
                                                      "relative_illumination", "chief_ray_height_mm",

@@ -22,7 +22,7 @@ import os
 import sys
 import time
 import warnings
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -209,8 +209,7 @@ class PSFLibrary:
         lens_f = focused_lens(self.lens, self.settings)
         aimed = sources(lens_f, self.depths_m[todo], field=self.fields)     # (F, n_todo)
         wl, w = np.asarray(self.meta["wavelengths_nm"]), np.asarray(self.meta["channel_weights"])
-        plain = PSFSettings(**{**self.settings.as_dict(), "band_nm": tuple(self.settings.band_nm),
-                               "focus_distance_m": None})
+        plain = replace(self.settings, focus_distance_m=None)
         batch = compute_sources(lens_f, aimed, plain, wl, w, progress=progress)
         for j, b in enumerate(todo):
             self.psf[b] = batch.psf[:, j]

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -99,8 +100,7 @@ def run_report(lens_id: str, out: str | Path, *, quick: bool = False) -> int:
     print(f"simulation-accuracy {lens.id}: {h} x {w} synthetic scene, fields "
           f"{geom.field(0, 0):.2f}..{geom.field(h - 1, w - 1):.2f}, pitch {pitch * 1000:.1f} um", flush=True)
     ref_k = max(sizes)
-    lib_ref = PSFLibrary.open(lens, PSFSettings(**{**base.as_dict(), "band_nm": tuple(base.band_nm),
-                                                   "kernel_size": ref_k}), grid)
+    lib_ref = PSFLibrary.open(lens, replace(base, kernel_size=ref_k), grid)
     lib_ref.ensure(depth)
     t = time.perf_counter()
     ref = per_pixel_reference(img, depth, lib_ref, geom)
@@ -108,7 +108,7 @@ def run_report(lens_id: str, out: str | Path, *, quick: bool = False) -> int:
     rows.append(("per-pixel reference", ref_k, 1, math.inf, math.inf, 0.0, t_ref))
     for k in sizes:
         lib = lib_ref if k == ref_k else PSFLibrary.open(
-            lens, PSFSettings(**{**base.as_dict(), "band_nm": tuple(base.band_nm), "kernel_size": k}), grid)
+            lens, replace(base, kernel_size=k), grid)
         lib.ensure(depth)
         for m in (patches if k == ref_k else [16]):
             t = time.perf_counter()
@@ -123,8 +123,7 @@ def run_report(lens_id: str, out: str | Path, *, quick: bool = False) -> int:
     p6 = load_lens("6p")
     bgeom = ImageGeometry.full_sensor(p6, h, w)
     bsettings = PSFSettings(pupil_samples=32, n_wavelengths=15) if quick else PSFSettings()
-    blib = PSFLibrary.open(p6, PSFSettings(**{**bsettings.as_dict(), "band_nm": tuple(bsettings.band_nm),
-                                              "pixel_pitch_mm": bgeom.pixel_pitch_mm}), grid)
+    blib = PSFLibrary.open(p6, replace(bsettings, pixel_pitch_mm=bgeom.pixel_pitch_mm), grid)
     keep = (1.1, 1.3)
     subject = (depth >= keep[0]) & (depth <= keep[1])
     img_bg, depth_bg = synthetic_rgbd(h, w, seed=0, disk=False)

@@ -17,8 +17,7 @@ a sharp subject does not bleed into a blurred background nor get a halo.
 """
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -27,7 +26,7 @@ from ..psf.compute import PSFSettings
 from ..psf.library import LibraryGrid, PSFLibrary
 from .convolve import patch_convolve
 from .geometry import ImageGeometry
-from .psfmap import PSFMap, identity_kernel, psf_map, valid_depth_mask
+from .psfmap import PSFMap, psf_map, valid_depth_mask
 
 
 @dataclass
@@ -54,7 +53,7 @@ def open_library(lens, geometry: ImageGeometry, settings: PSFSettings | None = N
                  grid: LibraryGrid | None = None, *, cache: bool = True) -> PSFLibrary:
     """The lens's PSF library sampled at the image's pixel pitch."""
     s = settings or PSFSettings()
-    s = PSFSettings(**{**s.as_dict(), "band_nm": tuple(s.band_nm), "pixel_pitch_mm": geometry.pixel_pitch_mm})
+    s = replace(s, pixel_pitch_mm=geometry.pixel_pitch_mm)
     return PSFLibrary.open(lens, s, grid, cache=cache)
 
 
@@ -110,7 +109,7 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
     if library is None:
         s = settings or PSFSettings()
         if focus_m is not None:
-            s = PSFSettings(**{**s.as_dict(), "band_nm": tuple(s.band_nm), "focus_distance_m": focus_m})
+            s = replace(s, focus_distance_m=focus_m)
         library = open_library(lens, geometry, s)
     valid = valid_depth_mask(d)
     far = library.grid.far_m
