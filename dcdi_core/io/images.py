@@ -442,6 +442,8 @@ def _write(path: Path, fmt, pixels, typename, channelnames, attributes):
             raise ImageFileError(path, f"OpenImageIO cannot write {fmt} files ({oiio.geterror()})")
         spec = oiio.ImageSpec(w, h, c, oiio.TypeDesc(typename))
         spec.channelnames = tuple(channelnames)
+        # no DateTime stamp: the same pixels must give the same bytes (datasets are compared by hash)
+        spec.attribute("DateTime", "")
         for key, value in attributes.items():
             spec.attribute(key, value)
         if not out.open(str(tmp), spec):

@@ -1,0 +1,228 @@
+"""The dataset factory: seeded scenes rendered all-in-focus with metric depth,
+then passed through the depth-aware simulation of each requested lens.
+
+    blender --background --python blender_addon/factory.py -- --recipe room --count 10 \\
+        --lens mos-s1 --out DIR --seed 0 [--shard I/N]
+    python -m blender_addon.factory --recipe room --count 10 --lens mos-s1 --out DIR --seed 0
+
+Layout of DIR (paired folders share file names, so paired-folder loaders
+read them directly):
+
+    manifest.jsonl                one JSON line per finished sample
+    aif/<id>.exr                  all-in-focus render, linear RGB float32
+    depth/<id>.exr                planar depth in metres from the lens's first vertex ("Z"; background = inf)
+    <lens>/aberrated/<id>.exr     depth-aware simulation (with the lens's distortion)
+    <lens>/baseline/<id>.exr      depth-unaware baseline (one depth for the whole image)
+    <lens>/sharp/<id>.exr         the all-in-focus image distorted like the others (the aligned target)
+
+<id> is <recipe>-<index, 6 digits>. A sample counts only once its manifest
+line is written; every file is written to a temporary name and renamed, so a
+killed run restarted with the same arguments finishes the missing samples
+and leaves no partial file. ``--shard I/N`` takes the indices i with
+i % N == I, so any job runner can split the work.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+if __package__ in (None, ""):          # run as a file by `blender --python`
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+BACKGROUND_Z = 1e9      # Cycles writes 1e10 for the world background; beyond this is infinity
+
+
+def sample_seed(seed: int, index: int) -> int:
+    """A well-mixed 31-bit seed per sample (same seed, same scene)."""
+    return int(np.random.SeedSequence([seed, index]).generate_state(1)[0] & 0x7FFFFFFF)
+
+
+def parse(argv):
+    p = argparse.ArgumentParser(prog="factory", description=__doc__.split("\n\n")[0])
+    p.add_argument("--recipe", required=True, help="scene recipe: room, tabletop, street (or plane)")
+    p.add_argument("--count", type=int, required=True, help="samples in the whole dataset")
+    p.add_argument("--lens", action="append", default=[], help="lens id (repeat for several)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--seed", type=int, default=0, help="dataset seed")
+    p.add_argument("--shard", default="0/1", help="I/N: this job's share of the indices")
+    p.add_argument("--resolution", type=int, nargs=2, default=[480, 640], metavar=("H", "W"))
+    p.add_argument("--samples", type=int, default=64, help="Cycles samples per pixel (default 64)")
+    p.add_argument("--no-denoise", action="store_true", help="switch the denoiser off")
+    p.add_argument("--baseline-depth", type=float, default=2.0, help="depth of the depth-unaware baseline, m")
+    p.add_argument("--psf-rays", type=int, default=None, help="PSF pupil grid (default: the library default)")
+    p.add_argument("--psf-wavelengths", type=int, default=None, help="PSF wavelengths (default: the library default)")
+    a = p.parse_args(argv)
+    try:
+        i, n = (int(v) for v in a.shard.split("/"))
+        if not 0 <= i < n:
+            raise ValueError
+    except ValueError:
+        p.error(f"--shard must be I/N with 0 <= I < N, got {a.shard!r}")
+    a.shard_index, a.shard_count = i, n
+    if a.count < 0:
+        p.error("--count must be >= 0")
+    return a
+
+
+def finished_ids(manifest: Path) -> set[str]:
+    """Ids whose manifest line is complete (a torn last line does not count)."""
+    if not manifest.exists():
+        return set()
+    done = set()
+    for line in manifest.read_text().splitlines():
+        try:
+            done.add(json.loads(line)["id"])
+        except (ValueError, KeyError):
+            continue
+    return done
+
+
+def setup_render(scene, lens, height: int, width: int, samples: int, denoise: bool, seed: int):
+    """All-in-focus Cycles render on the CPU through a pinhole camera at the
+    lens's entrance pupil with its paraxial focal length and sensor."""
+    import bpy
+
+    from dcdi_core.optics.paraxial import first_order
+    from dcdi_core.render.geometry import ImageGeometry
+
+    fo = first_order(lens)
+    geom = ImageGeometry.full_sensor(lens, height, width)
+    cam = bpy.data.cameras.new("lens")
+    cam.lens = fo.effective_focal_length_mm
+    cam.sensor_fit = "HORIZONTAL"
+    cam.sensor_width = width * geom.pixel_pitch_mm
+    cam.sensor_height = height * geom.pixel_pitch_mm
+    cam.dof.use_dof = False
+    cam.clip_start = 0.01
+    cam.clip_end = 1.0e5
+    obj = bpy.data.objects.new("lens", cam)
+    scene.collection.objects.link(obj)
+    scene.camera = obj
+    scene.render.engine = "CYCLES"
+    scene.cycles.device = "CPU"
+    scene.cycles.samples = samples
+    scene.cycles.seed = seed
+    scene.cycles.use_denoising = denoise
+    scene.render.resolution_x, scene.render.resolution_y = width, height
+    scene.render.resolution_percentage = 100
+    scene.render.film_transparent = False
+    scene.view_layers[0].use_pass_z = True
+    s = scene.render.image_settings
+    s.media_type = "MULTI_LAYER_IMAGE"
+    s.file_format = "OPEN_EXR_MULTILAYER"
+    s.color_depth = "32"
+    return fo
+
+
+def render_rgbd(recipe: str, lens, seed: int, height: int, width: int, samples: int, denoise: bool, tmp: Path):
+    """Build the scene, render; returns (image (H, W, 3) float32, depth (H, W) float32 m)."""
+    import bpy
+
+    from dcdi_core.io.images import read_depth, read_image
+    from scenes.recipes import RECIPES
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    RECIPES[recipe](np.random.default_rng(seed))
+    fo = setup_render(scene, lens, height, width, samples, denoise, seed)
+    scene.render.filepath = str(tmp)
+    bpy.ops.render.render(write_still=True)
+    img = read_image(tmp)
+    z = read_depth(tmp)
+    tmp.unlink()
+    # depth from the first vertex: the pinhole is the entrance pupil, z_EP behind it
+    depth = np.where(z >= BACKGROUND_Z, np.inf, z - fo.entrance_pupil_position_mm / 1000.0).astype(np.float32)
+    return img, depth
+
+
+def run(argv=None) -> int:
+    a = parse(sys.argv[sys.argv.index("--") + 1:] if argv is None and "--" in sys.argv else argv)
+    from dcdi_core.io.images import write_depth, write_image
+    from dcdi_core.optics.lens import load_lens
+    from dcdi_core.psf.compute import PSFSettings
+    from dcdi_core.render.geometry import ImageGeometry
+    from dcdi_core.render.simulate import open_library, simulate
+
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    manifest = out / "manifest.jsonl"
+    lenses = [load_lens(x) for x in (a.lens or ["mos-s1"])]
+    h, w = a.resolution
+    base = PSFSettings()
+    settings = PSFSettings(pupil_samples=a.psf_rays or base.pupil_samples,
+                           n_wavelengths=a.psf_wavelengths or base.n_wavelengths)
+    done = finished_ids(manifest)
+    todo = [i for i in range(a.count) if i % a.shard_count == a.shard_index
+            and f"{a.recipe}-{i:06d}" not in done]
+    print(f"factory: {a.recipe}, {len(todo)} samples to do in shard {a.shard}, {len(done)} already in the manifest",
+          flush=True)
+    t_start = time.perf_counter()
+    for n, i in enumerate(todo):
+        sid = f"{a.recipe}-{i:06d}"
+        seed = sample_seed(a.seed, i)
+        t0 = time.perf_counter()
+        img, depth = render_rgbd(a.recipe, lenses[0], seed, h, w, a.samples, not a.no_denoise,
+                                 out / f".{sid}.render.exr")
+        t_render = time.perf_counter() - t0
+        write_image(out / "aif" / f"{sid}.exr", img)
+        write_depth(out / "depth" / f"{sid}.exr", depth)
+        sims = {}
+        for lens in lenses:
+            t1 = time.perf_counter()
+            geom = ImageGeometry.full_sensor(lens, h, w)
+            lib = open_library(lens, geom, settings)
+            aware = simulate(img, depth, lens, geometry=geom, library=lib)
+            plain = simulate(img, depth, lens, geometry=geom, library=lib, fixed_depth_m=a.baseline_depth)
+            write_image(out / lens.id / "aberrated" / f"{sid}.exr", aware.image)
+            write_image(out / lens.id / "baseline" / f"{sid}.exr", plain.image)
+            write_image(out / lens.id / "sharp" / f"{sid}.exr", aware.sharp)
+            sims[lens.id] = {"seconds": round(time.perf_counter() - t1, 3), **aware.info}
+        finite = depth[np.isfinite(depth)]
+        record = {"id": sid, "index": i, "recipe": a.recipe, "seed": seed, "dataset_seed": a.seed,
+                  "resolution": [h, w], "camera_lens": lenses[0].id, "render": {"engine": "CYCLES", "device": "CPU",
+                  "samples": a.samples, "denoise": not a.no_denoise, "seconds": round(t_render, 3)},
+                  "depth_m": {"min": float(finite.min()) if finite.size else None,
+                              "max": float(finite.max()) if finite.size else None,
+                              "infinite_fraction": float(np.isinf(depth).mean())},
+                  "lenses": sims, "psf_settings": settings.as_dict(), "versions": _versions()}
+        with open(manifest, "a", encoding="utf-8") as f:
+            f.write(json.dumps(record) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+        el = time.perf_counter() - t_start
+        rate = (n + 1) / el
+        print(f"  {sid}: {time.perf_counter() - t0:.1f} s (render {t_render:.1f} s); {rate * 3600:.0f} samples/h, "
+              f"ETA {(len(todo) - n - 1) / rate:.0f} s, RSS {_rss_mib():.0f} MiB", flush=True)
+        if os.environ.get("DCDI_FACTORY_STOP_AFTER") and n + 1 >= int(os.environ["DCDI_FACTORY_STOP_AFTER"]):
+            print("factory: stopping early (DCDI_FACTORY_STOP_AFTER)", flush=True)
+            return 3
+    return 0
+
+
+def _versions() -> dict:
+    import platform
+
+    import bpy
+
+    import dcdi_core
+    return {"blender": bpy.app.version_string, "dcdi": dcdi_core.__version__, "numpy": np.__version__,
+            "python": platform.python_version()}
+
+
+def _rss_mib() -> float:
+    try:
+        import resource
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    except ImportError:
+        return math.nan
+
+
+if __name__ == "__main__":
+    sys.exit(run())

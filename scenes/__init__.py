@@ -1,0 +1,1 @@
+"""Procedural, seeded scene recipes for the dataset factory (bpy)."""
