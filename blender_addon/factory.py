@@ -225,6 +225,14 @@ def _versions() -> dict:
 
 
 def _rss_mib() -> float:
+    """Current resident memory (Linux /proc), else the peak (resource), MiB."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
     try:
         import resource
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
