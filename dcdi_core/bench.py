@@ -248,7 +248,38 @@ def bench_render(quick: bool = False) -> int:
     return 0
 
 
+def bench_factory(quick: bool = False) -> int:
+    """Samples per hour of the dataset factory at 480 x 640 (room recipe,
+    default render settings, MOS-S1 simulation included), from its manifest;
+    the PSF library is built before the timed samples."""
+    import json
+    import subprocess
+    import sys
+    import tempfile
+
+    h, w, n = (120, 160, 2) if quick else (480, 640, 4)
+    with tempfile.TemporaryDirectory() as d:
+        args = [sys.executable, "-m", "blender_addon.factory", "--recipe", "room", "--lens", "mos-s1",
+                "--out", d, "--seed", "0", "--resolution", str(h), str(w)]
+        # one warm-up sample builds (or reads) the PSF library for this pixel pitch
+        subprocess.run(args + ["--count", "1"], check=True, capture_output=True)
+        t = time.perf_counter()
+        subprocess.run(args + ["--count", str(n + 1)], check=True, capture_output=True)
+        wall = time.perf_counter() - t
+        recs = [json.loads(x) for x in open(os.path.join(d, "manifest.jsonl"))][1:]
+    render = sum(r["render"]["seconds"] for r in recs) / len(recs)
+    sim = sum(r["lenses"]["mos-s1"]["seconds"] for r in recs) / len(recs)
+    per = wall / len(recs)
+    print(f"bench factory: {h} x {w}, room, {recs[0]['render']['samples']} samples/pixel denoised, MOS-S1 simulation, "
+          f"{len(recs)} samples, {os.cpu_count()} CPU(s)")
+    print(f"  {per:.1f} s per sample (render {render:.1f} s, simulation {sim:.1f} s, the rest: scene, files, "
+          f"process start) = {3600 / per:.0f} samples per hour (goal 600)")
+    return 0
+
+
 def run(what: str, args) -> int:
+    if what == "factory":
+        return bench_factory(getattr(args, "quick", False))
     if what == "render":
         return bench_render(getattr(args, "quick", False))
     if what == "trace":

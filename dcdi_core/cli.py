@@ -429,7 +429,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=cmd_report_sim)
 
     q = sub.add_parser("bench", help="benchmarks (times, not tests)")
-    q.add_argument("what", choices=["trace", "psflib", "render"], help="what to benchmark")
+    q.add_argument("what", choices=["trace", "psflib", "render", "factory"], help="what to benchmark")
     q.add_argument("--rays", type=_positive_int, default=1 << 20, help="rays per trace (default 2^20)")
     q.add_argument("--repeat", type=_positive_int, default=3, help="timed repetitions (best is kept)")
     q.add_argument("--quick", action="store_true", help="psflib: a small library (for tests)")

@@ -91,7 +91,7 @@ def room(rng) -> None:
         s = rng.uniform(0.12, 0.45)
         add_mesh(kind, (x, -1.4 + s, z), (s, s * rng.uniform(0.6, 2.0), s),
                  material(f"thing{i}", rng, str(rng.choice(["noise", "voronoi", "checker"]))))
-    add_light("AREA", (0, 2.4, -back / 2), 400.0 * back / 6, rotation=(0, 0, 0), size=3.0)
+    add_light("AREA", (0, 2.4, -back / 2), 120.0 * (back / 6.0) ** 2, rotation=(0, 0, 0), size=3.0)
     add_light("SUN", (2, 4, 2), 1.5, rotation=(0.6, 0.2, 0.3))
     world((0.05, 0.05, 0.06), 0.5)
 
@@ -107,8 +107,8 @@ def tabletop(rng) -> None:
         s = rng.uniform(0.03, 0.09)
         add_mesh(str(rng.choice(["cube", "sphere", "cylinder"])), (rng.uniform(-0.35, 0.35) * -z, -0.35 + s, z),
                  (s, s, s), material(f"obj{i}", rng, str(rng.choice(["noise", "voronoi", "checker"]))))
-    add_light("AREA", (0.3, 1.0, -0.5), 60.0, rotation=(-1.2, 0, 0), size=1.0)
-    world((0.6, 0.6, 0.65), 0.6)
+    add_light("AREA", (0.3, 1.0, -0.5), 20.0, rotation=(-1.2, 0, 0), size=1.0)
+    world((0.6, 0.6, 0.65), 0.3)
 
 
 def street(rng) -> None:

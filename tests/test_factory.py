@@ -67,3 +67,10 @@ def test_shards_split_the_indices(tmp_path):
     assert _run(tmp_path, "--shard", "1/2", count=3) == 0
     ids = [json.loads(x)["id"] for x in (tmp_path / "manifest.jsonl").read_text().splitlines()]
     assert ids == ["tabletop-000001"]
+
+
+@pytest.mark.slow
+def test_bench_factory_quick(capsys):
+    from dcdi_core.cli import main
+    assert main(["bench", "factory", "--quick"]) == 0
+    assert "samples per hour" in capsys.readouterr().out
