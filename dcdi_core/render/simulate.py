@@ -71,9 +71,10 @@ def simulate(image, depth, lens, *, geometry: ImageGeometry | None = None, patch
     sharp = img
     info = dict(pm.info, depth_aware=fixed_depth_m is None)
     if distortion:
-        from .distortion import distort
-        out = distort(out, lens, geometry)
-        sharp = distort(img, lens, geometry)
+        from .distortion import distort, radial_distortion
+        table = radial_distortion(lens)          # one table for both images
+        out = distort(out, lens, geometry, distortion=table)
+        sharp = distort(img, lens, geometry, distortion=table)
     if noise is not None:
         if seed is None:
             raise InputRangeError("seed", None, "an integer: noise needs an explicit seed")
