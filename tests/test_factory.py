@@ -74,3 +74,10 @@ def test_bench_factory_quick(capsys):
     from dcdi_core.cli import main
     assert main(["bench", "factory", "--quick"]) == 0
     assert "samples per hour" in capsys.readouterr().out
+
+
+def test_render_noise_table_runs(capsys):
+    from blender_addon.render_noise import main
+    assert main(["--resolution", "12", "16", "--reference", "4"]) == 0
+    out = capsys.readouterr().out
+    assert "| 2 | True |" in out and "reference" in out
