@@ -150,8 +150,8 @@ def factory_demo(out: Path) -> list[str]:
     side_by_side(out / "factory_side.png", img, depth, ab, "dataset factory: room scene, MOS-S1 aberrated")
     print(f"  factory: one room sample rendered and simulated in {time.perf_counter() - t0:.1f} s "
           f"(files in {folder})")
-    return ["", "## Dataset factory", "", f"- `factory_side.png`: a rendered room (AiF, depth, MOS-S1 "
-            f"aberrated); the sample's files are in `factory/`"]
+    return ["", "## Dataset factory", "", "- `factory_side.png`: a rendered room (AiF, depth, MOS-S1 "
+            "aberrated); the sample's files are in `factory/`"]
 
 
 def run(out: str | Path) -> int:
