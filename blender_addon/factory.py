@@ -54,7 +54,7 @@ def parse(argv):
     p.add_argument("--shard", default="0/1", help="I/N: this job's share of the indices")
     p.add_argument("--resolution", type=int, nargs=2, default=[480, 640], metavar=("H", "W"))
     p.add_argument("--samples", type=int, default=8,
-                   help="Cycles samples per pixel, denoised (default 8: 42.8 dB against 256 samples, "
+                   help="Cycles samples per pixel, denoised (default 8: 42.6 dB against 256 samples, "
                         "see python -m blender_addon.render_noise)")
     p.add_argument("--no-denoise", action="store_true", help="switch the denoiser off")
     p.add_argument("--baseline-depth", type=float, default=2.0, help="depth of the depth-unaware baseline, m")
@@ -120,6 +120,10 @@ def setup_render(scene, lens, height: int, width: int, samples: int, denoise: bo
     scene.cycles.volume_bounces = 0
     scene.cycles.caustics_reflective = False
     scene.cycles.caustics_refractive = False
+    # measured at 480 x 640, 8 samples: 11.4 s -> 10.4 s (light tree) / 10.8 s (adaptive);
+    # the FAST denoising prefilter saves more (7.6 s) but costs 3.5 dB at 8 samples: kept ACCURATE
+    scene.cycles.use_light_tree = False
+    scene.cycles.use_adaptive_sampling = False
     scene.render.resolution_x, scene.render.resolution_y = width, height
     scene.render.resolution_percentage = 100
     scene.render.film_transparent = False
