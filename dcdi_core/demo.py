@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_path, write_text
+from .atomic import save_figure, write_text
 
 FIELDS = [0.0, 0.5, 0.7, 1.0]
 DEPTHS_M = [0.7, 1.0, 2.0, 5.0, 10.0, math.inf]
@@ -62,9 +62,7 @@ def spot_figure(lens, spots, path) -> None:
     fig.suptitle(f"{lens.name}\nspot diagrams, box = +-{extent:.0f} um about the chief ray; "
                  "blue 486 nm, green 588 nm, red 656 nm", fontsize=9)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
 PSF_FIELDS = [0.0, 0.5, 0.7, 1.0]

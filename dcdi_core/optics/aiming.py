@@ -220,10 +220,11 @@ def pupil_rays(lens: Lens, aimed: Aimed, targets: np.ndarray, wavelength_nm=None
                tol_mm: float = 1e-7, max_iter: int = 8):
     """Rays from each source that meet the stop at ``targets`` (P, 2).
 
-    Returns (origins, directions, status) with shapes (..., P, 3) and (..., P)
-    where ... is the sources' shape; status is AIM_FAILED where the source has
-    no chief ray, else OK. The residual (mm) is the largest distance between a
-    ray's real stop point and its target after the iterations."""
+    Returns (origins, directions, status, residual_mm): shapes (..., P, 3),
+    (..., P, 3), (..., P) where ... is the sources' shape; status is
+    AIM_FAILED where the source has no chief ray, else OK; residual_mm is the
+    largest distance between a ray's real stop point and its target after the
+    iterations."""
     wl = lens.wavelength_nm if wavelength_nm is None else wavelength_nm
     z_ep = aimed.z_ep
     dep = aimed.depth_mm[..., None]

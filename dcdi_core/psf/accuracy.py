@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path, write_text
+from ..atomic import save_figure, write_text
 from ..optics.aiming import sources
 from ..optics.lens import load_lens
 from .compute import PSFSettings, compute_sources, spectral_samples
@@ -177,6 +177,4 @@ def _plot(rows, path, lens_id):
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)

@@ -263,12 +263,10 @@ def psf(lens: Lens, *, depth_m: float, field: float | None = None, angle_deg: fl
     settings = settings or PSFSettings()
     lens_f = focused_lens(lens, settings)
     kw = {"field": [field]} if field is not None else {"angle_deg": [angle_deg]}
-    aimed = sources(lens_f, [depth_m], **kw)
-    single = Aimed(aimed.depth_mm[0, 0], aimed.p[0, 0], aimed.v_chief[0, 0], aimed.ok[0, 0], aimed.z_ep)
+    aimed = sources(lens_f, [depth_m], **kw)                 # shape (1, 1)
     wl, w = spectral_samples(settings, response, wavelength_nm)
-    plain = replace(settings, focus_distance_m=None)
-    batch = compute_sources(lens_f, _as_array(single), plain, wl, w)
-    out = PSFBatch(*(getattr(batch, f)[0] for f in ("psf", "energy_outside", "vignetted_fraction",
+    batch = compute_sources(lens_f, aimed, replace(settings, focus_distance_m=None), wl, w)
+    out = PSFBatch(*(getattr(batch, f)[0, 0] for f in ("psf", "energy_outside", "vignetted_fraction",
                                                      "relative_illumination", "chief_ray_height_mm",
                                                      "centroid_mm", "rms_radius_mm", "zero_energy",
                                                      "kernel_size_needed")),
@@ -276,7 +274,3 @@ def psf(lens: Lens, *, depth_m: float, field: float | None = None, angle_deg: fl
     warn_if_clipped(out, settings.kernel_size)
     return out
 
-
-def _as_array(a: Aimed) -> Aimed:
-    return Aimed(np.atleast_1d(a.depth_mm), np.atleast_1d(a.p), np.atleast_1d(a.v_chief),
-                 np.atleast_1d(a.ok), a.z_ep)

@@ -5,7 +5,7 @@ import math
 
 import numpy as np
 
-from ..atomic import atomic_path
+from ..atomic import save_figure
 
 
 def psf_rgb(kernel: np.ndarray, gamma: float = 0.5) -> np.ndarray:
@@ -39,9 +39,7 @@ def psf_grid_png(kernels, row_labels, col_labels, path, title: str, pixel_pitch_
     fig.suptitle(f"{title}\n{k} x {k} px of {pixel_pitch_mm * 1000:.3g} um; each panel scaled to its peak, "
                  "gamma 0.5", fontsize=8)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=100, format="png")
-    plt.close(fig)
+    save_figure(fig, path, dpi=100)
 
 
 def depth_label(d: float) -> str:

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..atomic import atomic_path
+from ..atomic import save_figure
 
 
 def _srgb(x):
@@ -35,6 +35,4 @@ def side_by_side(path, image, depth, result, title: str) -> None:
         a.set_yticks([])
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=100, format="png")
-    plt.close(fig)
+    save_figure(fig, path, dpi=100)
