@@ -29,9 +29,40 @@ import math
 import os
 import sys
 import time
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import numpy as np
+# Checked before anything else so that an unsuitable Blender fails with a
+# message, not with a traceback from deep inside the scene code.
+MIN_BLENDER = (5, 0, 0)
+
+
+def check_blender() -> None:
+    """Refuse a Blender older than MIN_BLENDER (its scene API differs: materials
+    without node trees, no image_settings.media_type, no OIDN quality) or one
+    whose Python lacks numpy."""
+    try:
+        import bpy
+    except ImportError:
+        raise SystemExit("factory: no bpy module: run it with Blender (blender --background --python "
+                         "blender_addon/factory.py -- ...) or install the pip bpy module (see requirements.txt)")
+    v = tuple(bpy.app.version)
+    if v < MIN_BLENDER:
+        raise SystemExit(f"factory: Blender {bpy.app.version_string} is too old: the factory needs Blender "
+                         f">= {'.'.join(map(str, MIN_BLENDER))} (Blender 5 from blender.org, or the pip bpy module "
+                         "of requirements.txt)")
+    try:
+        import numpy  # noqa: F401
+    except ImportError:
+        raise SystemExit(f"factory: this Blender's Python ({sys.executable}, {sys.version.split()[0]}) has no "
+                         "numpy; Blender from blender.org bundles it, a distribution's blender uses the "
+                         "system python3 (install its numpy package)")
+
+
+if __name__ == "__main__":
+    check_blender()
+
+import numpy as np  # noqa: E402
 
 if __package__ in (None, ""):          # run as a file by `blender --python`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
@@ -57,6 +88,12 @@ def parse(argv):
                    help="Cycles samples per pixel, denoised (default 8: 42.6 dB against 256 samples, "
                         "see python -m blender_addon.render_noise)")
     p.add_argument("--no-denoise", action="store_true", help="switch the denoiser off")
+    p.add_argument("--denoise-quality", default=RenderSettings.denoising_quality, choices=["HIGH", "BALANCED", "FAST"],
+                   help="Open Image Denoise quality (see python -m blender_addon.render_noise)")
+    p.add_argument("--denoise-prefilter", default=RenderSettings.denoising_prefilter,
+                   choices=["NONE", "FAST", "ACCURATE"], help="prefilter of the denoiser's albedo and normal guides")
+    p.add_argument("--diffuse-bounces", type=int, default=RenderSettings.diffuse_bounces,
+                   help="diffuse light-path bounces (>= 0)")
     p.add_argument("--baseline-depth", type=float, default=2.0, help="depth of the depth-unaware baseline, m")
     p.add_argument("--psf-rays", type=int, default=None, help="PSF pupil grid (default: the library default)")
     p.add_argument("--psf-wavelengths", type=int, default=None, help="PSF wavelengths (default: the library default)")
@@ -70,6 +107,11 @@ def parse(argv):
     a.shard_index, a.shard_count = i, n
     if a.count < 0:
         p.error("--count must be >= 0")
+    try:
+        a.render = RenderSettings(samples=a.samples, denoise=not a.no_denoise, denoising_quality=a.denoise_quality,
+                                  denoising_prefilter=a.denoise_prefilter, diffuse_bounces=a.diffuse_bounces)
+    except ValueError as e:
+        p.error(str(e))
     return a
 
 
@@ -86,7 +128,40 @@ def finished_ids(manifest: Path) -> set[str]:
     return done
 
 
-def setup_render(scene, lens, height: int, width: int, samples: int, denoise: bool, seed: int):
+@dataclass(frozen=True)
+class RenderSettings:
+    """Cycles settings of the all-in-focus render (CPU). The defaults come from
+    the error-against-time tables of ``python -m blender_addon.render_noise``
+    (README): samples per pixel; the Open Image Denoise pass (quality HIGH,
+    BALANCED or FAST; prefilter of its albedo and normal guides NONE, FAST or
+    ACCURATE); light-path bounces (counts)."""
+
+    samples: int = 8
+    denoise: bool = True
+    denoising_quality: str = "HIGH"
+    denoising_prefilter: str = "ACCURATE"
+    max_bounces: int = 4
+    diffuse_bounces: int = 2
+    glossy_bounces: int = 2
+    transmission_bounces: int = 2
+
+    def __post_init__(self):
+        if not (isinstance(self.samples, int) and 1 <= self.samples <= 65536):
+            raise ValueError(f"render samples must be an integer in [1, 65536], got {self.samples!r}")
+        if self.denoising_quality not in ("HIGH", "BALANCED", "FAST"):
+            raise ValueError(f"denoising quality must be HIGH, BALANCED or FAST, got {self.denoising_quality!r}")
+        if self.denoising_prefilter not in ("NONE", "FAST", "ACCURATE"):
+            raise ValueError(f"denoising prefilter must be NONE, FAST or ACCURATE, got {self.denoising_prefilter!r}")
+        for name in ("max_bounces", "diffuse_bounces", "glossy_bounces", "transmission_bounces"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and 0 <= v <= 1024):
+                raise ValueError(f"{name.replace('_', ' ')} must be an integer in [0, 1024], got {v!r}")
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def setup_render(scene, lens, height: int, width: int, render: RenderSettings, seed: int):
     """All-in-focus Cycles render on the CPU through a pinhole camera at the
     lens's entrance pupil with its paraxial focal length and sensor."""
     import bpy
@@ -108,22 +183,25 @@ def setup_render(scene, lens, height: int, width: int, samples: int, denoise: bo
     scene.collection.objects.link(obj)
     scene.camera = obj
     scene.render.engine = "CYCLES"
-    scene.cycles.device = "CPU"
-    scene.cycles.samples = samples
-    scene.cycles.seed = seed
-    scene.cycles.use_denoising = denoise
-    # a dataset wants many clean images fast: few bounces, no caustics (measured: bench factory)
-    scene.cycles.max_bounces = 4
-    scene.cycles.diffuse_bounces = 2
-    scene.cycles.glossy_bounces = 2
-    scene.cycles.transmission_bounces = 2
-    scene.cycles.volume_bounces = 0
-    scene.cycles.caustics_reflective = False
-    scene.cycles.caustics_refractive = False
-    # measured at 480 x 640, 8 samples: 11.4 s -> 10.4 s (light tree) / 10.8 s (adaptive);
-    # the FAST denoising prefilter saves more (7.6 s) but costs 3.5 dB at 8 samples: kept ACCURATE
-    scene.cycles.use_light_tree = False
-    scene.cycles.use_adaptive_sampling = False
+    c = scene.cycles
+    c.device = "CPU"
+    c.samples = render.samples
+    c.seed = seed
+    c.use_denoising = render.denoise
+    c.denoiser = "OPENIMAGEDENOISE"
+    c.denoising_quality = render.denoising_quality
+    c.denoising_prefilter = render.denoising_prefilter
+    # a dataset wants many clean images fast: few bounces, no caustics (render_noise's table)
+    c.max_bounces = render.max_bounces
+    c.diffuse_bounces = render.diffuse_bounces
+    c.glossy_bounces = render.glossy_bounces
+    c.transmission_bounces = render.transmission_bounces
+    c.volume_bounces = 0
+    c.caustics_reflective = False
+    c.caustics_refractive = False
+    # measured at 480 x 640, 8 samples: 11.4 s -> 10.4 s (light tree) / 10.8 s (adaptive), same PSNR
+    c.use_light_tree = False
+    c.use_adaptive_sampling = False
     scene.render.resolution_x, scene.render.resolution_y = width, height
     scene.render.resolution_percentage = 100
     scene.render.film_transparent = False
@@ -132,11 +210,14 @@ def setup_render(scene, lens, height: int, width: int, samples: int, denoise: bo
     s.media_type = "MULTI_LAYER_IMAGE"
     s.file_format = "OPEN_EXR_MULTILAYER"
     s.color_depth = "32"
+    # the file is a hand-over read back at once and deleted: no compression to spend time on
+    s.exr_codec = "NONE"
     return fo
 
 
-def render_rgbd(recipe: str, lens, seed: int, height: int, width: int, samples: int, denoise: bool, tmp: Path):
-    """Build the scene, render; returns (image (H, W, 3) float32, depth (H, W) float32 m)."""
+def render_rgbd(recipe: str, lens, seed: int, height: int, width: int, render: RenderSettings, tmp: Path):
+    """Build the scene, render; returns (image (H, W, 3) float32 linear,
+    depth (H, W) float32 metres from the lens's first vertex, inf = background)."""
     import bpy
 
     from dcdi_core.io.images import read_depth, read_image
@@ -145,7 +226,7 @@ def render_rgbd(recipe: str, lens, seed: int, height: int, width: int, samples: 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
     RECIPES[recipe](np.random.default_rng(seed))
-    fo = setup_render(scene, lens, height, width, samples, denoise, seed)
+    fo = setup_render(scene, lens, height, width, render, seed)
     scene.render.filepath = str(tmp)
     bpy.ops.render.render(write_still=True)
     img = read_image(tmp)
@@ -156,13 +237,58 @@ def render_rgbd(recipe: str, lens, seed: int, height: int, width: int, samples: 
     return img, depth
 
 
+class LensSimulator:
+    """Everything about one lens that does not change between samples, built
+    once per run: the image geometry, the PSF library, the distortion table
+    and the depth-unaware baseline's PSF map (one depth for every patch, so
+    the same kernels for every sample).
+
+    ``__call__`` gives the same arrays as two calls of
+    ``dcdi_core.render.simulate.simulate`` (depth-aware, and with
+    ``fixed_depth_m``) do: the same PSF maps and patch-wise convolutions, and
+    the same distortion warp, done once on the three images stacked along the
+    channel axis (the warp is per channel, so stacking changes no value)
+    instead of four times. tests/test_factory.py checks the equality."""
+
+    def __init__(self, lens, height: int, width: int, settings, baseline_depth_m: float, patch: int = 16):
+        from dcdi_core.render.distortion import radial_distortion
+        from dcdi_core.render.geometry import ImageGeometry
+        from dcdi_core.render.psfmap import psf_map
+        from dcdi_core.render.simulate import open_library
+
+        if not (math.isfinite(baseline_depth_m) and baseline_depth_m > 0):
+            raise ValueError(f"--baseline-depth must be a finite depth > 0 m, got {baseline_depth_m}")
+        self.lens, self.patch = lens, patch
+        self.geometry = ImageGeometry.full_sensor(lens, height, width)
+        self.library = open_library(lens, self.geometry, settings)
+        self.table = radial_distortion(lens)
+        self.baseline_depth_m = baseline_depth_m
+        self.baseline = psf_map(self.library, self.geometry, np.ones((height, width)), patch,
+                                fixed_depth_m=baseline_depth_m)
+
+    def __call__(self, image: np.ndarray, depth: np.ndarray):
+        """(aberrated, baseline, sharp) float32 (H, W, 3) linear, all distorted
+        alike, and the depth-aware map's info dict."""
+        from dcdi_core.render.convolve import patch_convolve
+        from dcdi_core.render.distortion import distort
+        from dcdi_core.render.psfmap import psf_map
+
+        img = np.asarray(image, dtype=np.float32)
+        pm = psf_map(self.library, self.geometry, np.asarray(depth, dtype=np.float64), self.patch)
+        aware = patch_convolve(img, pm.kernels, self.patch, identity=pm.identity)
+        plain = patch_convolve(img, self.baseline.kernels, self.patch, identity=self.baseline.identity)
+        stacked = distort(np.concatenate([aware, plain, img], axis=-1), self.lens, self.geometry,
+                          distortion=self.table)
+        info = dict(pm.info, depth_aware=True, baseline_depth_m=self.baseline_depth_m)
+        return (np.ascontiguousarray(stacked[..., 0:3]), np.ascontiguousarray(stacked[..., 3:6]),
+                np.ascontiguousarray(stacked[..., 6:9]), info)
+
+
 def run(argv=None) -> int:
     a = parse(sys.argv[sys.argv.index("--") + 1:] if argv is None and "--" in sys.argv else argv)
     from dcdi_core.io.images import write_depth, write_image
     from dcdi_core.optics.lens import load_lens
     from dcdi_core.psf.compute import PSFSettings
-    from dcdi_core.render.geometry import ImageGeometry
-    from dcdi_core.render.simulate import open_library, simulate
 
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -172,40 +298,40 @@ def run(argv=None) -> int:
     base = PSFSettings()
     settings = PSFSettings(pupil_samples=a.psf_rays or base.pupil_samples,
                            n_wavelengths=a.psf_wavelengths or base.n_wavelengths)
+    render = a.render
     done = finished_ids(manifest)
     todo = [i for i in range(a.count) if i % a.shard_count == a.shard_index
             and f"{a.recipe}-{i:06d}" not in done]
     print(f"factory: {a.recipe}, {len(todo)} samples to do in shard {a.shard}, {len(done)} already in the manifest",
           flush=True)
     t_start = time.perf_counter()
+    sims = {}                          # built on the first sample to do: no PSF work for a finished run
     for n, i in enumerate(todo):
         sid = f"{a.recipe}-{i:06d}"
         seed = sample_seed(a.seed, i)
         t0 = time.perf_counter()
-        img, depth = render_rgbd(a.recipe, lenses[0], seed, h, w, a.samples, not a.no_denoise,
-                                 out / f".{sid}.render.exr")
+        img, depth = render_rgbd(a.recipe, lenses[0], seed, h, w, render, out / f".{sid}.render.exr")
         t_render = time.perf_counter() - t0
         write_image(out / "aif" / f"{sid}.exr", img)
         write_depth(out / "depth" / f"{sid}.exr", depth)
-        sims = {}
+        lens_records = {}
         for lens in lenses:
             t1 = time.perf_counter()
-            geom = ImageGeometry.full_sensor(lens, h, w)
-            lib = open_library(lens, geom, settings)
-            aware = simulate(img, depth, lens, geometry=geom, library=lib)
-            plain = simulate(img, depth, lens, geometry=geom, library=lib, fixed_depth_m=a.baseline_depth)
-            write_image(out / lens.id / "aberrated" / f"{sid}.exr", aware.image)
-            write_image(out / lens.id / "baseline" / f"{sid}.exr", plain.image)
-            write_image(out / lens.id / "sharp" / f"{sid}.exr", aware.sharp)
-            sims[lens.id] = {"seconds": round(time.perf_counter() - t1, 3), **aware.info}
+            if lens.id not in sims:
+                sims[lens.id] = LensSimulator(lens, h, w, settings, a.baseline_depth)
+            aberrated, baseline, sharp, info = sims[lens.id](img, depth)
+            write_image(out / lens.id / "aberrated" / f"{sid}.exr", aberrated)
+            write_image(out / lens.id / "baseline" / f"{sid}.exr", baseline)
+            write_image(out / lens.id / "sharp" / f"{sid}.exr", sharp)
+            lens_records[lens.id] = {"seconds": round(time.perf_counter() - t1, 3), **info}
         finite = depth[np.isfinite(depth)]
         record = {"id": sid, "index": i, "recipe": a.recipe, "seed": seed, "dataset_seed": a.seed,
-                  "resolution": [h, w], "camera_lens": lenses[0].id, "render": {"engine": "CYCLES", "device": "CPU",
-                  "samples": a.samples, "denoise": not a.no_denoise, "seconds": round(t_render, 3)},
+                  "resolution": [h, w], "camera_lens": lenses[0].id,
+                  "render": {"engine": "CYCLES", "device": "CPU", **render.as_dict(), "seconds": round(t_render, 3)},
                   "depth_m": {"min": float(finite.min()) if finite.size else None,
                               "max": float(finite.max()) if finite.size else None,
                               "infinite_fraction": float(np.isinf(depth).mean())},
-                  "lenses": sims, "psf_settings": settings.as_dict(), "versions": _versions()}
+                  "lenses": lens_records, "psf_settings": settings.as_dict(), "versions": _versions()}
         with open(manifest, "a", encoding="utf-8") as f:
             f.write(json.dumps(record) + "\n")
             f.flush()

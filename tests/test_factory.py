@@ -81,3 +81,30 @@ def test_render_noise_table_runs(capsys):
     assert main(["--resolution", "12", "16", "--reference", "4"]) == 0
     out = capsys.readouterr().out
     assert "| 2 | True |" in out and "reference" in out
+
+
+def test_lens_simulator_equals_two_simulate_calls():
+    # the factory's shared-work simulation must stay byte-equal to simulate() (depth-aware and baseline)
+    from dcdi_core.optics.lens import load_lens
+    from dcdi_core.psf.compute import PSFSettings
+    from dcdi_core.render.simulate import simulate
+
+    lens = load_lens("mos-s1")
+    rng = np.random.default_rng(3)
+    img = rng.uniform(0, 1, (40, 56, 3)).astype(np.float32)
+    depth = rng.uniform(0.7, 12.0, (40, 56)).astype(np.float32)
+    depth[:8, :8] = np.inf
+    sim = factory.LensSimulator(lens, 40, 56, PSFSettings(pupil_samples=12, n_wavelengths=3), 2.0)
+    aberrated, baseline, sharp, info = sim(img, depth)
+    aware = simulate(img, depth, lens, geometry=sim.geometry, library=sim.library)
+    plain = simulate(img, depth, lens, geometry=sim.geometry, library=sim.library, fixed_depth_m=2.0)
+    assert np.array_equal(aberrated, aware.image) and np.array_equal(sharp, aware.sharp)
+    assert np.array_equal(baseline, plain.image)
+    assert info["patches"] == aware.info["patches"]
+
+
+def test_render_settings_refuse_bad_values():
+    with pytest.raises(ValueError, match="denoising quality must be HIGH, BALANCED or FAST"):
+        factory.RenderSettings(denoising_quality="ULTRA")
+    with pytest.raises(ValueError, match=r"diffuse bounces must be an integer in \[0, 1024\]"):
+        factory.RenderSettings(diffuse_bounces=-1)
