@@ -5,11 +5,18 @@
     python build.py test        # make .venv/, install, run the fast test suite
     python build.py test-slow   # the tests marked slow
     python build.py bench ARGS  # `dcdi bench ARGS` inside the environment
+    python build.py addon       # the Blender extension zip dist/<id>-<version>.zip
 
 Works from any Python 3 interpreter: it finds a Python 3.11 (bpy 5.0.1 needs
 it), makes the virtual environment `.venv/` beside this file and installs the
 pinned dependencies once; later runs skip the install while requirements.txt
 and pyproject.toml are unchanged (a stamp file records their hash).
+
+`addon` needs no environment: it zips blender_addon/ (without the batch
+tools) as the folder <id>/ with dcdi_core/ and lenses/ vendored inside it,
+id and version from blender_addon/blender_manifest.toml. The zip installs as
+an extension in Blender 4.2+ (Install from Disk) and as a legacy add-on in
+older Blender (its bl_info). Same sources, same bytes (fixed timestamps).
 """
 from __future__ import annotations
 
@@ -19,6 +26,8 @@ import os
 import shutil
 import subprocess
 import sys
+import tomllib
+import zipfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent
@@ -112,11 +121,54 @@ def cmd_test(py: Path, marker: str) -> int:
     return code
 
 
+# batch tools that need the repository (scenes/, OpenImageIO): not part of the add-on
+ADDON_EXCLUDE = {"factory.py", "render_noise.py", "screenshots.py"}
+
+
+def _addon_files() -> list[tuple[Path, str]]:
+    """(source, name inside the package folder) of every file in the add-on."""
+    def tree(folder: Path, prefix: str, keep) -> list[tuple[Path, str]]:
+        return [(p, prefix + p.relative_to(folder).as_posix()) for p in sorted(folder.rglob("*"))
+                if p.is_file() and "__pycache__" not in p.parts and keep(p)]
+    files = tree(ROOT / "blender_addon", "", lambda p: p.parent == ROOT / "blender_addon"
+                 and p.name not in ADDON_EXCLUDE and p.suffix in (".py", ".toml", ".md"))
+    files += tree(ROOT / "dcdi_core", "dcdi_core/", lambda p: p.suffix in (".py", ".csv", ".md", ".json"))
+    files += tree(ROOT / "lenses", "lenses/", lambda p: p.suffix in (".toml", ".md"))
+    return files
+
+
+def build_addon(out_dir: Path = ROOT / "dist") -> Path:
+    """Write dist/<id>-<version>.zip (temporary name, then renamed); returns its path."""
+    manifest = tomllib.loads((ROOT / "blender_addon" / "blender_manifest.toml").read_text())
+    ext_id, version = manifest["id"], manifest["version"]
+    if not ext_id.isidentifier():
+        sys.exit(f"build.py: blender_manifest.toml id {ext_id!r} must be a Python identifier")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    out = out_dir / f"{ext_id}-{version}.zip"
+    tmp = out.with_name(f".{out.name}.tmp")
+    try:
+        with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=9) as z:
+            for src, name in _addon_files():
+                info = zipfile.ZipInfo(f"{ext_id}/{name}", date_time=(1980, 1, 1, 0, 0, 0))
+                info.compress_type = zipfile.ZIP_DEFLATED
+                info.external_attr = 0o644 << 16
+                z.writestr(info, src.read_bytes())
+        os.replace(tmp, out)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return out
+
+
 def main(argv: list[str]) -> int:
     if not argv or argv[0] in ("-h", "--help", "help"):
         print(__doc__)
         return 0 if argv else 2
     command, rest = argv[0], argv[1:]
+    if command == "addon":
+        out = build_addon()
+        print(f"build.py: wrote {out.relative_to(ROOT)} ({out.stat().st_size / 1e6:.2f} MB)")
+        return 0
     if command not in ("demo", "test", "test-slow", "bench", "setup"):
         print(__doc__)
         print(f"build.py: unknown command {command!r}")

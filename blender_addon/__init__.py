@@ -1,5 +1,45 @@
-"""Blender side of dcdi: the dataset factory (and, later, the lens panel).
+"""Blender side of dcdi: the Lens Bokeh add-on (panel and Apply Lens Bokeh)
+and the batch dataset factory (``python -m blender_addon.factory``).
 
 bpy only: it gathers pixels and settings from Blender, calls dcdi_core, and
-puts pixels back; no optics here.
+puts pixels back; no optics here. Importing this package imports no bpy, so
+the factory and the tests can import it anywhere; Blender calls register().
+Built as an extension zip by ``python build.py addon`` (Blender 4.2+, with
+``dcdi_core`` and ``lenses/`` vendored inside); ``bl_info`` lets Blender
+versions before 4.2 load the same zip as a legacy add-on.
 """
+
+bl_info = {
+    "name": "DCDI Lens Bokeh",
+    "author": "dcdi contributors",
+    "version": (0, 1, 0),
+    "blender": (3, 4, 0),
+    "location": "Properties > Camera > Lens Bokeh; 3D View > Sidebar > Lens Bokeh",
+    "description": "Depth of field of real lens prescriptions (ray-traced PSFs) on a Cycles render",
+    "category": "Render",
+}
+
+
+
+def _classes():
+    from . import operators, panel, props
+    return props.CLASSES + operators.CLASSES + panel.CLASSES
+
+
+def register():
+    import bpy
+
+    from . import props
+    for cls in _classes():
+        bpy.utils.register_class(cls)
+    props.register_properties()
+
+
+def unregister():
+    import bpy
+
+    from . import operators, props
+    operators.cancel_running_jobs()
+    props.unregister_properties()
+    for cls in reversed(_classes()):
+        bpy.utils.unregister_class(cls)

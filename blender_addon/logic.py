@@ -1,0 +1,210 @@
+"""The add-on's logic without bpy: the lens catalogue and readout, preview
+size, depth conversion, the kept range, and the bokeh job (run on a worker
+thread in the UI). Everything optical is a call into ``dcdi_core``.
+
+Units: depths and distances in metres (from the lens's first vertex unless
+said otherwise), lens lengths in mm, angles in degrees.
+"""
+from __future__ import annotations
+
+import math
+import os
+import tomllib
+import zlib
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from .core import core
+
+# Cycles writes 1e10 for the world background: anything beyond is infinity
+BACKGROUND_Z = 1e9
+
+
+class Cancelled(Exception):
+    """The user pressed Esc while the PSFs were being built."""
+
+
+class BokehInputError(ValueError):
+    """Something about the scene or the settings that makes the bokeh impossible;
+    the message says what to change."""
+
+
+# ------------------------------------------------------------------ lenses
+@dataclass(frozen=True)
+class LensEntry:
+    """One lens file the panel offers."""
+
+    id: str
+    name: str
+    path: str
+    number: int          # stable enum number (crc32 of the id), so saved files keep their choice
+
+
+def lens_catalogue(extra_dirs=()) -> list[LensEntry]:
+    """Every ``*.toml`` in dcdi_core's lens folders ($DCDI_LENS_PATH, the
+    bundled ``lenses/``) and in ``extra_dirs`` (the add-on's imported lenses);
+    the first file of an id wins. A file whose name cannot be read is still
+    listed (its error shows when it is chosen)."""
+    dirs = list(core("optics.lens").lens_dirs()) + [Path(d) for d in extra_dirs if d and Path(d).is_dir()]
+    seen, out = set(), []
+    for d in dirs:
+        for p in sorted(Path(d).glob("*.toml")):
+            if p.stem in seen:
+                continue
+            seen.add(p.stem)
+            out.append(LensEntry(p.stem, _lens_name(p), str(p), lens_number(p.stem)))
+    return out
+
+
+def lens_number(lens_id: str) -> int:
+    """The enum number of a lens id: crc32, so it does not change when lenses are added."""
+    return zlib.crc32(lens_id.encode()) & 0x7FFFFFFF
+
+
+_NAME_CACHE: dict = {}
+
+
+def _lens_name(p: Path) -> str:
+    key = (str(p), p.stat().st_mtime_ns)
+    if key not in _NAME_CACHE:
+        try:
+            with open(p, "rb") as f:
+                name = str(tomllib.load(f).get("name") or p.stem)
+        except (OSError, tomllib.TOMLDecodeError):
+            name = f"{p.stem} (unreadable file)"
+        _NAME_CACHE[key] = name
+    return _NAME_CACHE[key]
+
+
+_LENS_CACHE: dict = {}
+
+
+def load_lens_cached(path: str):
+    """The Lens of a TOML file, cached by path and modification time; raises
+    dcdi_core's LensFileError (naming file, surface and field) for a broken file."""
+    key = (path, os.stat(path).st_mtime_ns)
+    if key not in _LENS_CACHE:
+        _LENS_CACHE[key] = core("optics.lens").Lens.from_toml(path)
+    return _LENS_CACHE[key]
+
+
+_READOUT_CACHE: dict = {}
+
+
+def lens_readout(path: str) -> dict:
+    """Focal length (paraxial EFL, mm), F-number (paraxial), diagonal field of
+    view (real chief ray at field 1, degrees), entrance pupil position (mm
+    behind the first vertex) and sensor semi-diagonal (mm). Cached by file
+    and modification time (the real-ray field angle costs ~0.1 s)."""
+    key = (path, os.stat(path).st_mtime_ns)
+    if key not in _READOUT_CACHE:
+        lens = load_lens_cached(path)
+        fo = core("optics.paraxial").first_order(lens)
+        half = float(core("optics.analysis").real_field_angle_deg(lens, [1.0])[0])
+        _READOUT_CACHE[key] = {
+            "id": lens.id, "name": lens.name,
+            "focal_length_mm": float(fo.effective_focal_length_mm),
+            "f_number": float(fo.f_number),
+            "field_of_view_deg": 2.0 * half if half > 0 else None,
+            "entrance_pupil_mm": float(fo.entrance_pupil_position_mm),
+            "sensor_semi_diagonal_mm": float(lens.sensor.semi_diagonal_mm),
+        }
+    return _READOUT_CACHE[key]
+
+
+def import_zemax(zmx_path: str, out_dir: str) -> str:
+    """Convert a Zemax .zmx file to a lens TOML in ``out_dir`` (validated
+    before anything is written; written atomically); returns the TOML path."""
+    zemax = core("optics.zemax")
+    d = zemax.read_zmx(zmx_path)
+    core("optics.lens").Lens.from_dict(d, zmx_path)      # raises with file / surface / field
+    out = Path(out_dir) / f"{d['id']}.toml"
+    zemax.write_toml(d, out)
+    return str(out)
+
+
+def camera_for_lens(lens, height: int, width: int) -> dict:
+    """A pinhole camera that frames like ``lens`` for an H x W image spanning
+    the sensor's diagonal: focal length = paraxial EFL (mm), sensor width /
+    height (mm) with horizontal fit (the factory's convention)."""
+    fo = core("optics.paraxial").first_order(lens)
+    pitch = core("render.geometry").ImageGeometry.full_sensor(lens, height, width).pixel_pitch_mm
+    return {"lens_mm": float(fo.effective_focal_length_mm), "sensor_width_mm": width * pitch,
+            "sensor_height_mm": height * pitch, "entrance_pupil_mm": float(fo.entrance_pupil_position_mm)}
+
+
+# ------------------------------------------------------------------ scene -> job
+def preview_shape(res_x: int, res_y: int, aspect_x: float, aspect_y: float, long_side: int) -> tuple[int, int]:
+    """(height, width) of the preview: the render's displayed aspect with its
+    long side ``long_side`` pixels (at least 8 px each way)."""
+    if long_side < 8:
+        raise BokehInputError(f"preview resolution {long_side} px: allowed 8 and up")
+    w_disp, h_disp = res_x * aspect_x, res_y * aspect_y
+    if w_disp >= h_disp:
+        return max(8, round(long_side * h_disp / w_disp)), long_side
+    return long_side, max(8, round(long_side * w_disp / h_disp))
+
+
+def depth_from_z(z, entrance_pupil_mm: float, metres_per_unit: float = 1.0) -> np.ndarray:
+    """Blender's planar Z (scene units, from the pinhole at the entrance pupil)
+    as depth in metres from the lens's first vertex; background -> inf."""
+    z = np.asarray(z, np.float64)
+    d = z * metres_per_unit - entrance_pupil_mm / 1000.0
+    return np.where(z >= BACKGROUND_Z, np.inf, d).astype(np.float32)
+
+
+def keep_range(focus_m: float, front_m: float, behind_m: float) -> tuple[float, float]:
+    """The depths kept sharp, metres: [focus - front, focus + behind] (near end at least 1 mm)."""
+    if not (focus_m > 0 and math.isfinite(focus_m)):
+        raise BokehInputError(f"focus distance {focus_m:.4g} m: it must be positive and finite "
+                              "(is the focus object behind the camera?)")
+    if front_m < 0 or behind_m < 0:
+        raise BokehInputError(f"kept range in front {front_m} m / behind {behind_m} m: both must be >= 0")
+    return max(focus_m - front_m, 1e-3), focus_m + behind_m
+
+
+def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], patch: int = 16,
+              progress=None, cancelled=None):
+    """The lens's depth of field on an all-in-focus (H, W, 3) float32 linear
+    image with depth (H, W) metres: the lens focused at ``focus_m``, depths in
+    ``keep`` exactly sharp. ``progress(stage, fraction)`` is called while the
+    PSF bins the scene needs are built (cached in ~/.cache/dcdi, or
+    $DCDI_CACHE_DIR) and before the convolution; ``cancelled()`` returning
+    True stops the PSF build with :class:`Cancelled`. Returns (image, info)."""
+    sim = core("render.simulate")
+    geom = core("render.geometry").ImageGeometry.full_sensor(lens, image.shape[0], image.shape[1])
+    finite = depth[np.isfinite(depth) & (depth > 0)]
+    kept = int(((depth >= keep[0]) & (depth <= keep[1])).sum())
+    if kept == 0:
+        seen = (f"{finite.min():.2f}-{finite.max():.2f} m" if finite.size else "only background (infinity)")
+        raise BokehInputError(f"nothing in view lies in the kept range {keep[0]:.2f}-{keep[1]:.2f} m "
+                              f"(depths in view: {seen}); move the focus or widen the range")
+    settings = replace(core("psf.compute").PSFSettings(), focus_distance_m=float(focus_m))
+    lib = sim.open_library(lens, geom, settings)
+
+    def report(done, total):
+        if cancelled is not None and cancelled():
+            raise Cancelled()
+        if progress is not None:
+            progress("PSFs", done / max(total, 1))
+
+    # the PSFs the scene needs, built first so that progress and Esc work here
+    # (the convolution that follows takes well under the build's time)
+    # (the convolution that follows takes well under the build's time). Each
+    # patch gets the PSF at its mean inverse depth, which can fall in a bin no
+    # single pixel touches: build every bin between the nearest and farthest.
+    blurred = depth[np.isfinite(depth) & (depth > 0) & ~((depth >= keep[0]) & (depth <= keep[1]))]
+    blurred = np.concatenate([blurred, depth[np.isinf(depth) & (depth > 0)][:1]])
+    if blurred.size:
+        need = lib.bins_needed(blurred, clamp_near=True)
+        lib.ensure(bins=np.arange(need.min(), need.max() + 1), progress=report)
+    if cancelled is not None and cancelled():
+        raise Cancelled()
+    if progress is not None:
+        progress("convolving", 1.0)
+    res = sim.bokeh(image, depth, lens, keep=keep, geometry=geom, library=lib, patch=patch)
+    info = dict(res.info, focus_m=float(focus_m), keep_m=[float(keep[0]), float(keep[1])],
+                pixel_pitch_mm=float(geom.pixel_pitch_mm))
+    return res.image.astype(np.float32), info

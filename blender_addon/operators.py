@@ -1,0 +1,290 @@
+"""Operators: Apply Lens Bokeh, Match Camera to Lens, Import Zemax File.
+
+Apply Lens Bokeh renders the active camera all-in-focus with depth (Cycles,
+preview resolution, in a temporary scene copy), then applies the lens's
+depth-aware bokeh with dcdi_core and shows the image "Lens Bokeh" (linear
+float) in the Image Editor. In the UI (invoke) the render runs first (about a
+second at the default preview size); the PSF build and the convolution run on
+a worker thread while a modal timer shows progress, Esc cancels. In
+background mode, and when called from a script with execute(), it all runs
+synchronously.
+"""
+import os
+import threading
+import time
+
+import bpy
+from bpy.props import BoolProperty, StringProperty
+
+from . import bpy_render, logic, props
+from .core import core
+
+AIF_IMAGE = "Lens Bokeh AiF"
+DEPTH_IMAGE = "Lens Bokeh Depth"
+
+# worker threads still running, so that unregister can tell them to stop
+_JOBS: set = set()
+
+
+def _user_errors():
+    """Errors whose message is meant for the user (shown as is)."""
+    return (logic.BokehInputError, core("optics.errors").OpticsError, ValueError, OSError, RuntimeError)
+
+
+def _metres_per_unit(scene) -> float:
+    return float(scene.unit_settings.scale_length)
+
+
+def _camera(scene):
+    cam = scene.camera
+    if cam is None:
+        raise logic.BokehInputError("the scene has no active camera: add one (Add > Camera) and make it the "
+                                    "active camera (View > Cameras > Set Active Object as Camera)")
+    if cam.type != "CAMERA":
+        raise logic.BokehInputError(f"the active camera {cam.name!r} is a {cam.type.lower()}, not a camera")
+    if cam.data.type != "PERSP":
+        raise logic.BokehInputError(f"camera {cam.name!r} is {cam.data.type.lower()}: "
+                                    "Lens Bokeh needs a perspective camera (Camera > Type > Perspective)")
+    return cam
+
+
+def chosen_lens(settings):
+    """(lens, path) of the panel's lens; errors name the file and the field."""
+    path = props.lens_path(settings)
+    if path is None:
+        raise logic.BokehInputError(f"no lens file for {settings.lens!r}: pick a lens in the panel "
+                                    "(lenses/*.toml or Import Zemax File)")
+    try:
+        return logic.load_lens_cached(path), path
+    except core("optics.errors").OpticsError as e:
+        raise logic.BokehInputError(f"the lens file is broken: {e}") from None
+
+
+def focus_metres(scene, cam, settings, entrance_pupil_mm: float) -> float:
+    """Focus distance in metres from the lens's first vertex."""
+    mpu = _metres_per_unit(scene)
+    if settings.focus_mode == "DISTANCE":
+        return settings.focus_distance * mpu
+    obj = settings.focus_object
+    if obj is None:
+        raise logic.BokehInputError("focus is set to Object but no focus object is chosen")
+    # planar depth of the object's origin along the view axis (Blender cameras look down -Z)
+    z = (cam.matrix_world.inverted() @ obj.matrix_world.translation).z
+    return -z * mpu - entrance_pupil_mm / 1000.0
+
+
+def prepare(context):
+    """Check the settings, render AiF + depth; returns the job's inputs."""
+    scene = context.scene
+    s = scene.dcdi_lens_bokeh
+    cam = _camera(scene)
+    lens, path = chosen_lens(s)
+    ep = logic.lens_readout(path)["entrance_pupil_mm"]
+    focus = focus_metres(scene, cam, s, ep)
+    mpu = _metres_per_unit(scene)
+    keep = logic.keep_range(focus, s.keep_front * mpu, s.keep_behind * mpu)
+    r = scene.render
+    h, w = logic.preview_shape(r.resolution_x, r.resolution_y, r.pixel_aspect_x, r.pixel_aspect_y, s.preview_size)
+    t0 = time.perf_counter()
+    rgb, z = bpy_render.render_aif_depth(scene, cam, h, w, s.samples, context.view_layer.name)
+    depth = logic.depth_from_z(z, ep, mpu)
+    return {"rgb": rgb, "depth": depth, "lens": lens, "focus_m": focus, "keep": keep,
+            "render_s": time.perf_counter() - t0}
+
+
+def finish(op, context, job, out, info, seconds: float, store_inputs: bool):
+    img = bpy_render.put_image(bpy_render.RESULT_IMAGE, out)
+    if store_inputs:
+        bpy_render.put_image(AIF_IMAGE, job["rgb"])
+        bpy_render.put_image(DEPTH_IMAGE, job["depth"][..., None].repeat(3, axis=-1))
+    bpy_render.show_in_image_editor(context, img)
+    h, w = out.shape[:2]
+    op.report({"INFO"}, f"Lens Bokeh: {w} x {h} px, kept sharp {job['keep'][0]:.2f}-{job['keep'][1]:.2f} m "
+                        f"({info['kept_pixels']} px), render {job['render_s']:.1f} s, bokeh {seconds:.1f} s")
+
+
+class _Worker:
+    """The bokeh on a thread: numpy releases the GIL in its heavy loops, so the
+    UI stays responsive; bpy is never touched from here."""
+
+    def __init__(self, job):
+        self.job = job
+        self.stage, self.fraction = "starting", 0.0
+        self.cancel = False
+        self.result = self.error = None
+        self.t0 = time.perf_counter()
+        self.seconds = 0.0
+        self.thread = threading.Thread(target=self._run, name="dcdi-lens-bokeh", daemon=True)
+
+    def _progress(self, stage, fraction):
+        self.stage, self.fraction = stage, fraction
+
+    def _run(self):
+        try:
+            j = self.job
+            self.result = logic.run_bokeh(j["rgb"], j["depth"], j["lens"], focus_m=j["focus_m"], keep=j["keep"],
+                                          progress=self._progress, cancelled=lambda: self.cancel)
+        except logic.Cancelled:
+            pass
+        except Exception as e:           # handed to the main thread, which reports it
+            self.error = e
+        finally:
+            self.seconds = time.perf_counter() - self.t0
+            _JOBS.discard(self)
+
+
+class DCDI_OT_apply_lens_bokeh(bpy.types.Operator):
+    """Render the active camera all-in-focus with depth and apply the chosen lens's depth of field"""
+
+    bl_idname = "dcdi.apply_lens_bokeh"
+    bl_label = "Apply Lens Bokeh"
+    bl_options = {"REGISTER"}
+
+    store_inputs: BoolProperty(name="Keep Inputs", default=False, options={"SKIP_SAVE"},
+                               description=f"Also keep the all-in-focus render ({AIF_IMAGE!r}) and the depth in "
+                                           f"metres ({DEPTH_IMAGE!r}) as images")
+
+    @classmethod
+    def poll(cls, context):
+        st = getattr(context.window_manager, "dcdi_lens_bokeh_status", None)
+        return st is not None and not st.running
+
+    def execute(self, context):
+        try:
+            job = prepare(context)
+            t0 = time.perf_counter()
+            out, info = logic.run_bokeh(job["rgb"], job["depth"], job["lens"], focus_m=job["focus_m"],
+                                        keep=job["keep"])
+        except _user_errors() as e:
+            self.report({"ERROR"}, str(e))
+            return {"CANCELLED"}
+        finish(self, context, job, out, info, time.perf_counter() - t0, self.store_inputs)
+        return {"FINISHED"}
+
+    def invoke(self, context, event):
+        if bpy.app.background or context.window is None:
+            return self.execute(context)
+        st = context.window_manager.dcdi_lens_bokeh_status
+        st.message, st.progress = "rendering all-in-focus...", 0.0
+        try:
+            job = prepare(context)
+        except _user_errors() as e:
+            st.message = ""
+            self.report({"ERROR"}, str(e))
+            return {"CANCELLED"}
+        self._worker = _Worker(job)
+        _JOBS.add(self._worker)
+        self._worker.thread.start()
+        st.running = True
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.1, window=context.window)
+        wm.progress_begin(0, 100)
+        wm.modal_handler_add(self)
+        return {"RUNNING_MODAL"}
+
+    def _end(self, context):
+        wm = context.window_manager
+        wm.event_timer_remove(self._timer)
+        wm.progress_end()
+        st = wm.dcdi_lens_bokeh_status
+        st.running = False
+        if context.workspace is not None:
+            context.workspace.status_text_set(None)
+        _redraw(context)
+
+    def modal(self, context, event):
+        w = self._worker
+        st = context.window_manager.dcdi_lens_bokeh_status
+        if event.type == "ESC":
+            w.cancel = True
+            self._end(context)
+            st.message, st.progress = "cancelled", 0.0
+            self.report({"WARNING"}, "Lens Bokeh cancelled")
+            return {"CANCELLED"}
+        if event.type != "TIMER":
+            return {"PASS_THROUGH"}
+        if w.thread.is_alive():
+            pct = 100.0 * w.fraction
+            st.progress = pct
+            st.message = f"{w.stage} {pct:.0f} %, {time.perf_counter() - w.t0:.0f} s (Esc cancels)"
+            context.window_manager.progress_update(int(pct))
+            if context.workspace is not None:
+                context.workspace.status_text_set(f"Lens Bokeh: {st.message}")
+            _redraw(context)
+            return {"RUNNING_MODAL"}
+        self._end(context)
+        if w.error is not None:
+            st.message = "failed"
+            self.report({"ERROR"}, str(w.error))
+            return {"CANCELLED"}
+        out, info = w.result
+        st.progress, st.message = 100.0, f"done in {w.job['render_s'] + w.seconds:.1f} s"
+        finish(self, context, w.job, out, info, w.seconds, self.store_inputs)
+        return {"FINISHED"}
+
+
+def _redraw(context):
+    for window in context.window_manager.windows:
+        for area in window.screen.areas:
+            if area.type in ("VIEW_3D", "PROPERTIES"):
+                area.tag_redraw()
+
+
+class DCDI_OT_match_camera(bpy.types.Operator):
+    """Set the active camera's focal length and sensor to the lens's (paraxial focal length; the sensor's diagonal spans the render)"""
+
+    bl_idname = "dcdi.match_camera_to_lens"
+    bl_label = "Match Camera to Lens"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        scene = context.scene
+        try:
+            cam = _camera(scene)
+            lens, _ = chosen_lens(scene.dcdi_lens_bokeh)
+            r = scene.render
+            c = logic.camera_for_lens(lens, r.resolution_y, r.resolution_x)
+        except _user_errors() as e:
+            self.report({"ERROR"}, str(e))
+            return {"CANCELLED"}
+        cam.data.lens = c["lens_mm"]
+        cam.data.sensor_fit = "HORIZONTAL"
+        cam.data.sensor_width = c["sensor_width_mm"]
+        cam.data.sensor_height = c["sensor_height_mm"]
+        self.report({"INFO"}, f"{cam.name}: focal length {c['lens_mm']:.2f} mm, sensor "
+                              f"{c['sensor_width_mm']:.2f} x {c['sensor_height_mm']:.2f} mm")
+        return {"FINISHED"}
+
+
+class DCDI_OT_import_zemax(bpy.types.Operator):
+    """Import a Zemax OpticStudio sequential lens file (.zmx) as a lens"""
+
+    bl_idname = "dcdi.import_zemax"
+    bl_label = "Import Zemax File..."
+    bl_options = {"REGISTER"}
+
+    filepath: StringProperty(subtype="FILE_PATH", options={"SKIP_SAVE"})
+    filter_glob: StringProperty(default="*.zmx;*.ZMX", options={"HIDDEN"})
+
+    def invoke(self, context, event):
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def execute(self, context):
+        try:
+            out = logic.import_zemax(self.filepath, props.user_lens_dir(create=True))
+        except _user_errors() as e:
+            self.report({"ERROR"}, f"cannot import {self.filepath}: {e}")
+            return {"CANCELLED"}
+        lens_id = os.path.splitext(os.path.basename(out))[0]
+        context.scene.dcdi_lens_bokeh.lens = lens_id
+        self.report({"INFO"}, f"imported {self.filepath} as lens {lens_id!r} ({out})")
+        return {"FINISHED"}
+
+
+def cancel_running_jobs():
+    for w in list(_JOBS):
+        w.cancel = True
+
+
+CLASSES = (DCDI_OT_apply_lens_bokeh, DCDI_OT_match_camera, DCDI_OT_import_zemax)

@@ -1,0 +1,109 @@
+"""The Lens Bokeh panel, in the camera properties and in the 3D view's sidebar
+(tab "Lens Bokeh"); both draw the same layout."""
+import bpy
+
+from . import logic, props
+from .core import core
+
+
+def _readout(layout, settings):
+    """Focal length, F-number, field of view of the chosen lens, or why not."""
+    path = props.lens_path(settings)
+    box = layout.box()
+    if path is None:
+        box.label(text="No lens chosen", icon="ERROR")
+        return
+    try:
+        ro = logic.lens_readout(path)
+    except (core("optics.errors").OpticsError, ValueError, OSError) as e:
+        col = box.column(align=True)
+        col.alert = True
+        col.label(text="Broken lens file:", icon="ERROR")
+        # the message names file, surface and field; wrap it over a few lines
+        msg = str(e)
+        for i in range(0, min(len(msg), 240), 48):
+            col.label(text=msg[i:i + 48])
+        return
+    fov = ro["field_of_view_deg"]
+    col = box.column(align=True)
+    col.label(text=ro["name"][:48], icon="CAMERA_DATA")
+    col.label(text=f"f = {ro['focal_length_mm']:.2f} mm   F/{ro['f_number']:.2f}   "
+                   f"FoV {fov:.1f}\N{DEGREE SIGN}" if fov else
+                   f"f = {ro['focal_length_mm']:.2f} mm   F/{ro['f_number']:.2f}")
+
+
+def draw_lens_bokeh(layout, context):
+    scene = context.scene
+    s = scene.dcdi_lens_bokeh
+    layout.use_property_split = True
+    layout.use_property_decorate = False
+    row = layout.row(align=True)
+    row.prop(s, "lens")
+    row.operator("dcdi.import_zemax", text="", icon="FILEBROWSER")
+    _readout(layout, s)
+    layout.operator("dcdi.match_camera_to_lens", icon="CAMERA_DATA")
+
+    col = layout.column(align=True)
+    col.prop(s, "focus_mode", expand=True)
+    if s.focus_mode == "DISTANCE":
+        col.prop(s, "focus_distance", text="Distance")
+    else:
+        col.prop(s, "focus_object", text="Object")
+    col = layout.column(align=True, heading="Kept Sharp")
+    col.prop(s, "keep_front")
+    col.prop(s, "keep_behind")
+    if s.focus_mode == "DISTANCE":
+        mpu = scene.unit_settings.scale_length
+        near, far = max(s.focus_distance - s.keep_front, 0.0) * mpu, (s.focus_distance + s.keep_behind) * mpu
+        layout.label(text=f"Sharp from {near:.2f} m to {far:.2f} m")
+
+    col = layout.column(align=True)
+    col.prop(s, "preview_size")
+    col.prop(s, "samples")
+    r = scene.render
+    try:
+        h, w = logic.preview_shape(r.resolution_x, r.resolution_y, r.pixel_aspect_x, r.pixel_aspect_y,
+                                   s.preview_size)
+        col.label(text=f"Preview {w} x {h} px")
+    except logic.BokehInputError as e:
+        col.label(text=str(e), icon="ERROR")
+
+    if scene.camera is None:
+        layout.label(text="No active camera in the scene", icon="ERROR")
+    st = context.window_manager.dcdi_lens_bokeh_status
+    row = layout.row()
+    row.scale_y = 1.5
+    row.operator("dcdi.apply_lens_bokeh", icon="RENDER_STILL")
+    if st.running:
+        layout.prop(st, "progress", text=st.message or "working", slider=True)
+    elif st.message:
+        layout.label(text=st.message)
+
+
+class DCDI_PT_lens_bokeh_camera(bpy.types.Panel):
+    bl_label = "Lens Bokeh"
+    bl_idname = "DCDI_PT_lens_bokeh_camera"
+    bl_space_type = "PROPERTIES"
+    bl_region_type = "WINDOW"
+    bl_context = "data"
+
+    @classmethod
+    def poll(cls, context):
+        return context.camera is not None
+
+    def draw(self, context):
+        draw_lens_bokeh(self.layout, context)
+
+
+class DCDI_PT_lens_bokeh_sidebar(bpy.types.Panel):
+    bl_label = "Lens Bokeh"
+    bl_idname = "DCDI_PT_lens_bokeh_sidebar"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "Lens Bokeh"
+
+    def draw(self, context):
+        draw_lens_bokeh(self.layout, context)
+
+
+CLASSES = (DCDI_PT_lens_bokeh_camera, DCDI_PT_lens_bokeh_sidebar)

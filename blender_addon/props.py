@@ -1,0 +1,89 @@
+"""The panel's settings (per scene) and the running job's readout (per window
+manager, not saved). Distances in metres (scene units times the scene's
+unit scale), resolutions in pixels."""
+
+import bpy
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
+
+from . import logic
+
+# Blender keeps only references to enum item strings: hold them here so that
+# Python does not free them while the UI shows them (documented pitfall of
+# dynamic EnumProperty items).
+_ITEMS: list = []
+DEFAULT_LENS = "6p"      # the paper's bokeh lens
+
+
+def user_lens_dir(create: bool = False) -> str:
+    """Folder of lenses imported from Zemax files: the extension's user folder
+    (Blender 4.2+), else a folder in the user's scripts."""
+    pkg = __package__ or "blender_addon"
+    if hasattr(bpy.utils, "extension_path_user") and pkg.startswith("bl_ext."):
+        return bpy.utils.extension_path_user(pkg, path="lenses", create=create)
+    return bpy.utils.user_resource("SCRIPTS", path="dcdi_lenses", create=create)
+
+
+def catalogue():
+    return logic.lens_catalogue([user_lens_dir()])
+
+
+def _lens_items(self, context):
+    items = [(e.id, e.name if len(e.name) <= 40 else e.id, f"{e.name}\n{e.path}", "CAMERA_DATA", e.number)
+             for e in catalogue()]
+    if not items:
+        items = [("NONE", "No lens files found", "no *.toml in the lens folders", "ERROR", 0)]
+    _ITEMS[:] = items
+    return _ITEMS
+
+
+def lens_path(settings) -> str | None:
+    """Path of the chosen lens's TOML file (None when there is none)."""
+    for e in catalogue():
+        if e.id == settings.lens:
+            return e.path
+    return None
+
+
+class DCDI_LensBokehSettings(bpy.types.PropertyGroup):
+    lens: EnumProperty(name="Lens", description="Lens prescription (lenses/*.toml and imported Zemax files)",
+                       items=_lens_items, default=logic.lens_number(DEFAULT_LENS))
+    focus_mode: EnumProperty(name="Focus", items=[
+        ("DISTANCE", "Distance", "Focus at a distance from the lens"),
+        ("OBJECT", "Object", "Focus on an object's origin (its depth along the camera's view axis)")],
+        default="DISTANCE")
+    focus_distance: FloatProperty(name="Focus Distance", description="Distance from the lens's first vertex, "
+                                  "in scene units (metres at unit scale 1)", default=2.0, min=0.01, soft_max=50.0,
+                                  subtype="DISTANCE", unit="LENGTH")
+    focus_object: PointerProperty(name="Focus Object", type=bpy.types.Object,
+                                  description="Focus on this object's origin")
+    keep_front: FloatProperty(name="In Front", description="Depth kept sharp in front of the focus, scene units",
+                              default=0.3, min=0.0, soft_max=10.0, subtype="DISTANCE", unit="LENGTH")
+    keep_behind: FloatProperty(name="Behind", description="Depth kept sharp behind the focus, scene units",
+                               default=0.5, min=0.0, soft_max=100.0, subtype="DISTANCE", unit="LENGTH")
+    preview_size: IntProperty(name="Preview Size", description="Long side of the preview in pixels (the render's "
+                              "aspect is kept). PSFs are built at this pixel pitch: larger takes longer the first "
+                              "time", default=320, min=16, soft_max=1920, max=8192, subtype="PIXEL")
+    samples: IntProperty(name="Samples", description="Cycles samples per pixel of the all-in-focus render "
+                         "(denoised)", default=16, min=1, soft_max=256, max=16384)
+
+
+class DCDI_LensBokehStatus(bpy.types.PropertyGroup):
+    """What the running (or last) Apply Lens Bokeh is doing; not saved."""
+
+    running: BoolProperty(default=False)
+    progress: FloatProperty(name="Progress", default=0.0, min=0.0, max=100.0, subtype="PERCENTAGE")
+    message: StringProperty(default="")
+
+
+CLASSES = (DCDI_LensBokehSettings, DCDI_LensBokehStatus)
+
+
+def register_properties():
+    bpy.types.Scene.dcdi_lens_bokeh = PointerProperty(type=DCDI_LensBokehSettings)
+    bpy.types.WindowManager.dcdi_lens_bokeh_status = PointerProperty(type=DCDI_LensBokehStatus)
+
+
+def unregister_properties():
+    del bpy.types.WindowManager.dcdi_lens_bokeh_status
+    del bpy.types.Scene.dcdi_lens_bokeh
+    _ITEMS.clear()

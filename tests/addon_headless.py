@@ -1,0 +1,200 @@
+"""Run by tests/test_addon.py in a fresh interpreter (BLENDER_USER_RESOURCES
+must be set before bpy is imported): installs the built extension zip into a
+temporary user folder, enables it, runs Apply Lens Bokeh on a small scene,
+and writes what it saw to a JSON file (pixels as .npy beside it).
+
+    python tests/addon_headless.py ZIP OUT_DIR
+"""
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+ZIP, OUT = Path(sys.argv[1]), Path(sys.argv[2])
+os.environ["BLENDER_USER_RESOURCES"] = str(OUT / "blender-user")
+# the add-on must work in Blender's own Python: none of these may be needed
+for name in ("OpenImageIO", "OpenEXR", "matplotlib", "torch"):
+    sys.modules[name] = None
+
+import bpy  # noqa: E402
+import numpy as np  # noqa: E402
+
+MODULE = "bl_ext.user_default.dcdi_lens_bokeh"
+res: dict = {"errors": {}}
+
+
+def snapshot(struct, depth=0, max_depth=4):
+    """Every RNA property of ``struct`` (nested structs to max_depth; ID
+    pointers by name), as plain Python values, to compare before / after."""
+    out = {}
+    for prop in struct.bl_rna.properties:
+        k = prop.identifier
+        if k in ("rna_type", "depsgraph"):       # the depsgraph is transient evaluation state
+            continue
+        try:
+            v = getattr(struct, k)
+        except (AttributeError, RuntimeError, ReferenceError):
+            continue
+        if prop.type == "POINTER":
+            if v is None or isinstance(v, bpy.types.ID):
+                out[k] = None if v is None else ("ID", v.name)
+            elif depth < max_depth:
+                out[k] = snapshot(v, depth + 1, max_depth)
+        elif prop.type == "COLLECTION":
+            items = list(v)
+            if items and isinstance(items[0], bpy.types.ID):
+                out[k] = [("ID", x.name) for x in items]
+            elif depth < max_depth:
+                out[k] = [snapshot(x, depth + 1, max_depth) for x in items]
+        else:
+            try:
+                out[k] = tuple(v) if hasattr(v, "__len__") and not isinstance(v, str) else v
+            except TypeError:
+                out[k] = repr(v)
+    return out
+
+
+def diff(a, b, path=""):
+    if isinstance(a, dict) and isinstance(b, dict):
+        return [d for k in sorted(set(a) | set(b)) for d in diff(a.get(k), b.get(k), f"{path}.{k}")]
+    if isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
+        return [d for i, (x, y) in enumerate(zip(a, b)) for d in diff(x, y, f"{path}[{i}]")]
+    return [] if a == b else [f"{path}: {a!r} -> {b!r}"]
+
+
+def data_counts():
+    return {k: len(getattr(bpy.data, k)) for k in dir(bpy.data)
+            if isinstance(getattr(bpy.data, k, None), bpy.types.bpy_prop_collection)}
+
+
+def emission_checker(name, scale):
+    """An emission material with a checker texture: sharp edges at every
+    depth, no lights needed, little render noise."""
+    mat = bpy.data.materials.new(name)
+    mat.use_nodes = True
+    nt = mat.node_tree
+    nt.nodes.clear()
+    out = nt.nodes.new("ShaderNodeOutputMaterial")
+    em = nt.nodes.new("ShaderNodeEmission")
+    chk = nt.nodes.new("ShaderNodeTexChecker")
+    chk.inputs["Scale"].default_value = scale
+    chk.inputs["Color1"].default_value = (0.9, 0.8, 0.7, 1.0)
+    chk.inputs["Color2"].default_value = (0.05, 0.1, 0.2, 1.0)
+    nt.links.new(chk.outputs["Color"], em.inputs["Color"])
+    nt.links.new(em.outputs["Emission"], out.inputs["Surface"])
+    return mat
+
+
+def build_scene():
+    """Camera at the origin looking down -Z; a checker cube 0.85-1.15 m away,
+    a checker wall 8 m away; 640 x 480 render (preview 128 x 96)."""
+    for ob in list(bpy.data.objects):
+        bpy.data.objects.remove(ob)
+    scene = bpy.context.scene
+    cam = bpy.data.objects.new("Cam", bpy.data.cameras.new("Cam"))
+    scene.collection.objects.link(cam)
+    scene.camera = cam
+    bpy.ops.mesh.primitive_plane_add(size=40.0, location=(0.0, 0.0, -8.0))
+    bpy.context.object.data.materials.append(emission_checker("wall", 80.0))
+    bpy.ops.mesh.primitive_cube_add(size=0.3, location=(0.0, 0.0, -1.0))
+    cube = bpy.context.object
+    cube.data.materials.append(emission_checker("cube", 6.0))
+    scene.world = bpy.data.worlds.new("black")
+    scene.render.resolution_x, scene.render.resolution_y = 640, 480
+    return scene, cam, cube
+
+
+def check(name, fn):
+    try:
+        fn()
+        res["errors"][name] = None
+    except RuntimeError as e:
+        res["errors"][name] = str(e)
+
+
+scene, cam, cube = build_scene()
+counts0 = data_counts()
+t = time.perf_counter()
+res["install"] = sorted(bpy.ops.extensions.package_install_files(
+    filepath=str(ZIP), repo="user_default", enable_on_install=True))
+res["install_s"] = time.perf_counter() - t
+res["enabled"] = MODULE in bpy.context.preferences.addons
+core_mod = sys.modules[f"{MODULE}.core"]
+logic = sys.modules[f"{MODULE}.logic"]
+res["core_root"] = core_mod.ROOT
+res["lenses"] = {e.id: e.path for e in logic.lens_catalogue()}
+res["user_folder"] = os.environ["BLENDER_USER_RESOURCES"]
+
+s = scene.dcdi_lens_bokeh
+res["default_lens"] = s.lens
+s.lens = "6p"
+s.focus_mode = "OBJECT"
+s.focus_object = cube
+s.keep_front, s.keep_behind = 0.3, 0.3
+s.preview_size = 128
+s.samples = 4
+res["match_camera"] = sorted(bpy.ops.dcdi.match_camera_to_lens())
+res["camera_lens_mm"] = cam.data.lens
+res["readout"] = logic.lens_readout(res["lenses"]["6p"])
+
+before = {"scene": snapshot(scene), "camera": snapshot(cam), "camera_data": snapshot(cam.data)}
+counts1 = data_counts()
+for run in ("cold", "warm"):
+    t = time.perf_counter()
+    res[f"apply_{run}"] = sorted(bpy.ops.dcdi.apply_lens_bokeh(store_inputs=True))
+    res[f"apply_{run}_s"] = time.perf_counter() - t
+after = {"scene": snapshot(scene), "camera": snapshot(cam), "camera_data": snapshot(cam.data)}
+res["settings_diff"] = diff(before, after)
+# the comparison can fail: a changed setting shows up
+scene.render.resolution_percentage += 1
+res["snapshot_detects_a_change"] = bool(diff(before["scene"], snapshot(scene)))
+scene.render.resolution_percentage -= 1
+counts2 = data_counts()
+res["new_data"] = {k: counts2[k] - counts1[k] for k in counts2 if counts2[k] != counts1[k]}
+res["images"] = sorted(i.name for i in bpy.data.images)
+img = bpy.data.images["Lens Bokeh"]
+res["result_float"] = bool(img.is_float)
+res["result_colorspace"] = img.colorspace_settings.name
+bpy_render = sys.modules[f"{MODULE}.bpy_render"]
+for name, key in (("Lens Bokeh", "out"), ("Lens Bokeh AiF", "aif"), ("Lens Bokeh Depth", "depth")):
+    np.save(OUT / f"{key}.npy", bpy_render.get_image(name))
+res["keep_m"] = [s.keep_front, s.keep_behind]
+ep = res["readout"]["entrance_pupil_mm"] / 1000.0
+res["focus_m"] = 1.0 - ep
+
+# what cannot work gives a clear message
+s.focus_mode = "DISTANCE"
+s.focus_distance = 4.0          # nothing between 3.7 and 4.3 m: the cube is nearer, the wall farther
+check("nothing_kept", lambda: bpy.ops.dcdi.apply_lens_bokeh())
+broken = OUT / "lenses" / "broken-lens.toml"
+broken.parent.mkdir(exist_ok=True)
+broken.write_text(Path(res["lenses"]["6p"]).read_text().replace("semi_diameter_mm", "semi_diameter_mmm", 1))
+os.environ["DCDI_LENS_PATH"] = str(broken.parent)
+s.lens = "broken-lens"
+check("broken_lens", lambda: bpy.ops.dcdi.apply_lens_bokeh())
+s.lens = "6p"
+scene.camera = None
+check("no_camera", lambda: bpy.ops.dcdi.apply_lens_bokeh())
+scene.camera = cam
+
+# an uncompressed multilayer EXR as the add-on writes it, for the reader test
+scene.render.engine = "CYCLES"
+scene.cycles.samples = 1
+scene.render.resolution_percentage = 5
+scene.view_layers[0].use_pass_z = True
+bpy_render.set_multilayer_exr(scene.render.image_settings)
+scene.render.use_file_extension = False
+scene.render.filepath = str(OUT / "multilayer.exr")
+bpy.ops.render.render(write_still=True)
+
+# disable: nothing of the add-on stays registered
+res["disable"] = sorted(bpy.ops.preferences.addon_disable(module=MODULE))
+res["leftovers"] = [n for n in dir(bpy.types) if n.startswith("DCDI_")]
+res["scene_prop_left"] = hasattr(bpy.types.Scene, "dcdi_lens_bokeh")
+res["wm_prop_left"] = hasattr(bpy.types.WindowManager, "dcdi_lens_bokeh_status")
+res["operator_left"] = "apply_lens_bokeh" in dir(bpy.ops.dcdi)
+res["still_enabled"] = MODULE in bpy.context.preferences.addons
+res["data_counts_start"] = counts0
+
+(OUT / "result.json").write_text(json.dumps(res, indent=1, default=str))

@@ -1,0 +1,194 @@
+"""The Blender add-on: the extension zip, its vendored engine, and (with the
+pip bpy module, in a subprocess) install, Apply Lens Bokeh, settings left
+as they were, error messages, disable without leftovers."""
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+import tomllib
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from blender_addon import logic
+
+ROOT = Path(__file__).resolve().parent.parent
+EXT_ID = tomllib.loads((ROOT / "blender_addon" / "blender_manifest.toml").read_text())["id"]
+
+
+def _build_module():
+    spec = importlib.util.spec_from_file_location("dcdi_build", ROOT / "build.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture(scope="module")
+def addon_zip(tmp_path_factory):
+    return _build_module().build_addon(tmp_path_factory.mktemp("dist"))
+
+
+# ------------------------------------------------------------------ the zip
+def test_zip_is_an_extension_with_the_engine_and_lenses_inside(addon_zip, tmp_path):
+    assert EXT_ID.isidentifier() and addon_zip.name == f"{EXT_ID}-0.1.0.zip"
+    with zipfile.ZipFile(addon_zip) as z:
+        names = set(z.namelist())
+        manifest = tomllib.loads(z.read(f"{EXT_ID}/blender_manifest.toml").decode())
+        init = z.read(f"{EXT_ID}/__init__.py").decode()
+    assert all(n.startswith(f"{EXT_ID}/") for n in names)          # one folder: extension and legacy layout
+    assert manifest["blender_version_min"] == "4.2.0" and manifest["license"] == ["SPDX:GPL-3.0-or-later"]
+    assert manifest["type"] == "add-on" and manifest["tags"] and manifest["schema_version"] == "1.0.0"
+    assert "bl_info" in init and "def register" in init and "def unregister" in init
+    for lens in (ROOT / "lenses").glob("*.toml"):
+        assert f"{EXT_ID}/lenses/{lens.name}" in names
+    for need in ("dcdi_core/render/simulate.py", "dcdi_core/io/rawexr.py", "dcdi_core/psf/data/default_rgb_response.csv",
+                 "operators.py", "panel.py", "props.py"):
+        assert f"{EXT_ID}/{need}" in names
+    assert not any(n.endswith(("factory.py", "render_noise.py", "screenshots.py")) or "__pycache__" in n
+                   for n in names)
+    again = _build_module().build_addon(tmp_path)
+    assert again.read_bytes() == addon_zip.read_bytes()              # same sources, same bytes
+
+
+def test_vendored_engine_runs_without_the_repository_or_image_libraries(addon_zip, tmp_path):
+    with zipfile.ZipFile(addon_zip) as z:
+        z.extractall(tmp_path)
+    code = f"""
+import sys
+sys.path = [p for p in sys.path if p not in ('', {str(ROOT)!r})]
+sys.path.insert(0, {str(tmp_path)!r})
+for m in ("OpenImageIO", "OpenEXR", "matplotlib", "torch", "bpy"):
+    sys.modules[m] = None
+from {EXT_ID} import core, logic
+assert core.ROOT == "{EXT_ID}.dcdi_core", core.ROOT
+assert "dcdi_core" not in sys.modules
+cat = {{e.id: e.path for e in logic.lens_catalogue()}}
+assert set(cat) >= {{"6p", "mos-s1", "mos-s2", "double-gauss"}}, cat
+assert all(p.startswith({str(tmp_path)!r}) for p in cat.values()), cat
+ro = logic.lens_readout(cat["mos-s1"])
+print(round(ro["focal_length_mm"], 3), round(ro["f_number"], 3))
+"""
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "DCDI_LENS_PATH")}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["19.946", "4.999"]
+
+
+# ------------------------------------------------------------------ logic without bpy
+def test_preview_shape_keeps_the_render_aspect():
+    assert logic.preview_shape(640, 480, 1.0, 1.0, 64) == (48, 64)
+    assert logic.preview_shape(1080, 1920, 1.0, 1.0, 320) == (320, 180)
+    assert logic.preview_shape(1000, 1000, 2.0, 1.0, 100) == (50, 100)   # anamorphic pixels
+    with pytest.raises(logic.BokehInputError, match="allowed 8 and up"):
+        logic.preview_shape(640, 480, 1.0, 1.0, 4)
+
+
+def test_depth_from_z_and_keep_range():
+    d = logic.depth_from_z(np.array([2.0, 1e10]), entrance_pupil_mm=14.6, metres_per_unit=1.0)
+    assert d[0] == pytest.approx(2.0 - 0.0146) and np.isinf(d[1])
+    assert logic.depth_from_z(np.array([2.0]), 0.0, metres_per_unit=0.01)[0] == pytest.approx(0.02)
+    assert logic.keep_range(2.0, 0.5, 1.0) == (1.5, 3.0)
+    with pytest.raises(logic.BokehInputError, match="positive and finite"):
+        logic.keep_range(-1.0, 0.1, 0.1)
+
+
+def test_nothing_in_the_kept_range_is_refused_before_any_psf_work():
+    from dcdi_core.optics.lens import load_lens
+    img = np.zeros((16, 16, 3), np.float32)
+    with pytest.raises(logic.BokehInputError, match=r"nothing in view lies in the kept range 1.00-2.00 m"):
+        logic.run_bokeh(img, np.full((16, 16), 5.0, np.float32), load_lens("6p"), focus_m=1.5, keep=(1.0, 2.0))
+
+
+# ------------------------------------------------------------------ headless Blender (pip bpy)
+@pytest.fixture(scope="module")
+def headless(addon_zip, tmp_path_factory):
+    pytest.importorskip("bpy")
+    out = tmp_path_factory.mktemp("addon-run")
+    env = dict(os.environ, DCDI_CACHE_DIR=str(out / "psf-cache"))
+    env.pop("DCDI_LENS_PATH", None)
+    p = subprocess.run([sys.executable, str(ROOT / "tests" / "addon_headless.py"), str(addon_zip), str(out)],
+                       capture_output=True, text=True, env=env, timeout=600)
+    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
+    res = json.loads((out / "result.json").read_text())
+    res["dir"] = out
+    return res
+
+
+def test_zip_installs_into_a_temporary_user_folder_and_enables(headless):
+    assert headless["install"] == ["FINISHED"] and headless["enabled"]
+    assert headless["core_root"] == f"bl_ext.user_default.{EXT_ID}.dcdi_core"
+    assert set(headless["lenses"]) == {p.stem for p in (ROOT / "lenses").glob("*.toml")}
+    assert all(p.startswith(headless["user_folder"]) for p in headless["lenses"].values())
+    assert headless["default_lens"] == "6p"
+
+
+def test_match_camera_sets_the_lens_focal_length(headless):
+    assert headless["match_camera"] == ["FINISHED"]
+    assert headless["camera_lens_mm"] == pytest.approx(headless["readout"]["focal_length_mm"], rel=1e-6)
+
+
+def test_result_equals_the_render_in_the_kept_range_and_is_blurred_outside(headless):
+    assert headless["apply_cold"] == ["FINISHED"] and headless["apply_warm"] == ["FINISHED"]
+    out, aif = np.load(headless["dir"] / "out.npy"), np.load(headless["dir"] / "aif.npy")
+    depth = np.load(headless["dir"] / "depth.npy")[..., 0]
+    assert out.shape == aif.shape == (96, 128, 3) and headless["result_float"]
+    assert "linear" in headless["result_colorspace"].lower()
+    f = headless["focus_m"]
+    kept = (depth >= f - headless["keep_m"][0]) & (depth <= f + headless["keep_m"][1])
+    assert 200 < kept.sum() < 0.8 * kept.size                         # the cube, not the whole frame
+    assert np.abs(out - aif)[kept].max() < 1e-5
+    # the wall (8 m) away from the cube's edge, blurred by the lens focused at 1 m: a blur
+    # disc of ~2.7 px at this preview's 0.14 mm pitch (measured: mean |out - aif| 0.069,
+    # edge energy 0.75 of the render's)
+    near_cube = kept.copy()
+    for _ in range(4):
+        near_cube = near_cube | np.roll(near_cube, 1, 0) | np.roll(near_cube, -1, 0) \
+            | np.roll(near_cube, 1, 1) | np.roll(near_cube, -1, 1)
+    wall = (depth > 7.0) & ~near_cube
+    assert wall.sum() > 1000
+    assert np.abs(out - aif)[wall].mean() > 0.04
+
+    def edge_energy(im):
+        g = np.abs(np.diff(im, axis=0))[:, :-1] + np.abs(np.diff(im, axis=1))[:-1]
+        return g[wall[:-1, :-1]].mean()
+    assert edge_energy(out) < 0.85 * edge_energy(aif)
+    # blur moves light, it does not make or lose it
+    assert np.isfinite(out).all() and abs(out[wall].mean() - aif[wall].mean()) < 0.02 * aif[wall].mean()
+
+
+def test_scene_render_settings_and_camera_are_as_before(headless):
+    assert headless["settings_diff"] == []
+    assert headless["snapshot_detects_a_change"]
+    # only the result images are new: no scene, camera, object or mesh left behind
+    assert headless["new_data"] == {"images": 3}
+    assert headless["images"] == ["Lens Bokeh", "Lens Bokeh AiF", "Lens Bokeh Depth", "Render Result"]
+
+
+def test_what_cannot_work_says_why(headless):
+    e = headless["errors"]
+    assert "no active camera" in e["no_camera"]
+    assert "the lens file is broken" in e["broken_lens"] and "broken-lens.toml" in e["broken_lens"]
+    assert "nothing in view lies in the kept range 3.70-4.30 m" in e["nothing_kept"]
+
+
+def test_disable_leaves_nothing_registered(headless):
+    assert headless["disable"] == ["FINISHED"] and not headless["still_enabled"]
+    assert headless["leftovers"] == []
+    assert not headless["scene_prop_left"] and not headless["wm_prop_left"] and not headless["operator_left"]
+
+
+def test_numpy_exr_reader_matches_openimageio(headless):
+    from dcdi_core.io.images import read_depth, read_image
+    from dcdi_core.io.rawexr import RawExrError, read_exr_channels
+    path = headless["dir"] / "multilayer.exr"
+    ch = read_exr_channels(path)
+    rgb = np.stack([ch[f"ViewLayer.Combined.{c}"] for c in "RGB"], axis=-1)
+    assert np.array_equal(rgb, read_image(path)) and rgb.std() > 0
+    assert np.array_equal(ch["ViewLayer.Depth.Z"], read_depth(path))
+    bad = headless["dir"] / "not.exr"
+    bad.write_bytes(b"\x00" * 64)
+    with pytest.raises(RawExrError, match="not an OpenEXR file"):
+        read_exr_channels(bad)
