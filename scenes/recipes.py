@@ -74,36 +74,68 @@ def world(colour, strength: float = 1.0):
 
 
 def room(rng) -> None:
-    """Indoor: floor, back wall at 6-9 m, side walls, furniture-scale boxes and
-    spheres between 0.8 and 5 m, a ceiling area light."""
+    """Indoor, the camera 1.2 m above the floor: back wall at 6-9 m, side
+    walls, ceiling; one or two foreground pieces (lamp pole, shelf edge) at
+    0.7-1.3 m off centre, a sideboard or two with small things on top at
+    1.2-3.5 m, furniture-scale boxes and spheres on the floor at 2.5-5 m; a
+    ceiling area light. (Measured depth bands: python -m
+    blender_addon.depth_histogram; at a 46 degree vertical field the floor
+    only enters the frame beyond 2.9 m, so near content must stand tall.)"""
+    floor = -1.2
     back = rng.uniform(6.0, 9.0)
-    add_mesh("plane", (0, -1.4, -back / 2), (4.0, back / 2 + 0.5, 1), material("floor", rng, "checker", 8.0),
+    add_mesh("plane", (0, floor, -back / 2), (3.2, back / 2 + 0.5, 1), material("floor", rng, "checker", 8.0),
              rotation=(-math.pi / 2, 0, 0))
-    add_mesh("plane", (0, 0.6, -back), (4.0, 2.2, 1), material("wall", rng, "noise"))
+    add_mesh("plane", (0, 1.4, -back / 2), (3.2, back / 2 + 0.5, 1), material("ceiling", rng, "noise", 4.0),
+             rotation=(math.pi / 2, 0, 0))
+    add_mesh("plane", (0, 0.1, -back), (3.2, 1.3, 1), material("wall", rng, "noise"))
     for side in (-1, 1):
-        add_mesh("plane", (side * 3.2, 0.4, -back / 2), (back / 2 + 0.5, 2.0, 1), material("side", rng, "wave"),
+        add_mesh("plane", (side * 3.2, 0.1, -back / 2), (back / 2 + 0.5, 1.3, 1), material("side", rng, "wave"),
                  rotation=(0, side * math.pi / 2, 0))
-    for i in range(int(rng.integers(5, 9))):
-        z = -rng.uniform(0.8, 5.0)
-        x = rng.uniform(-1.0, 1.0) * 0.6 * -z
+    for i in range(int(rng.integers(1, 3))):
+        # foreground: tall and thin, standing on the floor, reaching into the frame's side
+        z = -rng.uniform(0.7, 1.3)
+        x = float(rng.choice([-1.0, 1.0])) * rng.uniform(0.2, 0.5) * -z
+        s = rng.uniform(0.025, 0.07)
+        top = rng.uniform(0.2, 1.4)
+        half_h = (top - floor) / 2
+        mat = material(f"near{i}", rng, str(rng.choice(["noise", "wave", "voronoi"])))
+        if rng.random() < 0.5:          # a pole: the cylinder's axis (local z) turned upright
+            add_mesh("cylinder", (x, floor + half_h, z - s), (s, s, half_h), mat, rotation=(math.pi / 2, 0, 0))
+        else:                           # a shelf's edge
+            add_mesh("cube", (x, floor + half_h, z - s), (s, half_h, s), mat)
+    for j in range(int(rng.integers(1, 3))):
+        # a sideboard (top 0.75 m above the floor) and small things on it
+        z = -rng.uniform(1.2, 2.8)
+        x = rng.uniform(-0.5, 0.5) * -z
+        half = (rng.uniform(0.35, 0.7), 0.375, rng.uniform(0.25, 0.45))
+        add_mesh("cube", (x, floor + half[1], z), half, material(f"board{j}", rng, "wave"))
+        for i in range(int(rng.integers(2, 5))):
+            s = rng.uniform(0.04, 0.12)
+            add_mesh(str(rng.choice(["cube", "sphere", "cylinder"])),
+                     (x + rng.uniform(-0.8, 0.8) * half[0], floor + 0.75 + s, z + rng.uniform(-0.6, 0.6) * half[2]),
+                     (s, s, s), material(f"small{j}-{i}", rng, str(rng.choice(["noise", "voronoi", "checker"]))))
+    for i in range(int(rng.integers(3, 6))):
+        z = -rng.uniform(2.5, 5.0)
+        x = rng.uniform(-1.0, 1.0) * 0.45 * -z
         kind = "cube" if rng.random() < 0.6 else "sphere"
-        s = rng.uniform(0.12, 0.45)
-        add_mesh(kind, (x, -1.4 + s, z), (s, s * rng.uniform(0.6, 2.0), s),
+        s = rng.uniform(0.2, 0.5)
+        add_mesh(kind, (x, floor + s, z), (s, s * rng.uniform(0.6, 2.0), s),
                  material(f"thing{i}", rng, str(rng.choice(["noise", "voronoi", "checker"]))))
-    add_light("AREA", (0, 2.4, -back / 2), 120.0 * (back / 6.0) ** 2, rotation=(0, 0, 0), size=3.0)
+    add_light("AREA", (0, 1.35, -back / 2), 120.0 * (back / 6.0) ** 2, rotation=(0, 0, 0), size=3.0)
     add_light("SUN", (2, 4, 2), 1.5, rotation=(0.6, 0.2, 0.3))
     world((0.05, 0.05, 0.06), 0.5)
 
 
 def tabletop(rng) -> None:
-    """Close-up: a table top from 0.5 m to 2 m, small objects at 0.7-1.5 m,
-    a wall behind at 2.5-3.5 m."""
+    """Close-up: a table top from 0.3 m to 2.3 m (in the frame beyond 0.83 m),
+    small objects with front faces at 0.72-1.5 m, a wall behind at 2.5-3.5 m."""
     add_mesh("plane", (0, -0.35, -1.3), (1.2, 1.0, 1), material("table", rng, "wave", 6.0),
              rotation=(-math.pi / 2, 0, 0))
     add_mesh("plane", (0, 0.5, -rng.uniform(2.5, 3.5)), (3.0, 2.0, 1), material("wall", rng, "noise"))
-    for i in range(int(rng.integers(4, 8))):
-        z = -rng.uniform(0.7, 1.5)
-        s = rng.uniform(0.03, 0.09)
+    for i in range(int(rng.integers(5, 9))):
+        # objects' front faces at >= 0.72 m: below the PSF library's 0.7 m the simulation clamps
+        s = rng.uniform(0.04, 0.12)
+        z = -rng.uniform(0.72, 1.5) - s
         add_mesh(str(rng.choice(["cube", "sphere", "cylinder"])), (rng.uniform(-0.35, 0.35) * -z, -0.35 + s, z),
                  (s, s, s), material(f"obj{i}", rng, str(rng.choice(["noise", "voronoi", "checker"]))))
     add_light("AREA", (0.3, 1.0, -0.5), 20.0, rotation=(-1.2, 0, 0), size=1.0)

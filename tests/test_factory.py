@@ -108,3 +108,25 @@ def test_render_settings_refuse_bad_values():
         factory.RenderSettings(denoising_quality="ULTRA")
     with pytest.raises(ValueError, match=r"diffuse bounces must be an integer in \[0, 1024\]"):
         factory.RenderSettings(diffuse_bounces=-1)
+
+
+def test_band_fractions():
+    from blender_addon.depth_histogram import BANDS, band_fractions
+    d = np.array([0.5, 0.7, 0.99, 1.0, 3.0, 7.0, 10.0, 50.0, np.inf, np.inf])
+    f = band_fractions(d)
+    assert dict(zip(BANDS, f.round(2))) == {"<0.7": 0.1, "0.7-1": 0.2, "1-2": 0.1, "2-5": 0.1, "5-10": 0.1,
+                                            ">10": 0.2, "inf": 0.2}
+    with pytest.raises(ValueError, match="must be > 0 m or inf"):
+        band_fractions(np.array([1.0, np.nan]))
+
+
+def test_recipes_cover_the_depth_bands():
+    # the paper's data spans 0.7 m to beyond 10 m: pooled over the three recipes every band
+    # from 0.7 m to infinity holds a share of the pixels, and the room reaches closer than 1 m
+    from blender_addon.depth_histogram import BANDS, depth_histogram
+    hist = depth_histogram(seeds=3, height=48, width=64)
+    pooled = dict(zip(BANDS, np.mean([f for f, _, _ in hist.values()], axis=0)))
+    assert pooled["<0.7"] < 0.01
+    assert all(pooled[b] > 0.03 for b in BANDS[1:]), pooled
+    assert hist["room"][2][0] < 1.0 and hist["room"][2][1] > 5.0
+    assert hist["street"][0][-1] > 0.05                      # sky
