@@ -146,3 +146,94 @@ def test_bokeh_keeps_the_kept_range_unchanged(lens):
         assert np.abs(bg - img[:, :20]).mean() > 0.01       # the background is blurred
     with pytest.raises(InputRangeError):
         bokeh(img, depth, lens, geometry=geom, library=lib)
+
+
+def _direct(img, kern):
+    """Reference: full-image spatial convolution with one kernel, reflect border."""
+    k = kern.shape[-1]
+    r = k // 2
+    h, w = img.shape[:2]
+    pad = np.pad(img, ((r, r), (r, r), (0, 0)), mode="reflect")
+    ref = np.zeros_like(img)
+    for dy in range(k):
+        for dx in range(k):
+            ref += kern[:, dy, dx] * pad[2 * r - dy:2 * r - dy + h, 2 * r - dx:2 * r - dx + w]
+    return ref
+
+
+def test_kernel_support_is_the_square_that_holds_the_energy():
+    from dcdi_core.render.convolve import kernel_support
+
+    k = 11
+    kern = np.zeros((2, 3, k, k), np.float32)
+    kern[0, :, 5, 5] = 1.0                                # a delta: half-width 0
+    kern[1, :, 5, 5] = 0.99
+    kern[1, 1, 5, 8] = 0.01                               # 1 % of one channel 3 px out
+    assert kernel_support(kern, 0.0).tolist() == [0, 3]
+    assert kernel_support(kern, 0.02).tolist() == [0, 0]   # 1 % < 2 %: cropped
+    assert kernel_support(kern, 0.005).tolist() == [0, 3]
+
+
+def test_cropped_support_matches_the_full_kernel_with_a_small_psf_in_a_large_kernel():
+    """A 5 x 5 blur stored in 41 x 41: the crop (a smaller FFT) gives the same image."""
+    rng = np.random.default_rng(6)
+    img = rng.random((40, 56, 3)).astype(np.float32)
+    small = rng.random((3, 5, 5)).astype(np.float32)
+    small /= small.sum(axis=(1, 2), keepdims=True)
+    big = np.zeros((3, 41, 41), np.float32)
+    big[:, 18:23, 18:23] = small
+    out = patch_convolve(img, np.broadcast_to(big, (3, 4, 3, 41, 41)), 16, support_eps=0.0)
+    assert np.abs(out - _direct(img, small)).max() < 1e-5
+
+
+@pytest.mark.parametrize("eps", [1e-3, 1e-2])
+def test_support_crop_error_is_bounded_by_eps_and_constants_stay_constant(eps):
+    """A wide Gaussian tail: cropping moves at most ~eps of the energy and keeps each kernel's sum."""
+    k = 31
+    yy, xx = np.mgrid[-15:16, -15:16]
+    g = np.exp(-(yy ** 2 + xx ** 2) / (2 * 4.0 ** 2)).astype(np.float32)
+    kern = np.broadcast_to(g / g.sum(), (3, k, k))
+    rng = np.random.default_rng(7)
+    img = rng.random((48, 64, 3)).astype(np.float32)
+    out = patch_convolve(img, np.broadcast_to(kern, (3, 4, 3, k, k)), 16, support_eps=eps)
+    assert np.abs(out - _direct(img, kern)).max() < 2 * eps
+    const = patch_convolve(np.full((48, 64, 3), 0.5, np.float32), np.broadcast_to(kern, (3, 4, 3, k, k)), 16,
+                           support_eps=eps)
+    assert np.abs(const - 0.5).max() < 1e-5
+
+
+def test_fft_backends_agree(monkeypatch):
+    from dcdi_core.render import fft
+
+    if fft._sfft is None:
+        pytest.skip("scipy not installed: only the numpy backend exists here")
+    rng = np.random.default_rng(8)
+    img = rng.random((50, 70, 3)).astype(np.float32)
+    kern = rng.random((4, 5, 3, 15, 15)).astype(np.float32)
+    kern /= kern.sum(axis=(-2, -1), keepdims=True)
+    fast = patch_convolve(img, kern, 16)
+    monkeypatch.setenv("DCDI_FFT", "numpy")
+    assert fft.backend() == "numpy"
+    slow = patch_convolve(img, kern, 16)
+    assert np.abs(fast - slow).max() < 1e-5
+
+
+def test_psf_map_support_crop_matches_the_full_kernels(lens):
+    """Kernels computed over their support disk equal the full interpolated, rotated kernels."""
+    from dcdi_core.render.psfmap import rotate_radial_kernels
+
+    h, w = 48, 64
+    geom = _geom(lens, h, w)
+    lib = _lib(lens, geom)
+    depth = np.random.default_rng(9).uniform(0.8, 9.0, (h, w))
+    pm = psf_map(lib, geom, depth, 16, support_eps=0.0)
+    todo = ~pm.identity
+    nph, npw = pm.identity.shape
+    rr, cc = np.meshgrid(np.minimum(np.arange(nph) * 16 + 7.5, h - 1), np.minimum(np.arange(npw) * 16 + 7.5, w - 1),
+                         indexing="ij")
+    vec = np.stack([rr[todo] - geom.center_px[0], cc[todo] - geom.center_px[1]], -1)
+    ref = rotate_radial_kernels(lib.at(pm.field[todo], pm.depth_m[todo]), vec / np.hypot(*vec.T)[:, None])
+    assert np.abs(pm.kernels[todo] - ref).max() < 1e-6
+    cropped = psf_map(lib, geom, depth, 16, support_eps=1e-2).kernels[todo]
+    assert np.abs(cropped.sum(axis=(-2, -1)) - ref.sum(axis=(-2, -1))).max() < 1e-5
+    assert (np.abs(cropped - ref).sum(axis=(-2, -1)) <= 2.5e-2).all()

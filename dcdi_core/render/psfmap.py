@@ -44,6 +44,32 @@ def patch_inverse_depth(depth: np.ndarray, m: int, far_m: float) -> tuple[np.nda
     return np.where(has, inv / np.maximum(cnt, 1), 0.0), has
 
 
+def _rotate_flat(src: np.ndarray, outward: np.ndarray, k: int, target_sum: np.ndarray) -> np.ndarray:
+    """Bilinear rotation of flat kernels src (n, C, k*k) whose rows run along
+    the radial direction to ``outward`` (n, 2) unit (row, col); zero outside;
+    each channel scaled to ``target_sum`` (n, C)."""
+    r = k // 2
+    dr, dc = np.meshgrid(np.arange(k, dtype=np.float32) - r, np.arange(k, dtype=np.float32) - r, indexing="ij")
+    dr, dc = dr.ravel(), dc.ravel()
+    ur = outward[:, 0, None].astype(np.float32)
+    uc = outward[:, 1, None].astype(np.float32)
+    a = dr * ur + dc * uc + r            # along the radial axis -> source row
+    b = -dr * uc + dc * ur + r           # tangential -> source column (kernels mirror in it)
+    r0, c0 = np.floor(a), np.floor(b)
+    fr, fc = a - r0, b - c0
+    r0, c0 = r0.astype(np.int64), c0.astype(np.int64)
+    acc = np.zeros(src.shape, np.float32)
+    for oy, ox, wgt in ((0, 0, (1 - fr) * (1 - fc)), (0, 1, (1 - fr) * fc),
+                        (1, 0, fr * (1 - fc)), (1, 1, fr * fc)):
+        rr, cc = r0 + oy, c0 + ox
+        ok = (rr >= 0) & (rr < k) & (cc >= 0) & (cc < k)
+        idx = np.where(ok, rr * k + cc, 0)[:, None, :]
+        acc += np.take_along_axis(src, idx, axis=2) * (wgt * ok)[:, None, :]
+    after = acc.sum(axis=-1, keepdims=True)
+    acc *= np.where(after > 0, target_sum[..., None] / np.where(after > 0, after, 1.0), 0.0).astype(np.float32)
+    return acc
+
+
 def rotate_radial_kernels(kernels: np.ndarray, outward: np.ndarray, chunk: int = 256) -> np.ndarray:
     """Rotate kernels (P, C, k, k) whose rows run along the radial direction so
     that it points along ``outward`` (P, 2) = unit (row, col) vectors.
@@ -52,35 +78,73 @@ def rotate_radial_kernels(kernels: np.ndarray, outward: np.ndarray, chunk: int =
     from ..optics.trace import thread_pool
 
     p, c, k, _ = kernels.shape
-    r = k // 2
-    dr, dc = np.meshgrid(np.arange(k, dtype=np.float32) - r, np.arange(k, dtype=np.float32) - r, indexing="ij")
-    dr, dc = dr.ravel(), dc.ravel()
     flat = np.ascontiguousarray(kernels, dtype=np.float32).reshape(p, c, k * k)
     out = np.empty((p, c, k * k), np.float32)
 
     def work(sl):
-        ur = outward[sl, 0, None].astype(np.float32)
-        uc = outward[sl, 1, None].astype(np.float32)
-        a = dr * ur + dc * uc + r            # along the radial axis -> source row
-        b = -dr * uc + dc * ur + r           # tangential -> source column (kernels mirror in it)
-        r0, c0 = np.floor(a), np.floor(b)
-        fr, fc = a - r0, b - c0
-        r0, c0 = r0.astype(np.int64), c0.astype(np.int64)
-        src = flat[sl]
-        acc = np.zeros(src.shape, np.float32)
-        for oy, ox, wgt in ((0, 0, (1 - fr) * (1 - fc)), (0, 1, (1 - fr) * fc),
-                            (1, 0, fr * (1 - fc)), (1, 1, fr * fc)):
-            rr, cc = r0 + oy, c0 + ox
-            ok = (rr >= 0) & (rr < k) & (cc >= 0) & (cc < k)
-            idx = np.where(ok, rr * k + cc, 0)[:, None, :]
-            acc += np.take_along_axis(src, idx, axis=2) * (wgt * ok)[:, None, :]
-        before = src.sum(axis=-1, keepdims=True)
-        after = acc.sum(axis=-1, keepdims=True)
-        acc *= np.where(after > 0, before / np.where(after > 0, after, 1.0), 0.0)
-        out[sl] = acc
+        out[sl] = _rotate_flat(flat[sl], outward[sl], k, flat[sl].sum(axis=-1))
 
     list(thread_pool().map(work, [slice(i, min(i + chunk, p)) for i in range(0, p, chunk)]))
     return out.reshape(p, c, k, k)
+
+
+def support_radius(psf: np.ndarray, eps: float) -> np.ndarray:
+    """Radius rho (px, integer) of the disk about the kernel centre that holds
+    all but ``eps`` of every channel's energy: psf (..., C, k, k) -> (...).
+    The disk is what survives any rotation, so a kernel cropped to half-width
+    rho + 1 (bilinear spread) and rotated loses at most eps."""
+    k = psf.shape[-1]
+    r = k // 2
+    ring = np.ceil(np.hypot(*np.meshgrid(np.arange(k) - r, np.arange(k) - r, indexing="ij")) - 1e-9)
+    ring = ring.astype(np.int64).ravel()
+    n_ring = int(ring.max()) + 1
+    onehot = (ring[:, None] == np.arange(n_ring)[None, :]).astype(np.float32)
+    per_ring = (np.abs(np.asarray(psf, np.float32)).reshape(-1, k * k) @ onehot)
+    per_ring = per_ring.reshape(*psf.shape[:-2], n_ring)
+    total = per_ring.sum(axis=-1, keepdims=True)
+    outside = np.zeros_like(per_ring)
+    outside[..., :-1] = np.cumsum(per_ring[..., :0:-1], axis=-1)[..., ::-1]
+    over = outside > eps * total + (0.0 if eps > 0 else 1e-12 * total)
+    return over.any(axis=-2).sum(axis=-1)
+
+
+def _rotated_patch_kernels(library, field, depth, outward, kernels_flat, where, eps, chunk=256):
+    """Write into kernels_flat[where] (n, C, k, k) the library's kernels at
+    ``field`` and ``depth`` (n,), interpolated linearly in field and inverse
+    depth and rotated to ``outward``, each computed only over the centred
+    square its energy needs (support_radius + 1): the cost of a small PSF is
+    that of its support, not of the library's kernel size."""
+    from ..optics.trace import thread_pool
+
+    i0, i1, t = library.depth_bins(depth, clamp_near=True)
+    library.ensure(bins=library.bins_needed(depth, clamp_near=True))
+    j0, j1, u = library.field_weights(field)
+    nf = len(library.fields)
+    k = library.kernel_size
+    r = k // 2
+    psf = library.psf.reshape(-1, 3, k, k)                               # (bins x fields, C, k, k)
+    entry = np.stack([i0 * nf + j0, i0 * nf + j1, i1 * nf + j0, i1 * nf + j1], -1)
+    weight = np.stack([(1 - t) * (1 - u), (1 - t) * u, t * (1 - u), t * u], -1).astype(np.float32)
+    used = np.unique(entry[weight > 0])
+    rho = np.zeros(len(psf), np.int64)
+    rho[used] = support_radius(psf[used], eps)
+    full_sum = psf.sum(axis=(-2, -1))                                    # (entries, C)
+    half = np.minimum(r, np.where(weight > 0, rho[entry], 0).max(axis=-1) + 1)
+    target = np.einsum("nq,nqc->nc", weight, full_sum[entry])            # the interpolated kernel's sums
+
+    def work(sel, h):
+        crop = psf[:, :, r - h:r + h + 1, r - h:r + h + 1]
+        kc = 2 * h + 1
+        g = crop[entry[sel]].reshape(len(sel), 4, 3 * kc * kc)          # (n, 4, C kc^2)
+        blend = np.matmul(weight[sel, None, :], g).reshape(len(sel), 3, kc * kc)
+        rot = _rotate_flat(blend, outward[sel], kc, target[sel])
+        kernels_flat[where[sel], :, r - h:r + h + 1, r - h:r + h + 1] = rot.reshape(len(sel), 3, kc, kc)
+
+    jobs = []
+    for h in np.unique(half):
+        sel = np.nonzero(half == h)[0]
+        jobs += [(sel[s:s + chunk], int(h)) for s in range(0, len(sel), chunk)]
+    list(thread_pool().map(lambda job: work(*job), jobs))
 
 
 @dataclass
@@ -102,13 +166,17 @@ def identity_kernel(k: int) -> np.ndarray:
 
 
 def psf_map(library, geometry, depth: np.ndarray, m: int = 16, *, fixed_depth_m: float | None = None,
-            keep_range_m: tuple[float, float] | None = None, clamp_near: bool = True) -> PSFMap:
+            keep_range_m: tuple[float, float] | None = None, clamp_near: bool = True,
+            support_eps: float = 1e-3) -> PSFMap:
     """Kernels for every m x m patch of an image of ``geometry`` with ``depth``.
 
     fixed_depth_m: one depth for every patch (the paper's depth-unaware
     baseline). keep_range_m: patches whose depth lies in [near, far] get the
     identity (kept sharp). Depths below the library's near limit are clamped
-    to it when ``clamp_near`` (the count is in ``info``), else an error."""
+    to it when ``clamp_near`` (the count is in ``info``), else an error.
+    support_eps: each kernel is computed over the disk that holds all but
+    this fraction of its energy (and rescaled to its full sum); 0 keeps every
+    nonzero pixel (see ``support_radius``)."""
     if m < 1:
         raise InputRangeError("patch", m, ">= 1 pixel")
     h, w = geometry.height, geometry.width
@@ -143,15 +211,15 @@ def psf_map(library, geometry, depth: np.ndarray, m: int = 16, *, fixed_depth_m:
         keep = has & (d >= lo) & (d <= hi)
     ident = ~has | keep
     k = library.kernel_size
-    kernels = np.empty((nph, npw, 3, k, k), np.float32)
-    kernels[...] = identity_kernel(k)
+    kernels = np.zeros((nph, npw, 3, k, k), np.float32)
+    kernels[ident] = identity_kernel(k)
     todo = ~ident
     if todo.any():
-        kr = library.at(field[todo], np.where(np.isfinite(d[todo]), d[todo], np.inf))
         vec = np.stack([rr[todo] - geometry.center_px[0], cc[todo] - geometry.center_px[1]], -1)
         norm = np.hypot(vec[:, 0], vec[:, 1])
         outward = np.where(norm[:, None] > 1e-9, vec / np.maximum(norm, 1e-12)[:, None], [1.0, 0.0])
-        kernels[todo] = rotate_radial_kernels(kr, outward)
+        _rotated_patch_kernels(library, field[todo], np.where(np.isfinite(d[todo]), d[todo], np.inf), outward,
+                               kernels.reshape(nph * npw, 3, k, k), np.flatnonzero(todo), support_eps)
     info = {"patches": int(nph * npw), "no_valid_depth": int((~has).sum()), "kept_sharp": int(keep.sum()),
             "clamped_to_near_limit": clamped, "depth_bins_computed": int(library.computed.sum())}
     return PSFMap(kernels, ident, m, np.where(has, d, np.nan), field, info)
