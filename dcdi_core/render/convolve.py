@@ -36,17 +36,20 @@ def blend_window(m: int, b: int) -> np.ndarray:
     return np.minimum(rise, fall)
 
 
-def kernel_support(kernels: np.ndarray, eps: float) -> np.ndarray:
+def kernel_support(kernels: np.ndarray, eps: float, channels=None) -> np.ndarray:
     """Half-width h (px) of the centred (2h + 1)^2 square that holds all but
-    ``eps`` of every channel's energy, per kernel: kernels (..., C, k, k) ->
-    (...) int. eps = 0 keeps every nonzero pixel."""
+    ``eps`` of the energy of every channel (of ``channels``, default all), per
+    kernel: kernels (..., C, k, k) -> (...) int. eps = 0 keeps every nonzero
+    pixel."""
     k = kernels.shape[-1]
     r = k // 2
     ring = np.maximum(np.abs(np.arange(k) - r)[:, None], np.abs(np.arange(k) - r)[None, :]).ravel()
     onehot = (ring[:, None] == np.arange(r + 1)[None, :]).astype(np.float32)       # (k^2, r + 1)
     lead = kernels.shape[:-3]
-    flat = np.abs(np.asarray(kernels, np.float32)).reshape(-1, k * k)
+    flat = np.asarray(kernels, np.float32).reshape(-1, k * k)      # a view: no copy of the kernels
     per_ring = (flat @ onehot).reshape(*lead, kernels.shape[-3], r + 1)
+    if channels is not None:
+        per_ring = per_ring[..., np.unique(channels), :]
     total = per_ring.sum(axis=-1, keepdims=True)
     # energy outside the square of half-width h: rings h + 1 .. r (0 at h = r exactly)
     outside = np.zeros_like(per_ring)
@@ -56,7 +59,8 @@ def kernel_support(kernels: np.ndarray, eps: float) -> np.ndarray:
 
 
 def patch_convolve(image: np.ndarray, kernels: np.ndarray, m: int, *, identity: np.ndarray | None = None,
-                   blend: int | None = None, support_eps: float = 1e-3, chunk: int = 384) -> np.ndarray:
+                   blend: int | None = None, support_eps: float = 1e-3, kernel_channels=None,
+                   chunk: int = 384) -> np.ndarray:
     """Convolve ``image`` (H, W, C) with one kernel per m x m patch.
 
     kernels: (nph, npw, C, k, k) with nph = ceil(H / m), npw = ceil(W / m),
@@ -68,7 +72,10 @@ def patch_convolve(image: np.ndarray, kernels: np.ndarray, m: int, *, identity: 
     but this fraction of every channel's energy (then rescaled to its former
     sum, so a constant image stays constant), and windows are grouped by the
     FFT size their crop needs; 0 crops only exact zeros (see ``dcdi report
-    simulation-accuracy`` for error against time). Returns float32 (H, W, C)."""
+    simulation-accuracy`` for error against time). kernel_channels: for each
+    image channel, the kernel channel that blurs it (default: the same index;
+    the bokeh blurs its coverage channel with green's kernel this way,
+    without copying the kernels). Returns float32 (H, W, C)."""
     img = np.asarray(image, dtype=np.float32)
     h, w, c = img.shape
     if m < 2 or m % 2:
@@ -80,8 +87,12 @@ def patch_convolve(image: np.ndarray, kernels: np.ndarray, m: int, *, identity: 
         raise ValueError(f"support_eps must be in [0, 0.5), got {support_eps}")
     nph, npw = math.ceil(h / m), math.ceil(w / m)
     k = kernels.shape[-1]
-    if kernels.shape[:3] != (nph, npw, c) or kernels.shape[-2] != k or k % 2 == 0:
-        raise ValueError(f"kernels must be ({nph}, {npw}, {c}, k, k) with k odd; got {kernels.shape}")
+    chan = np.arange(c) if kernel_channels is None else np.asarray(kernel_channels, int)
+    kc = kernels.shape[2] if kernels.ndim == 5 else -1
+    if (kernels.shape[:2] != (nph, npw) or kernels.shape[-2] != k or k % 2 == 0 or chan.shape != (c,)
+            or not ((0 <= chan) & (chan < kc)).all()):
+        raise ValueError(f"kernels must be ({nph}, {npw}, C, k, k) with k odd and a kernel channel for each of "
+                         f"the image's {c} channels; got {kernels.shape}, kernel_channels {kernel_channels}")
     r = k // 2
     # pad by whole patches (>= r) so that padded patches line up with the image's
     pp = m * math.ceil(r / m)
@@ -91,7 +102,6 @@ def patch_convolve(image: np.ndarray, kernels: np.ndarray, m: int, *, identity: 
     ip = np.clip(np.arange(qh) - pp // m, 0, nph - 1)         # padding patches take their nearest patch's kernel
     jp = np.clip(np.arange(qw) - pp // m, 0, npw - 1)
     ident = np.zeros((nph, npw), bool) if identity is None else np.asarray(identity, bool)
-    support = kernel_support(kernels, support_eps)[ip][:, jp]
     # a window reads padded patches up to ceil((b + r) / m) away: an all-zero
     # neighbourhood (a depth layer's empty part) gives zero and is skipped
     reach = math.ceil((b + r) / m)
@@ -126,7 +136,7 @@ def patch_convolve(image: np.ndarray, kernels: np.ndarray, m: int, *, identity: 
             res[:] = np.moveaxis(blk, 1, -1)
         else:
             f = fft.fast_size(s_in)
-            kern = kernels[ip[ii], jp[jj]]                                   # (n, C, k, k)
+            kern = kernels[ip[ii], jp[jj]][:, chan]                          # (n, C, k, k)
             crop = kern[:, :, r - hs:r + hs + 1, r - hs:r + hs + 1]
             if hs < r:                                                        # keep each channel's sum
                 full_sum, crop_sum = kern.sum(axis=(-2, -1)), crop.sum(axis=(-2, -1))
@@ -153,7 +163,8 @@ def patch_convolve(image: np.ndarray, kernels: np.ndarray, m: int, *, identity: 
 
     # group live windows by what they need: a copy, or an FFT of a given size
     # (the crop grows to fill that size: accuracy for free)
-    need = np.where(ident[ip][:, jp], -1, support)
+    support = kernel_support(kernels, support_eps, channels=chan)
+    need = np.where(ident[ip][:, jp], -1, support[ip][:, jp])
     size_of = np.array([fft.fast_size(win + 2 * s) for s in range(r + 1)])
     f_need = np.where(need >= 0, size_of[np.maximum(need, 0)], -1)
     jobs = [(live & (f_need == f_size), min(r, (int(f_size) - win) // 2))

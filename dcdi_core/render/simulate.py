@@ -17,6 +17,7 @@ a sharp subject does not bleed into a blurred background nor get a halo.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -95,6 +96,16 @@ def _layers(inv: np.ndarray, valid: np.ndarray, n_layers: int):
     return [valid & (idx == i) for i in range(n_layers) if (valid & (idx == i)).any()]
 
 
+def _box(mask: np.ndarray, m: int, grow: int) -> tuple[slice, slice]:
+    """Rows and columns of ``mask``'s bounding box grown by ``grow`` px and
+    aligned to the m-px patch grid (so its patches are the image's)."""
+    h, w = mask.shape
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    y0, x0 = max(0, (rows[0] - grow) // m * m), max(0, (cols[0] - grow) // m * m)
+    y1, x1 = min(h, -(-(rows[-1] + 1 + grow) // m) * m), min(w, -(-(cols[-1] + 1 + grow) // m) * m)
+    return slice(int(y0), int(y1)), slice(int(x0), int(x1))
+
+
 def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_m: float | None = None,
           geometry: ImageGeometry | None = None, patch: int = 16, occlusion: bool = True,
           n_layers: int = 12, library: PSFLibrary | None = None, settings: PSFSettings | None = None) -> RenderResult:
@@ -130,22 +141,27 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
     if sharp_mask.any():
         order += [(float(inv[kept].mean()) if kept.any() else -1.0, sharp_mask, True)]
     order.sort(key=lambda t: t[0])                        # far (small diopters) first
+    # each layer is blurred on its own patch-aligned bounding box, grown by the
+    # kernel's reach: outside it the layer is empty and its blur is zero
+    grow = patch * math.ceil((library.kernel_size // 2 + patch) / patch)
     for n, (_, mask, is_sharp) in enumerate(order):
-        a = mask.astype(np.float32)[..., None]
+        ys, xs = _box(mask, patch, grow if not is_sharp else 0)
+        a = mask[ys, xs].astype(np.float32)[..., None]
         if is_sharp:
-            acc = img * a + acc * (1.0 - a)
+            acc[ys, xs] = img[ys, xs] * a + acc[ys, xs] * (1.0 - a)
             continue
-        layer_depth = np.where(mask, d, np.nan)
-        pm = psf_map(library, geometry, layer_depth, patch)
-        rgba = np.concatenate([img * a, a], axis=-1)
-        kern4 = np.concatenate([pm.kernels, pm.kernels[:, :, 1:2]], axis=2)   # coverage blurred as green
-        blurred = patch_convolve(rgba, kern4, patch, identity=pm.identity)
+        sub = replace(geometry, height=ys.stop - ys.start, width=xs.stop - xs.start,
+                      center_px=(geometry.center_px[0] - ys.start, geometry.center_px[1] - xs.start))
+        pm = psf_map(library, sub, np.where(mask[ys, xs], d[ys, xs], np.nan), patch)
+        rgba = np.concatenate([img[ys, xs] * a, a], axis=-1)
+        # coverage blurred as green
+        blurred = patch_convolve(rgba, pm.kernels, patch, identity=pm.identity, kernel_channels=(0, 1, 2, 1))
         cover = np.clip(blurred[..., 3:], 0.0, 1.0)
         if n == 0:
             # nothing lies behind the farthest layer: spread its own colour into
             # its holes (normalised blur) instead of darkening them (no dark halo)
-            acc = np.where(cover > 1e-4, blurred[..., :3] / np.maximum(cover, 1e-4), 0.0).astype(np.float32)
+            acc[ys, xs] = np.where(cover > 1e-4, blurred[..., :3] / np.maximum(cover, 1e-4), 0.0)
             continue
-        acc = blurred[..., :3] + acc * (1.0 - cover)
+        acc[ys, xs] = blurred[..., :3] + acc[ys, xs] * (1.0 - cover)
     info["layers"] = len(order)
     return RenderResult(acc, info)
