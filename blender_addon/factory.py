@@ -139,7 +139,7 @@ class RenderSettings:
     samples: int = 8
     denoise: bool = True
     denoising_quality: str = "HIGH"
-    denoising_prefilter: str = "ACCURATE"
+    denoising_prefilter: str = "NONE"
     max_bounces: int = 4
     diffuse_bounces: int = 2
     glossy_bounces: int = 2
@@ -215,23 +215,33 @@ def setup_render(scene, lens, height: int, width: int, render: RenderSettings, s
     return fo
 
 
-def render_rgbd(recipe: str, lens, seed: int, height: int, width: int, render: RenderSettings, tmp: Path):
+def render_rgbd(recipe: str, lens, seed: int, height: int, width: int, render: RenderSettings, tmp: Path,
+                timings: dict | None = None):
     """Build the scene, render; returns (image (H, W, 3) float32 linear,
-    depth (H, W) float32 metres from the lens's first vertex, inf = background)."""
+    depth (H, W) float32 metres from the lens's first vertex, inf = background).
+    ``timings``, if given, receives the seconds of each stage: "scene" (reset
+    and recipe), "render" (Cycles: sync, BVH, path tracing, denoising, the
+    EXR hand-over file), "read" (reading that file back)."""
     import bpy
 
     from dcdi_core.io.images import read_depth, read_image
     from scenes.recipes import RECIPES
 
+    t = [time.perf_counter()]
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
     RECIPES[recipe](np.random.default_rng(seed))
     fo = setup_render(scene, lens, height, width, render, seed)
     scene.render.filepath = str(tmp)
+    t.append(time.perf_counter())
     bpy.ops.render.render(write_still=True)
+    t.append(time.perf_counter())
     img = read_image(tmp)
     z = read_depth(tmp)
     tmp.unlink()
+    t.append(time.perf_counter())
+    if timings is not None:
+        timings.update(scene=t[1] - t[0], render=t[2] - t[1], read=t[3] - t[2])
     # depth from the first vertex: the pinhole is the entrance pupil, z_EP behind it
     depth = np.where(z >= BACKGROUND_Z, np.inf, z - fo.entrance_pupil_position_mm / 1000.0).astype(np.float32)
     return img, depth
@@ -309,21 +319,30 @@ def run(argv=None) -> int:
     for n, i in enumerate(todo):
         sid = f"{a.recipe}-{i:06d}"
         seed = sample_seed(a.seed, i)
-        t0 = time.perf_counter()
-        img, depth = render_rgbd(a.recipe, lenses[0], seed, h, w, render, out / f".{sid}.render.exr")
+        t0, c0 = time.perf_counter(), _cpu_s()
+        stages = {}
+        img, depth = render_rgbd(a.recipe, lenses[0], seed, h, w, render, out / f".{sid}.render.exr", stages)
         t_render = time.perf_counter() - t0
+        t1 = time.perf_counter()
         write_image(out / "aif" / f"{sid}.exr", img)
         write_depth(out / "depth" / f"{sid}.exr", depth)
+        stages["write"] = time.perf_counter() - t1
         lens_records = {}
         for lens in lenses:
             t1 = time.perf_counter()
             if lens.id not in sims:
                 sims[lens.id] = LensSimulator(lens, h, w, settings, a.baseline_depth)
+                stages["setup"] = stages.get("setup", 0.0) + time.perf_counter() - t1
+            t2 = time.perf_counter()
             aberrated, baseline, sharp, info = sims[lens.id](img, depth)
+            t3 = time.perf_counter()
             write_image(out / lens.id / "aberrated" / f"{sid}.exr", aberrated)
             write_image(out / lens.id / "baseline" / f"{sid}.exr", baseline)
             write_image(out / lens.id / "sharp" / f"{sid}.exr", sharp)
-            lens_records[lens.id] = {"seconds": round(time.perf_counter() - t1, 3), **info}
+            t4 = time.perf_counter()
+            stages["simulate"] = stages.get("simulate", 0.0) + t3 - t2
+            stages["write"] += t4 - t3
+            lens_records[lens.id] = {"seconds": round(t4 - t1, 3), **info}
         finite = depth[np.isfinite(depth)]
         record = {"id": sid, "index": i, "recipe": a.recipe, "seed": seed, "dataset_seed": a.seed,
                   "resolution": [h, w], "camera_lens": lenses[0].id,
@@ -331,6 +350,8 @@ def run(argv=None) -> int:
                   "depth_m": {"min": float(finite.min()) if finite.size else None,
                               "max": float(finite.max()) if finite.size else None,
                               "infinite_fraction": float(np.isinf(depth).mean())},
+                  "stage_seconds": {k: round(v, 3) for k, v in stages.items()},
+                  "seconds": round(time.perf_counter() - t0, 3), "cpu_seconds": round(_cpu_s() - c0, 3),
                   "lenses": lens_records, "psf_settings": settings.as_dict(), "versions": _versions()}
         with open(manifest, "a", encoding="utf-8") as f:
             f.write(json.dumps(record) + "\n")
@@ -354,6 +375,16 @@ def _versions() -> dict:
     import dcdi_core
     return {"blender": bpy.app.version_string, "dcdi": dcdi_core.__version__, "numpy": np.__version__,
             "python": platform.python_version()}
+
+
+def _cpu_s() -> float:
+    """CPU seconds (user + system) of this process, all threads."""
+    try:
+        import resource
+    except ImportError:           # not on Windows
+        return math.nan
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
 
 
 def _rss_mib() -> float:

@@ -30,13 +30,14 @@ if __package__ in (None, ""):
 
 from blender_addon.factory import RenderSettings, render_rgbd  # noqa: E402
 
-# rows of the full table: (samples, denoise, quality, prefilter, diffuse bounces)
-FULL = ([(n, True, "HIGH", "ACCURATE", 2) for n in (2, 4, 8, 16, 32)]
+# rows of the full table: (samples, denoise, quality, prefilter, diffuse bounces); None = the default's
+FULL = ([(n, True, "HIGH", "ACCURATE", 2) for n in (4, 8, 16)]
         + [(n, False, "HIGH", "ACCURATE", 2) for n in (8, 32)]
-        + [(8, True, q, p, 2) for q, p in (("HIGH", "FAST"), ("HIGH", "NONE"), ("BALANCED", "ACCURATE"),
-                                           ("BALANCED", "FAST"), ("FAST", "ACCURATE"), ("FAST", "FAST"))]
-        + [(n, True, "BALANCED", "FAST", 2) for n in (4, 6, 12, 16)]
-        + [(8, True, "BALANCED", "FAST", b) for b in (1, 3)])
+        + [(8, True, q, p, 2) for q, p in (("HIGH", "FAST"), ("BALANCED", "ACCURATE"), ("BALANCED", "FAST"),
+                                           ("FAST", "FAST"))]
+        + [(n, True, "HIGH", "NONE", 2) for n in (6, 8, 12, 16)]
+        + [(n, True, "HIGH", "FAST", 2) for n in (12, 16)]
+        + [(None, None, None, None, b) for b in (1, 3)])
 
 
 def _cpu_s() -> float:
@@ -60,7 +61,7 @@ def render_noise_report(recipes=("room",), height: int = 240, width: int = 320, 
 
     lens = load_lens("mos-s1")
     tmp = Path(os.environ.get("TMPDIR", "/tmp")) / f".dcdi-noise-{os.getpid()}.exr"
-    ref_settings = RenderSettings(samples=reference)
+    ref_settings = RenderSettings(samples=reference, denoising_quality="HIGH", denoising_prefilter="ACCURATE")
     # one throw-away render first: the first render of a process loads the denoiser's weights
     render_rgbd(recipes[0], lens, seed, min(height, 16), min(width, 16), RenderSettings(samples=1), tmp)
     refs, t_ref, c_ref = {}, 0.0, 0.0
@@ -72,10 +73,13 @@ def render_noise_report(recipes=("room",), height: int = 240, width: int = 320, 
     out = [{"settings": ref_settings, "seconds": t_ref / len(recipes), "cpu_seconds": c_ref / len(recipes),
             "psnr_db": math.inf}]
     for samples, denoise, quality, prefilter, bounces in (FULL if rows is None else rows):
-        if samples >= reference:
+        d = RenderSettings()
+        st = replace(d, samples=d.samples if samples is None else samples,
+                     denoise=d.denoise if denoise is None else denoise,
+                     denoising_quality=quality or d.denoising_quality,
+                     denoising_prefilter=prefilter or d.denoising_prefilter, diffuse_bounces=bounces)
+        if st.samples >= reference:
             continue
-        st = replace(RenderSettings(), samples=samples, denoise=denoise, denoising_quality=quality,
-                     denoising_prefilter=prefilter, diffuse_bounces=bounces)
         psnr, wall, cpu = [], 0.0, 0.0
         for r in recipes:
             t, c = time.perf_counter(), _cpu_s()

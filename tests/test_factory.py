@@ -78,9 +78,10 @@ def test_bench_factory_quick(capsys):
 
 def test_render_noise_table_runs(capsys):
     from blender_addon.render_noise import main
-    assert main(["--resolution", "12", "16", "--reference", "4"]) == 0
+    assert main(["--resolution", "12", "16", "--reference", "8"]) == 0
     out = capsys.readouterr().out
-    assert "| 2 | True |" in out and "reference" in out
+    assert "| 4 | True | HIGH | ACCURATE | 2 |" in out and "| 6 | True | HIGH | NONE | 2 |" in out
+    assert "| 8 | True | HIGH | ACCURATE | 2 | reference |" in out
 
 
 def test_lens_simulator_equals_two_simulate_calls():
