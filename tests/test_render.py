@@ -237,3 +237,16 @@ def test_psf_map_support_crop_matches_the_full_kernels(lens):
     cropped = psf_map(lib, geom, depth, 16, support_eps=1e-2).kernels[todo]
     assert np.abs(cropped.sum(axis=(-2, -1)) - ref.sum(axis=(-2, -1))).max() < 1e-5
     assert (np.abs(cropped - ref).sum(axis=(-2, -1)) <= 2.5e-2).all()
+
+
+def test_layered_bokeh_leaves_no_seam_on_a_continuous_surface(lens):
+    """A constant image on a depth ramp (a floor crossing every layer) stays
+    constant: layers hand over without dark seams at their boundaries."""
+    h, w = 96, 64
+    geom = _geom(lens, h, w)
+    lib = _lib(lens, geom)
+    depth = np.repeat(np.linspace(0.8, 9.0, h)[:, None], w, axis=1)
+    img = np.full((h, w, 3), 0.5, np.float32)
+    r = bokeh(img, depth, lens, keep=(20.0, 30.0), geometry=geom, library=lib, occlusion=True, n_layers=6)
+    assert r.info["layers"] == 6
+    assert np.abs(r.image - 0.5).max() < 1e-3

@@ -132,8 +132,14 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
         pm = psf_map(library, geometry, d, patch, keep_range_m=keep)
         out = patch_convolve(img, pm.kernels, patch, identity=pm.identity)
         return RenderResult(out, dict(info, **pm.info), psf_map=pm)
-    # layered, back to front: each layer's colour and coverage blurred alike
-    acc = np.zeros_like(img)
+    # layered, back to front: each layer's colour and coverage blurred alike.
+    # ``col`` is the colour seen so far, un-premultiplied, where ``seen``: what
+    # lies behind a layer where nothing farther was seen (hidden by a nearer
+    # layer, or the farthest layer's own holes) takes the colour spread from
+    # around it (normalised blur) instead of black: no dark seam where a
+    # continuous surface crosses from one layer to the next, no dark halo.
+    col = np.zeros_like(img)
+    seen = np.zeros(img.shape[:2] + (1,), bool)
     sharp_mask = kept | ~valid
     layers = _layers(inv, valid & ~kept, n_layers) if (valid & ~kept).any() else []
     # the kept (sharp) pixels form their own layer at their depth, composited in order
@@ -144,24 +150,27 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
     # each layer is blurred on its own patch-aligned bounding box, grown by the
     # kernel's reach: outside it the layer is empty and its blur is zero
     grow = patch * math.ceil((library.kernel_size // 2 + patch) / patch)
-    for n, (_, mask, is_sharp) in enumerate(order):
+    for mask, is_sharp in ((m_, s_) for _, m_, s_ in order):
         ys, xs = _box(mask, patch, grow if not is_sharp else 0)
-        a = mask[ys, xs].astype(np.float32)[..., None]
+        a = mask[ys, xs][..., None]
         if is_sharp:
-            acc[ys, xs] = img[ys, xs] * a + acc[ys, xs] * (1.0 - a)
+            col[ys, xs] = np.where(a, img[ys, xs], col[ys, xs])
+            seen[ys, xs] |= a
             continue
         sub = replace(geometry, height=ys.stop - ys.start, width=xs.stop - xs.start,
                       center_px=(geometry.center_px[0] - ys.start, geometry.center_px[1] - xs.start))
         pm = psf_map(library, sub, np.where(mask[ys, xs], d[ys, xs], np.nan), patch)
-        rgba = np.concatenate([img[ys, xs] * a, a], axis=-1)
-        # coverage blurred as green
-        blurred = patch_convolve(rgba, pm.kernels, patch, identity=pm.identity, kernel_channels=(0, 1, 2, 1))
+        af = a.astype(np.float32)
+        # each colour's coverage blurred with that colour's own PSF: the
+        # normalisation above is then exact for any colour fringe
+        blurred = patch_convolve(np.concatenate([img[ys, xs] * af, np.repeat(af, 3, axis=-1)], axis=-1),
+                                 pm.kernels, patch, identity=pm.identity, kernel_channels=(0, 1, 2, 0, 1, 2))
         cover = np.clip(blurred[..., 3:], 0.0, 1.0)
-        if n == 0:
-            # nothing lies behind the farthest layer: spread its own colour into
-            # its holes (normalised blur) instead of darkening them (no dark halo)
-            acc[ys, xs] = np.where(cover > 1e-4, blurred[..., :3] / np.maximum(cover, 1e-4), 0.0)
-            continue
-        acc[ys, xs] = blurred[..., :3] + acc[ys, xs] * (1.0 - cover)
+        behind = seen[ys, xs]
+        premultiplied = blurred[..., :3] + (1.0 - cover) * np.where(behind, col[ys, xs], 0.0)
+        total = np.where(behind, 1.0, cover)
+        seen[ys, xs] = (total > 1e-4).all(axis=-1, keepdims=True)
+        col[ys, xs] = np.where(total > 1e-4, premultiplied / np.maximum(total, 1e-4), 0.0)
+    acc = col
     info["layers"] = len(order)
     return RenderResult(acc, info)
