@@ -59,7 +59,7 @@ def kernel_support(kernels: np.ndarray, eps: float, channels=None) -> np.ndarray
 
 
 def patch_convolve(image: np.ndarray, kernels: np.ndarray, m: int, *, identity: np.ndarray | None = None,
-                   blend: int | None = None, support_eps: float = 1e-3, kernel_channels=None,
+                   blend: int | None = None, support_eps: float = 1e-3, pairs=None,
                    chunk: int = 384) -> np.ndarray:
     """Convolve ``image`` (H, W, C) with one kernel per m x m patch.
 
@@ -72,12 +72,13 @@ def patch_convolve(image: np.ndarray, kernels: np.ndarray, m: int, *, identity: 
     but this fraction of every channel's energy (then rescaled to its former
     sum, so a constant image stays constant), and windows are grouped by the
     FFT size their crop needs; 0 crops only exact zeros (see ``dcdi report
-    simulation-accuracy`` for error against time). kernel_channels: for each
-    image channel, the kernel channel that blurs it (default: the same index;
-    the bokeh blurs its coverage channel with green's kernel this way,
-    without copying the kernels). Returns float32 (H, W, C)."""
+    simulation-accuracy`` for error against time). pairs: the output
+    channels as (image channel, kernel channel) pairs (default: channel c of
+    the image with kernel channel c); each distinct image and kernel channel
+    is transformed once (the bokeh blurs one coverage channel with the three
+    colour PSFs this way). Returns float32 (H, W, len(pairs))."""
     img = np.asarray(image, dtype=np.float32)
-    h, w, c = img.shape
+    h, w, c_in = img.shape
     if m < 2 or m % 2:
         raise ValueError(f"patch size must be even and >= 2, got {m}")
     b = m // 2 if blend is None else int(blend)
@@ -87,12 +88,17 @@ def patch_convolve(image: np.ndarray, kernels: np.ndarray, m: int, *, identity: 
         raise ValueError(f"support_eps must be in [0, 0.5), got {support_eps}")
     nph, npw = math.ceil(h / m), math.ceil(w / m)
     k = kernels.shape[-1]
-    chan = np.arange(c) if kernel_channels is None else np.asarray(kernel_channels, int)
+    pr = np.array([(i, i) for i in range(c_in)] if pairs is None else pairs, int).reshape(-1, 2)
     kc = kernels.shape[2] if kernels.ndim == 5 else -1
-    if (kernels.shape[:2] != (nph, npw) or kernels.shape[-2] != k or k % 2 == 0 or chan.shape != (c,)
-            or not ((0 <= chan) & (chan < kc)).all()):
-        raise ValueError(f"kernels must be ({nph}, {npw}, C, k, k) with k odd and a kernel channel for each of "
-                         f"the image's {c} channels; got {kernels.shape}, kernel_channels {kernel_channels}")
+    if (kernels.shape[:2] != (nph, npw) or kernels.shape[-2] != k or k % 2 == 0 or len(pr) == 0
+            or not ((0 <= pr) & (pr < [c_in, kc])).all()):
+        raise ValueError(f"kernels must be ({nph}, {npw}, C, k, k) with k odd, and pairs (image channel, kernel "
+                         f"channel) within the image's {c_in} and the kernels' channels; got {kernels.shape}, "
+                         f"pairs {pairs}")
+    c = len(pr)
+    in_used, in_of = np.unique(pr[:, 0], return_inverse=True)        # transform each input channel once
+    k_used, k_of = np.unique(pr[:, 1], return_inverse=True)          # and each kernel channel once
+    plain_pairs = (np.array_equal(in_of, np.arange(c)) and np.array_equal(k_of, np.arange(c)))
     r = k // 2
     # pad by whole patches (>= r) so that padded patches line up with the image's
     pp = m * math.ceil(r / m)
@@ -105,7 +111,7 @@ def patch_convolve(image: np.ndarray, kernels: np.ndarray, m: int, *, identity: 
     # a window reads padded patches up to ceil((b + r) / m) away: an all-zero
     # neighbourhood (a depth layer's empty part) gives zero and is skipped
     reach = math.ceil((b + r) / m)
-    nonzero = np.pad(padded.reshape(qh, m, qw, m, c).any(axis=(1, 3, 4)), reach)
+    nonzero = np.pad(padded.reshape(qh, m, qw, m, c_in).any(axis=(1, 3, 4)), reach)
     live = np.zeros((qh, qw), bool)
     for u in range(2 * reach + 1):
         for v in range(2 * reach + 1):
@@ -133,16 +139,20 @@ def patch_convolve(image: np.ndarray, kernels: np.ndarray, m: int, *, identity: 
         # faster than fancy-indexing rows and columns
         blk = sliding_window_view(ext, (s_in, s_in), axis=(0, 1))[ii * m + o, jj * m + o]   # (n, C, s_in, s_in)
         if hs < 0:
-            res[:] = np.moveaxis(blk, 1, -1)
+            res[:] = np.moveaxis(blk[:, pr[:, 0]], 1, -1)
         else:
             f = fft.fast_size(s_in)
-            kern = kernels[ip[ii], jp[jj]][:, chan]                          # (n, C, k, k)
+            kern = kernels[ip[ii], jp[jj]][:, k_used]                        # (n, C_k, k, k)
             crop = kern[:, :, r - hs:r + hs + 1, r - hs:r + hs + 1]
             if hs < r:                                                        # keep each channel's sum
                 full_sum, crop_sum = kern.sum(axis=(-2, -1)), crop.sum(axis=(-2, -1))
                 scale = np.where(crop_sum != 0, full_sum / np.where(crop_sum != 0, crop_sum, 1.0), 1.0)
                 crop = crop * scale[..., None, None].astype(np.float32)
-            spec = fft.rfft2(blk, (f, f)) * fft.rfft2(crop, (f, f))
+            spec_in, spec_k = fft.rfft2(blk[:, in_used], (f, f)), fft.rfft2(crop, (f, f))
+            if plain_pairs:
+                spec = spec_in * spec_k
+            else:
+                spec = spec_in[:, in_of] * spec_k[:, k_of]
             full = fft.irfft2(spec, (f, f))
             # circular = linear convolution on the valid part [2 hs, 2 hs + win)
             res[:] = np.moveaxis(full[:, :, 2 * hs:2 * hs + win, 2 * hs:2 * hs + win], 1, -1)
@@ -163,7 +173,7 @@ def patch_convolve(image: np.ndarray, kernels: np.ndarray, m: int, *, identity: 
 
     # group live windows by what they need: a copy, or an FFT of a given size
     # (the crop grows to fill that size: accuracy for free)
-    support = kernel_support(kernels, support_eps, channels=chan)
+    support = kernel_support(kernels, support_eps, channels=k_used)
     need = np.where(ident[ip][:, jp], -1, support[ip][:, jp])
     size_of = np.array([fft.fast_size(win + 2 * s) for s in range(r + 1)])
     f_need = np.where(need >= 0, size_of[np.maximum(need, 0)], -1)

@@ -163,8 +163,8 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
         af = a.astype(np.float32)
         # each colour's coverage blurred with that colour's own PSF: the
         # normalisation above is then exact for any colour fringe
-        blurred = patch_convolve(np.concatenate([img[ys, xs] * af, np.repeat(af, 3, axis=-1)], axis=-1),
-                                 pm.kernels, patch, identity=pm.identity, kernel_channels=(0, 1, 2, 0, 1, 2))
+        blurred = patch_convolve(np.concatenate([img[ys, xs] * af, af], axis=-1), pm.kernels, patch,
+                                 identity=pm.identity, pairs=((0, 0), (1, 1), (2, 2), (3, 0), (3, 1), (3, 2)))
         cover = np.clip(blurred[..., 3:], 0.0, 1.0)
         behind = seen[ys, xs]
         premultiplied = blurred[..., :3] + (1.0 - cover) * np.where(behind, col[ys, xs], 0.0)
