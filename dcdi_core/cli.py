@@ -235,7 +235,8 @@ def cmd_simulate(args) -> int:
         lens, record = perturb_lens(lens, seed=args.perturb, fraction=args.perturb_fraction)
     img, depth = _read_rgbd(args)
     geom = _geometry(args, lens, img)
-    lib = open_library(lens, geom, _psf_settings(args))
+    # without --kernel, the kernel grows to hold the PSFs this depth map needs
+    lib = open_library(lens, geom, _psf_settings(args), fit_depth_m=None if args.kernel else depth)
     noise = {"full_well_electrons": args.full_well, "read_noise_electrons": args.read_noise} if args.noise else None
     r = simulate(img, depth, lens, geometry=geom, patch=args.patch, library=lib,
                  fixed_depth_m=args.fixed_depth, distortion=not args.no_distortion, noise=noise, seed=args.seed)
@@ -249,12 +250,14 @@ def cmd_simulate(args) -> int:
 def cmd_bokeh(args) -> int:
     from .io.images import write_image
     from .optics.lens import load_lens
-    from .render.simulate import bokeh
+    from .render.simulate import bokeh, open_library
     lens = load_lens(args.lens)
     img, depth = _read_rgbd(args)
     geom = _geometry(args, lens, img)
+    settings = _psf_settings(args)
+    lib = open_library(lens, geom, settings, fit_depth_m=None if args.kernel else depth)
     r = bokeh(img, depth, lens, keep=tuple(args.keep) if args.keep else None, focus_m=args.focus,
-              geometry=geom, patch=args.patch, occlusion=not args.plain, settings=_psf_settings(args))
+              geometry=geom, patch=args.patch, occlusion=not args.plain, library=lib)
     write_image(args.output, r.image)
     if args.side_by_side:
         from .render.pictures import side_by_side

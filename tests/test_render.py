@@ -250,3 +250,22 @@ def test_layered_bokeh_leaves_no_seam_on_a_continuous_surface(lens):
     r = bokeh(img, depth, lens, keep=(20.0, 30.0), geometry=geom, library=lib, occlusion=True, n_layers=6)
     assert r.info["layers"] == 6
     assert np.abs(r.image - 0.5).max() < 1e-3
+
+
+def test_open_library_fits_the_kernel_to_the_psfs_the_depths_need(lens):
+    import warnings
+
+    from dcdi_core.psf.compute import KernelTooSmallWarning
+    from dcdi_core.render.simulate import open_library
+
+    geom = _geom(lens, 64, 96)
+    settings = PSFSettings(**{**FAST.as_dict(), "band_nm": (400.0, 700.0)})
+    grid = LibraryGrid(n_fields=8, n_depths=4)
+    depth = np.full((64, 96), 2.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", KernelTooSmallWarning)          # the fitted kernel holds 99 %
+        lib = open_library(lens, geom, settings, grid, cache=False, fit_depth_m=depth)
+    assert lib.kernel_size > 21 and lib.kernel_size % 2 == 1
+    assert lib.kernel_size >= lib.kernel_size_needed[lib.computed].max()
+    plain = open_library(lens, geom, settings, grid, cache=False)
+    assert plain.kernel_size == 21                                     # no depth map: the settings' size

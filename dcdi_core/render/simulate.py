@@ -18,12 +18,13 @@ a sharp subject does not bleed into a blurred background nor get a halo.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from ..optics.errors import InputRangeError
-from ..psf.compute import PSFSettings
+from ..psf.compute import KernelTooSmallWarning, PSFSettings
 from ..psf.library import LibraryGrid, PSFLibrary
 from .convolve import patch_convolve
 from .geometry import ImageGeometry
@@ -50,12 +51,36 @@ def _check(image, depth):
     return img, d
 
 
+MAX_FITTED_KERNEL = 129      # px: beyond this a patch-wise FFT blur costs more than it is worth here
+
+
 def open_library(lens, geometry: ImageGeometry, settings: PSFSettings | None = None,
-                 grid: LibraryGrid | None = None, *, cache: bool = True) -> PSFLibrary:
-    """The lens's PSF library sampled at the image's pixel pitch."""
-    s = settings or PSFSettings()
-    s = replace(s, pixel_pitch_mm=geometry.pixel_pitch_mm)
-    return PSFLibrary.open(lens, s, grid, cache=cache)
+                 grid: LibraryGrid | None = None, *, cache: bool = True, fit_depth_m=None) -> PSFLibrary:
+    """The lens's PSF library sampled at the image's pixel pitch.
+
+    fit_depth_m: a depth map (metres) whose depth bins are computed now; if
+    their PSFs spill out of the settings' kernel (less than 99 % of the rays
+    inside, as a fast lens's defocus blur at full resolution does), the
+    library is reopened with the odd kernel size that holds them, at most
+    MAX_FITTED_KERNEL px (beyond that the usual KernelTooSmallWarning says
+    how much is clipped). Without it the kernel size is the settings'."""
+    s = replace(settings or PSFSettings(), pixel_pitch_mm=geometry.pixel_pitch_mm)
+    library = PSFLibrary.open(lens, s, grid, cache=cache)
+    if fit_depth_m is None:
+        return library
+    d = np.asarray(fit_depth_m, dtype=np.float64)
+    d = d[valid_depth_mask(d)]
+    if d.size == 0:
+        return library
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", KernelTooSmallWarning)       # answered below by a larger kernel
+        library.ensure(d, clamp_near=True)
+    need = int(library.kernel_size_needed[library.computed].max())
+    if need <= library.kernel_size or library.kernel_size >= MAX_FITTED_KERNEL:
+        return library
+    library = PSFLibrary.open(lens, replace(s, kernel_size=min(need | 1, MAX_FITTED_KERNEL)), grid, cache=cache)
+    library.ensure(d, clamp_near=True)
+    return library
 
 
 def simulate(image, depth, lens, *, geometry: ImageGeometry | None = None, patch: int = 16,
@@ -66,7 +91,7 @@ def simulate(image, depth, lens, *, geometry: ImageGeometry | None = None, patch
     ``noise.add_sensor_noise`` (needs ``seed``)."""
     img, d = _check(image, depth)
     geometry = geometry or ImageGeometry.full_sensor(lens, img.shape[0], img.shape[1])
-    library = library or open_library(lens, geometry)
+    library = library or open_library(lens, geometry, fit_depth_m=d)
     pm = psf_map(library, geometry, d, patch, fixed_depth_m=fixed_depth_m)
     out = patch_convolve(img, pm.kernels, patch, identity=pm.identity)
     sharp = img
@@ -122,7 +147,7 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
         s = settings or PSFSettings()
         if focus_m is not None:
             s = replace(s, focus_distance_m=focus_m)
-        library = open_library(lens, geometry, s)
+        library = open_library(lens, geometry, s, fit_depth_m=d)
     valid = valid_depth_mask(d)
     far = library.grid.far_m
     inv = np.where(valid & (d < far), 1.0 / np.where(valid, d, 1.0), 0.0)
