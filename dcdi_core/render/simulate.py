@@ -55,7 +55,8 @@ MAX_FITTED_KERNEL = 129      # px: beyond this a patch-wise FFT blur costs more 
 
 
 def open_library(lens, geometry: ImageGeometry, settings: PSFSettings | None = None,
-                 grid: LibraryGrid | None = None, *, cache: bool = True, fit_depth_m=None) -> PSFLibrary:
+                 grid: LibraryGrid | None = None, *, cache: bool = True, fit_depth_m=None,
+                 progress=None) -> PSFLibrary:
     """The lens's PSF library sampled at the image's pixel pitch.
 
     fit_depth_m: a depth map (metres) whose depth bins are computed now; if
@@ -63,7 +64,8 @@ def open_library(lens, geometry: ImageGeometry, settings: PSFSettings | None = N
     inside, as a fast lens's defocus blur at full resolution does), the
     library is reopened with the odd kernel size that holds them, at most
     MAX_FITTED_KERNEL px (beyond that the usual KernelTooSmallWarning says
-    how much is clipped). Without it the kernel size is the settings'."""
+    how much is clipped). Without it the kernel size is the settings'.
+    progress(done, total): called as PSF bins are computed."""
     s = replace(settings or PSFSettings(), pixel_pitch_mm=geometry.pixel_pitch_mm)
     library = PSFLibrary.open(lens, s, grid, cache=cache)
     if fit_depth_m is None:
@@ -74,12 +76,12 @@ def open_library(lens, geometry: ImageGeometry, settings: PSFSettings | None = N
         return library
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", KernelTooSmallWarning)       # answered below by a larger kernel
-        library.ensure(d, clamp_near=True)
+        library.ensure(d, clamp_near=True, progress=progress)
     need = int(library.kernel_size_needed[library.computed].max())
     if need <= library.kernel_size or library.kernel_size >= MAX_FITTED_KERNEL:
         return library
     library = PSFLibrary.open(lens, replace(s, kernel_size=min(need | 1, MAX_FITTED_KERNEL)), grid, cache=cache)
-    library.ensure(d, clamp_near=True)
+    library.ensure(d, clamp_near=True, progress=progress)
     return library
 
 
