@@ -33,7 +33,8 @@ def set_cycles_preview(scene, samples: int, seed: int = 0) -> None:
     c.device = "CPU"
     c.samples = samples
     c.seed = seed
-    # the denoiser needs OpenImageDenoise, which some Blender builds lack
+    # the denoiser needs OpenImageDenoise, which some builds lack (Debian's 3.4):
+    # render_aif_depth retries without it when the render says so
     c.use_denoising = bool(getattr(bpy.app.build_options, "openimagedenoise", True)) and samples > 1
     c.max_bounces = 4
     c.diffuse_bounces = 2
@@ -87,7 +88,13 @@ def render_aif_depth(scene, camera_obj, height: int, width: int, samples: int, v
         set_multilayer_exr(r.image_settings)
         r.use_file_extension = False
         r.filepath = str(out)
-        bpy.ops.render.render(write_still=True, scene=tmp_scene.name)
+        try:
+            bpy.ops.render.render(write_still=True, scene=tmp_scene.name)
+        except RuntimeError as e:
+            if "denois" not in str(e).lower() or not tmp_scene.cycles.use_denoising:
+                raise
+            tmp_scene.cycles.use_denoising = False
+            bpy.ops.render.render(write_still=True, scene=tmp_scene.name)
         if not out.exists():
             raise RuntimeError(f"Cycles wrote no file to {out} (see the console)")
         ch = core("io.rawexr").read_exr_channels(out)

@@ -182,7 +182,6 @@ def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], 
         raise BokehInputError(f"nothing in view lies in the kept range {keep[0]:.2f}-{keep[1]:.2f} m "
                               f"(depths in view: {seen}); move the focus or widen the range")
     settings = replace(core("psf.compute").PSFSettings(), focus_distance_m=float(focus_m))
-    lib = sim.open_library(lens, geom, settings)
 
     def report(done, total):
         if cancelled is not None and cancelled():
@@ -190,13 +189,14 @@ def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], 
         if progress is not None:
             progress("PSFs", done / max(total, 1))
 
-    # the PSFs the scene needs, built first so that progress and Esc work here
-    # (the convolution that follows takes well under the build's time)
-    # (the convolution that follows takes well under the build's time). Each
+    # The PSFs the scene needs are built first, so that progress and Esc work
+    # here (the convolution that follows takes well under the build's time);
+    # the kernel grows to hold the blur of the depths that get blurred. Each
     # patch gets the PSF at its mean inverse depth, which can fall in a bin no
-    # single pixel touches: build every bin between the nearest and farthest.
+    # single pixel touches: every bin between the nearest and farthest is built.
     blurred = depth[np.isfinite(depth) & (depth > 0) & ~((depth >= keep[0]) & (depth <= keep[1]))]
     blurred = np.concatenate([blurred, depth[np.isinf(depth) & (depth > 0)][:1]])
+    lib = sim.open_library(lens, geom, settings, fit_depth_m=blurred if blurred.size else None, progress=report)
     if blurred.size:
         need = lib.bins_needed(blurred, clamp_near=True)
         lib.ensure(bins=np.arange(need.min(), need.max() + 1), progress=report)

@@ -32,6 +32,21 @@ def _readout(layout, settings):
                    f"f = {ro['focal_length_mm']:.2f} mm   F/{ro['f_number']:.2f}")
 
 
+def _sharp_range(scene, s) -> str:
+    """The depths kept sharp, as the operator will compute them (metres from
+    the lens's first vertex), or why they cannot be computed yet."""
+    from . import operators
+    try:
+        cam = operators._camera(scene)
+        _, path = operators.chosen_lens(s)
+        focus = operators.focus_metres(scene, cam, s, logic.lens_readout(path)["entrance_pupil_mm"])
+        mpu = scene.unit_settings.scale_length
+        near, far = logic.keep_range(focus, s.keep_front * mpu, s.keep_behind * mpu)
+    except (logic.BokehInputError, core("optics.errors").OpticsError, ValueError, OSError) as e:
+        return str(e)[:60]
+    return f"Sharp from {near:.2f} m to {far:.2f} m (focus {focus:.2f} m)"
+
+
 def draw_lens_bokeh(layout, context):
     scene = context.scene
     s = scene.dcdi_lens_bokeh
@@ -52,10 +67,7 @@ def draw_lens_bokeh(layout, context):
     col = layout.column(align=True, heading="Kept Sharp")
     col.prop(s, "keep_front")
     col.prop(s, "keep_behind")
-    if s.focus_mode == "DISTANCE":
-        mpu = scene.unit_settings.scale_length
-        near, far = max(s.focus_distance - s.keep_front, 0.0) * mpu, (s.focus_distance + s.keep_behind) * mpu
-        layout.label(text=f"Sharp from {near:.2f} m to {far:.2f} m")
+    layout.label(text=_sharp_range(scene, s))
 
     col = layout.column(align=True)
     col.prop(s, "preview_size")
@@ -75,7 +87,8 @@ def draw_lens_bokeh(layout, context):
     row.scale_y = 1.5
     row.operator("dcdi.apply_lens_bokeh", icon="RENDER_STILL")
     if st.running:
-        layout.prop(st, "progress", text=st.message or "working", slider=True)
+        # the status bar says "Esc cancels"; the slider keeps to stage and time
+        layout.prop(st, "progress", text=(st.message or "working").split(" (")[0], slider=True)
     elif st.message:
         layout.label(text=st.message)
 
