@@ -192,3 +192,21 @@ def test_numpy_exr_reader_matches_openimageio(headless):
     bad.write_bytes(b"\x00" * 64)
     with pytest.raises(RawExrError, match="not an OpenEXR file"):
         read_exr_channels(bad)
+
+
+def test_cancel_stops_the_psf_build_and_progress_is_reported(tmp_path, monkeypatch):
+    from dcdi_core.optics.lens import load_lens
+    monkeypatch.setenv("DCDI_CACHE_DIR", str(tmp_path / "cache"))
+    img = np.random.default_rng(0).random((24, 32, 3), dtype=np.float32)
+    depth = np.full((24, 32), 8.0, np.float32)
+    depth[8:16, 10:20] = 1.0
+    seen = []
+    with pytest.raises(logic.Cancelled):
+        logic.run_bokeh(img, depth, load_lens("mos-s1"), focus_m=1.0, keep=(0.9, 1.1),
+                        progress=lambda stage, f: seen.append((stage, f)), cancelled=lambda: True)
+    assert seen == []                                   # stopped at the first batch, before any report
+    out, info = logic.run_bokeh(img, depth, load_lens("mos-s1"), focus_m=1.0, keep=(0.9, 1.1),
+                                progress=lambda stage, f: seen.append((stage, f)))
+    assert [s for s, _ in seen][-1] == "convolving" and any(s == "PSFs" for s, _ in seen)
+    assert all(0.0 <= f <= 1.0 for _, f in seen)
+    assert info["kept_pixels"] == 80 and np.abs(out - img)[8:16, 10:20].max() < 1e-6
