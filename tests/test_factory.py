@@ -41,6 +41,8 @@ def test_sample_round_trips_and_manifest(tmp_path):
         for kind in ("aberrated", "baseline", "sharp"):
             assert read_image(tmp_path / "mos-s1" / kind / f"{rec['id']}.exr").shape == (24, 32, 3)
         assert rec["seed"] == factory.sample_seed(5, rec["index"]) and "blender" in rec["versions"]
+        assert rec["render"]["denoising_prefilter"] == factory.RenderSettings().denoising_prefilter
+        assert {"scene", "render", "read", "write", "simulate", "cpu_render"} <= rec["stage_seconds"].keys()
 
 
 def _files(root):
@@ -131,3 +133,9 @@ def test_recipes_cover_the_depth_bands():
     assert all(pooled[b] > 0.03 for b in BANDS[1:]), pooled
     assert hist["room"][2][0] < 1.0 and hist["room"][2][1] > 5.0
     assert hist["street"][0][-1] > 0.05                      # sky
+
+
+def test_too_old_blender_is_refused_by_name(monkeypatch):
+    monkeypatch.setattr(factory, "MIN_BLENDER", (99, 0, 0))
+    with pytest.raises(SystemExit, match=r"is too old: the factory needs Blender >= 99\.0\.0"):
+        factory.check_blender()
