@@ -211,7 +211,7 @@ def setup_render(scene, lens, height: int, width: int, render: RenderSettings, s
     s.media_type = "MULTI_LAYER_IMAGE"
     s.file_format = "OPEN_EXR_MULTILAYER"
     s.color_depth = "32"
-    # the file is a hand-over read back at once and deleted: no compression to spend time on
+    # the file is a hand-over read back at once and deleted: no compression (measured: no gain, no cost)
     s.exr_codec = "NONE"
     return fo
 
