@@ -10,8 +10,11 @@ before), shows the panel in the camera properties and the 3D view's
 sidebar, runs Apply Lens Bokeh the way a click does (invoke: worker thread,
 progress, modal timer), and saves two screenshots: ``addon-running.png``
 (progress readout while the PSFs are built) and ``addon-result.png`` (the
-"Lens Bokeh" image in an Image Editor). The PSF cache is a fresh temporary
-folder, so the run shows the cold (first-use) time.
+"Lens Bokeh" image in an Image Editor); then it runs once more synchronously
+(warm cache) and starts a run at another focus distance (a cold library) and
+presses Esc during it (Blender's event simulation), printing the panel's
+state afterwards. The PSF cache is a fresh temporary folder, so the first run
+shows the cold (first-use) time.
 
 Blender's Python must have numpy. Debian's ``blender`` package expects
 ``python3-numpy``; where that is missing, ``--numpy-path DIR`` puts a folder
@@ -52,7 +55,9 @@ def drive(argv):
     me = str(Path(__file__).resolve())
     try:
         subprocess.run([a.blender, "-b", "--factory-startup", "--python", me, "--", "scene"], env=env, check=True)
+        # event simulation lets the script press Esc during a run (and ignores real input)
         subprocess.run(["xvfb-run", "-a", "-s", f"-screen 0 {a.screen}x24", a.blender, "--factory-startup",
+                        "--enable-event-simulate",
                         str(work / "demo.blend"), "--python", me, "--", "shoot"], env=env, check=True, timeout=900)
     finally:
         shutil.rmtree(work, ignore_errors=True)
@@ -240,11 +245,34 @@ def shoot():
                         bpy.ops.image.view_all(fit_view=True)
             state["phase"] = "done"
             return 1.5
-        shot("addon-result.png")
-        # warm: the same again with the PSF cache filled
-        t = time.perf_counter()
-        bpy.ops.dcdi.apply_lens_bokeh()
-        print(f"screenshots: Apply Lens Bokeh (warm, synchronous) took {time.perf_counter() - t:.1f} s", flush=True)
+        if state["phase"] == "done":
+            shot("addon-result.png")
+            # warm: the same again with the PSF cache filled
+            t = time.perf_counter()
+            bpy.ops.dcdi.apply_lens_bokeh()
+            print(f"screenshots: Apply Lens Bokeh (warm, synchronous) took {time.perf_counter() - t:.1f} s",
+                  flush=True)
+            if not hasattr(win, "event_simulate") or not bpy.app.use_event_simulate:
+                bpy.ops.wm.quit_blender()
+                return None
+            # Esc: another focus distance needs another (cold) library; press Esc while it builds
+            s.focus_mode, s.focus_distance = "DISTANCE", 3.5
+            left = cols["view"]
+            region = next(r for r in left.regions if r.type == "WINDOW")
+            with ctx.temp_override(window=win, area=left, region=region):
+                bpy.ops.dcdi.apply_lens_bokeh("INVOKE_DEFAULT")
+            state["phase"], state["t0"] = "esc", time.perf_counter()
+            return 3.0
+        if state["phase"] == "esc":
+            state["esc_s"], state["esc_progress"] = time.perf_counter() - state["t0"], st.progress
+            win.event_simulate(type="ESC", value="PRESS")
+            win.event_simulate(type="ESC", value="RELEASE")
+            state["phase"] = "after-esc"
+            return 2.0
+        jobs = sys.modules[module + ".operators"]._JOBS
+        print(f"screenshots: Esc pressed {state['esc_s']:.1f} s into a cold PSF build "
+              f"({state['esc_progress']:.0f} %); 2 s later: running={st.running}, message={st.message!r}, "
+              f"worker threads left={len(jobs)}", flush=True)
         bpy.ops.wm.quit_blender()
         return None
 
