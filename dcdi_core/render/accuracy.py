@@ -121,30 +121,21 @@ def run_report(lens_id: str, out: str | Path, *, quick: bool = False) -> int:
                   f"rel L1 {l1:.5f}  {dt:.2f} s", flush=True)
     # the convolution's own approximations: kernel support crop and float32 FFTs,
     # against the exact patch-wise result (no crop, numpy's float64 FFT)
-    import os
-
     from . import fft
     crop_rows = []
     pm = psf_map(lib_ref, geom, depth, 16, support_eps=0.0)
-    saved = os.environ.get("DCDI_FFT")
-    try:
-        os.environ["DCDI_FFT"] = "numpy"
+    with fft.forced("numpy"):
         exact = patch_convolve(img, pm.kernels, 16, identity=pm.identity, support_eps=0.0)
-        for backend in ["numpy"] + (["scipy"] if fft._sfft is not None else []):
-            os.environ["DCDI_FFT"] = backend
-            for eps in (0.0, 1e-4, 1e-3, 1e-2):
+    for backend in ["numpy"] + (["scipy"] if fft._sfft is not None else []):
+        for eps in (0.0, 1e-4, 1e-3, 1e-2):
+            with fft.forced(backend):
                 t = time.perf_counter()
                 pme = psf_map(lib_ref, geom, depth, 16, support_eps=eps)
                 res = patch_convolve(img, pme.kernels, 16, identity=pme.identity, support_eps=eps)
                 dt = time.perf_counter() - t
-                crop_rows.append((backend, eps, psnr(res, ref), float(np.abs(res - exact).max()), dt))
-                print(f"  support eps {eps:g}, {backend} FFT: PSNR {crop_rows[-1][2]:6.2f} dB, "
-                      f"max |diff| vs exact {crop_rows[-1][3]:.2e}, {dt:.2f} s", flush=True)
-    finally:
-        if saved is None:
-            os.environ.pop("DCDI_FFT", None)
-        else:
-            os.environ["DCDI_FFT"] = saved
+            crop_rows.append((backend, eps, psnr(res, ref), float(np.abs(res - exact).max()), dt))
+            print(f"  support eps {eps:g}, {backend} FFT: PSNR {crop_rows[-1][2]:6.2f} dB, "
+                  f"max |diff| vs exact {crop_rows[-1][3]:.2e}, {dt:.2f} s", flush=True)
     # bokeh at a depth edge, against ground truth with the hidden background known
     p6 = load_lens("6p")
     bgeom = ImageGeometry.full_sensor(p6, h, w)

@@ -9,6 +9,7 @@ numpy backend runs, with results equal to float32 rounding (tested).
 """
 from __future__ import annotations
 
+import contextlib
 import os
 
 import numpy as np
@@ -24,6 +25,20 @@ def backend() -> str:
     if _sfft is not None and os.environ.get("DCDI_FFT", "").lower() != "numpy":
         return "scipy"
     return "numpy"
+
+
+@contextlib.contextmanager
+def forced(name: str):
+    """Within the block, use backend ``name`` ('numpy' or 'scipy'), as ``DCDI_FFT`` would."""
+    saved = os.environ.get("DCDI_FFT")
+    os.environ["DCDI_FFT"] = name
+    try:
+        yield
+    finally:
+        if saved is None:
+            os.environ.pop("DCDI_FFT", None)
+        else:
+            os.environ["DCDI_FFT"] = saved
 
 
 def rfft2(x: np.ndarray, s: tuple[int, int]) -> np.ndarray:
