@@ -25,6 +25,22 @@ from .core import core
 RESULT_IMAGE = "Lens Bokeh"
 
 
+def set_light_paths(cycles, max_bounces: int = 4, diffuse: int = 2, glossy: int = 2, transmission: int = 2) -> None:
+    """Cycles light paths for many clean images fast: few bounces, no caustics,
+    no volume bounces; light tree and adaptive sampling off (measured in the
+    factory at 480 x 640, 8 samples: 10-15 % faster, same PSNR)."""
+    cycles.max_bounces = max_bounces
+    cycles.diffuse_bounces = diffuse
+    cycles.glossy_bounces = glossy
+    cycles.transmission_bounces = transmission
+    cycles.volume_bounces = 0
+    cycles.caustics_reflective = False
+    cycles.caustics_refractive = False
+    for name in ("use_light_tree", "use_adaptive_sampling"):       # absent in older Blenders
+        if hasattr(cycles, name):
+            setattr(cycles, name, False)
+
+
 def set_cycles_preview(scene, samples: int, seed: int = 0) -> None:
     """Cycles on the CPU with few bounces: a quick, clean preview (the same
     light-path budget as the dataset factory, measured there)."""
@@ -36,15 +52,7 @@ def set_cycles_preview(scene, samples: int, seed: int = 0) -> None:
     # the denoiser needs OpenImageDenoise, which some builds lack (Debian's 3.4):
     # render_aif_depth retries without it when the render says so
     c.use_denoising = bool(getattr(bpy.app.build_options, "openimagedenoise", True)) and samples > 1
-    c.max_bounces = 4
-    c.diffuse_bounces = 2
-    c.glossy_bounces = 2
-    c.transmission_bounces = 2
-    c.volume_bounces = 0
-    c.caustics_reflective = False
-    c.caustics_refractive = False
-    if hasattr(c, "use_adaptive_sampling"):
-        c.use_adaptive_sampling = False
+    set_light_paths(c)
 
 
 def set_multilayer_exr(image_settings) -> None:

@@ -93,8 +93,15 @@ def draw_lens_bokeh(layout, context):
         layout.label(text=st.message)
 
 
-class DCDI_PT_lens_bokeh_camera(bpy.types.Panel):
+class _LensBokehPanel:
+    """The one panel, drawn in two places (subclasses say where)."""
     bl_label = "Lens Bokeh"
+
+    def draw(self, context):
+        draw_lens_bokeh(self.layout, context)
+
+
+class DCDI_PT_lens_bokeh_camera(_LensBokehPanel, bpy.types.Panel):
     bl_idname = "DCDI_PT_lens_bokeh_camera"
     bl_space_type = "PROPERTIES"
     bl_region_type = "WINDOW"
@@ -104,19 +111,12 @@ class DCDI_PT_lens_bokeh_camera(bpy.types.Panel):
     def poll(cls, context):
         return context.camera is not None
 
-    def draw(self, context):
-        draw_lens_bokeh(self.layout, context)
 
-
-class DCDI_PT_lens_bokeh_sidebar(bpy.types.Panel):
-    bl_label = "Lens Bokeh"
+class DCDI_PT_lens_bokeh_sidebar(_LensBokehPanel, bpy.types.Panel):
     bl_idname = "DCDI_PT_lens_bokeh_sidebar"
     bl_space_type = "VIEW_3D"
     bl_region_type = "UI"
     bl_category = "Lens Bokeh"
-
-    def draw(self, context):
-        draw_lens_bokeh(self.layout, context)
 
 
 CLASSES = (DCDI_PT_lens_bokeh_camera, DCDI_PT_lens_bokeh_sidebar)
