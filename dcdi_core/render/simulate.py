@@ -100,9 +100,9 @@ def simulate(image, depth, lens, *, geometry: ImageGeometry | None = None, patch
     info = dict(pm.info, depth_aware=fixed_depth_m is None)
     if distortion:
         from .distortion import distort, radial_distortion
-        table = radial_distortion(lens)          # one table for both images
-        out = distort(out, lens, geometry, distortion=table)
-        sharp = distort(img, lens, geometry, distortion=table)
+        # one warp for both images: the sample coordinates are computed once
+        both = distort(np.concatenate([out, img], axis=-1), lens, geometry, distortion=radial_distortion(lens))
+        out, sharp = both[..., :3], both[..., 3:]
     if noise is not None:
         if seed is None:
             raise InputRangeError("seed", None, "an integer: noise needs an explicit seed")
