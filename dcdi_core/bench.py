@@ -194,38 +194,26 @@ def bench_render(quick: bool = False) -> int:
     lib6.ensure(depth, clamp_near=True)
     print(f"  PSF libraries for this scene (built or read from the cache, not in the times below): "
           f"{time.perf_counter() - t:.1f} s")
-    t = time.perf_counter()
-    pm = psf_map(lib, geom, depth, m)
-    t_map = time.perf_counter() - t
-    t = time.perf_counter()
-    patch_convolve(img, pm.kernels, m, identity=pm.identity)
-    t_conv = time.perf_counter() - t
-    tracemalloc.start()
-    t = time.perf_counter()
-    simulate(img, depth, mos, geometry=geom, library=lib, distortion=False)
-    t_sim = time.perf_counter() - t
-    peak_sim = tracemalloc.get_traced_memory()[1]
-    tracemalloc.reset_peak()
-    t = time.perf_counter()
-    simulate(img, depth, mos, geometry=geom, library=lib, distortion=True)
-    t_sim_d = time.perf_counter() - t
+    rep = 1 if quick else 2                    # best of rep: the first call also warms the thread pool
+    t_map, pm = _best(lambda: psf_map(lib, geom, depth, m), rep)
+    t_conv, _ = _best(lambda: patch_convolve(img, pm.kernels, m, identity=pm.identity), rep)
+    t_sim, _ = _best(lambda: simulate(img, depth, mos, geometry=geom, library=lib, distortion=False), rep)
+    t_sim_d, _ = _best(lambda: simulate(img, depth, mos, geometry=geom, library=lib, distortion=True), rep)
     from .render import fft
     with fft.forced("numpy"):                  # the fallback that Blender's Python gets
-        t = time.perf_counter()
-        simulate(img, depth, mos, geometry=geom, library=lib, distortion=False)
-        t_sim_np = time.perf_counter() - t
+        t_sim_np, _ = _best(lambda: simulate(img, depth, mos, geometry=geom, library=lib, distortion=False), 1)
+    t_bk_plain, _ = _best(lambda: bokeh(img, depth, p6, keep=(1.1, 1.3), library=lib6, occlusion=False), rep)
+    t_bk, _ = _best(lambda: bokeh(img, depth, p6, keep=(1.1, 1.3), library=lib6, occlusion=True), rep)
+    # peak memory in separate runs (tracing slows numpy's allocations a little)
+    tracemalloc.start()
+    simulate(img, depth, mos, geometry=geom, library=lib, distortion=True)
+    peak_sim = tracemalloc.get_traced_memory()[1]
     tracemalloc.reset_peak()
-    t = time.perf_counter()
-    bokeh(img, depth, p6, keep=(1.1, 1.3), library=lib6, occlusion=False)
-    t_bk_plain = time.perf_counter() - t
-    tracemalloc.reset_peak()
-    t = time.perf_counter()
     bokeh(img, depth, p6, keep=(1.1, 1.3), library=lib6, occlusion=True)
-    t_bk = time.perf_counter() - t
     peak_bk = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
     print(f"  simulation: {t_sim:.2f} s (PSF map {t_map:.2f} s + convolution {t_conv:.2f} s, "
-          f"{fft.backend()} FFT); with distortion {t_sim_d:.2f} s; peak memory {peak_sim / 2**20:.0f} MiB; "
+          f"{fft.backend()} FFT); with distortion {t_sim_d:.2f} s (peak memory {peak_sim / 2**20:.0f} MiB); "
           f"with numpy's float64 FFT (no scipy, as in Blender) {t_sim_np:.2f} s")
     print(f"  bokeh (6P, keep 1.1-1.3 m): occlusion-aware {t_bk:.2f} s, plain {t_bk_plain:.2f} s; "
           f"peak memory {peak_bk / 2**20:.0f} MiB")
