@@ -172,7 +172,8 @@ def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], 
     ``keep`` exactly sharp. ``progress(stage, fraction)`` is called while the
     PSF bins the scene needs are built (cached in ~/.cache/dcdi, or
     $DCDI_CACHE_DIR) and before the convolution; ``cancelled()`` returning
-    True stops the PSF build with :class:`Cancelled`. Returns (image, info)."""
+    True stops the PSF build or the convolution (between its layers) with
+    :class:`Cancelled`. Returns (image, info)."""
     sim = core("render.simulate")
     geom = core("render.geometry").ImageGeometry.full_sensor(lens, image.shape[0], image.shape[1])
     finite = depth[np.isfinite(depth) & (depth > 0)]
@@ -204,7 +205,10 @@ def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], 
         raise Cancelled()
     if progress is not None:
         progress("convolving", 1.0)
-    res = sim.bokeh(image, depth, lens, keep=keep, geometry=geom, library=lib, patch=patch)
+    try:
+        res = sim.bokeh(image, depth, lens, keep=keep, geometry=geom, library=lib, patch=patch, cancelled=cancelled)
+    except sim.Cancelled:
+        raise Cancelled() from None
     info = dict(res.info, focus_m=float(focus_m), keep_m=[float(keep[0]), float(keep[1])],
                 pixel_pitch_mm=float(geom.pixel_pitch_mm))
     return res.image.astype(np.float32), info

@@ -210,3 +210,9 @@ def test_cancel_stops_the_psf_build_and_progress_is_reported(tmp_path, monkeypat
     assert [s for s, _ in seen][-1] == "convolving" and any(s == "PSFs" for s, _ in seen)
     assert all(0.0 <= f <= 1.0 for _, f in seen)
     assert info["kept_pixels"] == 80 and np.abs(out - img)[8:16, 10:20].max() < 1e-6
+    # the PSFs are cached now: a cancel after the build stops the convolution between its layers
+    asked = []
+    with pytest.raises(logic.Cancelled):
+        logic.run_bokeh(img, depth, load_lens("mos-s1"), focus_m=1.0, keep=(0.9, 1.1),
+                        cancelled=lambda: asked.append(1) or len(asked) > 1)
+    assert len(asked) == 2

@@ -148,6 +148,28 @@ def test_bokeh_keeps_the_kept_range_unchanged(lens):
         bokeh(img, depth, lens, geometry=geom, library=lib)
 
 
+def test_bokeh_cancelled_callback_stops_between_layers(lens):
+    from dcdi_core.render.simulate import Cancelled
+    h, w = 64, 96
+    geom = _geom(lens, h, w)
+    lib = _lib(lens, geom, focus_distance_m=None)
+    img = np.random.default_rng(6).random((h, w, 3)).astype(np.float32)
+    depth = np.full((h, w), 8.0)
+    depth[:, :30] = 3.0
+    depth[20:44, 30:60] = 1.0
+    calls = []
+    ref = bokeh(img, depth, lens, keep=(0.9, 1.1), geometry=geom, library=lib,
+                cancelled=lambda: calls.append(1) and False)
+    assert len(calls) >= 2                               # asked before every blurred layer
+    assert np.array_equal(ref.image, bokeh(img, depth, lens, keep=(0.9, 1.1), geometry=geom, library=lib).image)
+    for occ in (True, False):
+        asked = []
+        with pytest.raises(Cancelled):
+            bokeh(img, depth, lens, keep=(0.9, 1.1), geometry=geom, library=lib, occlusion=occ,
+                  cancelled=lambda: asked.append(1) or len(asked) >= (2 if occ else 1))
+        assert len(asked) == (2 if occ else 1)           # stopped at once, no further layer
+
+
 def _direct(img, kern):
     """Reference: full-image spatial convolution with one kernel, reflect border."""
     k = kern.shape[-1]

@@ -31,6 +31,10 @@ from .geometry import ImageGeometry
 from .psfmap import PSFMap, psf_map, valid_depth_mask
 
 
+class Cancelled(Exception):
+    """Raised by :func:`bokeh` when its ``cancelled()`` callback returns True."""
+
+
 @dataclass
 class RenderResult:
     image: np.ndarray                 # (H, W, 3) float32, linear
@@ -135,10 +139,12 @@ def _box(mask: np.ndarray, m: int, grow: int) -> tuple[slice, slice]:
 
 def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_m: float | None = None,
           geometry: ImageGeometry | None = None, patch: int = 16, occlusion: bool = True,
-          n_layers: int = 12, library: PSFLibrary | None = None, settings: PSFSettings | None = None) -> RenderResult:
+          n_layers: int = 12, library: PSFLibrary | None = None, settings: PSFSettings | None = None,
+          cancelled=None) -> RenderResult:
     """``image`` as ``lens`` would take it, keeping [near, far] metres sharp
     (``keep``) or focused at ``focus_m`` metres. Invalid depths (NaN, 0,
-    negative) are left sharp."""
+    negative) are left sharp. ``cancelled()``, if given, is called before each
+    layer's convolution; when it returns True, :class:`Cancelled` is raised."""
     if (keep is None) == (focus_m is None):
         raise InputRangeError("keep / focus", (keep, focus_m), "exactly one of a keep range or a focus distance")
     if keep is not None and not (0 < keep[0] <= keep[1]):
@@ -156,6 +162,8 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
     kept = np.zeros(d.shape, bool) if keep is None else valid & (d >= keep[0]) & (d <= keep[1])
     info = {"occlusion": occlusion, "kept_pixels": int(kept.sum()), "invalid_depth_pixels": int((~valid).sum())}
     if not occlusion:
+        if cancelled is not None and cancelled():
+            raise Cancelled("bokeh cancelled")
         pm = psf_map(library, geometry, d, patch, keep_range_m=keep)
         out = patch_convolve(img, pm.kernels, patch, identity=pm.identity)
         return RenderResult(out, dict(info, **pm.info), psf_map=pm)
@@ -178,6 +186,8 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
     # kernel's reach: outside it the layer is empty and its blur is zero
     grow = patch * math.ceil((library.kernel_size // 2 + patch) / patch)
     for mask, is_sharp in ((m_, s_) for _, m_, s_ in order):
+        if cancelled is not None and not is_sharp and cancelled():
+            raise Cancelled("bokeh cancelled")
         ys, xs = _box(mask, patch, grow if not is_sharp else 0)
         a = mask[ys, xs][..., None]
         if is_sharp:
