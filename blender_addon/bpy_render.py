@@ -41,6 +41,16 @@ def set_light_paths(cycles, max_bounces: int = 4, diffuse: int = 2, glossy: int 
             setattr(cycles, name, False)
 
 
+def has_denoiser() -> bool:
+    """Whether Cycles was built with OpenImageDenoise (Debian's 3.4 was not;
+    its ``bpy.app.build_options`` does not say)."""
+    try:
+        import _cycles
+        return bool(_cycles.with_openimagedenoise)
+    except (ImportError, AttributeError):
+        return bool(getattr(bpy.app.build_options, "openimagedenoise", True))
+
+
 def set_cycles_preview(scene, samples: int, seed: int = 0) -> None:
     """Cycles on the CPU with few bounces: a quick, clean preview (the same
     light-path budget as the dataset factory, measured there)."""
@@ -51,7 +61,7 @@ def set_cycles_preview(scene, samples: int, seed: int = 0) -> None:
     c.seed = seed
     # the denoiser needs OpenImageDenoise, which some builds lack (Debian's 3.4):
     # render_aif_depth retries without it when the render says so
-    c.use_denoising = bool(getattr(bpy.app.build_options, "openimagedenoise", True)) and samples > 1
+    c.use_denoising = has_denoiser() and samples > 1
     set_light_paths(c)
 
 
