@@ -180,10 +180,36 @@ def shoot():
         sp.shading.color_type = "OBJECT"
     state = {"t0": None, "phase": "start", "running_shot": False}
 
+    # Screenshots are taken by a modal operator from its own timer, not from a
+    # bpy.app timer under ``temp_override``: Blender 3.4 reads a Python context
+    # override without the GIL when another Python thread holds it (the bokeh
+    # worker), which crashed it (gdb: the main thread in PyDict_GetItemString
+    # without the GIL while the worker ran numpy); a modal operator's context
+    # is no Python dict.
+    wanted = []
+
+    class Shooter(bpy.types.Operator):
+        bl_idname = "dcdi_screenshots.shooter"
+        bl_label = "Screenshots"
+
+        def invoke(self, context, event):
+            self.timer = context.window_manager.event_timer_add(0.1, window=context.window)
+            context.window_manager.modal_handler_add(self)
+            return {"RUNNING_MODAL"}
+
+        def modal(self, context, event):
+            if event.type == "TIMER" and wanted:
+                name = wanted.pop(0)
+                bpy.ops.screen.screenshot(filepath=str(out / name))
+                print(f"screenshots: wrote {out / name}", flush=True)
+            return {"PASS_THROUGH"}
+
+    bpy.utils.register_class(Shooter)
+    with ctx.temp_override(window=win, screen=screen, area=screen.areas[0]):
+        bpy.ops.dcdi_screenshots.shooter("INVOKE_DEFAULT")
+
     def shot(name):
-        with ctx.temp_override(window=win, screen=screen, area=screen.areas[0]):
-            bpy.ops.screen.screenshot(filepath=str(out / name))
-        print(f"screenshots: wrote {out / name}", flush=True)
+        wanted.append(name)
 
     def tick():
         try:
@@ -197,6 +223,8 @@ def shoot():
 
     def step():
         st = ctx.window_manager.dcdi_lens_bokeh_status
+        if wanted:                                  # a screenshot first, then the next step
+            return 0.1
         if state["phase"] == "start":
             split(0.3)
             state["phase"] = "split2"
@@ -247,6 +275,9 @@ def shoot():
             return 1.5
         if state["phase"] == "done":
             shot("addon-result.png")
+            state["phase"] = "warm"
+            return 0.5
+        if state["phase"] == "warm":
             # warm: the same again with the PSF cache filled
             t = time.perf_counter()
             bpy.ops.dcdi.apply_lens_bokeh()
