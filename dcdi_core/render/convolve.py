@@ -39,8 +39,8 @@ def blend_window(m: int, b: int) -> np.ndarray:
 def kernel_support(kernels: np.ndarray, eps: float, channels=None) -> np.ndarray:
     """Half-width h (px) of the centred (2h + 1)^2 square that holds all but
     ``eps`` of the energy of every channel (of ``channels``, default all), per
-    kernel: kernels (..., C, k, k) -> (...) int. eps = 0 keeps every nonzero
-    pixel."""
+    kernel: kernels (..., C, k, k), non-negative as PSFs are (energies add up
+    ring by ring) -> (...) int. eps = 0 keeps every nonzero pixel."""
     k = kernels.shape[-1]
     r = k // 2
     ring = np.maximum(np.abs(np.arange(k) - r)[:, None], np.abs(np.arange(k) - r)[None, :]).ravel()
