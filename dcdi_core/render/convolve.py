@@ -36,26 +36,34 @@ def blend_window(m: int, b: int) -> np.ndarray:
     return np.minimum(rise, fall)
 
 
-def kernel_support(kernels: np.ndarray, eps: float, channels=None) -> np.ndarray:
-    """Half-width h (px) of the centred (2h + 1)^2 square that holds all but
+def rings_needed(kernels: np.ndarray, ring: np.ndarray, eps: float, channels=None) -> np.ndarray:
+    """Smallest ring index h such that the pixels with ``ring`` > h hold at most
     ``eps`` of the energy of every channel (of ``channels``, default all), per
     kernel: kernels (..., C, k, k), non-negative as PSFs are (energies add up
-    ring by ring) -> (...) int. eps = 0 keeps every nonzero pixel."""
+    ring by ring); ring (k, k) int >= 0 -> (...) int. eps = 0 keeps every
+    nonzero pixel."""
     k = kernels.shape[-1]
-    r = k // 2
-    ring = np.maximum(np.abs(np.arange(k) - r)[:, None], np.abs(np.arange(k) - r)[None, :]).ravel()
-    onehot = (ring[:, None] == np.arange(r + 1)[None, :]).astype(np.float32)       # (k^2, r + 1)
-    lead = kernels.shape[:-3]
+    ring = np.asarray(ring, np.int64).ravel()
+    n_ring = int(ring.max()) + 1
+    onehot = (ring[:, None] == np.arange(n_ring)[None, :]).astype(np.float32)     # (k^2, rings)
     flat = np.asarray(kernels, np.float32).reshape(-1, k * k)      # a view: no copy of the kernels
-    per_ring = (flat @ onehot).reshape(*lead, kernels.shape[-3], r + 1)
+    per_ring = (flat @ onehot).reshape(*kernels.shape[:-2], n_ring)
     if channels is not None:
         per_ring = per_ring[..., np.unique(channels), :]
     total = per_ring.sum(axis=-1, keepdims=True)
-    # energy outside the square of half-width h: rings h + 1 .. r (0 at h = r exactly)
+    # energy beyond ring h: rings h + 1 .. last (0 at the last ring exactly)
     outside = np.zeros_like(per_ring)
     outside[..., :-1] = np.cumsum(per_ring[..., :0:-1], axis=-1)[..., ::-1]
     over = outside > eps * total + (0.0 if eps > 0 else 1e-12 * total)
     return over.any(axis=-2).sum(axis=-1)              # the outside shrinks as h grows
+
+
+def kernel_support(kernels: np.ndarray, eps: float, channels=None) -> np.ndarray:
+    """Half-width h (px) of the centred (2h + 1)^2 square that holds all but
+    ``eps`` of every channel's energy, per kernel (see ``rings_needed``)."""
+    r = kernels.shape[-1] // 2
+    d = np.abs(np.arange(-r, r + 1))
+    return rings_needed(kernels, np.maximum(d[:, None], d[None, :]), eps, channels)
 
 
 def patch_convolve(image: np.ndarray, kernels: np.ndarray, m: int, *, identity: np.ndarray | None = None,

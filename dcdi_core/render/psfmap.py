@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..optics.errors import InputRangeError
+from .convolve import rings_needed
 
 
 def valid_depth_mask(depth: np.ndarray) -> np.ndarray:
@@ -97,19 +98,9 @@ def support_radius(psf: np.ndarray, eps: float) -> np.ndarray:
     all but ``eps`` of every channel's energy: psf (..., C, k, k) -> (...).
     The disk is what survives any rotation, so a kernel cropped to half-width
     rho + 1 (bilinear spread) and rotated loses at most eps."""
-    k = psf.shape[-1]
-    r = k // 2
-    ring = np.ceil(np.hypot(*np.meshgrid(np.arange(k) - r, np.arange(k) - r, indexing="ij")) - 1e-9)
-    ring = ring.astype(np.int64).ravel()
-    n_ring = int(ring.max()) + 1
-    onehot = (ring[:, None] == np.arange(n_ring)[None, :]).astype(np.float32)
-    per_ring = (np.abs(np.asarray(psf, np.float32)).reshape(-1, k * k) @ onehot)
-    per_ring = per_ring.reshape(*psf.shape[:-2], n_ring)
-    total = per_ring.sum(axis=-1, keepdims=True)
-    outside = np.zeros_like(per_ring)
-    outside[..., :-1] = np.cumsum(per_ring[..., :0:-1], axis=-1)[..., ::-1]
-    over = outside > eps * total + (0.0 if eps > 0 else 1e-12 * total)
-    return over.any(axis=-2).sum(axis=-1)
+    r = psf.shape[-1] // 2
+    d = np.arange(-r, r + 1)
+    return rings_needed(psf, np.ceil(np.hypot(d[:, None], d[None, :]) - 1e-9), eps)
 
 
 def _rotated_patch_kernels(library, field, depth, outward, kernels_flat, where, eps, chunk=256):

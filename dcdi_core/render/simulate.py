@@ -208,6 +208,5 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
         total = np.where(behind, 1.0, cover)
         seen[ys, xs] = (total > 1e-4).all(axis=-1, keepdims=True)
         col[ys, xs] = np.where(total > 1e-4, premultiplied / np.maximum(total, 1e-4), 0.0)
-    acc = col
     info["layers"] = len(order)
-    return RenderResult(acc, info)
+    return RenderResult(col, info)
