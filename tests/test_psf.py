@@ -7,7 +7,6 @@ from conftest import PAPER_LENSES
 
 from dcdi_core.optics.lens import Lens, load_lens
 from dcdi_core.psf.compute import KernelTooSmallWarning, PSFSettings, psf
-from dcdi_core.psf.deposit import gaussian_sigma_px
 
 FAST = PSFSettings(pupil_samples=48, n_wavelengths=5)
 
@@ -37,13 +36,24 @@ def cartesian_lens(pitch=0.002, defocus_mm=0.0):
     return Lens.from_dict(d)
 
 
-def test_perfect_lens_kernel_is_the_gaussian_deposit_alone():
+def test_perfect_lens_kernel_is_the_identity():
+    # every ray meets the chief ray at the kernel centre: the sensor records
+    # the sharp pixel-integrated image as it is (deposit.py derives it)
     lens = cartesian_lens()
     r = psf(lens, field=0.0, depth_m=math.inf, wavelength_nm=587.5618,
             settings=PSFSettings(kernel_size=9, pupil_samples=32, precision="float64"))
     assert r.rms_radius_mm[1] < 1e-9          # the rays really meet in a point
-    # independent: the pixel integral of a Gaussian of sigma sqrt(2)/3 px, by math.erf
+    expected = np.zeros((9, 9))
+    expected[4, 4] = 1.0
+    assert np.abs(r.psf - expected).max() < 1e-12
+
+
+def test_perfect_lens_kernel_with_the_papers_deposit_is_the_gaussian_alone():
+    lens = cartesian_lens()
     s = math.sqrt(2.0) / 3.0
+    r = psf(lens, field=0.0, depth_m=math.inf, wavelength_nm=587.5618,
+            settings=PSFSettings(kernel_size=9, pupil_samples=32, precision="float64", deposit_sigma_px=s))
+    # independent: the pixel integral of a Gaussian of sigma sqrt(2)/3 px, by math.erf
     edges = np.arange(10) - 4.5
     g = np.array([0.5 * (math.erf(b / (s * math.sqrt(2))) - math.erf(a / (s * math.sqrt(2))))
                   for a, b in zip(edges[:-1], edges[1:])])
@@ -51,17 +61,19 @@ def test_perfect_lens_kernel_is_the_gaussian_deposit_alone():
     assert np.abs(r.psf[1] - expected).max() < 1e-6
 
 
-def test_second_moment_matches_ray_rms_radius():
+@pytest.mark.parametrize("sigma_px", [0.0, math.sqrt(2.0) / 3.0])
+def test_second_moment_matches_ray_rms_radius(sigma_px):
     # monochromatic, a blur of several pixels: kernel variance = ray variance
-    # + Gaussian deposit (2 sigma^2) + pixel sampling (2/12 px^2) + binning (2/(12 s^2) px^2)
+    # + pixel sampling (2/12 px^2) [+ Gaussian deposit (2 sigma^2) + its binning (2/(12 s^2) px^2)]
     lens = load_lens("mos-s1")
-    st = PSFSettings(kernel_size=61, pupil_samples=128, precision="float64")
+    st = PSFSettings(kernel_size=61, pupil_samples=128, precision="float64", deposit_sigma_px=sigma_px)
     for field, depth in [(0.0, math.inf), (0.5, 2.0)]:
         r = psf(lens, field=field, depth_m=depth, wavelength_nm=587.5618, settings=st)
         pitch = 0.0122
         _, _, var = _moments(r.psf[1].astype(np.float64), pitch)
-        sig = gaussian_sigma_px() * pitch
-        expected = r.rms_radius_mm[1] ** 2 + 2 * sig ** 2 + 2 * pitch ** 2 / 12 + 2 * pitch ** 2 / (12 * st.oversample ** 2)
+        sig = sigma_px * pitch
+        binning = 2 * pitch ** 2 / (12 * st.oversample ** 2) if sigma_px > 0 else 0.0
+        expected = r.rms_radius_mm[1] ** 2 + 2 * sig ** 2 + 2 * pitch ** 2 / 12 + binning
         assert r.energy_outside.max() < 1e-4
         assert abs(var / expected - 1.0) < 0.02, (field, depth, var, expected)
 

@@ -23,7 +23,7 @@ from ..optics.errors import InputRangeError, OpticsError
 from ..optics.lens import Lens
 from ..optics.paraxial import refocused
 from ..optics.trace import trace
-from .deposit import gaussian_sigma_px, deposit
+from .deposit import deposit
 from .spectral import SpectralResponse, default_response, visible_wavelengths
 
 # a kernel clipping more than this fraction of a channel's energy gets a warning
@@ -48,6 +48,11 @@ class PSFSettings:
     band_nm: tuple[float, float] = (400.0, 700.0)
     precision: str = "float32"          # ray tracing precision: float64 or float32
     oversample: int = 5                 # sub-pixel binning of ray positions (odd: pixel centres are bin centres)
+    # Gaussian spread of each ray (px) on top of the pixel it lands in; 0 =
+    # the ray histogram, which is what a sensor records (deposit.py derives
+    # it); the paper's sqrt(2)/3 blurs by itself
+    deposit_sigma_px: float = 0.0
+    wavelength_nm: float | None = None   # one wavelength for all three channels (monochrome); None: the band
     pixel_pitch_mm: float | None = None  # default: the lens's sensor
     focus_distance_m: float | None = None  # None: the sensor where the prescription puts it
 
@@ -65,6 +70,11 @@ class PSFSettings:
             raise InputRangeError("precision", self.precision, "'float64' or 'float32'")
         if self.oversample < 1:
             raise InputRangeError("oversample", self.oversample, ">= 1")
+        if not (isinstance(self.deposit_sigma_px, (int, float)) and math.isfinite(self.deposit_sigma_px)
+                and 0.0 <= self.deposit_sigma_px <= 3.0):
+            raise InputRangeError("deposit_sigma_px", self.deposit_sigma_px, "0 <= sigma <= 3 pixels")
+        if self.wavelength_nm is not None and not (200.0 < self.wavelength_nm < 2500.0):
+            raise InputRangeError("wavelength_nm", self.wavelength_nm, "(200, 2500) nm, or None for the band")
         if self.pixel_pitch_mm is not None and not (self.pixel_pitch_mm > 0):
             raise InputRangeError("pixel_pitch_mm", self.pixel_pitch_mm, "> 0 mm")
 
@@ -95,8 +105,15 @@ def focused_lens(lens: Lens, settings: PSFSettings) -> Lens:
 
 def spectral_samples(settings: PSFSettings, response: SpectralResponse | None,
                      wavelength_nm: float | None = None):
-    """(wavelengths (W,), channel weights (W, 3)); a single wavelength gives
-    a monochromatic kernel (all three channels alike)."""
+    """(wavelengths (W,), channel weights (W, 3)); a single wavelength
+    (``wavelength_nm`` or the settings') gives a monochromatic kernel (all
+    three channels alike)."""
+    if wavelength_nm is not None and settings.wavelength_nm is not None \
+            and float(wavelength_nm) != float(settings.wavelength_nm):
+        raise InputRangeError("wavelength_nm", wavelength_nm,
+                              f"the settings' own wavelength {settings.wavelength_nm} nm (give one, not two)")
+    if wavelength_nm is None:
+        wavelength_nm = settings.wavelength_nm
     if wavelength_nm is not None:
         if not (200.0 < wavelength_nm < 2500.0):
             raise InputRangeError("wavelength_nm", wavelength_nm, "(200, 2500) nm")
@@ -160,7 +177,7 @@ def compute_sources(lens: Lens, aimed: Aimed, settings: PSFSettings, wavelengths
     lens = focused_lens(lens, settings)
     k = settings.kernel_size
     pitch = pixel_pitch_mm(lens, settings)
-    sigma = gaussian_sigma_px()
+    sigma = settings.deposit_sigma_px
     dtype = np.dtype(settings.precision)
     wl = np.asarray(wavelengths_nm, dtype=np.float64)
     weights = np.asarray(weights, dtype=np.float64)

@@ -1,9 +1,27 @@
-"""Ray energy onto sensor pixels: a Gaussian per ray, integrated over each pixel.
+"""Ray energy onto sensor pixels: each ray's energy into the pixel it lands in,
+optionally spread by a Gaussian against ray-count noise.
 
-Following the paper, every ray deposits its energy with an isotropic Gaussian
-of sigma = sqrt(dh^2 + dw^2) / 3 (dh, dw the pixel size), and a pixel receives
-the Gaussian's integral over its area (not a point sample). Because the
-Gaussian is the same for every ray and separable, the deposit is computed as
+What the kernel must contain. A sensor pixel records the irradiance
+integrated over its area: S = box * PSF * I (I the scene's ideal image, box
+the pixel aperture). The all-in-focus image the kernel is applied to is
+area-integrated already (a Blender render with a 1-px box pixel filter, or
+any sensor): A = box * I. So S = PSF * A: the kernel is the optical PSF
+alone, with no second pixel aperture. On the pixel grid the kernel is
+K(n) = integral of PSF(x) phi(n - x) dx, phi the reconstruction of A between
+its samples; the ray histogram over pixels (phi = the 1-px box, sigma = 0
+here) is the choice that is non-negative, conserves every ray's energy and
+is exact for a perfect lens (all rays at the chief ray, which is the kernel
+centre: K is the identity and a sharp image stays as it is). For a PSF
+wider than a pixel its residual is one 1-px box (variance 1/12 px^2; the
+smallest of any non-negative, energy-conserving deposit), where the paper's
+deposit below adds 2/9 + 1/12 px^2.
+
+The paper's deposit (``sigma_px = sqrt(2) / 3``): every ray spreads its
+energy with an isotropic Gaussian of sigma = sqrt(dh^2 + dw^2) / 3 (dh, dw
+the pixel size), and a pixel receives the Gaussian's integral over its
+area. A smaller sigma trades bias for ray-count noise; `dcdi report
+simulation-accuracy` measures it against rays. Because the Gaussian is the
+same for every ray and separable, the deposit is computed as
 
     PSF = M . H . M^T
 
@@ -39,6 +57,16 @@ def gaussian_sigma_px() -> float:
     return math.sqrt(2.0) / 3.0
 
 
+def _box_deposit(hist_fine: np.ndarray, s: int) -> np.ndarray:
+    """(C, NY s, NX s) fine histogram -> (C, NY + 2 T, NX + 2 T) pixel sums,
+    laid out like the Gaussian path's output (T empty pixels each side)."""
+    c, nys, nxs = hist_fine.shape
+    ny, nx = nys // s, nxs // s
+    out = np.zeros((c, ny + 2 * TAPS_PX, nx + 2 * TAPS_PX))
+    out[:, TAPS_PX:TAPS_PX + ny, TAPS_PX:TAPS_PX + nx] = hist_fine.reshape(c, ny, s, nx, s).sum(axis=(2, 4))
+    return out
+
+
 # a fine cell's Gaussian reaches this many pixels either side of its own
 # pixel (beyond: < 1e-10 of its energy at sigma = sqrt(2)/3 px)
 TAPS_PX = 3
@@ -71,7 +99,10 @@ def _blur_rows(h: np.ndarray, taps: np.ndarray) -> np.ndarray:
 
 
 def deposit(x_px, y_px, valid, channel_weights, k: int, oversample: int, sigma_px: float):
-    """Pixel-integrated Gaussian deposit of rays into (B, 3, k, k) kernels.
+    """Deposit of rays into (B, 3, k, k) kernels: ``sigma_px`` 0 puts each
+    ray into the pixel it lands in (the ray histogram; ``oversample`` is then
+    irrelevant), > 0 spreads it by a Gaussian of that width (pixels)
+    integrated over each pixel.
 
     x_px, y_px: (B, W, P) ray positions in pixels relative to the kernel
     centre; valid: (B, W, P) bool; channel_weights: (W, 3), the energy of one
@@ -83,7 +114,9 @@ def deposit(x_px, y_px, valid, channel_weights, k: int, oversample: int, sigma_p
     b, w, p = x_px.shape
     g = (k + 2 * MARGIN_PX) * oversample
     half = k / 2.0 + MARGIN_PX
-    taps = phase_taps(oversample, sigma_px)
+    if not (math.isfinite(sigma_px) and sigma_px >= 0):
+        raise ValueError(f"deposit sigma_px = {sigma_px!r}: allowed a finite number >= 0 (pixels)")
+    taps = phase_taps(oversample, float(sigma_px)) if sigma_px > 0 else None
     out = np.zeros((b, 3, k, k))
     wl_index = np.broadcast_to(np.arange(w)[:, None], (w, p))
     # fine-cell indices for the whole batch at once (truncation is floor for
@@ -104,8 +137,11 @@ def deposit(x_px, y_px, valid, channel_weights, k: int, oversample: int, sigma_p
         idx = ((fyi - py0 * s) * nx + (fxi - px0 * s)) * w + wl_index[ins]
         hist = np.bincount(idx, minlength=ny * nx * w).reshape(ny * nx, w).astype(np.float64)
         hc = (hist @ channel_weights).T.reshape(3, ny, nx)
-        rows = _blur_rows(hc, taps)                                   # (3, NY + 2T, nx)
-        both = _blur_rows(rows.transpose(0, 2, 1), taps).transpose(0, 2, 1)
+        if taps is None:
+            both = _box_deposit(hc, s)
+        else:
+            rows = _blur_rows(hc, taps)                                   # (3, NY + 2T, nx)
+            both = _blur_rows(rows.transpose(0, 2, 1), taps).transpose(0, 2, 1)
         # place: extended pixel P is kernel pixel P - MARGIN_PX; the blur starts T before the crop
         oy, ox = py0 - TAPS_PX - MARGIN_PX, px0 - TAPS_PX - MARGIN_PX
         ky0, kx0 = max(oy, 0), max(ox, 0)

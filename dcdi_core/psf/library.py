@@ -36,7 +36,7 @@ from .spectral import SpectralResponse, default_response
 
 FORMAT_VERSION = 1
 # bumped whenever the PSF computation changes what it produces
-ALGORITHM_VERSION = 1
+ALGORITHM_VERSION = 2     # 2: rays into the pixel they land in (deposit_sigma_px), not a Gaussian
 
 
 class CacheWarning(UserWarning):
