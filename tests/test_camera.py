@@ -1,5 +1,6 @@
 """The pinhole camera of a lens (dcdi_core.render.camera): focal length, field
-of view, Blender's 1 mm sensor minimum, planar depth."""
+of view, Blender's 1 mm sensor minimum, planar depth; and (pip bpy) the
+factory's Blender camera frames like the lens."""
 import math
 
 import numpy as np
@@ -95,3 +96,20 @@ def test_background_is_infinity_and_invalid_z_stays_invalid():
     assert depth_from_planar_z(np.array([0.01]), 14.6)[0] <= 0
     assert planar_depth_m(+1.0, 0.0) < 0                                  # behind the camera
 
+
+def test_factory_camera_frames_like_the_double_gauss():
+    bpy = pytest.importorskip("bpy")
+    from blender_addon.factory import RenderSettings, setup_render
+
+    lens = load_lens("double-gauss")
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    pinhole = setup_render(scene, lens, 24, 32, RenderSettings(), seed=0)
+    cam = scene.camera.data
+    assert cam.sensor_fit == "HORIZONTAL" and pinhole.blender_scale() > 1
+    # Blender's own angle (horizontal: the sensor width) against the lens's
+    h_fov = 2.0 * math.atan(pinhole.sensor_width_mm / (2.0 * pinhole.focal_length_mm))
+    assert cam.angle == pytest.approx(h_fov, rel=1e-3)
+    diagonal = cam.sensor_width * math.hypot(24, 32) / 32
+    assert math.degrees(2.0 * math.atan(diagonal / (2.0 * cam.lens))) == pytest.approx(true_fov_deg(lens), rel=1e-3)
+    assert scene.camera.matrix_world.translation.length == 0.0      # the pinhole (pupil) at the scene origin
