@@ -67,9 +67,6 @@ import numpy as np  # noqa: E402
 if __package__ in (None, ""):          # run as a file by `blender --python`
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-BACKGROUND_Z = 1e9      # Cycles writes 1e10 for the world background; beyond this is infinity
-
-
 def sample_seed(seed: int, index: int) -> int:
     """A well-mixed 31-bit seed per sample (same seed, same scene)."""
     return int(np.random.SeedSequence([seed, index]).generate_state(1)[0] & 0x7FFFFFFF)
@@ -163,21 +160,19 @@ class RenderSettings:
 
 
 def setup_render(scene, lens, height: int, width: int, render: RenderSettings, seed: int):
-    """All-in-focus Cycles render on the CPU through a pinhole camera at the
-    lens's entrance pupil with its paraxial focal length and sensor."""
+    """All-in-focus Cycles render on the CPU through the lens's pinhole
+    camera (dcdi_core.render.camera: at the entrance pupil, paraxial focal
+    length, the image spanning the sensor diagonal); returns that
+    PinholeCamera."""
     import bpy
 
     from blender_addon.bpy_render import set_light_paths, set_multilayer_exr
-    from dcdi_core.optics.paraxial import first_order
-    from dcdi_core.render.geometry import ImageGeometry
+    from dcdi_core.render.camera import PinholeCamera
 
-    fo = first_order(lens)
-    geom = ImageGeometry.full_sensor(lens, height, width)
+    pinhole = PinholeCamera.for_lens(lens, height, width)
     cam = bpy.data.cameras.new("lens")
-    cam.lens = fo.effective_focal_length_mm
-    cam.sensor_fit = "HORIZONTAL"
-    cam.sensor_width = width * geom.pixel_pitch_mm
-    cam.sensor_height = height * geom.pixel_pitch_mm
+    for name, value in pinhole.blender_camera_settings().items():
+        setattr(cam, name, value)
     cam.dof.use_dof = False
     cam.clip_start = 0.01
     cam.clip_end = 1.0e5
@@ -202,7 +197,7 @@ def setup_render(scene, lens, height: int, width: int, render: RenderSettings, s
     scene.view_layers[0].use_pass_z = True
     # the file is a hand-over read back at once and deleted: no compression (measured: no gain, no cost)
     set_multilayer_exr(scene.render.image_settings)
-    return fo
+    return pinhole
 
 
 def render_rgbd(recipe: str, lens, seed: int, height: int, width: int, render: RenderSettings, tmp: Path,
@@ -216,13 +211,14 @@ def render_rgbd(recipe: str, lens, seed: int, height: int, width: int, render: R
     import bpy
 
     from dcdi_core.io.images import read_depth, read_image
+    from dcdi_core.render.camera import depth_from_planar_z
     from scenes.recipes import RECIPES
 
     t, c = [time.perf_counter()], [_cpu_s()]
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
     RECIPES[recipe](np.random.default_rng(seed))
-    fo = setup_render(scene, lens, height, width, render, seed)
+    pinhole = setup_render(scene, lens, height, width, render, seed)
     scene.render.filepath = str(tmp)
     t.append(time.perf_counter()), c.append(_cpu_s())
     bpy.ops.render.render(write_still=True)
@@ -234,9 +230,7 @@ def render_rgbd(recipe: str, lens, seed: int, height: int, width: int, render: R
     if timings is not None:
         timings.update(scene=t[1] - t[0], render=t[2] - t[1], read=t[3] - t[2])
         timings.update({"cpu_" + k: c[i + 1] - c[i] for i, k in enumerate(("scene", "render", "read"))})
-    # depth from the first vertex: the pinhole is the entrance pupil, z_EP behind it
-    depth = np.where(z >= BACKGROUND_Z, np.inf, z - fo.entrance_pupil_position_mm / 1000.0).astype(np.float32)
-    return img, depth
+    return img, depth_from_planar_z(z, pinhole.entrance_pupil_mm)
 
 
 class LensSimulator:

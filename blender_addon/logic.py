@@ -1,6 +1,7 @@
 """The add-on's logic without bpy: the lens catalogue and readout, preview
-size, depth conversion, the kept range, and the bokeh job (run on a worker
-thread in the UI). Everything optical is a call into ``dcdi_core``.
+size, the kept range, and the bokeh job (run on a worker thread in the UI).
+Everything optical is a call into ``dcdi_core`` (the camera and depth
+conversion: ``dcdi_core.render.camera``).
 
 Units: depths and distances in metres (from the lens's first vertex unless
 said otherwise), lens lengths in mm, angles in degrees.
@@ -17,10 +18,6 @@ from pathlib import Path
 import numpy as np
 
 from .core import core
-
-# Cycles writes 1e10 for the world background: anything beyond is infinity
-BACKGROUND_Z = 1e9
-
 
 class Cancelled(Exception):
     """The user pressed Esc while the PSFs were being built."""
@@ -125,16 +122,6 @@ def import_zemax(zmx_path: str, out_dir: str) -> str:
     return str(out)
 
 
-def camera_for_lens(lens, height: int, width: int) -> dict:
-    """A pinhole camera that frames like ``lens`` for an H x W image spanning
-    the sensor's diagonal: focal length = paraxial EFL (mm), sensor width /
-    height (mm) with horizontal fit (the factory's convention)."""
-    fo = core("optics.paraxial").first_order(lens)
-    pitch = core("render.geometry").ImageGeometry.full_sensor(lens, height, width).pixel_pitch_mm
-    return {"lens_mm": float(fo.effective_focal_length_mm), "sensor_width_mm": width * pitch,
-            "sensor_height_mm": height * pitch, "entrance_pupil_mm": float(fo.entrance_pupil_position_mm)}
-
-
 # ------------------------------------------------------------------ scene -> job
 def preview_shape(res_x: int, res_y: int, aspect_x: float, aspect_y: float, long_side: int) -> tuple[int, int]:
     """(height, width) of the preview: the render's displayed aspect with its
@@ -145,14 +132,6 @@ def preview_shape(res_x: int, res_y: int, aspect_x: float, aspect_y: float, long
     if w_disp >= h_disp:
         return max(8, round(long_side * h_disp / w_disp)), long_side
     return long_side, max(8, round(long_side * w_disp / h_disp))
-
-
-def depth_from_z(z, entrance_pupil_mm: float, metres_per_unit: float = 1.0) -> np.ndarray:
-    """Blender's planar Z (scene units, from the pinhole at the entrance pupil)
-    as depth in metres from the lens's first vertex; background -> inf."""
-    z = np.asarray(z, np.float64)
-    d = z * metres_per_unit - entrance_pupil_mm / 1000.0
-    return np.where(z >= BACKGROUND_Z, np.inf, d).astype(np.float32)
 
 
 def keep_range(focus_m: float, front_m: float, behind_m: float) -> tuple[float, float]:

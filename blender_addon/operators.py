@@ -68,9 +68,8 @@ def focus_metres(scene, cam, settings, entrance_pupil_mm: float) -> float:
     obj = settings.focus_object
     if obj is None:
         raise logic.BokehInputError("focus is set to Object but no focus object is chosen")
-    # planar depth of the object's origin along the view axis (Blender cameras look down -Z)
-    z = (cam.matrix_world.inverted() @ obj.matrix_world.translation).z
-    return -z * mpu - entrance_pupil_mm / 1000.0
+    z = (cam.matrix_world.inverted() @ obj.matrix_world.translation).z      # the origin in camera space
+    return core("render.camera").planar_depth_m(z, entrance_pupil_mm, mpu)
 
 
 def prepare(context):
@@ -87,7 +86,7 @@ def prepare(context):
     h, w = logic.preview_shape(r.resolution_x, r.resolution_y, r.pixel_aspect_x, r.pixel_aspect_y, s.preview_size)
     t0 = time.perf_counter()
     rgb, z = bpy_render.render_aif_depth(scene, cam, h, w, s.samples, context.view_layer.name)
-    depth = logic.depth_from_z(z, ep, mpu)
+    depth = core("render.camera").depth_from_planar_z(z, ep, mpu)
     return {"rgb": rgb, "depth": depth, "lens": lens, "focus_m": focus, "keep": keep,
             "render_s": time.perf_counter() - t0}
 
@@ -231,7 +230,7 @@ def _redraw(context):
 
 
 class DCDI_OT_match_camera(bpy.types.Operator):
-    """Set the active camera's focal length and sensor to the lens's (paraxial focal length; the sensor's diagonal spans the render)"""
+    """Set the active camera's focal length and sensor to the lens's (paraxial focal length; the sensor's diagonal spans the render; both scaled up together where Blender's 1 mm minimum sensor would change the field of view)"""
 
     bl_idname = "dcdi.match_camera_to_lens"
     bl_label = "Match Camera to Lens"
@@ -243,16 +242,18 @@ class DCDI_OT_match_camera(bpy.types.Operator):
             cam = _camera(scene)
             lens, _ = chosen_lens(scene.dcdi_lens_bokeh)
             r = scene.render
-            c = logic.camera_for_lens(lens, r.resolution_y, r.resolution_x)
+            pinhole = core("render.camera").PinholeCamera.for_lens(lens, r.resolution_y, r.resolution_x)
         except _user_errors() as e:
             self.report({"ERROR"}, str(e))
             return {"CANCELLED"}
-        cam.data.lens = c["lens_mm"]
-        cam.data.sensor_fit = "HORIZONTAL"
-        cam.data.sensor_width = c["sensor_width_mm"]
-        cam.data.sensor_height = c["sensor_height_mm"]
-        self.report({"INFO"}, f"{cam.name}: focal length {c['lens_mm']:.2f} mm, sensor "
-                              f"{c['sensor_width_mm']:.2f} x {c['sensor_height_mm']:.2f} mm")
+        c = pinhole.blender_camera_settings()
+        for name, value in c.items():
+            setattr(cam.data, name, value)
+        scale = pinhole.blender_scale()
+        scaled = (f" (the lens's {pinhole.focal_length_mm:.3g} mm and its sensor scaled x{scale:.3g} to Blender's "
+                  "1 mm minimum; the field of view is the lens's)" if scale > 1 else "")
+        self.report({"INFO"}, f"{cam.name}: focal length {c['lens']:.2f} mm, sensor "
+                              f"{c['sensor_width']:.2f} x {c['sensor_height']:.2f} mm{scaled}")
         return {"FINISHED"}
 
 

@@ -136,6 +136,13 @@ s.preview_size = 128
 s.samples = 4
 res["match_camera"] = sorted(bpy.ops.dcdi.match_camera_to_lens())
 res["camera_lens_mm"] = cam.data.lens
+# a lens whose sensor is below Blender's 1 mm minimum, then back to the 6p
+s.lens = "double-gauss"
+res["double_gauss_camera"] = {"match": sorted(bpy.ops.dcdi.match_camera_to_lens()), "angle": cam.data.angle,
+                              "lens": cam.data.lens, "sensor_width": cam.data.sensor_width,
+                              "sensor_fit": cam.data.sensor_fit}
+s.lens = "6p"
+bpy.ops.dcdi.match_camera_to_lens()
 res["readout"] = logic.lens_readout(res["lenses"]["6p"])
 
 before = {"scene": snapshot(scene), "camera": snapshot(cam), "camera_data": snapshot(cam.data)}

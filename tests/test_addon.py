@@ -3,6 +3,7 @@ pip bpy module, in a subprocess) install, Apply Lens Bokeh, settings left
 as they were, error messages, disable without leftovers."""
 import importlib.util
 import json
+import math
 import os
 import subprocess
 import sys
@@ -86,10 +87,8 @@ def test_preview_shape_keeps_the_render_aspect():
         logic.preview_shape(640, 480, 1.0, 1.0, 4)
 
 
-def test_depth_from_z_and_keep_range():
-    d = logic.depth_from_z(np.array([2.0, 1e10]), entrance_pupil_mm=14.6, metres_per_unit=1.0)
-    assert d[0] == pytest.approx(2.0 - 0.0146) and np.isinf(d[1])
-    assert logic.depth_from_z(np.array([2.0]), 0.0, metres_per_unit=0.01)[0] == pytest.approx(0.02)
+def test_keep_range():
+    # (the depth conversion is dcdi_core.render.camera's: tests/test_camera.py)
     assert logic.keep_range(2.0, 0.5, 1.0) == (1.5, 3.0)
     with pytest.raises(logic.BokehInputError, match="positive and finite"):
         logic.keep_range(-1.0, 0.1, 0.1)
@@ -128,6 +127,22 @@ def test_zip_installs_into_a_temporary_user_folder_and_enables(headless):
 def test_match_camera_sets_the_lens_focal_length(headless):
     assert headless["match_camera"] == ["FINISHED"]
     assert headless["camera_lens_mm"] == pytest.approx(headless["readout"]["focal_length_mm"], rel=1e-6)
+
+
+def test_match_camera_keeps_the_double_gauss_field_of_view(headless):
+    # its sensor (0.28 mm wide at 640 x 480) is below Blender's 1 mm minimum:
+    # focal length and sensor are scaled together, the angle stays the lens's
+    from dcdi_core.optics.lens import load_lens
+    from dcdi_core.render.camera import PinholeCamera
+    dg = headless["double_gauss_camera"]
+    assert dg["match"] == ["FINISHED"] and dg["sensor_fit"] == "HORIZONTAL"
+    pinhole = PinholeCamera.for_lens(load_lens("double-gauss"), 480, 640)
+    true_angle = 2.0 * math.atan(pinhole.sensor_width_mm / (2.0 * pinhole.focal_length_mm))
+    assert dg["angle"] == pytest.approx(true_angle, rel=1e-3)           # Blender's own angle (sensor width)
+    assert dg["sensor_width"] >= 1.0 and dg["lens"] > pinhole.focal_length_mm
+    diagonal = dg["sensor_width"] * math.hypot(480, 640) / 640
+    assert 2.0 * math.atan(diagonal / (2.0 * dg["lens"])) == pytest.approx(
+        math.radians(pinhole.diagonal_field_of_view_deg), rel=1e-3)
 
 
 def test_result_equals_the_render_in_the_kept_range_and_is_blurred_outside(headless):
