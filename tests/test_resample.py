@@ -112,12 +112,15 @@ def test_linear_equals_the_former_bilinear(dtype, rng_img, monkeypatch):
 
 
 def test_nearest_never_mixes_values():
-    depth = np.where(np.arange(12)[None, :] < 6, 0.7, 5.0) * np.ones((8, 1))
+    near = (np.arange(8)[:, None] < 4) & (np.arange(12)[None, :] < 6)
+    depth = np.where(near, 0.7, 5.0)
     rng = np.random.default_rng(9)
     out = sample(depth, rng.uniform(-1, 9, 500), rng.uniform(-1, 13, 500), "nearest")
     assert set(np.unique(out)) <= {np.float32(0.7), np.float32(5.0)}
-    assert sample(depth, np.array([3.0]), np.array([5.49]), "nearest")[0] == np.float32(0.7)
-    assert sample(depth, np.array([3.0]), np.array([5.5]), "nearest")[0] == np.float32(5.0)
+    # halves round up, along either axis
+    y = np.array([3.0, 3.0, 3.49, 3.5, -7.0])
+    x = np.array([5.49, 5.5, 2.0, 2.0, -7.0])
+    np.testing.assert_array_equal(sample(depth, y, x, "nearest"), np.float32([0.7, 5.0, 0.7, 5.0, 0.7]))
 
 
 def test_higher_order_methods_beat_linear_on_the_band_limited_warp():
