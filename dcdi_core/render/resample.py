@@ -5,8 +5,8 @@ Conventions (as :mod:`.geometry`): pixel centres sit at integer positions,
 left), both in pixels. Every method sees the image extended by repeating
 its edge pixels, and holds its value constant beyond the outer pixel
 centres: a position is clamped to [0, H - 1] x [0, W - 1] before it is
-interpolated (the interpolant is continuous there, since every method
-below passes through the samples at integer positions).
+interpolated (no jump where the clamp begins, since every method below
+passes through the samples at integer positions).
 
 Methods (the kernel's support in pixels, per axis):
 
@@ -24,14 +24,16 @@ Methods (the kernel's support in pixels, per axis):
   B-spline's sampled kernel (pole sqrt(3) - 2), with the edge-repeated
   extension summed in closed form; this is what
   ``scipy.ndimage.map_coordinates(order=3, mode="nearest")`` computes
-  (scipy approximates the infinite extension by padding 12 samples, 2e-14
-  of the exact value) for positions inside the image. Reproduces cubics
-  away from the edges.
+  for positions inside the image (scipy pads 12 edge samples instead of
+  summing the extension; its coefficients agree to 4e-15 in float64).
+  Reproduces cubics away from the edges.
 
 Work is done in chunks of consecutive output positions (rows of the
 output, for a 2-D ``y``) so that the temporaries stay near
-``_CHUNK_BYTES``, whatever the image size; the output and one float32 copy
-of the image (spline coefficients for ``"bspline"``) come on top.
+``_CHUNK_BYTES``, and the B-spline prefilter in blocks of ``_FILTER_BYTES``,
+whatever the image size; the output and one float32 copy of the image, by
+channel (spline coefficients for ``"bspline"``), come on top: measured
+peak 175 MB, of which 84 MB the output, for 1280 x 1920 x 9 float32.
 """
 from __future__ import annotations
 
@@ -43,8 +45,12 @@ from ..optics.errors import InputRangeError
 
 METHODS = ("nearest", "linear", "keys", "lanczos3", "bspline")
 
-# bytes of temporaries one chunk of output positions may use
-_CHUNK_BYTES = 64 << 20
+# bytes of temporaries one chunk of output positions may use: small enough
+# for the accumulators to stay in cache (measured 1.5-2x faster than 64 MiB)
+_CHUNK_BYTES = 8 << 20
+# bytes of one float64 block of the B-spline prefilter: large, since its
+# recursion costs a Python step per row (or column) of each block
+_FILTER_BYTES = 64 << 20
 
 _POLE = math.sqrt(3.0) - 2.0      # of the cubic B-spline's inverse filter
 
@@ -107,8 +113,9 @@ _KERNELS = {
 # -------------------------------------------------------- B-spline prefilter
 def _spline_coefficients(f: np.ndarray) -> np.ndarray:
     """Cubic B-spline coefficients along axis 0 of float64 samples ``f``
-    (N, ...), for the signal extended by repeating f[0] and f[N - 1]; returns
-    (N + 2, ...): the coefficients at -1 and N included, which the 4 taps
+    (N, M, ...), at least 2-D (the recursion runs in place on its rows), for
+    the signal extended by repeating f[0] and f[N - 1]; returns
+    (N + 2, M, ...): the coefficients at -1 and N included, which the 4 taps
     reach from positions in [0, N - 1]."""
     n = f.shape[0]
     out = np.empty((n + 2,) + f.shape[1:])
@@ -143,12 +150,12 @@ def _prefilter(planes: np.ndarray) -> np.ndarray:
     pass vectorised over the channels and the block)."""
     ch, h, w = planes.shape
     coef = np.empty((ch, h + 2, w + 2), np.float32)
-    cols = max(1, _CHUNK_BYTES // (16 * (h + 2) * ch))
+    cols = max(1, _FILTER_BYTES // (16 * (h + 2) * ch))
     for c0 in range(0, w, cols):
         c1 = min(c0 + cols, w)
         blk = planes[:, :, c0:c1].astype(np.float64).transpose(1, 0, 2)
         coef[:, :, 1 + c0:1 + c1] = _spline_coefficients(blk).transpose(1, 0, 2)
-    rows = max(1, _CHUNK_BYTES // (16 * (w + 2) * ch))
+    rows = max(1, _FILTER_BYTES // (16 * (w + 2) * ch))
     for r0 in range(0, h + 2, rows):
         blk = coef[:, r0:r0 + rows, 1:-1].astype(np.float64).transpose(2, 0, 1)
         coef[:, r0:r0 + rows] = _spline_coefficients(blk).transpose(1, 2, 0)
