@@ -1,4 +1,8 @@
 """Resampling at fractional pixel positions (render.resample) and its use in the distortion warps."""
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy import ndimage
@@ -95,7 +99,8 @@ def test_bspline_prefilter_in_blocks_equals_one_block(monkeypatch, rng_img):
     y = np.random.default_rng(5).uniform(-2, 25, 300)
     x = np.random.default_rng(6).uniform(-2, 33, 300)
     whole = sample(rng_img, y, x, "bspline")
-    monkeypatch.setattr(resample, "_CHUNK_BYTES", 4096)   # blocks of a few rows, columns, positions
+    monkeypatch.setattr(resample, "_FILTER_BYTES", 4096)  # blocks of a few rows, columns
+    monkeypatch.setattr(resample, "_CHUNK_BYTES", 4096)   # chunks of a few positions
     np.testing.assert_array_equal(sample(rng_img, y, x, "bspline"), whole)
 
 
@@ -193,3 +198,12 @@ def test_distort_with_keys_and_an_unknown_interpolation():
     for f in (distort, undistort):
         with pytest.raises(InputRangeError, match="interpolation.*nearest, linear, keys, lanczos3, bspline"):
             f(img, lens, g, distortion=table, interpolation="bicubic")
+
+
+def test_the_warp_modules_do_not_import_scipy():
+    # Blender's Python has numpy but no scipy
+    code = ("import sys, dcdi_core.render.resample, dcdi_core.render.resample_accuracy, "
+            "dcdi_core.render.distortion; print(sorted(m for m in sys.modules if m.startswith('scipy')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         cwd=Path(__file__).resolve().parents[1])      # this checkout's dcdi_core
+    assert out.stdout.strip() == "[]"
