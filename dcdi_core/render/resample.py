@@ -101,12 +101,12 @@ def _bspline_weights(t):
             t3 / 6.0]
 
 
-# name: (offset of the first tap from floor(position), weights)
+# name: (offset of the first tap from floor(position), number of taps, weights)
 _KERNELS = {
-    "linear": (0, _linear_weights),
-    "keys": (-1, _keys_weights),
-    "lanczos3": (-2, _lanczos3_weights),
-    "bspline": (-1, _bspline_weights),
+    "linear": (0, 2, _linear_weights),
+    "keys": (-1, 4, _keys_weights),
+    "lanczos3": (-2, 6, _lanczos3_weights),
+    "bspline": (-1, 4, _bspline_weights),
 }
 
 
@@ -166,11 +166,11 @@ def _prefilter(planes: np.ndarray) -> np.ndarray:
 def _axis_taps(pos, size, method, pad):
     """Grid indices and float32 weights of the taps along one axis of
     ``size`` samples; ``pad`` extra grid entries lie before the first sample."""
-    first, weights = _KERNELS[method]
+    first, n_taps, weights = _KERNELS[method]
     p = np.clip(pos, 0.0, size - 1.0)
     i0 = np.minimum(np.floor(p).astype(np.intp), size - 1)
     w = weights(p - i0)
-    idx = [np.clip(i0 + (first + k + pad), 0, size + 2 * pad - 1) for k in range(len(w))]
+    idx = [np.clip(i0 + (first + k + pad), 0, size + 2 * pad - 1) for k in range(n_taps)]
     return idx, [np.asarray(wk, np.float32) for wk in w]
 
 
@@ -258,7 +258,7 @@ def sample(img, y, x, method: str = "linear") -> np.ndarray:
     else:
         grid = np.ascontiguousarray(planes, dtype=np.float32)
     yf, xf = y.reshape(-1), x.reshape(-1)
-    n_taps = 1 if method == "nearest" else len(_KERNELS[method][1](np.zeros(1)))
+    n_taps = 1 if method == "nearest" else _KERNELS[method][1]
     # per position: three float32 accumulators per channel, and per axis and
     # tap an index and a weight, plus float64 scratch for positions and weights
     per_position = 12 * ch + 2 * n_taps * (8 + 4 + 8) + 64
