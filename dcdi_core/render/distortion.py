@@ -29,6 +29,7 @@ from ..optics.aiming import aim_chief, chief_ray_sensor_y, solve_field
 from ..optics.errors import InputRangeError, OpticsError
 from ..optics.paraxial import paraxial_image_height_mm
 from .geometry import ImageGeometry
+from .resample import METHODS, sample
 
 # largest field angle the fallback search considers (degrees)
 _MAX_ANGLE_DEG = 89.0
@@ -204,30 +205,13 @@ def _check_image(image, geometry: ImageGeometry, name: str) -> np.ndarray:
     return img
 
 
-def _bilinear(img: np.ndarray, y: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """Bilinear samples of img (H, W[, C]) at fractional pixel positions (y, x),
-    clamped to the pixel-centre grid; float32."""
-    h, w = img.shape[:2]
-    y = np.clip(y, 0.0, h - 1.0)
-    x = np.clip(x, 0.0, w - 1.0)
-    i0 = np.minimum(np.floor(y).astype(np.intp), h - 1)
-    j0 = np.minimum(np.floor(x).astype(np.intp), w - 1)
-    i1 = np.minimum(i0 + 1, h - 1)
-    j1 = np.minimum(j0 + 1, w - 1)
-    wy = (y - i0).astype(np.float32)
-    wx = (x - j0).astype(np.float32)
-    if img.ndim == 3:
-        wy, wx = wy[..., None], wx[..., None]
-    src = img.astype(np.float32, copy=False)
-    top = src[i0, j0] * (1.0 - wx) + src[i0, j1] * wx
-    bottom = src[i1, j0] * (1.0 - wx) + src[i1, j1] * wx
-    return top * (1.0 - wy) + bottom * wy
-
-
 def _warp(image, geometry: ImageGeometry, source_geometry: ImageGeometry, source_radius, what: str,
-          reach_mm: float, table_name: str):
+          reach_mm: float, table_name: str, interpolation: str = "linear"):
     """Output pixel at sensor radius r (output geometry) shows the input at
-    radius source_radius(r) (input geometry), same azimuth."""
+    radius source_radius(r) (input geometry), same azimuth, sampled with
+    ``resample.sample(..., method=interpolation)``."""
+    if interpolation not in METHODS:
+        raise InputRangeError("interpolation", interpolation, "one of " + ", ".join(METHODS))
     img = _check_image(image, source_geometry, "image")
     rows = np.arange(geometry.height, dtype=np.float64)[:, None]
     cols = np.arange(geometry.width, dtype=np.float64)[None, :]
@@ -248,17 +232,20 @@ def _warp(image, geometry: ImageGeometry, source_geometry: ImageGeometry, source
     # pixel beyond the outer pixel centres, where the edge pixel is repeated)
     valid = ((y >= -0.5) & (y <= source_geometry.height - 0.5)
              & (x >= -0.5) & (x <= source_geometry.width - 0.5))
-    out = _bilinear(img, y, x)
+    out = sample(img, y, x, interpolation)
     out *= (valid[..., None] if out.ndim == 3 else valid).astype(np.float32)
     return out, valid
 
 
 def distort(image, lens, geometry: ImageGeometry, *, distortion: RadialDistortion | None = None,
-            source_geometry: ImageGeometry | None = None, return_mask: bool = False):
+            source_geometry: ImageGeometry | None = None, return_mask: bool = False,
+            interpolation: str = "linear"):
     """Warp an ideal (pinhole, all-in-focus) image into what the lens records.
 
     The output pixel at sensor radius r (mm) shows the input at ideal radius
-    ``ideal_from_real(r)``, same azimuth, sampled bilinearly. ``image``
+    ``ideal_from_real(r)``, same azimuth, sampled with ``interpolation``
+    (one of ``resample.METHODS``: "nearest" for depth maps, "linear",
+    "keys", "lanczos3", "bspline"; see :mod:`.resample`). ``image``
     (H, W) or (H, W, C); output float32 of the same shape. Output pixels whose
     source falls outside the input are 0 (black): with barrel distortion
     the corners need content from beyond the ideal image's frame. To avoid
@@ -270,17 +257,20 @@ def distort(image, lens, geometry: ImageGeometry, *, distortion: RadialDistortio
     pixel's source lies inside the input."""
     d = distortion or radial_distortion(lens)
     src = source_geometry or geometry
-    out, valid = _warp(image, geometry, src, d.ideal_from_real, "distort()", d.reach_real_mm, "real-height")
+    out, valid = _warp(image, geometry, src, d.ideal_from_real, "distort()", d.reach_real_mm, "real-height",
+                       interpolation)
     return (out, valid) if return_mask else out
 
 
 def undistort(image, lens, geometry: ImageGeometry, *, distortion: RadialDistortion | None = None,
-              source_geometry: ImageGeometry | None = None, return_mask: bool = False):
+              source_geometry: ImageGeometry | None = None, return_mask: bool = False,
+              interpolation: str = "linear"):
     """The inverse of :func:`distort`: a recorded image back to the ideal
     (pinhole) geometry. The output pixel at ideal radius r (mm) shows the
     input at real radius ``real_from_ideal(r)``. Arguments as :func:`distort`
     (``source_geometry``: the recorded image's geometry if it differs)."""
     d = distortion or radial_distortion(lens)
     src = source_geometry or geometry
-    out, valid = _warp(image, geometry, src, d.real_from_ideal, "undistort()", d.reach_ideal_mm, "ideal-height")
+    out, valid = _warp(image, geometry, src, d.real_from_ideal, "undistort()", d.reach_ideal_mm, "ideal-height",
+                       interpolation)
     return (out, valid) if return_mask else out
