@@ -233,58 +233,13 @@ def render_rgbd(recipe: str, lens, seed: int, height: int, width: int, render: R
     return img, depth_from_planar_z(z, pinhole.entrance_pupil_mm)
 
 
-class LensSimulator:
-    """Everything about one lens that does not change between samples, built
-    once per run: the image geometry, the PSF library, the distortion table
-    and the depth-unaware baseline's PSF map (one depth for every patch, so
-    the same kernels for every sample).
-
-    ``__call__`` gives the same arrays as two calls of
-    ``dcdi_core.render.simulate.simulate`` (depth-aware, and with
-    ``fixed_depth_m``) do: the same PSF maps and patch-wise convolutions, and
-    the same distortion warp, done once on the three images stacked along the
-    channel axis (the warp is per channel, so stacking changes no value)
-    instead of four times. tests/test_factory.py checks the equality."""
-
-    def __init__(self, lens, height: int, width: int, settings, baseline_depth_m: float, patch: int = 16):
-        from dcdi_core.render.distortion import radial_distortion
-        from dcdi_core.render.geometry import ImageGeometry
-        from dcdi_core.render.psfmap import psf_map
-        from dcdi_core.render.simulate import open_library
-
-        if not (math.isfinite(baseline_depth_m) and baseline_depth_m > 0):
-            raise ValueError(f"--baseline-depth must be a finite depth > 0 m, got {baseline_depth_m}")
-        self.lens, self.patch = lens, patch
-        self.geometry = ImageGeometry.full_sensor(lens, height, width)
-        self.library = open_library(lens, self.geometry, settings)
-        self.table = radial_distortion(lens)
-        self.baseline_depth_m = baseline_depth_m
-        self.baseline = psf_map(self.library, self.geometry, np.ones((height, width)), patch,
-                                fixed_depth_m=baseline_depth_m)
-
-    def __call__(self, image: np.ndarray, depth: np.ndarray):
-        """(aberrated, baseline, sharp) float32 (H, W, 3) linear, all distorted
-        alike, and the depth-aware map's info dict."""
-        from dcdi_core.render.convolve import patch_convolve
-        from dcdi_core.render.distortion import distort
-        from dcdi_core.render.psfmap import psf_map
-
-        img = np.asarray(image, dtype=np.float32)
-        pm = psf_map(self.library, self.geometry, np.asarray(depth, dtype=np.float64), self.patch)
-        aware = patch_convolve(img, pm.kernels, self.patch, identity=pm.identity)
-        plain = patch_convolve(img, self.baseline.kernels, self.patch, identity=self.baseline.identity)
-        stacked = distort(np.concatenate([aware, plain, img], axis=-1), self.lens, self.geometry,
-                          distortion=self.table)
-        info = dict(pm.info, depth_aware=True, baseline_depth_m=self.baseline_depth_m)
-        return (np.ascontiguousarray(stacked[..., 0:3]), np.ascontiguousarray(stacked[..., 3:6]),
-                np.ascontiguousarray(stacked[..., 6:9]), info)
-
-
 def run(argv=None) -> int:
     a = parse(sys.argv[sys.argv.index("--") + 1:] if argv is None and "--" in sys.argv else argv)
     from dcdi_core.io.images import write_depth, write_image
     from dcdi_core.optics.lens import load_lens
     from dcdi_core.psf.compute import PSFSettings
+    from dcdi_core.render.geometry import ImageGeometry
+    from dcdi_core.render.simulate import LensSimulator
 
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -317,10 +272,12 @@ def run(argv=None) -> int:
         for lens in lenses:
             t1 = time.perf_counter()
             if lens.id not in sims:
-                sims[lens.id] = LensSimulator(lens, h, w, settings, a.baseline_depth)
+                sims[lens.id] = LensSimulator(lens, ImageGeometry.full_sensor(lens, h, w), settings=settings,
+                                              baseline_depth_m=a.baseline_depth)
                 stages["setup"] = stages.get("setup", 0.0) + time.perf_counter() - t1
             t2, c2 = time.perf_counter(), _cpu_s()
-            aberrated, baseline, sharp, info = sims[lens.id](img, depth)
+            r = sims[lens.id](img, depth)
+            aberrated, baseline, sharp, info = r.image, r.baseline, r.sharp, r.info
             t3 = time.perf_counter()
             stages["cpu_simulate"] = stages.get("cpu_simulate", 0.0) + _cpu_s() - c2
             write_image(out / lens.id / "aberrated" / f"{sid}.exr", aberrated)

@@ -30,6 +30,13 @@ def _depth(text: str) -> float:
     return v
 
 
+def _focus(text: str):
+    """A focus distance in metres, 'inf', or 'prescribed' (the lens as its prescription stands)."""
+    if text.strip().lower() == "prescribed":
+        return "prescribed"
+    return _depth(text)
+
+
 def _positive_int(text: str) -> int:
     v = int(text)
     if v < 1:
@@ -110,14 +117,19 @@ def cmd_spot(args) -> int:
     return 0
 
 
-def _psf_settings(args):
+def _psf_settings(args, *, focus: bool = True):
+    """PSF settings from the common options; ``focus``: read --focus as the
+    sensor's focus (bokeh's --focus means more and is read there)."""
     from .psf.compute import PSFSettings
     base = PSFSettings()
+    sigma = getattr(args, "deposit_sigma", None)
     return PSFSettings(kernel_size=args.kernel or base.kernel_size,
                        pupil_samples=args.rays or base.pupil_samples,
                        n_wavelengths=args.wavelengths or base.n_wavelengths,
                        precision=args.precision or base.precision,
-                       pixel_pitch_mm=args.pixel_pitch, focus_distance_m=getattr(args, "focus", None))
+                       deposit_sigma_px=base.deposit_sigma_px if sigma is None else sigma,
+                       pixel_pitch_mm=args.pixel_pitch,
+                       focus_distance_m=getattr(args, "focus", None) if focus else None)
 
 
 def _response(args):
@@ -217,29 +229,88 @@ def _read_rgbd(args):
     return img, depth
 
 
-def _geometry(args, lens, img):
+def _image_pitch(args):
+    """The image's pixel pitch (mm) from --image-pixel-pitch or --pixel-pitch
+    (the same thing here: PSFs are sampled at the image's pitch)."""
+    from .optics.errors import InputRangeError
+    a, b = args.image_pixel_pitch, args.pixel_pitch
+    if a is not None and b is not None and a != b:
+        raise InputRangeError("--pixel-pitch", b, f"--image-pixel-pitch's {a} mm, or leave one out (the PSFs of "
+                              "an image are sampled at its own pitch)")
+    pitch = a if a is not None else b
+    if pitch is not None and not (pitch > 0 and math.isfinite(pitch)):
+        raise InputRangeError("--image-pixel-pitch", pitch, "a pixel pitch > 0 mm")
+    return pitch
+
+
+def _geometries(args, lens, shape):
+    """(sensor geometry, source geometry or None) from --image-pixel-pitch,
+    --sensor-size and --axis; checked before any work."""
+    from .optics.errors import InputRangeError
     from .render.geometry import ImageGeometry
-    if args.image_pixel_pitch:
-        return ImageGeometry.from_pixel_pitch(lens, img.shape[0], img.shape[1], args.image_pixel_pitch)
-    return ImageGeometry.full_sensor(lens, img.shape[0], img.shape[1])
+    from .render.simulate import check_within_sensor
+    h, w = shape
+    pitch = _image_pitch(args)
+    axis = tuple(args.axis) if args.axis else None
+    if axis is not None and not (-0.5 <= axis[0] <= h - 0.5 and -0.5 <= axis[1] <= w - 0.5):
+        raise InputRangeError("--axis", axis, f"a pixel position (row, col) inside the {h} x {w} image")
+    if args.sensor_size is None:
+        if pitch is None:
+            if axis is not None:
+                raise InputRangeError("--axis", axis, "only with --image-pixel-pitch or --sensor-size (without "
+                                      "them the image spans the sensor's diagonal about its centre)")
+            return ImageGeometry.full_sensor(lens, h, w), None
+        geom = ImageGeometry.from_pixel_pitch(lens, h, w, pitch, center_px=axis)
+        check_within_sensor(geom, f"the image {args.image}")
+        return geom, None
+    rows, cols = args.sensor_size
+    if pitch is None:        # the sensor's frame spans the lens's sensor diagonal
+        pitch = ImageGeometry.full_sensor(lens, rows, cols).pixel_pitch_mm
+    sensor = ImageGeometry.from_pixel_pitch(lens, rows, cols, pitch)
+    check_within_sensor(sensor, "--sensor-size")
+    source = ImageGeometry.from_pixel_pitch(lens, h, w, pitch, center_px=axis)
+    return sensor, source
+
+
+def _render_inputs(args):
+    """Everything simulate and bokeh check before any work: the lens, the
+    output paths, the response file, the images and the geometry."""
+    from .io.images import check_image_output
+    from .optics.lens import load_lens
+    lens = load_lens(args.lens)
+    for path in (args.output, getattr(args, "sharp_out", None)):
+        if path:
+            check_image_output(path)
+    from dataclasses import replace
+    settings = replace(_psf_settings(args, focus=args.command != "bokeh"), pixel_pitch_mm=None,
+                       wavelength_nm=args.wavelength)
+    response = _response(args)
+    img, depth = _read_rgbd(args)
+    geom, source = _geometries(args, lens, img.shape[:2])
+    from .render.simulate import check_patch
+    check_patch(args.patch)
+    from .render.distortion import check_interpolation
+    check_interpolation(args.interpolation)
+    return lens, settings, response, img, depth, geom, source
 
 
 def cmd_simulate(args) -> int:
     from .io.images import write_image
-    from .optics.lens import load_lens
-    from .render.simulate import open_library, simulate
-    lens = load_lens(args.lens)
+    from .render.simulate import LensSimulator
+    lens, settings, response, img, depth, geom, source = _render_inputs(args)
     record = None
     if args.perturb is not None:
         from .optics.perturb import perturb_lens
         lens, record = perturb_lens(lens, seed=args.perturb, fraction=args.perturb_fraction)
-    img, depth = _read_rgbd(args)
-    geom = _geometry(args, lens, img)
-    # without --kernel, the kernel grows to hold the PSFs this depth map needs
-    lib = open_library(lens, geom, _psf_settings(args), fit_depth_m=None if args.kernel else depth)
     noise = {"full_well_electrons": args.full_well, "read_noise_electrons": args.read_noise} if args.noise else None
-    r = simulate(img, depth, lens, geometry=geom, patch=args.patch, library=lib,
-                 fixed_depth_m=args.fixed_depth, distortion=not args.no_distortion, noise=noise, seed=args.seed)
+    if noise is not None and args.seed is None:
+        from .optics.errors import InputRangeError
+        raise InputRangeError("--seed", None, "an integer: --noise needs an explicit seed")
+    # without --kernel, the kernel grows to hold the PSFs this depth map needs
+    sim = LensSimulator(lens, geom, source_geometry=source, settings=settings,
+                        response=response, patch=args.patch, distortion=not args.no_distortion,
+                        interpolation=args.interpolation, fit_depth_m=None if args.kernel else depth)
+    r = sim(img, depth, fixed_depth_m=args.fixed_depth, noise=noise, seed=args.seed)
     write_image(args.output, r.image)
     if args.sharp_out:
         write_image(args.sharp_out, r.sharp)
@@ -249,20 +320,19 @@ def cmd_simulate(args) -> int:
 
 def cmd_bokeh(args) -> int:
     from .io.images import write_image
-    from .optics.lens import load_lens
-    from .render.simulate import bokeh, open_library
-    lens = load_lens(args.lens)
-    img, depth = _read_rgbd(args)
-    geom = _geometry(args, lens, img)
-    settings = _psf_settings(args)
-    lib = open_library(lens, geom, settings, fit_depth_m=None if args.kernel else depth)
-    r = bokeh(img, depth, lens, keep=tuple(args.keep) if args.keep else None, focus_m=args.focus,
-              geometry=geom, patch=args.patch, occlusion=not args.plain, library=lib)
+    from .render.simulate import bokeh
+    lens, settings, response, img, depth, geom, source = _render_inputs(args)
+    keep = tuple(args.keep) if args.keep else None
+    r = bokeh(img, depth, lens, keep=keep, focus_m=args.focus, geometry=geom, source_geometry=source,
+              distortion=args.distort, interpolation=args.interpolation, patch=args.patch,
+              occlusion=not args.plain, settings=settings, response=response, fit_kernel=not args.kernel)
     write_image(args.output, r.image)
     if args.side_by_side:
         from .render.pictures import side_by_side
-        side_by_side(args.side_by_side, img, depth, r.image, f"{lens.name}: " + (
-            f"keep {args.keep[0]:g}-{args.keep[1]:g} m" if args.keep else f"focus {args.focus:g} m"))
+        what = (f"keep {keep[0]:g}-{keep[1]:g} m" if keep else
+                "as prescribed" if args.focus == "prescribed" else f"focus {args.focus:g} m")
+        side_by_side(args.side_by_side, img if r.sharp is None else r.sharp,
+                     depth if r.depth is None else r.depth, r.image, f"{lens.name}: {what}")
     print(_dump({"output": args.output, **r.info}))
     return 0
 
@@ -325,11 +395,15 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--json", action="store_true", help="print JSON")
     q.set_defaults(func=cmd_spot)
 
-    def psf_options(q, focus=True):
+    def psf_options(q, focus=True, render=False):
         from .psf.compute import PSFSettings
         d = PSFSettings()
+        grows = "; without this option it grows to hold the depth map's blur, up to 129" if render else ""
         q.add_argument("--kernel", type=_positive_int, default=None, metavar="K",
-                       help=f"kernel size K x K px, odd (default {d.kernel_size})")
+                       help=f"kernel size K x K px, odd (default {d.kernel_size}{grows})")
+        q.add_argument("--deposit-sigma", type=float, default=None, metavar="PX",
+                       help=f"Gaussian spread of each ray in pixels on top of the pixel it lands in (default "
+                            f"{d.deposit_sigma_px:g}: what a sensor records; the paper's 0.471 blurs)")
         q.add_argument("--rays", type=_positive_int, default=None, metavar="N",
                        help=f"pupil grid N x N over the real stop (default {d.pupil_samples})")
         q.add_argument("--wavelengths", type=_positive_int, default=None, metavar="W",
@@ -381,6 +455,9 @@ def build_parser() -> argparse.ArgumentParser:
     psf_options(s_)
     s_.set_defaults(func=cmd_psflib_show)
 
+    from .render.distortion import INTERPOLATIONS
+    from .render.simulate import DEFAULT_INTERPOLATION
+
     def rgbd_options(q):
         q.add_argument("--image", required=True, help="all-in-focus image (EXR linear, or PNG/JPEG sRGB)")
         q.add_argument("--depth", required=True, help="metric depth map (EXR, metres from the lens; NaN/0/<0 invalid)")
@@ -389,7 +466,17 @@ def build_parser() -> argparse.ArgumentParser:
         q.add_argument("--patch", type=_positive_int, default=16, help="patch size m in pixels (default 16)")
         q.add_argument("--image-pixel-pitch", type=float, default=None, metavar="MM",
                        help="size of one image pixel on the sensor (default: the image spans the sensor diagonal)")
-        psf_options(q, focus=q.prog.split()[-1] != "bokeh")
+        q.add_argument("--sensor-size", type=_positive_int, nargs=2, default=None, metavar=("ROWS", "COLS"),
+                       help="the sensor's frame in image pixels, centred on the optical axis, when the image is "
+                            "larger (an over-scan render); the output has this size (default: the whole image)")
+        q.add_argument("--axis", type=float, nargs=2, default=None, metavar=("ROW", "COL"),
+                       help="the optical axis's pixel position in the image (default: its centre)")
+        q.add_argument("--wavelength", type=float, default=None, metavar="NM",
+                       help="one wavelength for all three channels (monochrome, narrow-band); default: the "
+                            "visible band weighted by the sensor's response")
+        q.add_argument("--interpolation", default=DEFAULT_INTERPOLATION, choices=INTERPOLATIONS,
+                       help=f"how the distortion warp resamples the image (default {DEFAULT_INTERPOLATION})")
+        psf_options(q, focus=q.prog.split()[-1] != "bokeh", render=True)
 
     q = sub.add_parser("simulate", help="depth-aware aberration simulation of an all-in-focus RGB-D image",
                        description="Patch-wise depth-aware PSF convolution, lens distortion, optional noise. " + UNITS)
@@ -413,7 +500,10 @@ def build_parser() -> argparse.ArgumentParser:
     rgbd_options(q)
     g = q.add_mutually_exclusive_group(required=True)
     g.add_argument("--keep", type=float, nargs=2, metavar=("NEAR", "FAR"), help="depth range kept sharp, metres")
-    g.add_argument("--focus", type=_depth, metavar="D", help="focus the lens at D metres")
+    g.add_argument("--focus", type=_focus, metavar="D",
+                   help="focus the lens at D metres, or 'prescribed': the lens as its prescription stands "
+                        "(full physical defocus everywhere)")
+    q.add_argument("--distort", action="store_true", help="also apply the lens's distortion (before the blur)")
     q.add_argument("--plain", action="store_true", help="plain patch-wise blur instead of occlusion-aware layers")
     q.add_argument("--side-by-side", default=None, metavar="PNG", help="also write input | depth | result")
     q.set_defaults(func=cmd_bokeh)

@@ -87,23 +87,25 @@ def test_render_noise_table_runs(capsys):
 
 
 def test_lens_simulator_equals_two_simulate_calls():
-    # the factory's shared-work simulation must stay byte-equal to simulate() (depth-aware and baseline)
+    # the simulator built once per lens (the factory's) must stay byte-equal to simulate() (depth-aware and baseline)
     from dcdi_core.optics.lens import load_lens
     from dcdi_core.psf.compute import PSFSettings
-    from dcdi_core.render.simulate import simulate
+    from dcdi_core.render.geometry import ImageGeometry
+    from dcdi_core.render.simulate import LensSimulator, simulate
 
     lens = load_lens("mos-s1")
     rng = np.random.default_rng(3)
     img = rng.uniform(0, 1, (40, 56, 3)).astype(np.float32)
     depth = rng.uniform(0.7, 12.0, (40, 56)).astype(np.float32)
     depth[:8, :8] = np.inf
-    sim = factory.LensSimulator(lens, 40, 56, PSFSettings(pupil_samples=12, n_wavelengths=3), 2.0)
-    aberrated, baseline, sharp, info = sim(img, depth)
+    geom = ImageGeometry.full_sensor(lens, 40, 56)
+    sim = LensSimulator(lens, geom, settings=PSFSettings(pupil_samples=12, n_wavelengths=3), baseline_depth_m=2.0)
+    r = sim(img, depth)
     aware = simulate(img, depth, lens, geometry=sim.geometry, library=sim.library)
     plain = simulate(img, depth, lens, geometry=sim.geometry, library=sim.library, fixed_depth_m=2.0)
-    assert np.array_equal(aberrated, aware.image) and np.array_equal(sharp, aware.sharp)
-    assert np.array_equal(baseline, plain.image)
-    assert info["patches"] == aware.info["patches"]
+    assert np.array_equal(r.image, aware.image) and np.array_equal(r.sharp, aware.sharp)
+    assert np.array_equal(r.baseline, plain.image)
+    assert r.info["patches"] == aware.info["patches"]
 
 
 def test_render_settings_refuse_bad_values():

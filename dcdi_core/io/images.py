@@ -455,6 +455,16 @@ def _write(path: Path, fmt, pixels, typename, channelnames, attributes):
             raise ImageFileError(path, f"cannot be written ({err or out.geterror() or 'write failed'})")
 
 
+def check_image_output(path) -> Path:
+    """Refuse, before any work, an output path whose extension cannot be
+    written (the same rule as :func:`write_image`)."""
+    path = Path(path)
+    if path.suffix.lower() not in _WRITE_FORMATS:
+        raise ImageFileError(path, f"cannot write images with extension '{path.suffix}'; allowed: "
+                                   f"{', '.join(_WRITE_FORMATS)}")
+    return path
+
+
 def write_image(path, image, *, bit_depth=None) -> None:
     """Write a linear-light image, the format chosen by the extension.
 
@@ -465,12 +475,8 @@ def write_image(path, image, *, bit_depth=None) -> None:
     anywhere raises :class:`ImageFileError` and writes nothing. Missing folders
     are created; the file appears only once completely written.
     """
-    path = Path(path)
+    path = check_image_output(path)
     ext = path.suffix.lower()
-    if ext not in _WRITE_FORMATS:
-        raise ImageFileError(
-            path, f"cannot write images with extension '{path.suffix}'; allowed: "
-                  f"{', '.join(_WRITE_FORMATS)}")
     fmt, allowed, default = _WRITE_FORMATS[ext]
     bits = default if bit_depth is None else bit_depth
     if bits not in allowed:

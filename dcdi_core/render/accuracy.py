@@ -65,6 +65,133 @@ def per_pixel_reference(img, depth, library, geometry, chunk: int = 1024) -> np.
     return out.reshape(h, w, 3)
 
 
+class SmoothScene:
+    """An analytic, band-limited RGB-D scene on the ideal (pinhole) image
+    plane, for references that must not depend on any resampling: colour
+    and depth at any sensor position (mm from the axis). Colour: sinusoids
+    of periods 4-24 px and soft-edged bright discs, in [0, 1]; depth: a
+    ramp in inverse depth from ``near_m`` to ``far_m`` along x, smooth."""
+
+    def __init__(self, pitch_mm: float, span_mm: tuple[float, float, float, float], seed: int = 0,
+                 near_m: float = 0.8, far_m: float = 8.0):
+        rng = np.random.default_rng(seed)
+        self.pitch = pitch_mm
+        self.y0, self.y1, self.x0, self.x1 = span_mm
+        n = 6
+        period = rng.uniform(4.0, 24.0, n) * pitch_mm
+        angle = rng.uniform(0, math.pi, n)
+        self.k = np.stack([np.sin(angle), np.cos(angle)], -1) * (2 * math.pi / period)[:, None]   # (n, 2) rad/mm
+        self.phase = rng.uniform(0, 2 * math.pi, n)
+        self.amp = rng.uniform(0.2, 1.0, (n, 3)) / n
+        self.discs = [(rng.uniform(self.y0, self.y1), rng.uniform(self.x0, self.x1),
+                       rng.uniform(3, 8) * pitch_mm, rng.uniform(0.5, 1.0, 3)) for _ in range(4)]
+        self.near, self.far = near_m, far_m
+
+    def colour(self, y_mm, x_mm) -> np.ndarray:
+        y, x = np.asarray(y_mm, np.float64), np.asarray(x_mm, np.float64)
+        arg = y[..., None] * self.k[:, 0] + x[..., None] * self.k[:, 1] + self.phase       # (..., n)
+        c = 0.45 + 0.5 * np.sin(arg) @ self.amp                                             # (..., 3)
+        for cy, cx, r, col in self.discs:     # soft edge, 1.5 px wide: band-limited enough to sample
+            t = 0.5 * (1 - np.tanh((np.hypot(y - cy, x - cx) - r) / (1.5 * self.pitch)))
+            c = c * (1 - 0.6 * t[..., None]) + 0.6 * t[..., None] * col
+        return c
+
+    def depth(self, y_mm, x_mm) -> np.ndarray:
+        x = np.asarray(x_mm, np.float64)
+        u = np.clip((x - self.x0) / max(self.x1 - self.x0, 1e-9), 0.0, 1.0) + 0.0 * np.asarray(y_mm)
+        return 1.0 / (1.0 / self.near + u * (1.0 / self.far - 1.0 / self.near))
+
+    def on_grid(self, geometry):
+        """(image (H, W, 3) float32, depth (H, W) float32) sampled at the pixel centres of ``geometry``."""
+        rows = np.arange(geometry.height, dtype=np.float64)[:, None]
+        cols = np.arange(geometry.width, dtype=np.float64)[None, :]
+        y = (rows - geometry.center_px[0]) * geometry.pixel_pitch_mm + 0.0 * cols
+        x = (cols - geometry.center_px[1]) * geometry.pixel_pitch_mm + 0.0 * rows
+        return self.colour(y, x).astype(np.float32), self.depth(y, x).astype(np.float32)
+
+
+def distorted_reference(scene: SmoothScene, library, geometry, table, chunk: int = 512) -> np.ndarray:
+    """What the sensor records, pixel by pixel, independently of any warp or
+    patch: output pixel i (real position x_i on ``geometry``) is
+    sum_t K_i(t) A(ideal(x_i - t)), where K_i is the PSF of x_i's own real
+    field, azimuth and depth (the depth of the scene point imaged there),
+    t runs over the kernel's pixels, and the sharp image A is evaluated
+    exactly at the ideal position that the distortion ``table`` maps to
+    the real position x_i - t."""
+    h, w = geometry.height, geometry.width
+    k = library.kernel_size
+    r = k // 2
+    pitch = geometry.pixel_pitch_mm
+    rows, cols = np.mgrid[0:h, 0:w]
+    rows, cols = rows.ravel(), cols.ravel()
+    ry = (rows - geometry.center_px[0]) * pitch
+    rx = (cols - geometry.center_px[1]) * pitch
+
+    def ideal(yy, xx):
+        rr = np.hypot(yy, xx)
+        scale = np.where(rr > 0, table.ideal_from_real(rr) / np.where(rr > 0, rr, 1.0), 1.0)
+        return yy * scale, xx * scale
+
+    iy, ix = ideal(ry, rx)
+    d = scene.depth(iy, ix)
+    d = np.where(d >= library.grid.far_m, np.inf, np.maximum(d, library.grid.near_m))
+    field = np.minimum(geometry.field(rows, cols), 1.0)
+    vec = np.stack([rows - geometry.center_px[0], cols - geometry.center_px[1]], -1).astype(np.float64)
+    norm = np.hypot(vec[:, 0], vec[:, 1])
+    outward = np.where(norm[:, None] > 1e-9, vec / np.maximum(norm, 1e-12)[:, None], [1.0, 0.0])
+    ty, tx = np.meshgrid(np.arange(k) - r, np.arange(k) - r, indexing="ij")
+    out = np.empty((h * w, 3), np.float32)
+    for s in range(0, h * w, chunk):
+        sl = slice(s, min(s + chunk, h * w))
+        kern = rotate_radial_kernels(library.at(field[sl], d[sl]), outward[sl])     # (n, 3, k, k)
+        sy = ry[sl, None, None] - ty * pitch
+        sx = rx[sl, None, None] - tx * pitch
+        a = scene.colour(*ideal(sy, sx))                                              # (n, k, k, 3)
+        out[sl] = np.einsum("nckl,nklc->nc", kern, a)
+    return out.reshape(h, w, 3)
+
+
+def distortion_case(lens, h: int, w: int, field_centre: float = 0.75):
+    """A crop of h x w pixels at the lens's own pixel pitch centred at
+    ``field_centre`` on the diagonal (where distortion squeezes the PSFs),
+    and an over-scan source frame covering every ideal position its pixels
+    and kernels need: (geometry, source_geometry, table, scene)."""
+    from .distortion import radial_distortion
+
+    pitch = lens.sensor.pixel_pitch_mm or 0.0122
+    sd = lens.sensor.semi_diagonal_mm
+    off = field_centre * sd / pitch / math.sqrt(2)
+    geom = ImageGeometry.from_pixel_pitch(lens, h, w, pitch, center_px=((h - 1) / 2 + off, (w - 1) / 2 + off))
+    table = radial_distortion(lens)
+    # the ideal positions of the crop's corners, with a margin for the kernels and the warp's taps
+    margin = 48
+    ys = np.array([-margin, h - 1 + margin], float) - geom.center_px[0]
+    xs = np.array([-margin, w - 1 + margin], float) - geom.center_px[1]
+    yy, xx = np.meshgrid(ys * pitch, xs * pitch, indexing="ij")
+    rr = np.hypot(yy, xx)
+    scale = table.ideal_from_real(rr) / rr
+    iy, ix = (yy * scale).ravel() / pitch, (xx * scale).ravel() / pitch
+    lo_y, hi_y = math.floor(min(iy.min(), ys.min())), math.ceil(max(iy.max(), ys.max()))
+    lo_x, hi_x = math.floor(min(ix.min(), xs.min())), math.ceil(max(ix.max(), xs.max()))
+    src = ImageGeometry.from_pixel_pitch(lens, hi_y - lo_y + 1, hi_x - lo_x + 1, pitch,
+                                         center_px=(float(-lo_y), float(-lo_x)))
+    span = (lo_y * pitch, hi_y * pitch, lo_x * pitch, hi_x * pitch)
+    return geom, src, table, SmoothScene(pitch, span, seed=1)
+
+
+def blur_then_warp(img, depth, lens, library, geometry, source_geometry, table, patch=16,
+                   interpolation="linear"):
+    """The former order: PSFs looked up at the pinhole positions, the
+    distortion warp afterwards (which squeezes each blur by the local
+    stretch of the distortion)."""
+    from .distortion import distort
+
+    pm = psf_map(library, source_geometry, depth, patch)
+    blurred = patch_convolve(img, pm.kernels, patch, identity=pm.identity)
+    return distort(blurred, lens, geometry, distortion=table, source_geometry=source_geometry,
+                   interpolation=interpolation)
+
+
 def _edge_band(depth, width: int = 6):
     """Pixels within ``width`` of a depth edge (ratio > 1.5 between neighbours)."""
     inv = np.where(depth > 0, 1.0 / np.maximum(depth, 1e-9), 0.0)

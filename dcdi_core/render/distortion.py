@@ -31,6 +31,17 @@ from ..optics.paraxial import paraxial_image_height_mm
 from .geometry import ImageGeometry
 from .resample import METHODS, sample
 
+# what a warp may resample an image with (resample.METHODS)
+INTERPOLATIONS = METHODS
+
+
+def check_interpolation(name: str) -> str:
+    """The interpolation's name if it is one of INTERPOLATIONS, else InputRangeError."""
+    if name not in INTERPOLATIONS:
+        raise InputRangeError("interpolation", name, "one of " + ", ".join(INTERPOLATIONS))
+    return name
+
+
 # largest field angle the fallback search considers (degrees)
 _MAX_ANGLE_DEG = 89.0
 
@@ -210,8 +221,7 @@ def _warp(image, geometry: ImageGeometry, source_geometry: ImageGeometry, source
     """Output pixel at sensor radius r (output geometry) shows the input at
     radius source_radius(r) (input geometry), same azimuth, sampled with
     ``resample.sample(..., method=interpolation)``."""
-    if interpolation not in METHODS:
-        raise InputRangeError("interpolation", interpolation, "one of " + ", ".join(METHODS))
+    check_interpolation(interpolation)
     img = _check_image(image, source_geometry, "image")
     rows = np.arange(geometry.height, dtype=np.float64)[:, None]
     cols = np.arange(geometry.width, dtype=np.float64)[None, :]

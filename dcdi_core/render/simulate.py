@@ -39,11 +39,13 @@ class Cancelled(Exception):
 class RenderResult:
     image: np.ndarray                 # (H, W, 3) float32, linear
     info: dict = field(default_factory=dict)
-    sharp: np.ndarray | None = None   # simulate(): the sharp image, distorted alike
+    sharp: np.ndarray | None = None   # simulate(): the sharp image on the sensor (distorted alike)
     psf_map: PSFMap | None = None
+    baseline: np.ndarray | None = None  # LensSimulator with baseline_depth_m: the depth-unaware image
+    depth: np.ndarray | None = None   # the depth map on the sensor (NaN where nothing was imaged)
 
 
-def _check(image, depth):
+def _check(image, depth, geometry: ImageGeometry | None = None):
     img = np.asarray(image, dtype=np.float32)
     if img.ndim != 3 or img.shape[2] != 3:
         raise InputRangeError("image shape", img.shape, "(H, W, 3)")
@@ -52,17 +54,45 @@ def _check(image, depth):
     d = np.asarray(depth, dtype=np.float64)
     if d.shape != img.shape[:2]:
         raise InputRangeError("depth map shape", d.shape, f"{img.shape[:2]}, the image's")
+    if geometry is not None and img.shape[:2] != (geometry.height, geometry.width):
+        raise InputRangeError("image shape", img.shape[:2],
+                              f"({geometry.height}, {geometry.width}), as its geometry says")
     return img, d
 
 
 MAX_FITTED_KERNEL = 129      # px: beyond this a patch-wise FFT blur costs more than it is worth here
+# the warp's interpolation of the sharp image (report simulation-accuracy:
+# bilinear blurs by itself; Keys' cubic is within 0.1 dB of the best for a
+# third of its time)
+DEFAULT_INTERPOLATION = "keys"
+
+
+def check_patch(patch) -> int:
+    """The patch size m (pixels): even, >= 2 (the tent blend takes m / 2 from each side)."""
+    if isinstance(patch, bool) or not isinstance(patch, (int, np.integer)) or patch < 2 or patch % 2:
+        raise InputRangeError("patch", patch, "an even number of pixels >= 2 (16 is the paper's)")
+    return int(patch)
+
+
+def check_within_sensor(geometry: ImageGeometry, what: str = "the image") -> None:
+    """Refuse a frame whose corners lie beyond the sensor (field > 1), before any work."""
+    f = geometry.max_field
+    if f > 1.0 + 1e-9:
+        raise InputRangeError(
+            f"field of {what}'s corner", round(f, 6),
+            "<= 1 (the lens's sensor semi-diagonal): the frame is larger than the sensor; for an over-scan "
+            "render give the sensor's frame (--sensor-size ROWS COLS, and --axis ROW COL) or the image's "
+            "pixel pitch")
 
 
 def open_library(lens, geometry: ImageGeometry, settings: PSFSettings | None = None,
-                 grid: LibraryGrid | None = None, *, cache: bool = True, fit_depth_m=None,
+                 grid: LibraryGrid | None = None, *, response=None, cache: bool = True, fit_depth_m=None,
                  progress=None) -> PSFLibrary:
     """The lens's PSF library sampled at the image's pixel pitch.
 
+    settings.pixel_pitch_mm, if set, must be the geometry's (the PSFs of an
+    image are sampled at its own pitch). response: the sensor's spectral
+    response (default: the shipped one).
     fit_depth_m: a depth map (metres) whose depth bins are computed now; if
     their PSFs spill out of the settings' kernel (less than 99 % of the rays
     inside, as a fast lens's defocus blur at full resolution does), the
@@ -70,8 +100,12 @@ def open_library(lens, geometry: ImageGeometry, settings: PSFSettings | None = N
     MAX_FITTED_KERNEL px (beyond that the usual KernelTooSmallWarning says
     how much is clipped). Without it the kernel size is the settings'.
     progress(done, total): called as PSF bins are computed."""
-    s = replace(settings or PSFSettings(), pixel_pitch_mm=geometry.pixel_pitch_mm)
-    library = PSFLibrary.open(lens, s, grid, cache=cache)
+    s = settings or PSFSettings()
+    if s.pixel_pitch_mm is not None and not math.isclose(s.pixel_pitch_mm, geometry.pixel_pitch_mm, rel_tol=1e-9):
+        raise InputRangeError("pixel pitch", s.pixel_pitch_mm,
+                              f"{geometry.pixel_pitch_mm:.6g} mm, the image's own pixel pitch (give one, not two)")
+    s = replace(s, pixel_pitch_mm=geometry.pixel_pitch_mm)
+    library = PSFLibrary.open(lens, s, grid, response, cache=cache)
     if fit_depth_m is None:
         return library
     d = np.asarray(fit_depth_m, dtype=np.float64)
@@ -84,36 +118,154 @@ def open_library(lens, geometry: ImageGeometry, settings: PSFSettings | None = N
     need = int(library.kernel_size_needed[library.computed].max())
     if need <= library.kernel_size or library.kernel_size >= MAX_FITTED_KERNEL:
         return library
-    library = PSFLibrary.open(lens, replace(s, kernel_size=min(need | 1, MAX_FITTED_KERNEL)), grid, cache=cache)
+    library = PSFLibrary.open(lens, replace(s, kernel_size=min(need | 1, MAX_FITTED_KERNEL)), grid, response,
+                              cache=cache)
     library.ensure(d, clamp_near=True, progress=progress)
     return library
 
 
-def simulate(image, depth, lens, *, geometry: ImageGeometry | None = None, patch: int = 16,
-             library: PSFLibrary | None = None, fixed_depth_m: float | None = None,
-             distortion: bool = True, noise: dict | None = None, seed: int | None = None) -> RenderResult:
-    """Aberrated image of an all-in-focus ``image`` (H, W, 3) with metric
-    ``depth`` (H, W) through ``lens``. noise: keyword arguments of
-    ``noise.add_sensor_noise`` (needs ``seed``)."""
-    img, d = _check(image, depth)
-    geometry = geometry or ImageGeometry.full_sensor(lens, img.shape[0], img.shape[1])
-    library = library or open_library(lens, geometry, fit_depth_m=d)
-    pm = psf_map(library, geometry, d, patch, fixed_depth_m=fixed_depth_m)
-    out = patch_convolve(img, pm.kernels, patch, identity=pm.identity)
-    sharp = img
-    info = dict(pm.info, depth_aware=fixed_depth_m is None)
-    if distortion:
-        from .distortion import distort, radial_distortion
-        # one warp for both images: the sample coordinates are computed once
-        both = distort(np.concatenate([out, img], axis=-1), lens, geometry, distortion=radial_distortion(lens))
-        out, sharp = both[..., :3], both[..., 3:]
-    if noise is not None:
-        if seed is None:
+def _check_library(library: PSFLibrary, geometry: ImageGeometry) -> None:
+    if not math.isclose(library.pixel_pitch_mm, geometry.pixel_pitch_mm, rel_tol=1e-9):
+        raise InputRangeError("library pixel pitch", library.pixel_pitch_mm,
+                              f"{geometry.pixel_pitch_mm:.6g} mm, the image's (open it with open_library)")
+
+
+def on_sensor(image, depth, lens, geometry: ImageGeometry, *, source_geometry: ImageGeometry | None = None,
+              distortion=None, interpolation: str = DEFAULT_INTERPOLATION):
+    """An ideal (pinhole) image and its depth map moved to where the lens puts
+    them on the sensor: (image (H, W, C) float32, depth (H, W) float64, valid
+    (H, W) bool) on ``geometry``'s grid.
+
+    distortion: a RadialDistortion table (the lens's real chief rays), or
+    None for none (then the output is the source resampled onto
+    ``geometry``: a crop of an over-scan render, say). The image is
+    interpolated with ``interpolation``; the depth map by its nearest
+    sample (a blend of two depths is no depth). Pixels whose source lies
+    outside the input are 0 with depth NaN (invalid)."""
+    from .distortion import _warp
+
+    src = source_geometry or geometry
+    if distortion is None and src == geometry:
+        d = np.asarray(depth, dtype=np.float64)
+        return np.asarray(image, np.float32), d, np.ones(d.shape, bool)
+    if distortion is None:
+        radius, reach, table = (lambda r: r), math.inf, "identity"
+    else:
+        radius, reach, table = distortion.ideal_from_real, distortion.reach_real_mm, "real-height"
+    img, valid = _warp(image, geometry, src, radius, "the sensor", reach, table, interpolation=interpolation)
+    # higher-order interpolation rings below 0 at edges; light is never negative
+    np.maximum(img, 0.0, out=img)
+    # depths travel as finite codes (nearest copies them): -1 infinity, -2 invalid
+    d = np.asarray(depth, dtype=np.float64)
+    code = np.where(np.isinf(d) & (d > 0), -1.0, np.where(valid_depth_mask(d), d, -2.0))
+    dep, _ = _warp(code, geometry, src, radius, "the sensor", reach, table, interpolation="nearest")
+    dep = dep.astype(np.float64)
+    dep = np.where(dep == -1.0, np.inf, np.where(valid & (dep > 0), dep, np.nan))
+    return img, dep, valid
+
+
+class LensSimulator:
+    """The aberration simulation of one lens on one image geometry, with
+    everything that does not change between images built once: the PSF
+    library at the image's pixel pitch, the distortion table and, if asked
+    for, the depth-unaware baseline's PSF map.
+
+    How an image is formed (in this order): the ideal all-in-focus image
+    (pinhole at the entrance pupil, area-integrated pixels) and its depth
+    map are moved to where the lens's real chief rays put them (distortion);
+    each m x m patch of that is blurred with the PSF of its real field,
+    azimuth and depth (depth-aware) or of one depth (baseline); the kernel
+    is the ray histogram over pixels, which with the area-integrated input
+    is what the sensor integrates (psf/deposit.py); sensor noise last.
+    Relative illumination is not applied (PSFs sum to 1): the target and the
+    capture stay radiometrically aligned, as in the paper.
+
+    geometry: the output frame on the sensor (must lie within it).
+    source_geometry: the input's frame if it differs (an over-scan render:
+    larger, same pitch, axis at its own pixel position).
+    """
+
+    def __init__(self, lens, geometry: ImageGeometry, *, source_geometry: ImageGeometry | None = None,
+                 library: PSFLibrary | None = None, settings: PSFSettings | None = None,
+                 grid: LibraryGrid | None = None, response=None, patch: int = 16, distortion: bool = True,
+                 interpolation: str = DEFAULT_INTERPOLATION, baseline_depth_m: float | None = None,
+                 fit_depth_m=None, cache: bool = True, progress=None):
+        from .distortion import check_interpolation, radial_distortion
+
+        self.patch = check_patch(patch)
+        self.interpolation = check_interpolation(interpolation)
+        check_within_sensor(geometry)
+        if baseline_depth_m is not None and not (isinstance(baseline_depth_m, (int, float))
+                                                 and baseline_depth_m > 0 and not math.isnan(baseline_depth_m)):
+            raise InputRangeError("baseline depth", baseline_depth_m, "> 0 metres, or inf")
+        self.lens, self.geometry = lens, geometry
+        self.source_geometry = source_geometry or geometry
+        self.table = radial_distortion(lens) if distortion else None
+        if library is None:
+            library = open_library(lens, geometry, settings, grid, response=response, cache=cache,
+                                   fit_depth_m=fit_depth_m, progress=progress)
+        _check_library(library, geometry)
+        self.library = library
+        self.baseline_depth_m = baseline_depth_m
+        self.baseline = None if baseline_depth_m is None else self._fixed_map(baseline_depth_m)
+
+    def _fixed_map(self, depth_m: float) -> PSFMap:
+        g = self.geometry
+        return psf_map(self.library, g, np.ones((g.height, g.width)), self.patch, fixed_depth_m=depth_m)
+
+    def on_sensor(self, image, depth):
+        """(image, depth, valid) on the sensor: see :func:`on_sensor`."""
+        return on_sensor(image, depth, self.lens, self.geometry, source_geometry=self.source_geometry,
+                         distortion=self.table, interpolation=self.interpolation)
+
+    def __call__(self, image, depth, *, fixed_depth_m: float | None = None, noise: dict | None = None,
+                 seed: int | None = None) -> RenderResult:
+        """Aberrated image of an all-in-focus ``image`` (H, W, 3) with metric
+        ``depth`` (H, W) on the source geometry. fixed_depth_m: one depth
+        for every patch instead (the paper's depth-unaware baseline). noise:
+        keyword arguments of ``noise.add_sensor_noise`` (needs ``seed``),
+        added to the aberrated image only."""
+        img, d = _check(image, depth, self.source_geometry)
+        if noise is not None and seed is None:
             raise InputRangeError("seed", None, "an integer: noise needs an explicit seed")
-        from .noise import add_sensor_noise
-        out = add_sensor_noise(out, seed=seed, **noise)
-        info["noise"] = dict(noise, seed=seed)
-    return RenderResult(out.astype(np.float32), info, sharp.astype(np.float32), pm)
+        sharp, d_s, valid = self.on_sensor(img, d)
+        if fixed_depth_m is not None:
+            pm = self._fixed_map(fixed_depth_m)
+        else:
+            pm = psf_map(self.library, self.geometry, d_s, self.patch)
+        # non-negative kernels on a non-negative image: below 0 is FFT round-off (~1e-7)
+        out = np.maximum(patch_convolve(sharp, pm.kernels, self.patch, identity=pm.identity), 0.0)
+        info = dict(pm.info, depth_aware=fixed_depth_m is None, distortion=self.table is not None,
+                    interpolation=self.interpolation, not_imaged_pixels=int((~valid).sum()))
+        baseline = None
+        if self.baseline is not None:
+            baseline = np.maximum(patch_convolve(sharp, self.baseline.kernels, self.patch,
+                                                 identity=self.baseline.identity), 0.0)
+            info["baseline_depth_m"] = self.baseline_depth_m
+        if noise is not None:
+            from .noise import add_sensor_noise
+            out = add_sensor_noise(out, seed=seed, **noise)
+            info["noise"] = dict(noise, seed=seed)
+        return RenderResult(out.astype(np.float32), info, sharp.astype(np.float32), pm,
+                            None if baseline is None else baseline.astype(np.float32), d_s)
+
+
+def simulate(image, depth, lens, *, geometry: ImageGeometry | None = None,
+             source_geometry: ImageGeometry | None = None, patch: int = 16,
+             library: PSFLibrary | None = None, settings: PSFSettings | None = None, response=None,
+             fixed_depth_m: float | None = None, distortion: bool = True,
+             interpolation: str = DEFAULT_INTERPOLATION, noise: dict | None = None,
+             seed: int | None = None) -> RenderResult:
+    """Aberrated image of an all-in-focus ``image`` (H, W, 3) with metric
+    ``depth`` (H, W) through ``lens``: :class:`LensSimulator` used once.
+    geometry: the output frame on the sensor (default: the image spans the
+    sensor's diagonal); source_geometry: the input's, if it differs."""
+    img, d = _check(image, depth, source_geometry)
+    geometry = geometry or source_geometry or ImageGeometry.full_sensor(lens, img.shape[0], img.shape[1])
+    sim = LensSimulator(lens, geometry, source_geometry=source_geometry, library=library, settings=settings,
+                        response=response, patch=patch, distortion=distortion, interpolation=interpolation,
+                        fit_depth_m=d if library is None else None)
+    return sim(img, d, fixed_depth_m=fixed_depth_m, noise=noise, seed=seed)
 
 
 def _layers(inv: np.ndarray, valid: np.ndarray, n_layers: int):
@@ -137,36 +289,83 @@ def _box(mask: np.ndarray, m: int, grow: int) -> tuple[slice, slice]:
     return slice(int(y0), int(y1)), slice(int(x0), int(x1))
 
 
-def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_m: float | None = None,
-          geometry: ImageGeometry | None = None, patch: int = 16, occlusion: bool = True,
-          n_layers: int = 12, library: PSFLibrary | None = None, settings: PSFSettings | None = None,
+PRESCRIBED = "prescribed"     # bokeh(focus_m=PRESCRIBED): the sensor where the prescription puts it
+
+
+def _bokeh_focus(keep, focus_m, library: PSFLibrary | None, settings: PSFSettings | None):
+    """Check what is kept sharp and where the lens is focused; returns the
+    PSF settings to open a library with (None when ``library`` is given)."""
+    if (keep is None) == (focus_m is None):
+        raise InputRangeError("keep / focus", (keep, focus_m),
+                              f"exactly one of a keep range, a focus distance or focus {PRESCRIBED!r}")
+    if keep is not None and not (len(keep) == 2 and 0 < keep[0] <= keep[1]):
+        raise InputRangeError("keep", keep, "(near, far) with 0 < near <= far metres")
+    if isinstance(focus_m, str) and focus_m != PRESCRIBED:
+        raise InputRangeError("focus", focus_m, f"a distance in metres (> 0, or inf) or {PRESCRIBED!r}")
+    if focus_m is not None and not isinstance(focus_m, str) and not (focus_m > 0):
+        raise InputRangeError("focus", focus_m, f"a distance in metres (> 0, or inf) or {PRESCRIBED!r}")
+    wanted = None if focus_m in (None, PRESCRIBED) else float(focus_m)
+    if library is not None:
+        have = library.settings.focus_distance_m
+        if focus_m is not None and have != wanted:
+            raise InputRangeError("focus", focus_m, f"the library's own focus ({have if have is not None else PRESCRIBED}"
+                                  f"{' m' if have is not None else ''}): open the library focused there, or "
+                                  "leave the focus out")
+        return None
+    s = settings or PSFSettings()
+    if focus_m is not None:
+        if s.focus_distance_m is not None and s.focus_distance_m != wanted:
+            raise InputRangeError("focus", focus_m, f"the settings' own focus_distance_m {s.focus_distance_m} m "
+                                  "(give one, not two)")
+        s = replace(s, focus_distance_m=wanted)
+    return s
+
+
+def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_m=None,
+          geometry: ImageGeometry | None = None, source_geometry: ImageGeometry | None = None,
+          distortion: bool = False, interpolation: str = DEFAULT_INTERPOLATION, patch: int = 16,
+          occlusion: bool = True, n_layers: int = 12, library: PSFLibrary | None = None,
+          settings: PSFSettings | None = None, response=None, fit_kernel: bool = True,
           cancelled=None) -> RenderResult:
     """``image`` as ``lens`` would take it, keeping [near, far] metres sharp
-    (``keep``) or focused at ``focus_m`` metres. Invalid depths (NaN, 0,
-    negative) are left sharp. ``cancelled()``, if given, is called before each
-    layer's convolution; when it returns True, :class:`Cancelled` is raised."""
-    if (keep is None) == (focus_m is None):
-        raise InputRangeError("keep / focus", (keep, focus_m), "exactly one of a keep range or a focus distance")
-    if keep is not None and not (0 < keep[0] <= keep[1]):
-        raise InputRangeError("keep", keep, "0 < near <= far metres")
-    img, d = _check(image, depth)
-    geometry = geometry or ImageGeometry.full_sensor(lens, img.shape[0], img.shape[1])
+    (``keep``), or focused at ``focus_m`` metres, or with ``focus_m =
+    "prescribed"`` the lens as its prescription stands (full physical
+    defocus everywhere). Invalid depths (NaN, 0, negative) are left sharp.
+    distortion: also apply the lens's distortion (before the blur, as the
+    lens does). geometry / source_geometry: as :func:`simulate`. A given
+    ``library`` must have the focus asked for; without one it is opened with
+    ``settings`` and ``response``, the kernel grown to hold the depth map's
+    blur unless ``fit_kernel`` is False. ``cancelled()``, if given, is
+    called before each layer's convolution; when it returns True,
+    :class:`Cancelled` is raised."""
+    s = _bokeh_focus(keep, focus_m, library, settings)
+    m = check_patch(patch)
+    if isinstance(n_layers, bool) or not isinstance(n_layers, (int, np.integer)) or not 1 <= n_layers <= 256:
+        raise InputRangeError("n_layers", n_layers, "an integer in [1, 256]")
+    img, d = _check(image, depth, source_geometry)
+    geometry = geometry or source_geometry or ImageGeometry.full_sensor(lens, img.shape[0], img.shape[1])
+    check_within_sensor(geometry)
+    moved = distortion or (source_geometry is not None and source_geometry != geometry)
+    if moved:
+        from .distortion import check_interpolation, radial_distortion
+        table = radial_distortion(lens) if distortion else None
+        img, d, _ = on_sensor(img, d, lens, geometry, source_geometry=source_geometry, distortion=table,
+                              interpolation=check_interpolation(interpolation))
     if library is None:
-        s = settings or PSFSettings()
-        if focus_m is not None:
-            s = replace(s, focus_distance_m=focus_m)
-        library = open_library(lens, geometry, s, fit_depth_m=d)
+        library = open_library(lens, geometry, s, response=response, fit_depth_m=d if fit_kernel else None)
+    _check_library(library, geometry)
+    patch = m
     valid = valid_depth_mask(d)
     far = library.grid.far_m
     inv = np.where(valid & (d < far), 1.0 / np.where(valid, d, 1.0), 0.0)
     kept = np.zeros(d.shape, bool) if keep is None else valid & (d >= keep[0]) & (d <= keep[1])
-    info = {"occlusion": occlusion, "kept_pixels": int(kept.sum()), "invalid_depth_pixels": int((~valid).sum())}
+    info = {"occlusion": occlusion, "distortion": bool(distortion), "kept_pixels": int(kept.sum()), "invalid_depth_pixels": int((~valid).sum())}
     if not occlusion:
         if cancelled is not None and cancelled():
             raise Cancelled("bokeh cancelled")
         pm = psf_map(library, geometry, d, patch, keep_range_m=keep)
         out = patch_convolve(img, pm.kernels, patch, identity=pm.identity)
-        return RenderResult(out, dict(info, **pm.info), psf_map=pm)
+        return RenderResult(out, dict(info, **pm.info), img if moved else None, pm, depth=d if moved else None)
     # layered, back to front: each layer's colour and coverage blurred alike.
     # ``col`` is the colour seen so far, un-premultiplied, where ``seen``: what
     # lies behind a layer where nothing farther was seen (hidden by a nearer
@@ -209,4 +408,4 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
         seen[ys, xs] = (total > 1e-4).all(axis=-1, keepdims=True)
         col[ys, xs] = np.where(total > 1e-4, premultiplied / np.maximum(total, 1e-4), 0.0)
     info["layers"] = len(order)
-    return RenderResult(col, info)
+    return RenderResult(col, info, img if moved else None, depth=d if moved else None)
