@@ -61,6 +61,14 @@ def _rotate_flat(src: np.ndarray, outward: np.ndarray, k: int, target_sum: np.nd
     r0, c0 = r0.astype(np.int64), c0.astype(np.int64)
     acc = np.zeros(src.shape, np.float32)
     n, c, kk = src.shape
+    # the centre pixel holds the chief ray's sub-pixel spot, which a rotation
+    # about the centre leaves in place; interpolating it would spread an
+    # in-focus point over its neighbours (a delta rotated by 45 degrees
+    # bilinearly keeps only 74 %). So only the rest is interpolated.
+    centre = (r * k + r)
+    src = np.array(src, dtype=np.float32, copy=True)
+    acc[:, :, centre] = src[:, :, centre]
+    src[:, :, centre] = 0.0
     # one flat gather per tap (1.7x faster than take_along_axis, measured)
     flat = np.ascontiguousarray(src).ravel()
     base = (np.arange(n) * c * kk)[:, None, None] + (np.arange(c) * kk)[None, :, None]
