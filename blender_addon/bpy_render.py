@@ -63,6 +63,16 @@ def set_cycles_preview(scene, samples: int, seed: int = 0) -> None:
     # render_aif_depth retries without it when the render says so
     c.use_denoising = has_denoiser() and samples > 1
     set_light_paths(c)
+    set_area_pixel_filter(c)
+
+
+def set_area_pixel_filter(cycles) -> None:
+    """Each pixel the average of the scene over its own area (a 1-px box), as
+    a sensor pixel integrates: the PSF kernels are built for such an image
+    (dcdi_core/psf/deposit.py). Cycles' default, a 1.5-px Blackman-Harris,
+    is a different pixel aperture."""
+    cycles.pixel_filter_type = "BOX"
+    cycles.filter_width = 1.0
 
 
 def set_multilayer_exr(image_settings) -> None:

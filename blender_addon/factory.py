@@ -166,7 +166,7 @@ def setup_render(scene, lens, height: int, width: int, render: RenderSettings, s
     PinholeCamera."""
     import bpy
 
-    from blender_addon.bpy_render import set_light_paths, set_multilayer_exr
+    from blender_addon.bpy_render import set_area_pixel_filter, set_light_paths, set_multilayer_exr
     from dcdi_core.render.camera import PinholeCamera
 
     pinhole = PinholeCamera.for_lens(lens, height, width)
@@ -191,6 +191,7 @@ def setup_render(scene, lens, height: int, width: int, render: RenderSettings, s
     # a dataset wants many clean images fast: few bounces, no caustics (render_noise's table)
     set_light_paths(c, render.max_bounces, render.diffuse_bounces, render.glossy_bounces,
                     render.transmission_bounces)
+    set_area_pixel_filter(c)
     scene.render.resolution_x, scene.render.resolution_y = width, height
     scene.render.resolution_percentage = 100
     scene.render.film_transparent = False

@@ -72,6 +72,7 @@ def test_simulation_accuracy_report_quick(tmp_path, monkeypatch, capsys):
     assert code == 0
     md = (tmp_path / "simulation-accuracy-mos-s1.md").read_text()
     assert "per-pixel reference" in md and "occlusion-aware layers" in md
+    assert "Deposit width against rays" in md and "warp, then blur at the real positions" in md
 
 
 @pytest.mark.slow

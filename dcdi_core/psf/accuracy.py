@@ -1,7 +1,7 @@
 """`dcdi report psf-accuracy LENS`: PSF error against build time.
 
 Every approximation of the PSF is measured against a dense reference (512 x
-512 rays, 31 wavelengths, float64, oversample 15) at test sources across field
+512 rays, 31 wavelengths, float64, rays into the pixel they land in) at test sources across field
 and depth: pupil grid, wavelength count, float32, sub-pixel binning, and the
 library's depth-bin and field counts (interpolation error at depths and
 fields between the bins). One parameter varies at a time, the others at the
@@ -57,15 +57,16 @@ def run_report(lens_id: str, out: str | Path, *, quick: bool = False) -> int:
     base = PSFSettings()
     grid = LibraryGrid()
     if quick:
-        ref_settings = replace(base, pupil_samples=96, n_wavelengths=15, oversample=15)
+        ref_settings = replace(base, pupil_samples=96, n_wavelengths=15)
         sweeps = {"pupil_samples": [16, 32], "n_wavelengths": [3, 9], "precision": ["float32"],
-                  "oversample": [3, 9]}
+                  "deposit_sigma_px": [0.25, 0.4714]}
         depth_bins, field_counts = [3, 6], [8, 16]
         combos = [dict(pupil_samples=32, n_wavelengths=5, precision="float32")]
     else:
-        ref_settings = replace(base, pupil_samples=512, n_wavelengths=31, oversample=15)
+        ref_settings = replace(base, pupil_samples=512, n_wavelengths=31)
         sweeps = {"pupil_samples": [16, 32, 64, 128, 256], "n_wavelengths": [3, 5, 9, 15, 31],
-                  "precision": ["float32", "float64"], "oversample": [3, 5, 9, 15]}
+                  "precision": ["float32", "float64"],
+                  "deposit_sigma_px": [0.0, 0.125, 0.25, 0.4714]}
         depth_bins, field_counts = [5, 10, 20, 40], [8, 16, 32, 64, 128]
         # candidate defaults: the sweeps show which errors dominate; these rows
         # measure the combinations, since one-at-a-time rows keep the others' error floor
@@ -135,7 +136,7 @@ def run_report(lens_id: str, out: str | Path, *, quick: bool = False) -> int:
               f"library of {grid.n_depths + 1} bins: {full:.1f} s", flush=True)
     md = [f"# PSF accuracy against build time: {lens.id}", "",
           f"Reference: {ref_settings.pupil_samples}^2 rays over the real stop, {ref_settings.n_wavelengths} "
-          f"wavelengths, float64, oversample {ref_settings.oversample}; test sources: fields {TEST_FIELDS} x depths "
+          f"wavelengths, float64, deposit sigma {ref_settings.deposit_sigma_px:g} px; test sources: fields {TEST_FIELDS} x depths "
           f"{TEST_DEPTHS_M} m. Interpolation rows: library PSFs at depths {INTERP_DEPTHS_M} m or fields "
           f"{INTERP_FIELDS} against direct PSFs there. Defaults: {defaults}.", "",
           "| parameter | value | rel. L1 | PSNR dB (worst) | time per PSF ms | full library s |",

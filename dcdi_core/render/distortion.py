@@ -216,13 +216,11 @@ def _check_image(image, geometry: ImageGeometry, name: str) -> np.ndarray:
     return img
 
 
-def _warp(image, geometry: ImageGeometry, source_geometry: ImageGeometry, source_radius, what: str,
-          reach_mm: float, table_name: str, interpolation: str = "linear"):
-    """Output pixel at sensor radius r (output geometry) shows the input at
-    radius source_radius(r) (input geometry), same azimuth, sampled with
-    ``resample.sample(..., method=interpolation)``."""
-    check_interpolation(interpolation)
-    img = _check_image(image, source_geometry, "image")
+def _source_positions(geometry: ImageGeometry, source_geometry: ImageGeometry, source_radius, reach_mm: float,
+                      what: str = "the sensor", table_name: str = "real-height"):
+    """(y, x, valid): where in the input (its pixel coordinates) each output
+    pixel at sensor radius r looks, at radius source_radius(r) and the same
+    azimuth; valid where that lies on the input's pixel footprint."""
     rows = np.arange(geometry.height, dtype=np.float64)[:, None]
     cols = np.arange(geometry.width, dtype=np.float64)[None, :]
     dy = (rows - geometry.center_px[0]) * geometry.pixel_pitch_mm
@@ -242,6 +240,17 @@ def _warp(image, geometry: ImageGeometry, source_geometry: ImageGeometry, source
     # pixel beyond the outer pixel centres, where the edge pixel is repeated)
     valid = ((y >= -0.5) & (y <= source_geometry.height - 0.5)
              & (x >= -0.5) & (x <= source_geometry.width - 0.5))
+    return y, x, valid
+
+
+def _warp(image, geometry: ImageGeometry, source_geometry: ImageGeometry, source_radius, what: str,
+          reach_mm: float, table_name: str, interpolation: str = "linear"):
+    """Output pixel at sensor radius r (output geometry) shows the input at
+    radius source_radius(r) (input geometry), same azimuth, sampled with
+    ``resample.sample(..., method=interpolation)``."""
+    check_interpolation(interpolation)
+    img = _check_image(image, source_geometry, "image")
+    y, x, valid = _source_positions(geometry, source_geometry, source_radius, reach_mm, what, table_name)
     out = sample(img, y, x, interpolation)
     out *= (valid[..., None] if out.ndim == 3 else valid).astype(np.float32)
     return out, valid

@@ -170,7 +170,7 @@ def identity_kernel(k: int) -> np.ndarray:
 
 def psf_map(library, geometry, depth: np.ndarray, m: int = 16, *, fixed_depth_m: float | None = None,
             keep_range_m: tuple[float, float] | None = None, clamp_near: bool = True,
-            support_eps: float = 1e-3) -> PSFMap:
+            support_eps: float = 1e-3, clamp_field: bool = False) -> PSFMap:
     """Kernels for every m x m patch of an image of ``geometry`` with ``depth``.
 
     fixed_depth_m: one depth for every patch (the paper's depth-unaware
@@ -179,7 +179,9 @@ def psf_map(library, geometry, depth: np.ndarray, m: int = 16, *, fixed_depth_m:
     to it when ``clamp_near`` (the count is in ``info``), else an error.
     support_eps: each kernel is computed over the disk that holds all but
     this fraction of its energy (and rescaled to its full sum); 0 keeps every
-    nonzero pixel (see ``support_radius``)."""
+    nonzero pixel (see ``support_radius``). clamp_field: patches beyond the
+    sensor's corner (field > 1) get the corner's PSFs instead of an error
+    (for a margin that only feeds the frame's border)."""
     if m < 1:
         raise InputRangeError("patch", m, ">= 1 pixel")
     h, w = geometry.height, geometry.width
@@ -204,7 +206,7 @@ def psf_map(library, geometry, depth: np.ndarray, m: int = 16, *, fixed_depth_m:
     cols = np.minimum(np.arange(npw) * m + (m - 1) / 2.0, w - 1)
     rr, cc = np.meshgrid(rows, cols, indexing="ij")
     field = geometry.field(rr, cc)
-    if (field > 1.0 + 1e-9).any():
+    if not clamp_field and (field > 1.0 + 1e-9).any():
         raise InputRangeError("image field", float(field.max()),
                               "<= 1: the image must lie within the sensor (check its pixel pitch)")
     field = np.minimum(field, 1.0)

@@ -206,16 +206,46 @@ class LensSimulator:
                                    fit_depth_m=fit_depth_m, progress=progress)
         _check_library(library, geometry)
         self.library = library
+        self.margin = self._scene_margin()
+        m = self.margin
+        self.work_geometry = geometry if m == 0 else replace(
+            geometry, height=geometry.height + 2 * m, width=geometry.width + 2 * m,
+            center_px=(geometry.center_px[0] + m, geometry.center_px[1] + m))
         self.baseline_depth_m = baseline_depth_m
         self.baseline = None if baseline_depth_m is None else self._fixed_map(baseline_depth_m)
 
-    def _fixed_map(self, depth_m: float) -> PSFMap:
+    def _scene_margin(self) -> int:
+        """Pixels of scene around the frame that its border's blur reads (a
+        whole number of patches), when an over-scan source holds them all;
+        else 0 (the frame's border is reflected)."""
+        if self.source_geometry == self.geometry:
+            return 0
+        from .distortion import _source_positions
+        m = self.patch * math.ceil((self.patch // 2 + self.library.kernel_size // 2) / self.patch)
         g = self.geometry
-        return psf_map(self.library, g, np.ones((g.height, g.width)), self.patch, fixed_depth_m=depth_m)
+        grown = replace(g, height=g.height + 2 * m, width=g.width + 2 * m,
+                        center_px=(g.center_px[0] + m, g.center_px[1] + m))
+        radius = (lambda r: r) if self.table is None else self.table.ideal_from_real
+        reach = math.inf if self.table is None else self.table.reach_real_mm
+        try:
+            _, _, valid = _source_positions(grown, self.source_geometry, radius, reach)
+        except InputRangeError:
+            return 0
+        return m if valid.all() else 0
+
+    def _crop(self, a):
+        m = self.margin
+        return a if m == 0 or a is None else a[m:a.shape[0] - m, m:a.shape[1] - m]
+
+    def _fixed_map(self, depth_m: float) -> PSFMap:
+        g = self.work_geometry
+        return psf_map(self.library, g, np.ones((g.height, g.width)), self.patch, fixed_depth_m=depth_m,
+                       clamp_field=self.margin > 0)
 
     def on_sensor(self, image, depth):
-        """(image, depth, valid) on the sensor: see :func:`on_sensor`."""
-        return on_sensor(image, depth, self.lens, self.geometry, source_geometry=self.source_geometry,
+        """(image, depth, valid) on the sensor, with the scene margin if any:
+        see :func:`on_sensor`."""
+        return on_sensor(image, depth, self.lens, self.work_geometry, source_geometry=self.source_geometry,
                          distortion=self.table, interpolation=self.interpolation)
 
     def __call__(self, image, depth, *, fixed_depth_m: float | None = None, noise: dict | None = None,
@@ -232,11 +262,11 @@ class LensSimulator:
         if fixed_depth_m is not None:
             pm = self._fixed_map(fixed_depth_m)
         else:
-            pm = psf_map(self.library, self.geometry, d_s, self.patch)
+            pm = psf_map(self.library, self.work_geometry, d_s, self.patch, clamp_field=self.margin > 0)
         # non-negative kernels on a non-negative image: below 0 is FFT round-off (~1e-7)
         out = np.maximum(patch_convolve(sharp, pm.kernels, self.patch, identity=pm.identity), 0.0)
         info = dict(pm.info, depth_aware=fixed_depth_m is None, distortion=self.table is not None,
-                    interpolation=self.interpolation, not_imaged_pixels=int((~valid).sum()))
+                    interpolation=self.interpolation, not_imaged_pixels=int((~self._crop(valid)).sum()))
         baseline = None
         if self.baseline is not None:
             baseline = np.maximum(patch_convolve(sharp, self.baseline.kernels, self.patch,
@@ -246,8 +276,10 @@ class LensSimulator:
             from .noise import add_sensor_noise
             out = add_sensor_noise(out, seed=seed, **noise)
             info["noise"] = dict(noise, seed=seed)
-        return RenderResult(out.astype(np.float32), info, sharp.astype(np.float32), pm,
-                            None if baseline is None else baseline.astype(np.float32), d_s)
+        info["border"] = "scene" if self.margin else "reflected"
+        c = self._crop
+        return RenderResult(c(out).astype(np.float32), info, c(sharp).astype(np.float32), pm,
+                            None if baseline is None else c(baseline).astype(np.float32), c(d_s))
 
 
 def simulate(image, depth, lens, *, geometry: ImageGeometry | None = None,
