@@ -264,6 +264,9 @@ def _geometries(args, lens, shape):
         check_within_sensor(geom, f"the image {args.image}")
         return geom, None
     rows, cols = args.sensor_size
+    if rows > h or cols > w:
+        raise InputRangeError("--sensor-size", (rows, cols), f"at most the image's {h} x {w} pixels (the sensor's "
+                              f"frame inside an over-scan render of {args.image})")
     if pitch is None:        # the sensor's frame spans the lens's sensor diagonal
         pitch = ImageGeometry.full_sensor(lens, rows, cols).pixel_pitch_mm
     sensor = ImageGeometry.from_pixel_pitch(lens, rows, cols, pitch)

@@ -82,3 +82,82 @@ def test_bench_render_quick(tmp_path, monkeypatch, capsys):
     assert code == 0
     out = capsys.readouterr().out
     assert "baseline" in out and "peak memory" in out
+
+
+def _run(d, command, *extra, lens="mos-s1", out="o.exr"):
+    return main([command, "--image", str(d / "aif.exr"), "--depth", str(d / "depth.exr"), "--lens", lens,
+                 "-o", str(d / out), *FAST, *extra])
+
+
+def test_response_file_is_honoured_and_a_missing_one_is_refused(scene, capsys):
+    d, img = scene
+    (d / "flat.csv").write_text("wavelength_nm,r,g,b\n400,1,0,0\n500,1,1,0\n600,0,1,1\n700,0,0,1\n")
+    assert _run(d, "simulate", "--no-distortion", out="default.exr") == 0
+    assert _run(d, "simulate", "--no-distortion", "--response", str(d / "flat.csv"), out="flat.exr") == 0
+    a, b = read_image(d / "default.exr"), read_image(d / "flat.exr")
+    assert np.abs(a - b).max() > 1e-3          # another response, other PSFs
+    capsys.readouterr()
+    assert _run(d, "bokeh", "--focus", "2", "--response", str(d / "missing.csv"), out="m.exr") == 2
+    err = capsys.readouterr().err
+    assert "missing.csv" in err and "Traceback" not in err and not (d / "m.exr").exists()
+
+
+def test_wavelength_gives_a_monochrome_simulation(scene, capsys):
+    d, img = scene
+    assert _run(d, "simulate", "--no-distortion", "--wavelength", "550", out="mono.exr") == 0
+    grey = np.repeat(img.mean(axis=-1, keepdims=True), 3, axis=-1)
+    write_image(d / "aif.exr", grey)
+    assert _run(d, "simulate", "--no-distortion", "--wavelength", "550", out="mono_grey.exr") == 0
+    out = read_image(d / "mono_grey.exr")
+    # one PSF for all three channels: a grey scene stays grey
+    assert np.abs(out[..., 0] - out[..., 1]).max() < 1e-5 and np.abs(out[..., 2] - out[..., 1]).max() < 1e-5
+
+
+def test_bokeh_focus_prescribed_and_distort(scene, capsys):
+    d, img = scene
+    assert _run(d, "bokeh", "--focus", "prescribed", lens="6p", out="p.exr") == 0
+    capsys.readouterr()
+    assert _run(d, "bokeh", "--focus", "prescribed", "--distort", lens="6p", out="pd.exr") == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["distortion"] is True
+    p, pd = read_image(d / "p.exr"), read_image(d / "pd.exr")
+    assert p.shape == pd.shape == img.shape and np.abs(p - pd).max() > 1e-3
+
+
+def test_over_scan_frame_with_sensor_size_and_axis(scene, capsys):
+    d, _ = scene
+    img, depth = synthetic_rgbd(112, 144, seed=2)
+    write_image(d / "aif.exr", img)
+    write_depth(d / "depth.exr", depth)
+    # a 112 x 144 over-scan render around a 48 x 64 sensor frame of 50 um pixels
+    assert _run(d, "simulate", "--sensor-size", "48", "64", "--axis", "55.5", "71.5", "--image-pixel-pitch", "0.05",
+                out="s.exr") == 0
+    info = json.loads(capsys.readouterr().out)
+    assert read_image(d / "s.exr").shape == (48, 64, 3) and info["border"] == "scene"
+    assert info["not_imaged_pixels"] == 0          # the over-scan covers the distorted corners
+
+
+@pytest.mark.parametrize("extra, says", [
+    (["--sensor-size", "40", "80"], "--sensor-size"),
+    (["--sensor-size", "40", "60", "--image-pixel-pitch", "0.5"], "--sensor-size"),
+    (["--axis", "100", "5", "--image-pixel-pitch", "0.0122"], "--axis"),
+    (["--image-pixel-pitch", "0.0122", "--pixel-pitch", "0.01"], "--pixel-pitch"),
+    (["--image-pixel-pitch", "0.5"], "aif.exr"),
+    (["--patch", "15"], "patch"),
+    (["--interpolation", "cubic"], "invalid choice"),
+])
+def test_bad_geometry_options_are_refused_before_any_work(scene, capsys, extra, says):
+    d, img = scene
+    try:
+        code = _run(d, "simulate", *extra, out="bad.exr")
+    except SystemExit as e:                     # argparse's own refusals
+        code = e.code
+    err = capsys.readouterr().err
+    assert code == 2 and says in err and "Traceback" not in err
+    assert not (d / "bad.exr").exists() and not (d / "cache").exists()     # no PSF was built
+
+
+def test_output_extension_is_refused_before_any_work(scene, capsys):
+    d, img = scene
+    assert _run(d, "simulate", "--sharp-out", str(d / "s.tiff"), out="x.exr") == 2
+    assert "s.tiff" in capsys.readouterr().err and not (d / "cache").exists() and not (d / "x.exr").exists()

@@ -82,3 +82,29 @@ def test_without_over_scan_the_border_is_reflected(distorted_case):
     lens, geom, src, table, img, depth, lib, ref = distorted_case
     crop = LensSimulator(lens, src, library=lib, distortion=False)
     assert crop.margin == 0 and crop(img, depth).info["border"] == "reflected"
+
+
+def test_no_silent_overrides():
+    from dcdi_core.optics.errors import InputRangeError
+    from dcdi_core.render.simulate import bokeh, open_library
+
+    lens = load_lens("6p")
+    geom = ImageGeometry.full_sensor(lens, 16, 24)
+    img = np.full((16, 24, 3), 0.5, np.float32)
+    depth = np.full((16, 24), 2.0, np.float32)
+    settings = PSFSettings(kernel_size=7, pupil_samples=8, n_wavelengths=3)
+    lib = open_library(lens, geom, settings, LibraryGrid(n_fields=4, n_depths=2), cache=False)
+    # a library focused as prescribed cannot render a focus at 1.2 m
+    with pytest.raises(InputRangeError, match="library's own focus"):
+        bokeh(img, depth, lens, focus_m=1.2, geometry=geom, library=lib)
+    bokeh(img, depth, lens, focus_m="prescribed", geometry=geom, library=lib)
+    with pytest.raises(InputRangeError, match="prescribed"):
+        bokeh(img, depth, lens, focus_m="nearby", geometry=geom, library=lib)
+    # a PSF pitch that is not the image's
+    with pytest.raises(InputRangeError, match="pixel pitch"):
+        open_library(lens, geom, PSFSettings(pixel_pitch_mm=0.01), cache=False)
+    # the deposit width is part of the cache key
+    a = PSFLibrary.open(lens, settings, cache=False)
+    b = PSFLibrary.open(lens, PSFSettings(kernel_size=7, pupil_samples=8, n_wavelengths=3, deposit_sigma_px=0.47),
+                        cache=False)
+    assert a.key != b.key

@@ -222,8 +222,12 @@ def _parse_float(text: str, path, line_number: int, what: str) -> float:
 def load_response(path) -> SpectralResponse:
     """Read a user spectral response from a CSV file (format: module docstring)."""
     path = os.fspath(path)
-    with open(path, "rb") as f:
-        raw = f.read()
+    try:
+        with open(path, "rb") as f:
+            raw = f.read()
+    except OSError as e:
+        raise OpticsError(f"{path}: the spectral response file cannot be read ({e.strerror or e}); "
+                          "give a CSV of wavelength_nm,r,g,b") from None
     try:
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as e:
