@@ -61,10 +61,10 @@ def _check(image, depth, geometry: ImageGeometry | None = None):
 
 
 MAX_FITTED_KERNEL = 129      # px: beyond this a patch-wise FFT blur costs more than it is worth here
-# the warp's interpolation of the sharp image (report simulation-accuracy:
-# bilinear blurs by itself; Keys' cubic is within 0.1 dB of the best for a
-# third of its time)
-DEFAULT_INTERPOLATION = "keys"
+# the warp's interpolation of the sharp image (report simulation-accuracy,
+# MOS-S1 at field 0.7: bilinear 62.3 dB, Keys 78.5, Lanczos-3 82.9, cubic
+# B-spline 84.8 dB, for 0.42 / 0.90 / 1.86 / 1.38 s at 1280 x 1920)
+DEFAULT_INTERPOLATION = "bspline"
 
 
 def check_patch(patch) -> int:
