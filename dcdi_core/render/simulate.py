@@ -1,15 +1,17 @@
 """Depth-aware aberration simulation and lens bokeh on an all-in-focus RGB-D image.
 
-simulate(): the paper's training-data degradation: every m x m patch blurred
-with the lens's PSF for its field, azimuth and depth (depth-aware), or with
-one depth for the whole image (``fixed_depth_m``: the paper's depth-unaware
-baseline); then the lens's geometric distortion applied to both the sharp and
-the aberrated image (so they stay pixel-aligned, the paper's choice) and,
-optionally, sensor noise.
+simulate() / LensSimulator: the paper's training-data degradation. The
+sharp image and its depth are first moved to where the lens puts them (its
+geometric distortion; the moved sharp image is the aligned target), then
+every m x m patch is blurred with the lens's PSF for its real field, azimuth
+and depth (depth-aware), or with one depth for the whole image
+(``fixed_depth_m``: the paper's depth-unaware baseline), and, optionally,
+sensor noise is added. LensSimulator's docstring gives the order and why.
 
 bokeh(): the depth of field of a target lens on a sharp image. What is kept
 sharp is a depth range [near, far] (the paper's mask: identity PSF inside
-it) or a focus distance (the library refocused there). Two renderers:
+it), a focus distance (the library refocused there) or the lens as
+prescribed; optionally with the lens's distortion first. Two renderers:
 ``occlusion=False`` is the plain patch-wise blur; ``occlusion=True`` (the
 default) splits the scene into depth layers and composites them back to
 front, each blurred with its own PSFs and carrying its blurred coverage, so
