@@ -140,8 +140,13 @@ def test_radial_psfs_are_non_negative_and_sum_to_one(exported):
     # at or beyond the far limit: the infinity PSF
     assert np.array_equal(p[:, 4], p[:, 6]) and np.array_equal(p[:, 5], p[:, 6])
     with torch.no_grad():   # and the torch module by construction, for any input
-        out = result.model(torch.randn(64, result.spec.n_inputs) * 10, 1)
+        x = torch.randn(64, result.spec.n_inputs) * 10
+        out = result.model(x, 1)
+        lens = torch.arange(64) % 2                          # a batch of both lenses: one list per head
+        mixed = result.model(x, lens)
     assert out.min() >= 0 and (out.sum(dim=(-1, -2)) - 1).abs().max() < 1e-5
+    assert [m.shape[-1] for m in mixed] == list(result.spec.kernel_sizes)
+    assert torch.allclose(mixed[1], out[1::2], atol=1e-6)
 
 
 def test_changed_prescription_is_not_served(exported):
@@ -235,6 +240,31 @@ print("ok")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
                          env=dict(os.environ, PYTHONPATH=str(ROOT)))
     assert out.stdout.strip() == "False", out.stderr
+
+
+def test_focus_is_an_input_of_the_radial_olf(cache, tmp_path):
+    from dcdi_core.models.export import export_olf
+    from dcdi_core.models.train.loop import train
+    config = _config(iters=2)
+    config = replace(config, data=replace(config.data, focus_lenses=("mos-s1",), focus_range_m=(0.8, 5.0),
+                                          focus_bins=2))
+    result = train(config, tmp_path / "run", cache_dir=cache)
+    ls = result.data.lenses[0]
+    assert result.spec.focus and result.spec.n_inputs == 4 and [l.settings.focus_distance_m for l in ls.libraries] \
+        == pytest.approx([0.8, 5.0])
+    # the same field and depth, refocused: another PSF
+    n = len(ls.grid_x) // 2
+    assert np.allclose(ls.grid_x[:n, :2], ls.grid_x[n:, :2]) and not np.allclose(ls.grid_x[:n, 2], ls.grid_x[n:, 2])
+    assert np.abs(ls.grid_y[:n] - ls.grid_y[n:]).max() > 0.01
+    assert (ls.val_coords["focus_m"] >= 0.8).all() and (ls.val_coords["focus_m"] <= 5.0).all()
+    export_olf(result, tmp_path / "f.npz")
+    olf = OmniLensField.load(tmp_path / "f.npz")
+    lens = load_lens("mos-s1")
+    assert olf.psf(lens, 0.3, 2.0, focus_m=[1.0, 4.0]).shape[:1] == (2,)
+    with pytest.raises(InputRangeError, match="focus_m"):
+        olf.psf(lens, 0.3, 2.0)
+    with pytest.raises(OutsideTrainedRangeError, match=r"focus_m = 6.0.*\[0.8, 5.0\] m"):
+        olf.psf(lens, 0.3, 2.0, focus_m=6.0)
 
 
 # -------------------------------------------------------------- training

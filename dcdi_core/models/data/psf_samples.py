@@ -107,8 +107,8 @@ class PSFDataConfig:
             raise InputRangeError("offgrid_fraction", self.offgrid_fraction, "[0, 1)")
         if not (0.5 < self.energy <= 1.0):
             raise InputRangeError("energy", self.energy, "(0.5, 1]")
-        if self.variant == "paper" and self.kernel_size not in (None, PAPER_KERNEL):
-            pass   # another k on the paper's grid is allowed (an experiment), recorded in the spec
+        if self.kernel_size is not None and (self.kernel_size < 1 or self.kernel_size % 2 == 0):
+            raise InputRangeError("kernel_size", self.kernel_size, "an odd integer >= 1, or None (radial: per lens)")
         LibraryGrid(self.n_fields, self.n_depths, self.near_m, self.far_m)   # validates
 
     def psf_settings(self, kernel_size: int, focus_m: float | None = None) -> PSFSettings:

@@ -234,15 +234,16 @@ class OmniLensField:
 
     # ---------------------------------------------------------- PSFs
     def psf(self, lens, field, depth_m, focus_m=None, *, dtype=np.float32) -> np.ndarray:
-        """Radial OLF: PSFs (..., 3, k, k) at field radii x depths (broadcast
-        together), kernel rows along the radial direction, as the library's;
+        """Radial OLF: PSFs (..., 3, k, k) at field radii x depths [x focus
+        distances] (broadcast together), kernel rows along the radial direction, as the library's;
         each channel sums to 1. ``focus_m``: the focus distance, for a lens
         trained with one (required then, refused otherwise)."""
         if self.variant != "radial":
             raise InputRangeError("variant", self.variant, "'radial' for psf(); use patch_psf() for 'paper'")
         li = self.check_lens(lens)
         entry = self._lenses[lens.id]
-        field, depth_m = np.broadcast_arrays(np.asarray(field, float), np.asarray(depth_m, float))
+        field, depth_m, f = np.broadcast_arrays(np.asarray(field, float), np.asarray(depth_m, float),
+                                                np.asarray(np.nan if focus_m is None else focus_m, float))
         shape = field.shape
         self._check_range("field", field, *entry["field_range"])
         dio = self._diopters(entry, depth_m)
@@ -252,7 +253,6 @@ class OmniLensField:
                 raise InputRangeError("focus_m", None, f"a focus distance in {entry['focus_range_m']} m "
                                                        f"(this OLF learned {lens.id} across focus)")
             lo, hi = entry["focus_range_m"]
-            f = np.broadcast_to(np.asarray(focus_m, float), shape)
             self._check_range("focus_m", f, lo, hi, " m")
             fdio = 1.0 / f
         elif focus_m is not None:
