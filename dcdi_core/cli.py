@@ -305,15 +305,20 @@ def cmd_olf_train(args) -> int:
     run = Path(args.run or (str(args.output) + ".run"))
     tty = sys.stderr.isatty()
     bar = None
-    if tty:
-        from tqdm import tqdm
-        bar = tqdm(total=config.iters, desc="olf train", unit="it", file=sys.stderr, dynamic_ncols=True)
 
     def progress(step, total, loss):
-        if bar is not None:
-            bar.n = step
-            bar.set_postfix(loss=f"{loss:.3g}", refresh=False)
-            bar.refresh()
+        nonlocal bar
+        if not tty:
+            return
+        if bar is None:             # made at the first step, so that its rate is the training's
+            try:
+                from tqdm import tqdm
+            except ImportError:     # no bar without tqdm (requirements.txt has it)
+                return
+            bar = tqdm(total=total, initial=step - 1, desc="olf train", unit="it", file=sys.stderr,
+                       dynamic_ncols=True)
+        bar.set_postfix(loss=f"{loss:.3g}", refresh=False)
+        bar.update(step - bar.n)
 
     def log(text):
         if tty:
