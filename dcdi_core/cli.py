@@ -360,6 +360,134 @@ def cmd_demo(args) -> int:
     return demo.run(args.out)
 
 
+# ------------------------------------------------------- olf (dcdi_core.models)
+def cmd_olf_train(args) -> int:
+    import os
+    from pathlib import Path
+    from .models.data.psf_samples import PSFDataConfig
+    from .models.train.config import OLFTrainConfig
+    data = PSFDataConfig(lenses=tuple(args.lens), variant=args.variant, pupil_samples=args.rays,
+                         n_wavelengths=args.wavelengths, n_fields=args.fields, n_depths=args.depths,
+                         focus_lenses=tuple(args.focus_lens or ()), focus_range_m=tuple(args.focus_range),
+                         offgrid=args.offgrid, held_out=args.held_out, seed=args.seed)
+    config = OLFTrainConfig(data=data, size=args.size, iters=args.iters, batch=args.batch, lr=args.lr,
+                            seed=args.seed, threads=args.threads or (os.cpu_count() or 1),
+                            checkpoint_every=args.checkpoint_every)
+    from .models.export import export_olf               # torch from here on
+    from .models.train.loop import train
+    run = Path(args.run or (str(args.output) + ".run"))
+    tty = sys.stderr.isatty()
+    bar = None
+
+    def progress(step, total, loss):
+        nonlocal bar
+        if not tty:
+            return
+        if bar is None:             # made at the first step, so that its rate is the training's
+            try:
+                from tqdm import tqdm
+            except ImportError:     # no bar without tqdm (requirements.txt has it)
+                return
+            bar = tqdm(total=total, initial=step - 1, desc="olf train", unit="it", file=sys.stderr,
+                       dynamic_ncols=True)
+        bar.set_postfix(loss=f"{loss:.3g}", refresh=False)
+        bar.update(step - bar.n)
+
+    def log(text):
+        if tty:
+            print(text, file=sys.stderr)
+    try:
+        result = train(config, run, progress=progress, log=log)
+    except KeyboardInterrupt:
+        if bar is not None:
+            bar.close()
+        print(f"dcdi: interrupted; the last checkpoint is in {run}: run the same command to resume",
+              file=sys.stderr)
+        return 130
+    if bar is not None:
+        bar.close()
+    meta = export_olf(result, args.output, weights=args.weights)
+    h = meta["held_out"]["mean"]
+    rate = result.step / result.seconds if result.seconds > 0 else float("nan")
+    print(f"wrote {args.output} ({meta['parameters']} parameters, {os.path.getsize(args.output)} bytes; "
+          f"run folder {run})")
+    print(f"held-out ({args.weights}): PSNR {h['psnr_8bit']:.2f} dB (8-bit, peak scale), SSIM "
+          + (f"{h['ssim_8bit']:.4f}" if h["ssim_8bit"] is not None else "n/a")
+          + f", relative L1 {h['rel_l1']:.4f}; {result.seconds:.1f} s here ({rate:.1f} it/s)")
+    return 0
+
+
+def cmd_olf_info(args) -> int:
+    from .models.runtime.olf import OmniLensField
+    from .optics.lens import load_lens
+    olf = OmniLensField.load(args.file)
+    info = olf.info()
+    for entry in info["lenses"]:
+        try:
+            entry["prescription"] = "current" if olf.covers(load_lens(entry["id"])) else "differs (not served)"
+        except Exception as e:  # noqa: BLE001 - a lens that no longer loads is reported, not fatal
+            entry["prescription"] = f"not loadable ({e})"
+    if args.json:
+        print(_dump(info))
+        return 0
+    print(f"{info['file']}: {info['variant']} Omni-Lens-Field, {info['hidden_layers']} hidden layers x "
+          f"{info['width']}, {info['parameters']} parameters ({info['dtype']}, {info['weights']} weights), "
+          f"{info['bytes']} bytes")
+    for e in info["lenses"]:
+        focus = f", focus {e['focus_range_m']} m" if e["focus_range_m"] else ""
+        print(f"  {e['id']:<14} k = {e['kernel_size']}, pitch {e['pixel_pitch_mm'] * 1000:.3g} um, "
+              f"depth {e['depth_range_m'][0]}-{e['depth_range_m'][1]} m{focus}; prescription {e['prescription']}")
+    h = (info["held_out"] or {}).get("mean")
+    if h:
+        ssim = f"{h['ssim_8bit']:.4f}" if h["ssim_8bit"] is not None else "n/a"
+        print(f"  held-out: PSNR {h['psnr_8bit']:.2f} dB (8-bit, peak scale), SSIM {ssim}, "
+              f"relative L1 {h['rel_l1']:.4f}")
+    t = info["training"] or {}
+    if t:
+        print(f"  trained {t.get('iterations')} iterations in {t.get('seconds', 0):.0f} s; checksum "
+              f"{info['checksum'][:16]}...")
+    return 0
+
+
+def add_olf_commands(sub) -> None:
+    """`dcdi olf train|info`: the Omni-Lens-Field (torch only for training)."""
+    q = sub.add_parser("olf", help="Omni-Lens-Field: a network of a lens's PSFs (train, info)",
+                       description="Omni-Lens-Field: one small network for the PSFs of several lenses, "
+                                   "trained on their ray-traced PSFs, served without torch. " + UNITS)
+    osub = q.add_subparsers(dest="olf_command", required=True, metavar="SUBCOMMAND")
+    t = osub.add_parser("train", help="train (or resume) an OLF and export it to .npz",
+                        description="Train an Omni-Lens-Field (CPU, seeded) and export it. Checkpoints go "
+                                    "to the run folder; the same command again resumes a killed run and "
+                                    "ends where an uninterrupted one would.")
+    t.add_argument("--lens", action="append", required=True, help="lens id (repeat for several)")
+    t.add_argument("--variant", choices=["radial", "paper"], default="radial",
+                   help="radial (field radius, inverse depth, per-lens k; ours) or paper (the paper's MLP)")
+    t.add_argument("--size", default="tiny", help="tiny, small, medium, large or paper (N=5, W=2048)")
+    t.add_argument("--iters", type=_positive_int, default=1000, help="iterations (the paper: 600000)")
+    t.add_argument("--batch", type=_positive_int, default=256, help="batch size (default 256)")
+    t.add_argument("--lr", type=float, default=1e-4, help="initial learning rate (cosine to 1e-7)")
+    t.add_argument("--seed", type=int, default=0, help="seed of weights, sampling and traced points")
+    t.add_argument("--threads", type=_positive_int, default=None, help="torch threads (default: all cores)")
+    t.add_argument("-o", "--output", required=True, help="the exported OLF (.npz)")
+    t.add_argument("--run", default=None, help="run folder for checkpoints (default OUTPUT.run)")
+    t.add_argument("--checkpoint-every", type=_positive_int, default=500, help="iterations between checkpoints")
+    t.add_argument("--weights", choices=["ema", "model"], default="ema", help="which weights to export")
+    t.add_argument("--offgrid", type=int, default=256, help="traced off-grid training points per lens")
+    t.add_argument("--held-out", type=_positive_int, default=64, help="traced held-out points per lens")
+    t.add_argument("--rays", type=_positive_int, default=64, help="pupil samples per side (PSF settings)")
+    t.add_argument("--wavelengths", type=_positive_int, default=31, help="wavelengths per PSF")
+    t.add_argument("--fields", type=_positive_int, default=64, help="library fields")
+    t.add_argument("--depths", type=_positive_int, default=20, help="library depth bins (plus infinity)")
+    t.add_argument("--focus-lens", action="append", help="radial: learn this lens across focus distances")
+    t.add_argument("--focus-range", type=float, nargs=2, default=(0.7, 10.0), metavar=("NEAR", "FAR"),
+                   help="focus distances learned (m, default 0.7 10)")
+    t.set_defaults(func=cmd_olf_train)
+    i = osub.add_parser("info", help="what an exported OLF holds: lenses, sizes, held-out figures")
+    i.add_argument("file", help="an exported OLF (.npz)")
+    i.add_argument("--json", action="store_true", help="machine-readable output")
+    i.set_defaults(func=cmd_olf_info)
+
+
 # ------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="dcdi", description=__doc__.split("\n\n")[0] + " " + UNITS,
@@ -534,6 +662,8 @@ def build_parser() -> argparse.ArgumentParser:
     q = sub.add_parser("demo", help="the demo job: lens reports and spot diagrams of all lenses")
     q.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     q.set_defaults(func=cmd_demo)
+
+    add_olf_commands(sub)
     return p
 
 

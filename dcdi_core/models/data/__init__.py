@@ -1,0 +1,1 @@
+"""Training data: PSF samples for the Omni-Lens-Field (``psf_samples``)."""

@@ -1,0 +1,67 @@
+"""Export a trained Omni-Lens-Field: torch -> .npz arrays + JSON metadata.
+
+The file is what ``runtime.olf.OmniLensField`` serves without torch. Arrays:
+``trunk{i}.weight`` (out, in) and ``trunk{i}.bias`` of the trunk's Linear
+layers (each followed by ReLU), ``head{j}.weight`` / ``head{j}.bias`` of the
+heads (paper: R, G, B, each W -> k^2, Sigmoid; radial: one per lens,
+W -> 3 k^2, softmax per channel). ``meta``: one JSON string (no pickle
+anywhere; read with ``allow_pickle=False``) with the variant and spec, each
+lens with its optical fingerprint, kernel size, pixel pitch and trained
+field / depth / focus ranges, the PSF settings, the training run, its
+held-out figures, the format version and a sha256 checksum of all of it.
+"""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from .. import __version__
+from ..atomic import atomic_path
+from . import require_torch
+from .runtime.olf import FORMAT, FORMAT_VERSION, checksum
+
+torch = require_torch()
+
+
+def olf_arrays(module, dtype="float32") -> tuple[dict, dict]:
+    """(arrays, network description) of an ``arch.olf.OLF`` module."""
+    arrays, trunk, heads = {}, [], []
+    linears = [m for m in module.trunk if isinstance(m, torch.nn.Linear)]
+    for i, m in enumerate(linears):
+        arrays[f"trunk{i}.weight"] = m.weight.detach().cpu().numpy().astype(dtype)
+        arrays[f"trunk{i}.bias"] = m.bias.detach().cpu().numpy().astype(dtype)
+        trunk.append([f"trunk{i}.weight", f"trunk{i}.bias"])
+    for j, m in enumerate(module.heads):
+        arrays[f"head{j}.weight"] = m.weight.detach().cpu().numpy().astype(dtype)
+        arrays[f"head{j}.bias"] = m.bias.detach().cpu().numpy().astype(dtype)
+        heads.append([f"head{j}.weight", f"head{j}.bias"])
+    out = "sigmoid (peak scale), one head per colour" if module.spec.variant == "paper" \
+        else "softmax over each channel's k^2 pixels, one head per lens"
+    return arrays, {"trunk": trunk, "heads": heads, "activation": "relu", "output": out}
+
+
+def export_olf(result, path, *, weights: str = "ema", dtype: str = "float32") -> dict:
+    """Write the trained run ``result`` (``train.loop.TrainResult``) to ``path``
+    (atomically); returns the metadata."""
+    if weights not in ("ema", "model"):
+        raise ValueError(f"weights = {weights!r}; allowed: 'ema' or 'model'")
+    if dtype not in ("float32", "float64"):
+        raise ValueError(f"dtype = {dtype!r}; allowed: 'float32' or 'float64'")
+    module = result.ema if weights == "ema" else result.model
+    arrays, network = olf_arrays(module, dtype)
+    cfg = result.config
+    meta = {
+        "format": FORMAT, "version": FORMAT_VERSION, "dcdi_version": __version__,
+        "variant": result.spec.variant, "spec": result.spec.as_dict(), "network": network,
+        "weights": weights, "dtype": dtype, "parameters": int(sum(a.size for a in arrays.values())),
+        "lenses": result.data.lens_metadata(),
+        "training": {"config": cfg.as_dict(), "iterations": result.step, "seconds": result.seconds,
+                     "torch": torch.__version__},
+        "held_out": result.held_out.get(weights),
+    }
+    meta["checksum"] = checksum(meta, arrays)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, meta=np.array(json.dumps(meta, sort_keys=True)), **arrays)
+    return meta

@@ -1,0 +1,306 @@
+"""Serve an exported Omni-Lens-Field (.npz) with numpy alone.
+
+The file holds the network's arrays and a JSON metadata record (see
+``models.export``); it is read with ``allow_pickle=False`` and checked
+against its sha256 checksum. A lens is served only if its optical
+fingerprint (``psf.library.lens_fingerprint``: surfaces, glass indices,
+sensor) equals the one the OLF learned, and only within the trained ranges
+of field, depth and focus; otherwise a :class:`LensMismatchError` or
+:class:`OutsideTrainedRangeError` says so (the caller traces instead).
+
+The input encodings below are the only ones: the trainer encodes its
+samples with the same functions.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import LensMismatchError, ModelFileError, OutsideTrainedRangeError
+from ...optics.errors import InputRangeError
+
+FORMAT = "dcdi-olf"
+FORMAT_VERSION = 1
+
+
+# ------------------------------------------------------------------ encodings
+def inverse_depth(depth_m, far_m: float) -> np.ndarray:
+    """1/depth (1/m); depths at or beyond ``far_m`` (inf, 1e10 included) are
+    infinity, 0 (DESIGN.md). NaN, 0 and negative depths are errors."""
+    d = np.asarray(depth_m, dtype=np.float64)
+    bad = ~(d > 0)
+    if bad.any():
+        raise InputRangeError("depth_m", float(d[bad].ravel()[0]),
+                              "> 0 metres or inf (mask invalid depths before asking for PSFs)")
+    far = d >= far_m
+    return np.where(far, 0.0, 1.0 / np.where(far, 1.0, d))
+
+
+def encode_radial(spec: dict, lens_index, field, diopters, focus_diopters=None) -> np.ndarray:
+    """Inputs (n, n_inputs) of the radial variant: field radius, inverse depth
+    / diopter_scale, [focus inverse distance / diopter_scale], lens one-hot.
+    Arrays broadcast together and are flattened."""
+    n_l = len(spec["lenses"])
+    focus = bool(spec.get("focus", False))
+    arrs = [field, diopters, lens_index] + ([0.0 if focus_diopters is None else focus_diopters] if focus else [])
+    b = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in arrs))
+    f, dio, li = (a.ravel() for a in b[:3])
+    cols = [f, dio / spec["diopter_scale"]]
+    if focus:
+        cols.append(b[3].ravel() / spec["diopter_scale"])
+    onehot = (li.astype(np.int64)[:, None] == np.arange(n_l)[None, :]).astype(np.float64)
+    return np.concatenate([np.stack(cols, -1), onehot], axis=-1)
+
+
+def encode_paper(spec: dict, lens_index, row, col, depth_m) -> np.ndarray:
+    """Inputs (n, 4) of the paper variant: patch row / (rows - 1), patch
+    column / (cols - 1), depth (m) / max depth, lens index / (lenses - 1)."""
+    g = spec["paper_grid"]
+    rows, cols = g["height"] // g["patch"], g["width"] // g["patch"]
+    n_l = len(spec["lenses"])
+    r, c, d, li = (a.ravel() for a in np.broadcast_arrays(*(np.asarray(a, dtype=np.float64)
+                                                            for a in (row, col, depth_m, lens_index))))
+    return np.stack([r / (rows - 1), c / (cols - 1), d / g["max_depth_m"], li / max(n_l - 1, 1)], -1)
+
+
+def patch_centres_px(spec: dict, row, col):
+    """Pixel (row, col) of the centres of patches (row, col) of the paper grid
+    (the convention of ``render.psfmap``: m i + (m - 1) / 2)."""
+    m = spec["paper_grid"]["patch"]
+    return np.asarray(row, float) * m + (m - 1) / 2.0, np.asarray(col, float) * m + (m - 1) / 2.0
+
+
+# ----------------------------------------------------------------- file I/O
+def checksum(meta: dict, arrays: dict) -> str:
+    """sha256 of the metadata (without its checksum) and every array (name, dtype, shape, bytes)."""
+    h = hashlib.sha256()
+    h.update(json.dumps({k: v for k, v in meta.items() if k != "checksum"}, sort_keys=True).encode())
+    for name in sorted(arrays):
+        a = np.ascontiguousarray(arrays[name])
+        h.update(name.encode() + str(a.dtype).encode() + str(a.shape).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def read_olf_file(path) -> tuple[dict, dict]:
+    """(metadata, arrays) of an exported OLF, checked (format, version, checksum)."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if "meta" not in z.files:
+                raise ModelFileError(path, "no metadata record: not an exported Omni-Lens-Field", field="meta")
+            meta = json.loads(str(z["meta"]))
+            arrays = {k: z[k] for k in z.files if k != "meta"}
+    except ModelFileError:
+        raise
+    except (OSError, ValueError, json.JSONDecodeError) as e:
+        raise ModelFileError(path, f"not a readable .npz model file ({e})") from None
+    if meta.get("format") != FORMAT:
+        raise ModelFileError(path, f"format {meta.get('format')!r}", field="format", allowed=repr(FORMAT))
+    if meta.get("version") != FORMAT_VERSION:
+        raise ModelFileError(path, f"version {meta.get('version')!r} (newer or older software wrote it)",
+                             field="version", allowed=str(FORMAT_VERSION))
+    if meta.get("checksum") != checksum(meta, arrays):
+        raise ModelFileError(path, "checksum mismatch (the file is corrupt or was edited)", field="checksum")
+    return meta, arrays
+
+
+# ------------------------------------------------------------------- network
+def _sigmoid(z):
+    return 0.5 * (1.0 + np.tanh(0.5 * z))
+
+
+def _softmax(z, axis=-1):
+    z = z - z.max(axis=axis, keepdims=True)
+    e = np.exp(z)
+    return e / e.sum(axis=axis, keepdims=True)
+
+
+class OmniLensField:
+    """An exported OLF, ready to serve PSFs (numpy)."""
+
+    def __init__(self, meta: dict, arrays: dict, path: str | os.PathLike = "<memory>"):
+        self.meta = meta
+        self.path = str(path)
+        self.spec = meta["spec"]
+        self.variant = self.spec["variant"]
+        net = meta["network"]
+        try:
+            self._trunk = [(arrays[w], arrays[b]) for w, b in net["trunk"]]
+            self._heads = [(arrays[w], arrays[b]) for w, b in net["heads"]]
+        except KeyError as e:
+            raise ModelFileError(self.path, f"array {e} is missing", field="network") from None
+        self._lenses = {entry["id"]: entry for entry in meta["lenses"]}
+        self._cast = {}
+
+    @classmethod
+    def load(cls, path) -> "OmniLensField":
+        meta, arrays = read_olf_file(path)
+        return cls(meta, arrays, path)
+
+    # ------------------------------------------------------------- queries
+    @property
+    def lens_ids(self) -> list[str]:
+        return list(self.spec["lenses"])
+
+    def lens_entry(self, lens_id: str) -> dict:
+        if lens_id not in self._lenses:
+            raise LensMismatchError(f"{self.path}: lens {lens_id!r} is not one this OLF learned "
+                                    f"({', '.join(self.lens_ids)}); trace its PSFs instead")
+        return self._lenses[lens_id]
+
+    def kernel_size(self, lens_id: str) -> int:
+        return int(self.lens_entry(lens_id)["kernel_size"])
+
+    def check_lens(self, lens) -> int:
+        """The lens's index in the OLF; refuses a lens whose prescription (optical
+        fingerprint) differs from the one learned."""
+        from ...psf.library import lens_fingerprint
+
+        entry = self.lens_entry(lens.id)
+        fp = lens_fingerprint(lens)
+        if fp != entry["fingerprint"]:
+            raise LensMismatchError(
+                f"{self.path}: lens {lens.id!r} ({lens.path}) differs optically from the prescription this OLF "
+                f"learned ({entry.get('file')}; fingerprint {entry['fingerprint'][:12]}..., this lens "
+                f"{fp[:12]}...): not served; trace its PSFs instead")
+        return self.spec["lenses"].index(lens.id)
+
+    def covers(self, lens) -> bool:
+        """True if this OLF serves ``lens`` (same prescription)."""
+        try:
+            self.check_lens(lens)
+            return True
+        except LensMismatchError:
+            return False
+
+    # ------------------------------------------------------------- network
+    def _weights(self, dtype):
+        dtype = np.dtype(dtype)
+        if dtype not in self._cast:
+            self._cast[dtype] = ([(w.astype(dtype), b.astype(dtype)) for w, b in self._trunk],
+                                 [(w.astype(dtype), b.astype(dtype)) for w, b in self._heads])
+        return self._cast[dtype]
+
+    def features(self, x, dtype=np.float32) -> np.ndarray:
+        trunk, _ = self._weights(dtype)
+        h = np.asarray(x, dtype=dtype)
+        for w, b in trunk:
+            h = h @ w.T
+            h += b
+            np.maximum(h, 0, out=h)
+        return h
+
+    def forward(self, x, lens_index: int | None = None, dtype=np.float32) -> np.ndarray:
+        """The network on encoded inputs x (n, n_inputs): paper: (n, 3, k, k)
+        in (0, 1) (peak scale); radial: the PSFs (n, 3, k, k) of lens index
+        ``lens_index``, each channel summing to 1."""
+        _, heads = self._weights(dtype)
+        h = self.features(x, dtype)
+        if self.variant == "paper":
+            k = self.spec["kernel_sizes"][0]
+            out = np.concatenate([_sigmoid(h @ w.T + b) for w, b in heads], axis=1)
+            return out.reshape(-1, 3, k, k)
+        if lens_index is None:
+            raise InputRangeError("lens_index", None, "a lens index (radial OLF: one head per lens)")
+        k = self.spec["kernel_sizes"][lens_index]
+        w, b = heads[lens_index]
+        return _softmax((h @ w.T + b).reshape(-1, 3, k * k)).reshape(-1, 3, k, k)
+
+    # ----------------------------------------------------------- checks
+    def _check_range(self, name, values, lo, hi, unit=""):
+        v = np.asarray(values, dtype=np.float64)
+        if v.size == 0:
+            return
+        if not np.isfinite(v).all():
+            raise OutsideTrainedRangeError(self.path, name, float(v[~np.isfinite(v)].ravel()[0]),
+                                           f"[{lo}, {hi}]{unit}")
+        if v.min() < lo - 1e-9 or v.max() > hi + 1e-9:
+            bad = float(v.min()) if v.min() < lo - 1e-9 else float(v.max())
+            raise OutsideTrainedRangeError(self.path, name, bad, f"[{lo}, {hi}]{unit}")
+
+    def _diopters(self, entry, depth_m):
+        near, far = entry["depth_range_m"]
+        d = np.asarray(depth_m, dtype=np.float64)
+        if (d > 0).all() and (d < near - 1e-9).any():
+            raise OutsideTrainedRangeError(self.path, "depth_m", float(d.min()),
+                                           f">= {near} m (the near limit; beyond {far} m counts as infinity)")
+        return inverse_depth(d, far)
+
+    # ---------------------------------------------------------- PSFs
+    def psf(self, lens, field, depth_m, focus_m=None, *, dtype=np.float32) -> np.ndarray:
+        """Radial OLF: PSFs (..., 3, k, k) at field radii x depths [x focus
+        distances] (broadcast together), kernel rows along the radial direction, as the library's;
+        each channel sums to 1. ``focus_m``: the focus distance, for a lens
+        trained with one (required then, refused otherwise)."""
+        if self.variant != "radial":
+            raise InputRangeError("variant", self.variant, "'radial' for psf(); use patch_psf() for 'paper'")
+        li = self.check_lens(lens)
+        entry = self._lenses[lens.id]
+        field, depth_m, f = np.broadcast_arrays(np.asarray(field, float), np.asarray(depth_m, float),
+                                                np.asarray(np.nan if focus_m is None else focus_m, float))
+        shape = field.shape
+        self._check_range("field", field, *entry["field_range"])
+        dio = self._diopters(entry, depth_m)
+        fdio = None
+        if entry.get("focus_range_m") is not None:
+            if focus_m is None:
+                raise InputRangeError("focus_m", None, f"a focus distance in {entry['focus_range_m']} m "
+                                                       f"(this OLF learned {lens.id} across focus)")
+            lo, hi = entry["focus_range_m"]
+            self._check_range("focus_m", f, lo, hi, " m")
+            fdio = 1.0 / f
+        elif focus_m is not None:
+            raise OutsideTrainedRangeError(self.path, "focus_m", focus_m,
+                                           f"none: this OLF learned {lens.id} at its prescribed focus only")
+        x = encode_radial(self.spec, li, field, dio, fdio)
+        k = self.spec["kernel_sizes"][li]
+        return self.forward(x, li, dtype).reshape(shape + (3, k, k))
+
+    def patch_psf(self, lens, row, col, depth_m, *, peak_scale: bool = False, dtype=np.float32) -> np.ndarray:
+        """Paper OLF: PSFs (..., 3, k, k) of patches (row, col) of the paper's
+        grid (fractional positions allowed) at depths; kernels in image
+        orientation. Each channel renormalised to sum 1 (the network's
+        peak-normalised output with ``peak_scale``). Depths beyond the grid's
+        max depth use it (the paper's rule: >= 10 m is infinity)."""
+        if self.variant != "paper":
+            raise InputRangeError("variant", self.variant, "'paper' for patch_psf(); use psf() for 'radial'")
+        li = self.check_lens(lens)
+        entry = self._lenses[lens.id]
+        g = self.spec["paper_grid"]
+        row, col, depth_m = np.broadcast_arrays(*(np.asarray(a, float) for a in (row, col, depth_m)))
+        shape = row.shape
+        self._check_range("row", row, 0, g["height"] // g["patch"] - 1)
+        self._check_range("col", col, 0, g["width"] // g["patch"] - 1)
+        d = np.asarray(depth_m, dtype=np.float64)
+        inverse_depth(d, math.inf)          # NaN, 0, negative
+        near, far = entry["depth_range_m"]
+        if (d < near - 1e-9).any():
+            raise OutsideTrainedRangeError(self.path, "depth_m", float(d.min()), f">= {near} m (the near limit)")
+        d = np.minimum(d, far)
+        out = self.forward(encode_paper(self.spec, li, row, col, d), None, dtype)
+        if not peak_scale:
+            s = out.sum(axis=(-1, -2), keepdims=True)
+            out = out / np.where(s > 0, s, 1.0)
+        k = self.spec["kernel_sizes"][0]
+        return out.reshape(shape + (3, k, k))
+
+    # ------------------------------------------------------------ summary
+    def info(self) -> dict:
+        size = os.path.getsize(self.path) if os.path.exists(self.path) else None
+        n_params = sum(w.size + b.size for w, b in self._trunk + self._heads)
+        return {"file": self.path, "bytes": size, "variant": self.variant,
+                "hidden_layers": self.spec["hidden_layers"], "width": self.spec["width"],
+                "parameters": int(n_params), "dtype": self.meta.get("dtype"),
+                "weights": self.meta.get("weights"),
+                "lenses": [{k: e.get(k) for k in ("id", "fingerprint", "kernel_size", "pixel_pitch_mm",
+                                                  "field_range", "depth_range_m", "focus_range_m")}
+                           for e in self.meta["lenses"]],
+                "held_out": self.meta.get("held_out"), "training": self.meta.get("training"),
+                "version": self.meta.get("version"), "dcdi_version": self.meta.get("dcdi_version"),
+                "checksum": self.meta.get("checksum")}

@@ -1,0 +1,2 @@
+"""Training: configs as data (``config``), a plain loop with atomic
+checkpoints and exact resume (``loop``)."""

@@ -1,0 +1,227 @@
+"""The training loop of the Omni-Lens-Field: plain, seeded, resumable.
+
+One run lives in a folder: ``config.json`` (the settings), ``points.npz``
+(the traced off-grid and held-out PSFs, so a resumed run need not trace them
+again), ``checkpoint.pt`` (written atomically every ``checkpoint_every``
+iterations and at the end: weights, EMA weights, optimiser state, iteration,
+the batch generator's and torch's RNG states) and ``log.jsonl``.
+
+Same config, same seed, same thread count: the same weights, bit for bit;
+a run killed at any point and started again with the same config resumes
+from its last checkpoint and ends exactly where an uninterrupted run would.
+A checkpoint written with other settings is refused, naming them.
+
+Each step: a batch from ``OLFData.sample`` (lenses uniform; grid and
+off-grid points), the network's PSFs, MSE on the paper's scale (prediction
+and target divided by the target's per-channel peak), AdamW, learning rate
+cosine from ``lr`` to ``lr_min`` over ``iters``, then the EMA of the weights.
+"""
+from __future__ import annotations
+
+import copy
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ... import __version__
+from ...atomic import atomic_path, write_text
+from .. import require_torch
+from ..errors import CheckpointMismatchError, ModelFileError
+from ..metrics import psf_scores
+from ..data.psf_samples import OLFData, build_data, data_key
+from .config import OLFTrainConfig, differences
+
+torch = require_torch()
+from ..arch.olf import OLF  # noqa: E402  (after the torch check)
+
+CHECKPOINT_FORMAT = 1
+
+
+@dataclass
+class TrainResult:
+    config: OLFTrainConfig
+    spec: object
+    model: object            # the trained OLF module
+    ema: object              # its exponential moving average
+    data: OLFData
+    step: int
+    seconds: float           # training time (this process's steps, data excluded)
+    history: list = field(default_factory=list)
+    held_out: dict = field(default_factory=dict)   # {"ema": scores, "model": scores}
+
+
+def cosine_lr(config: OLFTrainConfig, step: int) -> float:
+    """Learning rate of update ``step`` (0-based): cosine from lr to lr_min."""
+    t = min(step, config.iters) / config.iters
+    return config.lr_min + (config.lr - config.lr_min) * 0.5 * (1.0 + math.cos(math.pi * t))
+
+
+def _groups_to_torch(batch):
+    return [(li, torch.from_numpy(np.ascontiguousarray(x)), torch.from_numpy(np.ascontiguousarray(y)),
+             torch.from_numpy(np.ascontiguousarray(s))) for li, x, y, s in batch.groups]
+
+
+def predict(model, groups):
+    """The network's PSFs for each group: list of (n, 3, k, k) tensors."""
+    out = []
+    for li, x, _, _ in groups:
+        if model.spec.variant == "paper":
+            out.append(model(x))
+        else:
+            out.append(model(x, li))
+    return out
+
+
+def loss_of(model, groups):
+    """Mean over the batch of each sample's MSE on the paper's scale."""
+    total, n = 0.0, 0
+    for pred, (_, _, y, s) in zip(predict(model, groups), groups):
+        d = (pred - y) / s[:, :, None, None]
+        total = total + (d * d).mean(dim=(1, 2, 3)).sum()
+        n += len(y)
+    return total / n
+
+
+def evaluate(model, data: OLFData) -> dict:
+    """Scores (``metrics.psf_scores``) on the held-out points, per lens and
+    their mean over lenses."""
+    model.eval()
+    scale = "peak" if model.spec.variant == "paper" else "sum"
+    per = {}
+    with torch.no_grad():
+        groups = _groups_to_torch(data.held_out())
+        for pred, (li, _, y, _) in zip(predict(model, groups), groups):
+            per[data.lenses[li].lens.id] = psf_scores(pred.double().numpy(), y.numpy(), scale=scale)
+    model.train()
+    keys = [k for k in next(iter(per.values())) if k != "n"]
+    mean = {k: (float(np.mean([v[k] for v in per.values()])) if all(v[k] is not None for v in per.values())
+                else None) for k in keys}
+    return {"mean": mean, "lenses": per}
+
+
+def _init_heads_from_data(model, data: OLFData):
+    """radial: each head's bias = log of the lens's mean grid PSF, so the
+    untrained network already gives the mean kernel (deterministic)."""
+    if model.spec.variant != "radial":
+        return
+    with torch.no_grad():
+        for li, ls in enumerate(data.lenses):
+            src = ls.grid_y if ls.grid_y is not None and len(ls.grid_y) else ls.off_y
+            mean = src.astype(np.float64).mean(axis=0).reshape(-1)
+            model.heads[li].bias.copy_(torch.from_numpy(np.log(mean + 1e-8)).float())
+
+
+def _save_checkpoint(path: Path, state: dict) -> None:
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
+
+
+def _load_checkpoint(path: Path) -> dict:
+    try:
+        ck = torch.load(path, weights_only=True)
+    except Exception as e:  # noqa: BLE001 - any failure: say which file
+        raise ModelFileError(path, f"not a readable checkpoint ({e}); delete it to start afresh") from None
+    if ck.get("format") != CHECKPOINT_FORMAT:
+        raise ModelFileError(path, f"checkpoint format {ck.get('format')!r}", field="format",
+                             allowed=str(CHECKPOINT_FORMAT))
+    return ck
+
+
+def train(config: OLFTrainConfig, run_dir, *, cache_dir=None, lenses: dict | None = None, progress=None,
+          on_step=None, log=None) -> TrainResult:
+    """Train (or resume) the run in ``run_dir``. ``cache_dir``: the PSF
+    library cache (None: the default; False: none). ``progress(step, iters,
+    loss)`` after each step; ``on_step(step)`` too (an exception there stops
+    the run as a kill would, after the step and before any later checkpoint)."""
+    say = log or (lambda s: None)
+    torch.set_num_threads(config.threads)
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    ckpt_path = run_dir / "checkpoint.pt"
+    settings = config.result_settings()
+    ck = None
+    if ckpt_path.exists():
+        ck = _load_checkpoint(ckpt_path)
+        diff = differences(json.loads(ck["settings"]), settings)
+        if diff:
+            raise CheckpointMismatchError(ckpt_path, diff)
+    write_text(run_dir / "config.json", config.to_json() + "\n")
+
+    data = build_data(config.data, cache_dir=cache_dir, points_file=run_dir / "points.npz", lenses=lenses,
+                      log=say)
+    key = data_key(config.data, [ls.lens for ls in data.lenses])
+    if ck is not None and ck["data_key"] != key:
+        raise CheckpointMismatchError(ckpt_path, {"data (a lens's optics or the PSF algorithm)":
+                                                  (ck["data_key"][:12], key[:12])})
+    spec = data.spec(**config.arch())
+    torch.manual_seed(config.seed)
+    model = OLF(spec)
+    _init_heads_from_data(model, data)
+    ema = copy.deepcopy(model)
+    for p in ema.parameters():
+        p.requires_grad_(False)
+    opt = torch.optim.AdamW(model.parameters(), lr=config.lr, betas=config.betas,
+                            weight_decay=config.weight_decay)
+    rng = np.random.default_rng([config.seed, 7])
+    step, history = 0, []
+    if ck is not None:
+        model.load_state_dict(ck["model"])
+        ema.load_state_dict(ck["ema"])
+        opt.load_state_dict(ck["optim"])
+        torch.set_rng_state(ck["torch_rng"])
+        rng.bit_generator.state = json.loads(ck["numpy_rng"])
+        step = int(ck["step"])
+        history = json.loads(ck["history"])
+        say(f"resumed {ckpt_path} at iteration {step} of {config.iters}")
+
+    def checkpoint():
+        _save_checkpoint(ckpt_path, {
+            "format": CHECKPOINT_FORMAT, "dcdi_version": __version__, "step": step,
+            "settings": json.dumps(settings, sort_keys=True), "config": config.to_json(), "data_key": key,
+            "model": model.state_dict(), "ema": ema.state_dict(), "optim": opt.state_dict(),
+            "torch_rng": torch.get_rng_state(), "numpy_rng": json.dumps(rng.bit_generator.state),
+            "history": json.dumps(history)})
+
+    t0 = time.perf_counter()
+    d = config.ema_decay
+    ema_params = list(ema.parameters())
+    params = list(model.parameters())
+    model.train()
+    loss_v = float("nan")
+    with open(run_dir / "log.jsonl", "a", encoding="utf-8") as logf:
+        while step < config.iters:
+            for g in opt.param_groups:
+                g["lr"] = cosine_lr(config, step)
+            groups = _groups_to_torch(data.sample(rng, config.batch))
+            loss = loss_of(model, groups)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            with torch.no_grad():
+                for pe, p in zip(ema_params, params):
+                    pe.mul_(d).add_(p, alpha=1.0 - d)
+            step += 1
+            loss_v = float(loss.detach())
+            if config.validate_every and step % config.validate_every == 0 and step < config.iters:
+                rec = {"step": step, "loss": loss_v, "seconds": time.perf_counter() - t0,
+                       "held_out_ema": evaluate(ema, data)["mean"], "held_out_model": evaluate(model, data)["mean"]}
+                history.append(rec)
+                logf.write(json.dumps(rec) + "\n")
+                logf.flush()
+            if step % config.checkpoint_every == 0 or step == config.iters:
+                checkpoint()
+            if progress:
+                progress(step, config.iters, loss_v)
+            if on_step:
+                on_step(step)
+    seconds = time.perf_counter() - t0
+    held = {"ema": evaluate(ema, data), "model": evaluate(model, data)}
+    rec = {"step": step, "loss": loss_v, "seconds": seconds, "held_out_ema": held["ema"]["mean"],
+           "held_out_model": held["model"]["mean"], "final": True}
+    with open(run_dir / "log.jsonl", "a", encoding="utf-8") as logf:
+        logf.write(json.dumps(rec) + "\n")
+    return TrainResult(config, spec, model, ema, data, step, seconds, history, held)
