@@ -108,3 +108,15 @@ def test_no_silent_overrides():
     b = PSFLibrary.open(lens, PSFSettings(kernel_size=7, pupil_samples=8, n_wavelengths=3, deposit_sigma_px=0.47),
                         cache=False)
     assert a.key != b.key
+
+
+def test_kernel_rotation_keeps_a_point_and_interpolates_a_smooth_kernel():
+    # against the histogram of exactly rotated rays (report simulation-accuracy's table)
+    from dcdi_core.render.accuracy import rotation_rows
+
+    rows = {(q[0], q[1]): q[3:] for q in rotation_rows(quick=True)}
+    point, smooth = rows[(0.05, 0.05)], rows[(3.0, 1.5)]
+    assert point[1] < 1e-6 and point[3] < 1e-6          # kept: exact at 30 and 45 degrees
+    assert point[0] > 0.3 and point[2] > 0.3            # bilinear spread an in-focus point
+    assert smooth[1] < 1.05 * smooth[0] + 0.005 and smooth[3] < 1.05 * smooth[2] + 0.005
+    assert sum(q[1] + q[3] for q in rows.values()) < sum(q[0] + q[2] for q in rows.values())

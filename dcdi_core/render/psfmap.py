@@ -45,10 +45,12 @@ def patch_inverse_depth(depth: np.ndarray, m: int, far_m: float) -> tuple[np.nda
     return np.where(has, inv / np.maximum(cnt, 1), 0.0), has
 
 
-def _rotate_flat(src: np.ndarray, outward: np.ndarray, k: int, target_sum: np.ndarray) -> np.ndarray:
+def _rotate_flat(src: np.ndarray, outward: np.ndarray, k: int, target_sum: np.ndarray,
+                 keep_peak: bool = True) -> np.ndarray:
     """Bilinear rotation of flat kernels src (n, C, k*k) whose rows run along
     the radial direction to ``outward`` (n, 2) unit (row, col); zero outside;
-    each channel scaled to ``target_sum`` (n, C)."""
+    each channel scaled to ``target_sum`` (n, C). keep_peak: the centre's
+    excess over its neighbours is not interpolated (below)."""
     r = k // 2
     dr, dc = np.meshgrid(np.arange(k, dtype=np.float32) - r, np.arange(k, dtype=np.float32) - r, indexing="ij")
     dr, dc = dr.ravel(), dc.ravel()
@@ -61,14 +63,24 @@ def _rotate_flat(src: np.ndarray, outward: np.ndarray, k: int, target_sum: np.nd
     r0, c0 = r0.astype(np.int64), c0.astype(np.int64)
     acc = np.zeros(src.shape, np.float32)
     n, c, kk = src.shape
-    # the centre pixel holds the chief ray's sub-pixel spot, which a rotation
-    # about the centre leaves in place; interpolating it would spread an
-    # in-focus point over its neighbours (a delta rotated by 45 degrees
-    # bilinearly keeps only 74 %). So only the rest is interpolated.
-    centre = (r * k + r)
+    # A pixel histogram does not say where in the centre pixel its rays
+    # fell: an in-focus spot smaller than a pixel is one peaked centre
+    # value, which a rotation about the centre leaves in place, but which
+    # interpolation would spread over the neighbours (a delta rotated by 45
+    # degrees bilinearly keeps only 74 %). So the centre's excess over its
+    # largest neighbour stays a point at the centre, and only the smooth
+    # rest is interpolated (nearly all of a smooth kernel: bilinear as
+    # before). Measured against rotated rays in report simulation-accuracy.
+    centre = r * k + r
     src = np.array(src, dtype=np.float32, copy=True)
-    acc[:, :, centre] = src[:, :, centre]
-    src[:, :, centre] = 0.0
+    if k >= 3:
+        ring = [centre + dy * k + dx for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
+        peak = np.maximum(src[:, :, centre] - src[:, :, ring].max(axis=-1), 0.0) if keep_peak \
+            else np.zeros_like(src[:, :, centre])
+    else:
+        peak = src[:, :, centre].copy() if keep_peak else np.zeros_like(src[:, :, centre])
+    acc[:, :, centre] = peak
+    src[:, :, centre] -= peak
     # one flat gather per tap (1.7x faster than take_along_axis, measured)
     flat = np.ascontiguousarray(src).ravel()
     base = (np.arange(n) * c * kk)[:, None, None] + (np.arange(c) * kk)[None, :, None]
@@ -83,10 +95,12 @@ def _rotate_flat(src: np.ndarray, outward: np.ndarray, k: int, target_sum: np.nd
     return acc
 
 
-def rotate_radial_kernels(kernels: np.ndarray, outward: np.ndarray, chunk: int = 256) -> np.ndarray:
+def rotate_radial_kernels(kernels: np.ndarray, outward: np.ndarray, chunk: int = 256,
+                          keep_peak: bool = True) -> np.ndarray:
     """Rotate kernels (P, C, k, k) whose rows run along the radial direction so
     that it points along ``outward`` (P, 2) = unit (row, col) vectors.
-    Bilinear, zero outside, each channel renormalised to its former sum.
+    Bilinear (the centre's peak kept in place unless ``keep_peak`` is
+    False), zero outside, each channel renormalised to its former sum.
     Chunks run on the thread pool (float32 throughout)."""
     from ..optics.trace import thread_pool
 
@@ -95,7 +109,7 @@ def rotate_radial_kernels(kernels: np.ndarray, outward: np.ndarray, chunk: int =
     out = np.empty((p, c, k * k), np.float32)
 
     def work(sl):
-        out[sl] = _rotate_flat(flat[sl], outward[sl], k, flat[sl].sum(axis=-1))
+        out[sl] = _rotate_flat(flat[sl], outward[sl], k, flat[sl].sum(axis=-1), keep_peak)
 
     list(thread_pool().map(work, [slice(i, min(i + chunk, p)) for i in range(0, p, chunk)]))
     return out.reshape(p, c, k, k)
