@@ -176,7 +176,7 @@ class PSFLibrary:
         near = self.grid.near_m
         if (d < near).any() and not clamp_near:
             raise InputRangeError("depth_m", float(d.min()),
-                                  f">= the library's near limit {near} m (or pass clamp_near=True)")
+                                  f">= the library's near limit {near} m (its nearest depth bin)")
         d = np.maximum(d, near)
         far = d >= self.grid.far_m
         x = np.where(far, 0.0, 1.0 / np.where(far, 1.0, d))

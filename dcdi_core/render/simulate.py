@@ -28,6 +28,7 @@ from ..psf.compute import KernelTooSmallWarning, PSFSettings
 from ..psf.library import LibraryGrid, PSFLibrary
 from .convolve import patch_convolve
 from .geometry import ImageGeometry
+from .inputs import check_rgbd
 from .psfmap import PSFMap, psf_map, valid_depth_mask
 
 
@@ -256,6 +257,10 @@ class LensSimulator:
         keyword arguments of ``noise.add_sensor_noise`` (needs ``seed``),
         added to the aberrated image only."""
         img, d = _check(image, depth, self.source_geometry)
+        check_rgbd(img, None if fixed_depth_m is not None else d)
+        return self._run(img, d, fixed_depth_m, noise, seed)
+
+    def _run(self, img, d, fixed_depth_m, noise, seed) -> RenderResult:
         if noise is not None and seed is None:
             raise InputRangeError("seed", None, "an integer: noise needs an explicit seed")
         sharp, d_s, valid = self.on_sensor(img, d)
@@ -293,11 +298,12 @@ def simulate(image, depth, lens, *, geometry: ImageGeometry | None = None,
     geometry: the output frame on the sensor (default: the image spans the
     sensor's diagonal); source_geometry: the input's, if it differs."""
     img, d = _check(image, depth, source_geometry)
+    check_rgbd(img, None if fixed_depth_m is not None else d)
     geometry = geometry or source_geometry or ImageGeometry.full_sensor(lens, img.shape[0], img.shape[1])
     sim = LensSimulator(lens, geometry, source_geometry=source_geometry, library=library, settings=settings,
                         response=response, patch=patch, distortion=distortion, interpolation=interpolation,
                         fit_depth_m=d if library is None else None)
-    return sim(img, d, fixed_depth_m=fixed_depth_m, noise=noise, seed=seed)
+    return sim._run(img, d, fixed_depth_m, noise, seed)
 
 
 def _layers(inv: np.ndarray, valid: np.ndarray, n_layers: int):
@@ -375,6 +381,7 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
     if isinstance(n_layers, bool) or not isinstance(n_layers, (int, np.integer)) or not 1 <= n_layers <= 256:
         raise InputRangeError("n_layers", n_layers, "an integer in [1, 256]")
     img, d = _check(image, depth, source_geometry)
+    check_rgbd(img, d)
     geometry = geometry or source_geometry or ImageGeometry.full_sensor(lens, img.shape[0], img.shape[1])
     check_within_sensor(geometry)
     moved = distortion or (source_geometry is not None and source_geometry != geometry)
