@@ -41,8 +41,8 @@ def bench_trace(n_rays: int, repeat: int) -> int:
     print(f"bench trace: lens double-gauss, {len(lens.surfaces)} surfaces + sensor, "
           f"{n:,} rays ({n_int:,} ray-surface intersections), {os.cpu_count()} CPU(s), best of {repeat}")
 
-    def run(dtype):
-        return T.trace(lens, o, d, wls, dtype=dtype, status=status)
+    def run(dtype, chunk=None):
+        return T.trace(lens, o, d, wls, dtype=dtype, status=status, chunk=chunk)
 
     results = {}
     for name, dtype in (("float64", np.float64), ("float32", np.float32)):
@@ -51,12 +51,7 @@ def bench_trace(n_rays: int, repeat: int) -> int:
         print(f"  {name}: {t * 1e3:8.1f} ms  {n_int / t / 1e6:7.1f} M ray-surface/s  "
               f"{n / t / 1e6:6.2f} M rays/s")
     # baseline: one chunk, no thread pool (plain vectorised numpy)
-    saved = T.CHUNK
-    T.CHUNK = n + 1
-    try:
-        tb, _ = _best(lambda: run(np.float64), repeat)
-    finally:
-        T.CHUNK = saved
+    tb, _ = _best(lambda: run(np.float64, chunk=n + 1), repeat)
     print(f"  baseline float64 (unchunked, 1 thread): {tb * 1e3:8.1f} ms  "
           f"{n_int / tb / 1e6:7.1f} M ray-surface/s")
     print(f"  speed-up over baseline: float64 x{tb / results['float64'][0]:.2f}, "
@@ -135,32 +130,28 @@ def _bench_baseline(lens, settings, grid, per: float) -> None:
     import math as _m
     erf = np.vectorize(_m.erf)
     aimed = sources(lens, [2.0], field=[0.3, 0.6, 0.9])
-    saved = T.CHUNK
+    whole = 1 << 30                               # one chunk: unchunked, on this thread
     t = time.perf_counter()
-    try:
-        T.CHUNK = 1 << 30
-        for i in range(aimed.p.shape[0]):
-            a = Aimed(aimed.depth_mm[i], aimed.p[i], aimed.v_chief[i], aimed.ok[i], aimed.z_ep)
-            o, dd, st, _ = pupil_rays(lens, a, stop_grid(lens, settings.pupil_samples))
-            oc, dc = launch(lens, a.depth_mm, a.p, 0.0, a.v_chief, a.z_ep)
-            cy = T.trace(lens, oc, dc, lens.wavelength_nm, apertures=False).position_mm[0, 1]
-            kern = np.zeros((3, k, k))
-            for j, lam in enumerate(wl):
-                b = T.trace(lens, o, dd, lam, status=st)
-                v = b.valid[0]
-                x = b.position_mm[0, v, 0] / pitch + k / 2
-                y = (b.position_mm[0, v, 1] - cy) / pitch + k / 2
-                ix0, iy0 = np.floor(x).astype(int) - 2, np.floor(y).astype(int) - 2
-                for dx_ in range(5):
-                    gx = erf((ix0 + dx_ + 1 - x) / (sig * _m.sqrt(2))) - erf((ix0 + dx_ - x) / (sig * _m.sqrt(2)))
-                    for dy_ in range(5):
-                        gy = erf((iy0 + dy_ + 1 - y) / (sig * _m.sqrt(2))) - erf((iy0 + dy_ - y) / (sig * _m.sqrt(2)))
-                        ii, jj = iy0 + dy_, ix0 + dx_
-                        ok = (ii >= 0) & (ii < k) & (jj >= 0) & (jj < k)
-                        for c in range(3):
-                            np.add.at(kern[c], (ii[ok], jj[ok]), 0.25 * gx[ok] * gy[ok] * w[j, c])
-    finally:
-        T.CHUNK = saved
+    for i in range(aimed.p.shape[0]):
+        a = Aimed(aimed.depth_mm[i], aimed.p[i], aimed.v_chief[i], aimed.ok[i], aimed.z_ep)
+        o, dd, st, _ = pupil_rays(lens, a, stop_grid(lens, settings.pupil_samples))
+        oc, dc = launch(lens, a.depth_mm, a.p, 0.0, a.v_chief, a.z_ep)
+        cy = T.trace(lens, oc, dc, lens.wavelength_nm, apertures=False, chunk=whole).position_mm[0, 1]
+        kern = np.zeros((3, k, k))
+        for j, lam in enumerate(wl):
+            b = T.trace(lens, o, dd, lam, status=st, chunk=whole)
+            v = b.valid[0]
+            x = b.position_mm[0, v, 0] / pitch + k / 2
+            y = (b.position_mm[0, v, 1] - cy) / pitch + k / 2
+            ix0, iy0 = np.floor(x).astype(int) - 2, np.floor(y).astype(int) - 2
+            for dx_ in range(5):
+                gx = erf((ix0 + dx_ + 1 - x) / (sig * _m.sqrt(2))) - erf((ix0 + dx_ - x) / (sig * _m.sqrt(2)))
+                for dy_ in range(5):
+                    gy = erf((iy0 + dy_ + 1 - y) / (sig * _m.sqrt(2))) - erf((iy0 + dy_ - y) / (sig * _m.sqrt(2)))
+                    ii, jj = iy0 + dy_, ix0 + dx_
+                    ok = (ii >= 0) & (ii < k) & (jj >= 0) & (jj < k)
+                    for c in range(3):
+                        np.add.at(kern[c], (ii[ok], jj[ok]), 0.25 * gx[ok] * gy[ok] * w[j, c])
     per_base = (time.perf_counter() - t) / aimed.p.shape[0]
     print(f"baseline (one PSF at a time, float64, 1 thread, np.add.at deposit; 128^2 rays, 9 wavelengths): "
           f"{per_base * 1e3:.0f} ms/PSF vs {per * 1e3:.1f} ms/PSF for the same workload above: "
@@ -200,8 +191,9 @@ def bench_render(quick: bool = False) -> int:
     t_sim, _ = _best(lambda: simulate(img, depth, mos, geometry=geom, library=lib, distortion=False), rep)
     t_sim_d, _ = _best(lambda: simulate(img, depth, mos, geometry=geom, library=lib, distortion=True), rep)
     from .render import fft
-    with fft.forced("numpy"):                  # the fallback that Blender's Python gets
-        t_sim_np, _ = _best(lambda: simulate(img, depth, mos, geometry=geom, library=lib, distortion=False), 1)
+    # the fallback that Blender's Python gets
+    t_sim_np, _ = _best(lambda: simulate(img, depth, mos, geometry=geom, library=lib, distortion=False,
+                                         fft_backend="numpy"), 1)
     t_bk_plain, _ = _best(lambda: bokeh(img, depth, p6, keep=(1.1, 1.3), library=lib6, occlusion=False), rep)
     t_bk, _ = _best(lambda: bokeh(img, depth, p6, keep=(1.1, 1.3), library=lib6, occlusion=True), rep)
     # peak memory in separate runs (tracing slows numpy's allocations a little)

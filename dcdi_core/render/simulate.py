@@ -190,8 +190,11 @@ class LensSimulator:
                  library: PSFLibrary | None = None, settings: PSFSettings | None = None,
                  grid: LibraryGrid | None = None, response=None, patch: int = 16, distortion: bool = True,
                  interpolation: str = DEFAULT_INTERPOLATION, baseline_depth_m: float | None = None,
-                 fit_depth_m=None, cache: bool = True, progress=None):
+                 fit_depth_m=None, cache: bool = True, progress=None, fft_backend: str | None = None):
+        from . import fft
         from .distortion import check_interpolation, radial_distortion
+
+        self.fft_backend = fft.backend(fft_backend)
 
         self.patch = check_patch(patch)
         self.interpolation = check_interpolation(interpolation)
@@ -269,13 +272,15 @@ class LensSimulator:
         else:
             pm = psf_map(self.library, self.work_geometry, d_s, self.patch, clamp_field=self.margin > 0)
         # non-negative kernels on a non-negative image: below 0 is FFT round-off (~1e-7)
-        out = np.maximum(patch_convolve(sharp, pm.kernels, self.patch, identity=pm.identity), 0.0)
+        out = np.maximum(patch_convolve(sharp, pm.kernels, self.patch, identity=pm.identity,
+                                        fft_backend=self.fft_backend), 0.0)
         info = dict(pm.info, depth_aware=fixed_depth_m is None, distortion=self.table is not None,
                     interpolation=self.interpolation, not_imaged_pixels=int((~self._crop(valid)).sum()))
         baseline = None
         if self.baseline is not None:
             baseline = np.maximum(patch_convolve(sharp, self.baseline.kernels, self.patch,
-                                                 identity=self.baseline.identity), 0.0)
+                                                 identity=self.baseline.identity, fft_backend=self.fft_backend),
+                                  0.0)
             info["baseline_depth_m"] = self.baseline_depth_m
         if noise is not None:
             from .noise import add_sensor_noise
@@ -292,17 +297,18 @@ def simulate(image, depth, lens, *, geometry: ImageGeometry | None = None,
              library: PSFLibrary | None = None, settings: PSFSettings | None = None, response=None,
              fixed_depth_m: float | None = None, distortion: bool = True,
              interpolation: str = DEFAULT_INTERPOLATION, noise: dict | None = None,
-             seed: int | None = None) -> RenderResult:
+             seed: int | None = None, fft_backend: str | None = None) -> RenderResult:
     """Aberrated image of an all-in-focus ``image`` (H, W, 3) with metric
     ``depth`` (H, W) through ``lens``: :class:`LensSimulator` used once.
     geometry: the output frame on the sensor (default: the image spans the
-    sensor's diagonal); source_geometry: the input's, if it differs."""
+    sensor's diagonal); source_geometry: the input's, if it differs.
+    fft_backend: 'scipy' or 'numpy' (default: the fastest installed)."""
     img, d = _check(image, depth, source_geometry)
     check_rgbd(img, None if fixed_depth_m is not None else d)
     geometry = geometry or source_geometry or ImageGeometry.full_sensor(lens, img.shape[0], img.shape[1])
     sim = LensSimulator(lens, geometry, source_geometry=source_geometry, library=library, settings=settings,
                         response=response, patch=patch, distortion=distortion, interpolation=interpolation,
-                        fit_depth_m=d if library is None else None)
+                        fit_depth_m=d if library is None else None, fft_backend=fft_backend)
     return sim._run(img, d, fixed_depth_m, noise, seed)
 
 
@@ -364,7 +370,7 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
           distortion: bool = False, interpolation: str = DEFAULT_INTERPOLATION, patch: int = 16,
           occlusion: bool = True, n_layers: int = 12, library: PSFLibrary | None = None,
           settings: PSFSettings | None = None, response=None, fit_kernel: bool = True,
-          cancelled=None) -> RenderResult:
+          cancelled=None, fft_backend: str | None = None, progress=None) -> RenderResult:
     """``image`` as ``lens`` would take it, keeping [near, far] metres sharp
     (``keep``), or focused at ``focus_m`` metres, or with ``focus_m =
     "prescribed"`` the lens as its prescription stands (full physical
@@ -375,7 +381,8 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
     ``settings`` and ``response``, the kernel grown to hold the depth map's
     blur unless ``fit_kernel`` is False. ``cancelled()``, if given, is
     called before each layer's convolution; when it returns True,
-    :class:`Cancelled` is raised."""
+    :class:`Cancelled` is raised. fft_backend: as :func:`simulate`.
+    progress(done, total): called as PSF bins are computed."""
     s = _bokeh_focus(keep, focus_m, library, settings)
     m = check_patch(patch)
     if isinstance(n_layers, bool) or not isinstance(n_layers, (int, np.integer)) or not 1 <= n_layers <= 256:
@@ -390,8 +397,11 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
         table = radial_distortion(lens) if distortion else None
         img, d, _ = on_sensor(img, d, lens, geometry, source_geometry=source_geometry, distortion=table,
                               interpolation=check_interpolation(interpolation))
+    from . import fft
+    fft_backend = fft.backend(fft_backend)
     if library is None:
-        library = open_library(lens, geometry, s, response=response, fit_depth_m=d if fit_kernel else None)
+        library = open_library(lens, geometry, s, response=response, fit_depth_m=d if fit_kernel else None,
+                               progress=progress)
     _check_library(library, geometry)
     patch = m
     valid = valid_depth_mask(d)
@@ -403,7 +413,7 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
         if cancelled is not None and cancelled():
             raise Cancelled("bokeh cancelled")
         pm = psf_map(library, geometry, d, patch, keep_range_m=keep)
-        out = patch_convolve(img, pm.kernels, patch, identity=pm.identity)
+        out = patch_convolve(img, pm.kernels, patch, identity=pm.identity, fft_backend=fft_backend)
         return RenderResult(out, dict(info, **pm.info), img if moved else None, pm, depth=d if moved else None)
     # layered, back to front: each layer's colour and coverage blurred alike.
     # ``col`` is the colour seen so far, un-premultiplied, where ``seen``: what
@@ -439,7 +449,8 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
         # each colour's coverage blurred with that colour's own PSF: the
         # normalisation above is then exact for any colour fringe
         blurred = patch_convolve(np.concatenate([img[ys, xs] * af, af], axis=-1), pm.kernels, patch,
-                                 identity=pm.identity, pairs=((0, 0), (1, 1), (2, 2), (3, 0), (3, 1), (3, 2)))
+                                 identity=pm.identity, pairs=((0, 0), (1, 1), (2, 2), (3, 0), (3, 1), (3, 2)),
+                                 fft_backend=fft_backend)
         cover = np.clip(blurred[..., 3:], 0.0, 1.0)
         behind = seen[ys, xs]
         premultiplied = blurred[..., :3] + (1.0 - cover) * np.where(behind, col[ys, xs], 0.0)
