@@ -234,61 +234,7 @@ def bench_render(quick: bool = False) -> int:
     return 0
 
 
-def bench_factory(quick: bool = False) -> int:
-    """Samples per hour of the dataset factory at 480 x 640 (room recipe,
-    default render settings, MOS-S1 simulation included), with the time of
-    each stage from its manifest (seconds per sample). The PSF library is
-    built (or read) by a warm-up run before the timed one; the timed run's
-    wall time includes its process start. CPU seconds and the load average
-    show whether other jobs shared the machine (wall times then grow)."""
-    import json
-    import subprocess
-    import sys
-    import tempfile
-
-    h, w, n = (120, 160, 2) if quick else (480, 640, 6)
-    with tempfile.TemporaryDirectory() as d:
-        args = [sys.executable, "-m", "blender_addon.factory", "--recipe", "room", "--lens", "mos-s1",
-                "--out", d, "--seed", "0", "--resolution", str(h), str(w)]
-        # one warm-up sample builds (or reads) the PSF library for this pixel pitch
-        subprocess.run(args + ["--count", "1"], check=True, capture_output=True)
-        load0 = os.getloadavg()[0]
-        t = time.perf_counter()
-        subprocess.run(args + ["--count", str(n + 1)], check=True, capture_output=True)
-        wall = time.perf_counter() - t
-        load1 = os.getloadavg()[0]
-        recs = [json.loads(x) for x in open(os.path.join(d, "manifest.jsonl"))][1:]
-    def mean(f):
-        return sum(f(r) for r in recs) / len(recs)
-    stages = ("scene", "render", "read", "write", "simulate")
-    st = {k: mean(lambda r, k=k: r["stage_seconds"].get(k, 0.0)) for k in stages}
-    setup = sum(r["stage_seconds"].get("setup", 0.0) for r in recs)
-    steady = mean(lambda r: r["seconds"] - r["stage_seconds"].get("setup", 0.0))
-    cpu = mean(lambda r: r["cpu_seconds"])
-    per = wall / len(recs)
-    r0 = recs[0]["render"]
-    print(f"bench factory: {h} x {w}, room, {r0['samples']} samples/pixel, denoiser "
-          f"{r0['denoising_quality'] if r0['denoise'] else 'off'}/{r0['denoising_prefilter']}, MOS-S1 simulation "
-          f"(depth-aware + baseline), {len(recs)} samples, {os.cpu_count()} CPU(s), load average {load0:.1f} -> "
-          f"{load1:.1f}")
-    cst = {k: mean(lambda r, k=k: r["stage_seconds"].get("cpu_" + k, math.nan)) for k in stages}
-    print("  per sample, wall (CPU) seconds: "
-          + ", ".join(f"{k} {v:.2f}" + ("" if math.isnan(cst[k]) else f" ({cst[k]:.2f})") for k, v in st.items())
-          + f"; {steady:.2f} s in all ({cpu:.1f} CPU s: {cpu / (os.cpu_count() or 1):.2f} s if this process had "
-            f"all {os.cpu_count()} cores)")
-    print(f"  once per run: process start, PSF library, distortion table and baseline map "
-          f"{wall - steady * len(recs):.1f} s (of which simulator set-up {setup:.1f} s)")
-    print(f"  {per:.2f} s per sample with the process start = {3600 / per:.0f} samples per hour "
-          f"({3600 / steady:.0f} per hour in a long run; goal 600)")
-    if load0 > 1.5 * (os.cpu_count() or 1) / 2 or load1 > (os.cpu_count() or 1) + 0.5:
-        print(f"  note: other jobs shared the {os.cpu_count()} cores (load average {load0:.1f} -> {load1:.1f}): "
-              "wall times are longer than on an idle machine; CPU seconds are not")
-    return 0
-
-
 def run(what: str, args) -> int:
-    if what == "factory":
-        return bench_factory(getattr(args, "quick", False))
     if what == "render":
         return bench_render(getattr(args, "quick", False))
     if what == "trace":

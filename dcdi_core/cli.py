@@ -624,14 +624,17 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--quick", action="store_true", help="a small image and sweep (for tests)")
     r.set_defaults(func=cmd_report_sim)
 
-    q = sub.add_parser("bench", help="benchmarks (times, not tests)")
-    q.add_argument("what", choices=["trace", "psflib", "render", "factory"], help="what to benchmark")
+    q = sub.add_parser("bench", help="benchmarks (times, not tests)",
+                       description="Benchmarks of the engine; the dataset factory's is `python build.py bench "
+                                   "factory` (it starts the Blender layer, which the engine never does).")
+    q.add_argument("what", choices=["trace", "psflib", "render"], help="what to benchmark")
     q.add_argument("--rays", type=_positive_int, default=1 << 20, help="rays per trace (default 2^20)")
     q.add_argument("--repeat", type=_positive_int, default=3, help="timed repetitions (best is kept)")
     q.add_argument("--quick", action="store_true", help="psflib: a small library (for tests)")
     q.set_defaults(func=cmd_bench)
 
-    q = sub.add_parser("demo", help="the demo job: lens reports and spot diagrams of all lenses")
+    q = sub.add_parser("demo", help="the demo job: lens reports, spot diagrams and PSFs of all lenses, simulation "
+                                    "and bokeh on a synthetic scene (python build.py demo adds a factory sample)")
     q.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     q.set_defaults(func=cmd_demo)
     return p

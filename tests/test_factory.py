@@ -6,7 +6,7 @@ import pytest
 
 bpy = pytest.importorskip("bpy")
 
-from blender_addon import factory  # noqa: E402
+from blender_addon.tools import factory  # noqa: E402
 from dcdi_core.io.images import read_depth, read_image  # noqa: E402
 
 SMALL = ["--resolution", "24", "32", "--samples", "2", "--psf-rays", "12", "--psf-wavelengths", "3"]
@@ -73,13 +73,18 @@ def test_shards_split_the_indices(tmp_path):
 
 @pytest.mark.slow
 def test_bench_factory_quick(capsys):
-    from dcdi_core.cli import main
-    assert main(["bench", "factory", "--quick"]) == 0
+    import importlib.util
+    import sys
+    from pathlib import Path
+    spec = importlib.util.spec_from_file_location("dcdi_build", Path(__file__).resolve().parent.parent / "build.py")
+    build = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(build)
+    assert build.bench_factory(Path(sys.executable), quick=True) == 0
     assert "samples per hour" in capsys.readouterr().out
 
 
 def test_render_noise_table_runs(capsys):
-    from blender_addon.render_noise import main
+    from blender_addon.tools.render_noise import main
     assert main(["--resolution", "12", "16", "--reference", "8"]) == 0
     out = capsys.readouterr().out
     assert "| 4 | True | HIGH | ACCURATE | 2 |" in out and "| 6 | True | HIGH | NONE | 2 |" in out
@@ -116,7 +121,7 @@ def test_render_settings_refuse_bad_values():
 
 
 def test_band_fractions():
-    from blender_addon.depth_histogram import BANDS, band_fractions
+    from blender_addon.tools.depth_histogram import BANDS, band_fractions
     d = np.array([0.5, 0.7, 0.99, 1.0, 3.0, 7.0, 10.0, 50.0, np.inf, np.inf])
     f = band_fractions(d)
     assert dict(zip(BANDS, f.round(2))) == {"<0.7": 0.1, "0.7-1": 0.2, "1-2": 0.1, "2-5": 0.1, "5-10": 0.1,
@@ -128,7 +133,7 @@ def test_band_fractions():
 def test_recipes_cover_the_depth_bands():
     # the paper's data spans 0.7 m to beyond 10 m: pooled over the three recipes every band
     # from 0.7 m to infinity holds a share of the pixels, and the room reaches closer than 1 m
-    from blender_addon.depth_histogram import BANDS, depth_histogram
+    from blender_addon.tools.depth_histogram import BANDS, depth_histogram
     hist = depth_histogram(seeds=3, height=48, width=64)
     pooled = dict(zip(BANDS, np.mean([f for f, _, _ in hist.values()], axis=0)))
     assert pooled["<0.7"] < 0.01

@@ -1,9 +1,9 @@
 """The dataset factory: seeded scenes rendered all-in-focus with metric depth,
 then passed through the depth-aware simulation of each requested lens.
 
-    blender --background --python blender_addon/factory.py -- --recipe room --count 10 \\
+    blender --background --python blender_addon/tools/factory.py -- --recipe room --count 10 \\
         --lens mos-s1 --out DIR --seed 0 [--shard I/N]
-    python -m blender_addon.factory --recipe room --count 10 --lens mos-s1 --out DIR --seed 0
+    python -m blender_addon.tools.factory --recipe room --count 10 --lens mos-s1 --out DIR --seed 0
 
 Layout of DIR (paired folders share file names, so paired-folder loaders
 read them directly):
@@ -45,7 +45,7 @@ def check_blender() -> None:
         import bpy
     except ImportError:
         raise SystemExit("factory: no bpy module: run it with Blender (blender --background --python "
-                         "blender_addon/factory.py -- ...) or install the pip bpy module (see requirements.txt)")
+                         "blender_addon/tools/factory.py -- ...) or install the pip bpy module (see requirements.txt)")
     v = tuple(bpy.app.version)
     if v < MIN_BLENDER:
         raise SystemExit(f"factory: Blender {bpy.app.version_string} is too old: the factory needs Blender "
@@ -65,7 +65,7 @@ if __name__ == "__main__":
 import numpy as np  # noqa: E402
 
 if __package__ in (None, ""):          # run as a file by `blender --python`
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 def sample_seed(seed: int, index: int) -> int:
     """A well-mixed 31-bit seed per sample (same seed, same scene)."""
@@ -83,10 +83,10 @@ def parse(argv):
     p.add_argument("--resolution", type=int, nargs=2, default=[480, 640], metavar=("H", "W"))
     p.add_argument("--samples", type=int, default=8,
                    help="Cycles samples per pixel, denoised (default 8: 45.5 dB against 256 samples; 12: 46.7 dB "
-                        "for 30 %% more time; see python -m blender_addon.render_noise)")
+                        "for 30 %% more time; see python -m blender_addon.tools.render_noise)")
     p.add_argument("--no-denoise", action="store_true", help="switch the denoiser off")
     p.add_argument("--denoise-quality", default=RenderSettings.denoising_quality, choices=["HIGH", "BALANCED", "FAST"],
-                   help="Open Image Denoise quality (see python -m blender_addon.render_noise)")
+                   help="Open Image Denoise quality (see python -m blender_addon.tools.render_noise)")
     p.add_argument("--denoise-prefilter", default=RenderSettings.denoising_prefilter,
                    choices=["NONE", "FAST", "ACCURATE"], help="prefilter of the denoiser's albedo and normal guides")
     p.add_argument("--diffuse-bounces", type=int, default=RenderSettings.diffuse_bounces,
@@ -128,7 +128,7 @@ def finished_ids(manifest: Path) -> set[str]:
 @dataclass(frozen=True)
 class RenderSettings:
     """Cycles settings of the all-in-focus render (CPU). The defaults come from
-    the error-against-time tables of ``python -m blender_addon.render_noise``
+    the error-against-time tables of ``python -m blender_addon.tools.render_noise``
     (README): samples per pixel; the Open Image Denoise pass (quality HIGH,
     BALANCED or FAST; prefilter of its albedo and normal guides NONE, FAST or
     ACCURATE); light-path bounces (counts)."""
