@@ -89,7 +89,8 @@ def _bench_library(lens, settings, grid):
 
     from .optics.aiming import stop_grid
     from .psf.compute import spectral_samples
-    from .psf.library import PSFLibrary, text_progress
+    from .progress import psf_progress
+    from .psf.library import PSFLibrary
 
     n_psf = grid.n_fields * (grid.n_depths + 1)
     n_p = len(stop_grid(lens, settings.pupil_samples))
@@ -100,7 +101,7 @@ def _bench_library(lens, settings, grid):
           f"({settings.pupil_samples}^2 grid, {settings.precision}) = {n_rays:,} rays, {os.cpu_count()} CPU(s)")
     lib = PSFLibrary(lens, settings, grid, None)
     t = time.perf_counter()
-    lib.build(progress=text_progress("  building"))
+    lib.build(progress=psf_progress("  building"))
     total = time.perf_counter() - t
     with tempfile.TemporaryDirectory() as d:
         t = time.perf_counter()

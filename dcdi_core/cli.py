@@ -230,7 +230,8 @@ def cmd_psf(args) -> int:
 
 def cmd_psflib_build(args) -> int:
     from .optics.lens import load_lens
-    from .psf.library import LibraryGrid, PSFLibrary, text_progress
+    from .progress import psf_progress
+    from .psf.library import LibraryGrid, PSFLibrary
     lens = load_lens(args.lens)
     _check_output(args.output, "-o")
     _check_cache(args)
@@ -239,7 +240,8 @@ def cmd_psflib_build(args) -> int:
     _check_library_memory(settings, grid)
     lib = PSFLibrary.open(lens, settings, grid, _response(args), cache=not args.no_cache)
     t = time.perf_counter()
-    done = lib.build(progress=text_progress(f"psflib {lens.id}"))
+    bar = psf_progress(f"psflib {lens.id}")
+    done = lib.build(progress=bar)
     lib.save(args.output)
     print(f"wrote {args.output}: {len(lib.depths_m)} depth bins x {len(lib.fields)} fields x 3 x "
           f"{lib.kernel_size} x {lib.kernel_size}; computed {len(done)} bins in "
@@ -392,8 +394,11 @@ def _quiet_input_warnings():
 
 def cmd_simulate(args) -> int:
     from .io.images import write_image
+    from .progress import Steps, psf_progress
     from .render.simulate import LensSimulator
     lens, settings, response, img, depth, geom, source = _render_inputs(args)
+    steps = Steps("dcdi simulate")
+    steps.start("PSF library (built once per lens and setting, then read from the cache)")
     record = None
     if args.perturb is not None:
         from .optics.perturb import perturb_lens
@@ -402,25 +407,34 @@ def cmd_simulate(args) -> int:
     # without --kernel, the kernel grows to hold the PSFs this depth map needs
     sim = LensSimulator(lens, geom, source_geometry=source, settings=settings,
                         response=response, patch=args.patch, distortion=not args.no_distortion,
-                        interpolation=args.interpolation, fit_depth_m=None if args.kernel else depth)
+                        interpolation=args.interpolation, fit_depth_m=None if args.kernel else depth,
+                        progress=psf_progress("PSFs"))
+    steps.start(f"distortion, PSF map and convolution of {img.shape[0]} x {img.shape[1]} pixels")
     with _quiet_input_warnings():
         r = sim(img, depth, fixed_depth_m=args.fixed_depth, noise=noise, seed=args.seed)
+    steps.start("writing")
     write_image(args.output, r.image)
     if args.sharp_out:
         write_image(args.sharp_out, r.sharp)
+    steps.done()
     print(_dump({"output": args.output, **r.info, "perturbation": record}))
     return 0
 
 
 def cmd_bokeh(args) -> int:
     from .io.images import write_image
+    from .progress import Steps, bar, psf_progress
     from .render.simulate import bokeh
     lens, settings, response, img, depth, geom, source = _render_inputs(args)
+    steps = Steps("dcdi bokeh")
+    steps.start("PSF library (built once per lens, focus and setting, then read from the cache), then the blur")
     keep = tuple(args.keep) if args.keep else None
     with _quiet_input_warnings():
         r = bokeh(img, depth, lens, keep=keep, focus_m=args.focus, geometry=geom, source_geometry=source,
                   distortion=args.distort, interpolation=args.interpolation, patch=args.patch,
-                  occlusion=not args.plain, settings=settings, response=response, fit_kernel=not args.kernel)
+                  occlusion=not args.plain, settings=settings, response=response, fit_kernel=not args.kernel,
+                  progress=psf_progress("PSFs"), layer_progress=bar("depth layers", "layer"))
+    steps.start("writing")
     write_image(args.output, r.image)
     if args.side_by_side:
         from .render.pictures import side_by_side
@@ -428,6 +442,7 @@ def cmd_bokeh(args) -> int:
                 "as prescribed" if args.focus == "prescribed" else f"focus {args.focus:g} m")
         side_by_side(args.side_by_side, img if r.sharp is None else r.sharp,
                      depth if r.depth is None else r.depth, r.image, f"{lens.name}: {what}")
+    steps.done()
     print(_dump({"output": args.output, **r.info}))
     return 0
 

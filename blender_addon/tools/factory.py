@@ -8,6 +8,7 @@ then passed through the depth-aware simulation of each requested lens.
 Layout of DIR (paired folders share file names, so paired-folder loaders
 read them directly):
 
+    dataset.json                  the run's settings (compared on every resume: a mismatch is refused)
     manifest.jsonl                one JSON line per finished sample
     aif/<id>.exr                  all-in-focus render, linear RGB float32
     depth/<id>.exr                planar depth in metres from the lens's first vertex ("Z"; background = inf)
@@ -18,7 +19,9 @@ read them directly):
 <id> is <recipe>-<index, 6 digits>. A sample counts only once its manifest
 line is written; every file is written to a temporary name and renamed, so a
 killed run restarted with the same arguments finishes the missing samples
-and leaves no partial file. ``--shard I/N`` takes the indices i with
+and leaves no partial file (a torn manifest line and stale temporaries are
+repaired and removed on resume); restarted with other settings it is
+refused, naming them. ``--shard I/N`` takes the indices i with
 i % N == I, so any job runner can split the work.
 """
 from __future__ import annotations
@@ -75,15 +78,19 @@ def sample_seed(seed: int, index: int) -> int:
 def parse(argv):
     p = argparse.ArgumentParser(prog="factory", description=__doc__.split("\n\n")[0])
     p.add_argument("--recipe", required=True, help="scene recipe: room, tabletop, street (or plane)")
-    p.add_argument("--count", type=int, required=True, help="samples in the whole dataset")
-    p.add_argument("--lens", action="append", default=[], help="lens id (repeat for several)")
-    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--count", type=int, required=True, metavar="N",
+                   help="images in the whole dataset: indices 0 .. N-1 over all shards (a resume may raise it)")
+    p.add_argument("--lens", action="append", default=[], help="lens id or .toml path (repeat for several; "
+                                                               "default mos-s1); the first one's camera renders")
+    p.add_argument("--out", required=True, help="output folder (created; a resume must use the same settings)")
     p.add_argument("--seed", type=int, default=0, help="dataset seed")
-    p.add_argument("--shard", default="0/1", help="I/N: this job's share of the indices")
-    p.add_argument("--resolution", type=int, nargs=2, default=[480, 640], metavar=("H", "W"))
-    p.add_argument("--samples", type=int, default=8,
-                   help="Cycles samples per pixel, denoised (default 8: 45.5 dB against 256 samples; 12: 46.7 dB "
-                        "for 30 %% more time; see python -m blender_addon.tools.render_noise)")
+    p.add_argument("--shard", default="0/1", help="I/N: this job's share of the indices (i %% N == I)")
+    p.add_argument("--resolution", type=int, nargs=2, default=[480, 640], metavar=("H", "W"),
+                   help="image rows and columns (default 480 640)")
+    p.add_argument("--cycles-samples", "--samples", dest="samples", type=int, default=8, metavar="SPP",
+                   help="Cycles render samples per pixel, denoised (not images: see --count; default 8: 45.5 dB "
+                        "against 256 samples; 12: 46.7 dB for 30 %% more time; see python -m "
+                        "blender_addon.tools.render_noise)")
     p.add_argument("--no-denoise", action="store_true", help="switch the denoiser off")
     p.add_argument("--denoise-quality", default=RenderSettings.denoising_quality, choices=["HIGH", "BALANCED", "FAST"],
                    help="Open Image Denoise quality (see python -m blender_addon.tools.render_noise)")
@@ -94,35 +101,258 @@ def parse(argv):
     p.add_argument("--baseline-depth", type=float, default=2.0, help="depth of the depth-unaware baseline, m")
     p.add_argument("--psf-rays", type=int, default=None, help="PSF pupil grid (default: the library default)")
     p.add_argument("--psf-wavelengths", type=int, default=None, help="PSF wavelengths (default: the library default)")
-    a = p.parse_args(argv)
+    return p.parse_args(argv)
+
+
+MAX_RESOLUTION = 65536          # Blender's own limits: 4 .. 65536 pixels a side
+MIN_RESOLUTION = 4
+
+
+def check_arguments(a):
+    """Everything checked before the output folder is touched; raises a
+    DcdiError naming the option and what is allowed. Sets a.shard_index,
+    a.shard_count, a.render, a.lenses, a.psf_settings."""
+    from dcdi_core.errors import InputRangeError
+    from dcdi_core.optics.lens import load_lens
+    from dcdi_core.psf.compute import PSFSettings, check_psf_memory
+    from scenes.recipes import RECIPES
+
+    if a.recipe not in RECIPES:
+        raise InputRangeError("--recipe", a.recipe, ", ".join(RECIPES))
     try:
         i, n = (int(v) for v in a.shard.split("/"))
         if not 0 <= i < n:
             raise ValueError
     except ValueError:
-        p.error(f"--shard must be I/N with 0 <= I < N, got {a.shard!r}")
+        raise InputRangeError("--shard", a.shard, "I/N with 0 <= I < N (integers)") from None
     a.shard_index, a.shard_count = i, n
     if a.count < 0:
-        p.error("--count must be >= 0")
+        raise InputRangeError("--count", a.count, "an integer >= 0 (images in the dataset)")
+    h, w = a.resolution
+    if not (MIN_RESOLUTION <= h <= MAX_RESOLUTION and MIN_RESOLUTION <= w <= MAX_RESOLUTION):
+        raise InputRangeError("--resolution", f"{h} {w}",
+                              f"rows and columns from {MIN_RESOLUTION} to {MAX_RESOLUTION} pixels")
+    if not (a.baseline_depth > 0):
+        raise InputRangeError("--baseline-depth", a.baseline_depth, "> 0 metres, or inf")
+    for name, v in (("--psf-rays", a.psf_rays), ("--psf-wavelengths", a.psf_wavelengths)):
+        if v is not None and v < 1:
+            raise InputRangeError(name, v, "an integer >= 1")
     try:
         a.render = RenderSettings(samples=a.samples, denoise=not a.no_denoise, denoising_quality=a.denoise_quality,
                                   denoising_prefilter=a.denoise_prefilter, diffuse_bounces=a.diffuse_bounces)
     except ValueError as e:
-        p.error(str(e))
+        raise InputRangeError("--cycles-samples" if "samples" in str(e) else "--diffuse-bounces", None, str(e)) \
+            from None
+    a.lenses = [load_lens(x) for x in (a.lens or ["mos-s1"])]
+    ids = [lens.id for lens in a.lenses]
+    if len(set(ids)) != len(ids):
+        raise InputRangeError("--lens", " ".join(ids), "each lens once (their files share a folder name)")
+    base = PSFSettings()
+    a.psf_settings = PSFSettings(pupil_samples=a.psf_rays or base.pupil_samples,
+                                 n_wavelengths=a.psf_wavelengths or base.n_wavelengths)
+    # per lens: a library of every bin (as the depth maps of a dataset reach them all) at the
+    # settings' kernel, and the PSF map of one image (the baseline's, kept for the run)
+    from dcdi_core.psf.library import LibraryGrid
+    g = LibraryGrid()
+    n_psf = g.n_fields * (g.n_depths + 1)
+    patches = -(-h // 16) * -(-w // 16)
+    check_psf_memory(a.psf_settings, n_psf, library_psfs=n_psf * len(a.lenses), map_kernels=2 * patches)
     return a
 
 
-def finished_ids(manifest: Path) -> set[str]:
-    """Ids whose manifest line is complete (a torn last line does not count)."""
-    if not manifest.exists():
-        return set()
-    done = set()
-    for line in manifest.read_text().splitlines():
-        try:
-            done.add(json.loads(line)["id"])
-        except (ValueError, KeyError):
+# ------------------------------------------------------------------ the folder: settings, manifest, temporaries
+SETTINGS_FILE = "dataset.json"
+MANIFEST = "manifest.jsonl"
+SETTINGS_FORMAT = 1
+# each recorded setting and the option that sets it (for the refusal's message)
+OPTION_OF = {"recipe": "--recipe", "seed": "--seed", "shard": "--shard", "resolution": "--resolution",
+             "lenses": "--lens", "baseline_depth_m": "--baseline-depth",
+             "render.samples": "--cycles-samples", "render.denoise": "--no-denoise",
+             "render.denoising_quality": "--denoise-quality", "render.denoising_prefilter": "--denoise-prefilter",
+             "render.diffuse_bounces": "--diffuse-bounces",
+             "psf_settings.pupil_samples": "--psf-rays", "psf_settings.n_wavelengths": "--psf-wavelengths"}
+
+
+def run_settings(a) -> dict:
+    """What defines the samples of this folder (the count may grow; all else
+    must stay): recorded before the first sample, compared on every resume."""
+    from dcdi_core.psf.library import lens_fingerprint
+    return {"format": SETTINGS_FORMAT, "recipe": a.recipe, "seed": a.seed, "shard": a.shard,
+            "resolution": list(a.resolution), "lenses": [lens.id for lens in a.lenses],
+            "lens_fingerprints": {lens.id: lens_fingerprint(lens) for lens in a.lenses},
+            "baseline_depth_m": a.baseline_depth, "render": a.render.as_dict(),
+            "psf_settings": a.psf_settings.as_dict()}
+
+
+def _flat(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict) and k != "lens_fingerprints":
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[prefix + k] = v
+    return out
+
+
+def settings_from_manifest(record: dict) -> dict:
+    """The settings a folder made before dataset.json existed was made with,
+    as far as its first manifest record tells them."""
+    render = {k: v for k, v in record.get("render", {}).items() if k not in ("engine", "device", "seconds")}
+    out = {"recipe": record.get("recipe"), "seed": record.get("dataset_seed"),
+           "resolution": record.get("resolution"), "lenses": list(record.get("lenses", {})),
+           "render": render, "psf_settings": record.get("psf_settings", {})}
+    base = [v.get("baseline_depth_m") for v in record.get("lenses", {}).values() if isinstance(v, dict)]
+    if base and base[0] is not None:
+        out["baseline_depth_m"] = base[0]
+    return {k: v for k, v in out.items() if v is not None}
+
+
+def settings_differences(have: dict, want: dict) -> list[str]:
+    """'--option: folder X, this run Y' for every recorded setting that differs
+    (settings the folder does not record are not compared)."""
+    a, b = _flat(have), _flat(want)
+    diffs = []
+    for key in sorted(set(a) & set(b)):
+        if key == "format" or a[key] == b[key]:
             continue
-    return done
+        if key == "lens_fingerprints":
+            changed = sorted(x for x in set(a[key]) & set(b[key]) if a[key][x] != b[key][x])
+            if changed:
+                diffs.append(f"the lens file of {', '.join(changed)} (its optics changed since the folder was made)")
+            continue
+        name = OPTION_OF.get(key, f"{key.replace('.', ' ').replace('_', ' ')} (not an option: another version "
+                                  "of the factory or of dcdi_core)")
+        show = (lambda v: " ".join(v) if key == "lenses" else " ".join(map(str, v)) if isinstance(v, list) else v)
+        diffs.append(f"{name}: the folder {show(a[key])}, this run {show(b[key])}")
+    return diffs
+
+
+def read_manifest(manifest: Path, *, repair: bool = False) -> tuple[list[dict], list[str]]:
+    """(records, notes): the complete records of ``manifest``. A record torn
+    by a kill while it was appended (invalid JSON, or no newline at the end)
+    does not count; with ``repair`` the file is rewritten without it (and a
+    complete record glued to a torn one is kept), atomically, and ``notes``
+    says what was dropped."""
+    if not manifest.exists():
+        return [], []
+    raw = manifest.read_bytes()
+    text = raw.decode("utf-8", errors="replace")
+    lines = text.split("\n")
+    records, notes, clean = [], [], True
+    for n, line in enumerate(lines):
+        if not line.strip():
+            continue
+        rec = _record(line)
+        if n == len(lines) - 1:               # no newline after it: written, or torn, by a killed run
+            clean = False
+            if rec is None:
+                notes.append(f"dropped a torn last record ({len(line)} bytes): its sample is done again")
+                continue
+        elif rec is None:                     # a torn record, perhaps with the next one glued to it
+            clean = False
+            at = line.rfind('{"id": ')
+            rec = _record(line[at:]) if at > 0 else None
+            if rec is None:
+                notes.append(f"dropped a torn record at line {n + 1}: its sample is done again")
+                continue
+            notes.append(f"dropped a torn record at line {n + 1}, kept {rec['id']} glued to it")
+        records.append(rec)
+    if repair and not clean:
+        from dcdi_core.atomic import write_text
+        write_text(manifest, "".join(json.dumps(r) + "\n" for r in records))
+    return records, notes
+
+
+def _record(line: str):
+    try:
+        rec = json.loads(line)
+    except ValueError:
+        return None
+    return rec if isinstance(rec, dict) and isinstance(rec.get("id"), str) else None
+
+
+def finished_ids(manifest: Path) -> set[str]:
+    """Ids whose manifest line is complete (a torn line does not count)."""
+    return {r["id"] for r in read_manifest(manifest)[0]}
+
+
+def remove_stale_files(out: Path) -> list[Path]:
+    """This run's own leftovers of a killed run: the hidden temporaries of
+    atomic writes (.<name>.<random>.tmp<ext>, dcdi_core.atomic) and Blender's
+    hand-over renders (.<id>.render.exr). Only called with the folder's lock
+    held, so no live run's temporaries are touched."""
+    import re
+
+    from dcdi_core.atomic import remove_stale_temporaries
+    gone = remove_stale_temporaries(out)
+    form = re.compile(r"^\.[a-z]+-\d{6}\.render\.exr$")
+    for p in out.glob(".*.render.exr"):
+        if form.match(p.name):
+            try:
+                p.unlink()
+                gone.append(p)
+            except OSError:
+                pass
+    return gone
+
+
+class _FolderLock:
+    def __init__(self, fd):
+        self.fd = fd
+
+    def close(self):
+        os.close(self.fd)
+
+
+def _lock(out: Path):
+    """An exclusive lock on the folder itself (flock on its descriptor: no
+    lock file) for this run: another factory writing into it is refused.
+    None where the platform has no fcntl (Windows)."""
+    from dcdi_core.errors import DatasetError
+    try:
+        import fcntl
+    except ImportError:
+        return None
+    fd = os.open(out, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        raise DatasetError(f"--out {out}: another factory run is writing into this folder; wait for it to end "
+                           "or use another --out") from None
+    return _FolderLock(fd)
+
+
+def prepare_folder(out: Path, settings: dict) -> tuple[list[dict], list[str]]:
+    """Record the run's settings before the first sample, or compare them with
+    the folder's (refusing a mismatch by name); repair a torn manifest
+    record; remove stale temporaries. Returns (finished records, notes)."""
+    from dcdi_core.atomic import write_text
+    from dcdi_core.errors import DatasetError
+    path = out / SETTINGS_FILE
+    records, notes = read_manifest(out / MANIFEST)
+    if path.exists():
+        try:
+            have = json.loads(path.read_text())
+        except ValueError as e:
+            raise DatasetError(f"{path}: unreadable settings record ({e}); it is written atomically, so it was "
+                               "edited: restore it or use another --out") from None
+    elif records:
+        have = settings_from_manifest(records[0])
+    else:
+        have = None
+    if have is not None:
+        diffs = settings_differences(have, settings)
+        if diffs:
+            raise DatasetError(f"--out {out} holds samples made with other settings: " + "; ".join(diffs)
+                               + ". Rerun with the folder's settings to resume it, or use another --out")
+    if not path.exists():
+        write_text(path, json.dumps(settings, indent=2) + "\n")
+    records, notes = read_manifest(out / MANIFEST, repair=True)
+    gone = remove_stale_files(out)
+    if gone:
+        notes.append(f"removed {len(gone)} stale temporary file(s) of a killed run")
+    return records, notes
 
 
 @dataclass(frozen=True)
@@ -235,23 +465,61 @@ def render_rgbd(recipe: str, lens, seed: int, height: int, width: int, render: R
 
 
 def run(argv=None) -> int:
+    """The factory: exit 0 when every sample of this shard is done, 2 with one
+    line ("factory: error: ...") for any error a user can cause (options,
+    lens files, the output folder, memory), 3 when stopped early by
+    DCDI_FACTORY_STOP_AFTER (tests). A failed run leaves no folder it
+    created without a finished sample."""
+    import shutil
+
+    from dcdi_core.errors import DcdiError
     a = parse(sys.argv[sys.argv.index("--") + 1:] if argv is None and "--" in sys.argv else argv)
+    out = Path(a.out)
+    created = False
+    try:
+        check_arguments(a)
+        check_output_folder(out)
+        created = not out.exists()
+        out.mkdir(parents=True, exist_ok=True)
+        lock = _lock(out)
+        try:
+            return _run(a, out)
+        finally:
+            if lock is not None:
+                lock.close()
+    except BaseException as e:
+        if created and not finished_ids(out / MANIFEST):
+            shutil.rmtree(out, ignore_errors=True)       # nothing finished: leave no folder behind
+        if not isinstance(e, (DcdiError, MemoryError)):
+            raise                                        # a bug (or Ctrl-C): keep its traceback
+        msg = str(e) if isinstance(e, DcdiError) else ("out of memory: lower --psf-rays, --psf-wavelengths or "
+                                                       "--resolution")
+        print(f"factory: error: {' '.join(msg.split())}", file=sys.stderr, flush=True)
+        return 2
+
+
+def check_output_folder(out: Path) -> None:
+    from dcdi_core.errors import OutputError, check_writable_folder
+    if out.exists() and not out.is_dir():
+        raise OutputError(out, "--out must be a folder; this is a file")
+    check_writable_folder(out, "--out")
+
+
+def _run(a, out: Path) -> int:
     from dcdi_core.io.images import write_depth, write_image
-    from dcdi_core.optics.lens import load_lens
-    from dcdi_core.psf.compute import PSFSettings
+    from dcdi_core.progress import psf_progress
     from dcdi_core.render.geometry import ImageGeometry
     from dcdi_core.render.simulate import LensSimulator
 
-    out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
-    manifest = out / "manifest.jsonl"
-    lenses = [load_lens(x) for x in (a.lens or ["mos-s1"])]
+    manifest = out / MANIFEST
+    lenses = a.lenses
     h, w = a.resolution
-    base = PSFSettings()
-    settings = PSFSettings(pupil_samples=a.psf_rays or base.pupil_samples,
-                           n_wavelengths=a.psf_wavelengths or base.n_wavelengths)
+    settings = a.psf_settings
     render = a.render
-    done = finished_ids(manifest)
+    records, notes = prepare_folder(out, run_settings(a))
+    for note in notes:
+        print(f"factory: {note}", flush=True)
+    done = {r["id"] for r in records}
     todo = [i for i in range(a.count) if i % a.shard_count == a.shard_index
             and f"{a.recipe}-{i:06d}" not in done]
     print(f"factory: {a.recipe}, {len(todo)} samples to do in shard {a.shard}, {len(done)} already in the manifest",
@@ -274,7 +542,8 @@ def run(argv=None) -> int:
             t1 = time.perf_counter()
             if lens.id not in sims:
                 sims[lens.id] = LensSimulator(lens, ImageGeometry.full_sensor(lens, h, w), settings=settings,
-                                              baseline_depth_m=a.baseline_depth)
+                                              baseline_depth_m=a.baseline_depth,
+                                              progress=psf_progress(f"factory: PSFs of {lens.id}"))
                 stages["setup"] = stages.get("setup", 0.0) + time.perf_counter() - t1
             t2, c2 = time.perf_counter(), _cpu_s()
             r = sims[lens.id](img, depth)
@@ -298,10 +567,7 @@ def run(argv=None) -> int:
                   "stage_seconds": {k: round(v, 3) for k, v in stages.items()},
                   "seconds": round(time.perf_counter() - t0, 3), "cpu_seconds": round(_cpu_s() - c0, 3),
                   "lenses": lens_records, "psf_settings": settings.as_dict(), "versions": _versions()}
-        with open(manifest, "a", encoding="utf-8") as f:
-            f.write(json.dumps(record) + "\n")
-            f.flush()
-            os.fsync(f.fileno())
+        append_record(manifest, record)
         el = time.perf_counter() - t_start
         rate = (n + 1) / el
         print(f"  {sid}: {time.perf_counter() - t0:.1f} s (render {t_render:.1f} s); {rate * 3600:.0f} samples/h, "
@@ -310,6 +576,19 @@ def run(argv=None) -> int:
             print("factory: stopping early (DCDI_FACTORY_STOP_AFTER)", flush=True)
             return 3
     return 0
+
+
+def append_record(manifest: Path, record: dict) -> None:
+    """Append one manifest line in a single write, flushed to disk (a kill
+    can tear only this line: read_manifest repairs it on the next run)."""
+    from dcdi_core.errors import output_error
+    try:
+        with open(manifest, "a", encoding="utf-8") as f:
+            f.write(json.dumps(record) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+    except OSError as e:
+        raise output_error(manifest, e) from None
 
 
 def _versions() -> dict:

@@ -19,7 +19,6 @@ import hashlib
 import json
 import math
 import os
-import sys
 import time
 import warnings
 from dataclasses import asdict, dataclass, replace
@@ -145,6 +144,8 @@ class PSFLibrary:
         self.zero_energy = np.zeros((nd, nf), bool)
         self.kernel_size_needed = np.zeros((nd, nf), np.int64)
         self.computed = np.zeros(nd, bool)
+        # progress(done, total) of the bins computed by ensure() calls that pass none of their own
+        self.progress = None
         self.cache_path = None
         if cache_dir is not None:
             self.cache_path = Path(cache_dir) / f"{meta['lens_id']}-{self.key[:20]}.npz"
@@ -199,7 +200,9 @@ class PSFLibrary:
 
     def ensure(self, depth_m=None, *, bins=None, clamp_near: bool = False, progress=None) -> list[int]:
         """Compute (or load) the bins that ``depth_m`` needs, or ``bins``;
-        returns the bins that were computed now."""
+        returns the bins that were computed now. ``progress(done, total)``
+        (default: the library's ``progress`` attribute) is called as PSFs
+        are computed."""
         if self.lens is None:
             raise OpticsError("this library was loaded without its lens: it can only serve computed bins")
         want = np.asarray(bins if bins is not None else self.bins_needed(depth_m, clamp_near=clamp_near), int)
@@ -210,7 +213,7 @@ class PSFLibrary:
         aimed = sources(lens_f, self.depths_m[todo], field=self.fields)     # (F, n_todo)
         wl, w = np.asarray(self.meta["wavelengths_nm"]), np.asarray(self.meta["channel_weights"])
         plain = replace(self.settings, focus_distance_m=None)
-        batch = compute_sources(lens_f, aimed, plain, wl, w, progress=progress)
+        batch = compute_sources(lens_f, aimed, plain, wl, w, progress=progress or self.progress)
         for j, b in enumerate(todo):
             self.psf[b] = batch.psf[:, j]
             self.energy_outside[b] = batch.energy_outside[:, j]
@@ -327,22 +330,3 @@ def _checksum(arrays: dict) -> str:
         h.update(str(a.dtype).encode() + str(a.shape).encode())
         h.update(a.tobytes())
     return h.hexdigest()
-
-
-def text_progress(label: str, stream=None):
-    """A progress callback printing a bar with rate and ETA to ``stream``
-    (standard error by default)."""
-    t0 = time.perf_counter()
-
-    def report(done: int, total: int) -> None:
-        out = stream or sys.stderr
-        el = time.perf_counter() - t0
-        frac = done / max(total, 1)
-        eta = el / frac - el if frac > 0 else 0.0
-        bar = "#" * int(30 * frac)
-        out.write(f"\r{label} [{bar:<30}] {done}/{total} PSFs  {done / max(el, 1e-9):.1f}/s  "
-                  f"elapsed {el:.1f} s  ETA {eta:.1f} s")
-        if done >= total:
-            out.write("\n")
-        out.flush()
-    return report

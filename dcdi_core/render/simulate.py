@@ -100,13 +100,15 @@ def open_library(lens, geometry: ImageGeometry, settings: PSFSettings | None = N
     library is reopened with the odd kernel size that holds them, at most
     MAX_FITTED_KERNEL px (beyond that the usual KernelTooSmallWarning says
     how much is clipped). Without it the kernel size is the settings'.
-    progress(done, total): called as PSF bins are computed."""
+    progress(done, total): called as PSF bins are computed; layer_progress(done,
+    total): after each depth layer of the occlusion-aware renderer."""
     s = settings or PSFSettings()
     if s.pixel_pitch_mm is not None and not math.isclose(s.pixel_pitch_mm, geometry.pixel_pitch_mm, rel_tol=1e-9):
         raise InputRangeError("pixel pitch", s.pixel_pitch_mm,
                               f"{geometry.pixel_pitch_mm:.6g} mm, the image's own pixel pitch (give one, not two)")
     s = replace(s, pixel_pitch_mm=geometry.pixel_pitch_mm)
     library = PSFLibrary.open(lens, s, grid, response, cache=cache)
+    library.progress = progress
     if fit_depth_m is None:
         return library
     d = np.asarray(fit_depth_m, dtype=np.float64)
@@ -121,7 +123,8 @@ def open_library(lens, geometry: ImageGeometry, settings: PSFSettings | None = N
         return library
     library = PSFLibrary.open(lens, replace(s, kernel_size=min(need | 1, MAX_FITTED_KERNEL)), grid, response,
                               cache=cache)
-    library.ensure(d, clamp_near=True, progress=progress)
+    library.progress = progress
+    library.ensure(d, clamp_near=True)
     return library
 
 
@@ -370,7 +373,7 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
           distortion: bool = False, interpolation: str = DEFAULT_INTERPOLATION, patch: int = 16,
           occlusion: bool = True, n_layers: int = 12, library: PSFLibrary | None = None,
           settings: PSFSettings | None = None, response=None, fit_kernel: bool = True,
-          cancelled=None, fft_backend: str | None = None, progress=None) -> RenderResult:
+          cancelled=None, fft_backend: str | None = None, progress=None, layer_progress=None) -> RenderResult:
     """``image`` as ``lens`` would take it, keeping [near, far] metres sharp
     (``keep``), or focused at ``focus_m`` metres, or with ``focus_m =
     "prescribed"`` the lens as its prescription stands (full physical
@@ -382,7 +385,8 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
     blur unless ``fit_kernel`` is False. ``cancelled()``, if given, is
     called before each layer's convolution; when it returns True,
     :class:`Cancelled` is raised. fft_backend: as :func:`simulate`.
-    progress(done, total): called as PSF bins are computed."""
+    progress(done, total): called as PSF bins are computed; layer_progress(done,
+    total): after each depth layer of the occlusion-aware renderer."""
     s = _bokeh_focus(keep, focus_m, library, settings)
     m = check_patch(patch)
     if isinstance(n_layers, bool) or not isinstance(n_layers, (int, np.integer)) or not 1 <= n_layers <= 256:
@@ -433,7 +437,9 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
     # each layer is blurred on its own patch-aligned bounding box, grown by the
     # kernel's reach: outside it the layer is empty and its blur is zero
     grow = patch * math.ceil((library.kernel_size // 2 + patch) / patch)
-    for mask, is_sharp in ((m_, s_) for _, m_, s_ in order):
+    for n_done, (mask, is_sharp) in enumerate((m_, s_) for _, m_, s_ in order):
+        if layer_progress is not None:
+            layer_progress(n_done, len(order))
         if cancelled is not None and not is_sharp and cancelled():
             raise Cancelled("bokeh cancelled")
         ys, xs = _box(mask, patch, grow if not is_sharp else 0)
@@ -457,5 +463,7 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
         total = np.where(behind, 1.0, cover)
         seen[ys, xs] = (total > 1e-4).all(axis=-1, keepdims=True)
         col[ys, xs] = np.where(total > 1e-4, premultiplied / np.maximum(total, 1e-4), 0.0)
+    if layer_progress is not None:
+        layer_progress(len(order), len(order))
     info["layers"] = len(order)
     return RenderResult(col, info, img if moved else None, depth=d if moved else None)
