@@ -135,8 +135,9 @@ def run(out: str | Path) -> int:
     out.mkdir(parents=True, exist_ok=True)
     print(f"dcdi demo: writing to {out.resolve()}")
     summary = ["# dcdi demo: lens reports", "",
-               "| lens | EFL mm (stated) | F/# (stated) | working F/# | FoV diag deg (stated) | "
-               "in-focus object m | spot rms on axis at inf, um |", "|---|---|---|---|---|---|---|"]
+               "| lens | EFL mm (stated) | F/# (stated) | working F/# | FoV diagonal, real, deg | FoV stated, deg "
+               "(its own measure: see lenses/README.md) | in-focus object m | spot rms on axis at inf, um |",
+               "|---|---|---|---|---|---|---|---|"]
     for lid in available_lenses():
         t0 = time.perf_counter()
         lens = load_lens(lid)
@@ -152,7 +153,7 @@ def run(out: str | Path) -> int:
         summary.append(
             f"| {lid} | {info['effective_focal_length_mm']:.3f} ({st.get('effective_focal_length_mm', '-')}) "
             f"| {info['f_number']:.3f} ({st.get('f_number', '-')}) | {info['working_f_number']:.3f} "
-            f"| {info['field_of_view_deg']:.2f} ({st.get('field_of_view_deg', '-')}) "
+            f"| {info['field_of_view_deg']:.2f} | {st.get('field_of_view_deg', '-')} "
             f"| {info['in_focus_object_distance_m'] if isinstance(info['in_focus_object_distance_m'], str) else round(info['in_focus_object_distance_m'], 4)} "
             f"| {spots.rms_radius_mm[0, -1, 1] * 1000:.2f} |")
         print(f"  {lid}: report, info JSON, spot diagrams and PSFs in {time.perf_counter() - t0:.1f} s; {clip}")
