@@ -126,6 +126,11 @@ def cmd_lens_import(args) -> int:
     return 0
 
 
+def _where(args):
+    """(option, value) of the field asked for: --field or --angle."""
+    return ("--field", args.field) if args.field is not None else ("--angle", args.angle)
+
+
 def cmd_spot(args) -> int:
     import numpy as np
     from .optics.analysis import spot_diagram
@@ -138,6 +143,10 @@ def cmd_spot(args) -> int:
                f"({args.rays} x {args.rays} rays)", "lower --rays (memory grows as its square)")
     kw = {"field": [args.field]} if args.field is not None else {"angle_deg": [args.angle]}
     s = spot_diagram(lens, [args.depth], [args.wavelength], rays=args.rays, **kw)
+    if not s.aimed.ok[0, 0] or s.vignetted_fraction[0, 0, 0] >= 1.0:
+        from .errors import InputRangeError
+        raise InputRangeError(*_where(args), "a field some ray of which reaches the sensor (no ray of this one "
+                              "does: fully vignetted or beyond the image circle; no spot)")
     res = {
         "lens": lens.id,
         "depth_m": args.depth,
@@ -201,9 +210,9 @@ def cmd_psf(args) -> int:
             response=_response(args), wavelength_nm=args.wavelength)
     pitch = pixel_pitch_mm(lens, settings)
     if r.zero_energy:
-        print("dcdi: error: no ray of this field reaches the sensor (fully vignetted or beyond the "
-              "image circle); the kernel would be empty", file=sys.stderr)
-        return 2
+        from .errors import InputRangeError
+        raise InputRangeError(*_where(args), "a field some ray of which reaches the sensor (no ray of this one "
+                              "does: fully vignetted or beyond the image circle; the kernel would be empty)")
     res = {
         "lens": lens.id, "depth_m": args.depth, "field": args.field, "angle_deg": args.angle,
         "wavelength_nm": args.wavelength, "kernel_size": settings.kernel_size, "pixel_pitch_mm": pitch,

@@ -82,9 +82,11 @@ def output_error(path, exc: OSError, what: str = "cannot write here") -> OutputE
     reason = {errno.EACCES: "permission denied (read-only folder?)", errno.EPERM: "permission denied",
               errno.EROFS: "read-only file system", errno.ENOSPC: "no space left on the device",
               errno.ENOTDIR: "a file stands where a folder is needed",
+              errno.EEXIST: "a file stands where a folder is needed",
               errno.EISDIR: "a folder stands where a file is needed"}.get(exc.errno, exc.strerror or str(exc))
-    where = getattr(exc, "filename", None) or path
-    return OutputError(where, f"{what}: {reason}")
+    at = getattr(exc, "filename", None)
+    at = f" (at {at})" if at and os.path.abspath(os.fspath(at)) != os.path.abspath(os.fspath(path)) else ""
+    return OutputError(path, f"{what}: {reason}{at}")
 
 
 def check_writable_folder(folder, what: str) -> None:

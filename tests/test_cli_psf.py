@@ -43,7 +43,7 @@ def test_psf_monochromatic_channels_alike(tmp_path, capsys):
 
 def test_psf_beyond_image_circle_is_a_clear_error(capsys):
     code, _, err = _run(capsys, "psf", "mos-s1", "--field", "5", "--depth", "2", *SMALL)
-    assert code == 2 and "no ray" in err
+    assert code == 2 and "no ray" in err and "--field = 5.0" in err
 
 
 def test_psflib_build_and_show(tmp_path, capsys):

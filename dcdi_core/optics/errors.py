@@ -63,7 +63,10 @@ class ZemaxImportError(OpticsError, ValueError):
         self.path = str(path)
         self.line_number = line_number
         self.line = line
-        super().__init__(f"{self.path}:{line_number}: {message}: {line.strip()!r}")
+        if line_number:
+            super().__init__(f"{self.path}:{line_number}: {message}: {line.strip()!r}")
+        else:                                  # about the file as a whole (it cannot be read)
+            super().__init__(f"{self.path}: {message}")
 
 
 class AimingError(OpticsError, ValueError):

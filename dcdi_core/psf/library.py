@@ -55,11 +55,11 @@ class LibraryGrid:
 
     def __post_init__(self):
         if self.n_fields < 2:
-            raise InputRangeError("n_fields", self.n_fields, ">= 2")
+            raise InputRangeError("n_fields (--fields)", self.n_fields, ">= 2")
         if self.n_depths < 2:
-            raise InputRangeError("n_depths", self.n_depths, ">= 2 (near and far at least)")
+            raise InputRangeError("n_depths (--depths)", self.n_depths, ">= 2 (near and far at least)")
         if not (0 < self.near_m < self.far_m < math.inf):
-            raise InputRangeError("near_m, far_m", (self.near_m, self.far_m), "0 < near < far < inf metres")
+            raise InputRangeError("near_m, far_m (--near, --far)", (self.near_m, self.far_m), "0 < near < far < inf metres")
 
     @property
     def fields(self) -> np.ndarray:
