@@ -277,3 +277,20 @@ def test_a_second_run_into_the_same_folder_is_refused(tmp_path):
     finally:
         lock.close()
     factory._lock(tmp_path).close()                     # free again
+
+
+def test_add_lens_simulates_a_new_lens_on_the_finished_samples(tmp_path, capsys):
+    assert _run(tmp_path, count=1) == 0
+    capsys.readouterr()
+    two = ["--recipe", "tabletop", "--count", "2", "--lens", "mos-s1", "--lens", "mos-s2", "--out", str(tmp_path),
+           "--seed", "5", *SMALL]
+    assert factory.run(two) == 2
+    assert "--add-lens" in capsys.readouterr().err                       # refused, with the way out named
+    assert factory.run([*two, "--add-lens"]) == 0
+    assert "adding mos-s2 to 1 finished samples" in capsys.readouterr().out
+    recs = [json.loads(x) for x in (tmp_path / "manifest.jsonl").read_text().splitlines()]
+    assert [sorted(r["lenses"]) for r in recs] == [["mos-s1", "mos-s2"]] * 2
+    for sid in ("tabletop-000000", "tabletop-000001"):
+        assert read_image(tmp_path / "mos-s2" / "aberrated" / f"{sid}.exr").shape == (24, 32, 3)
+    assert json.loads((tmp_path / "dataset.json").read_text())["lenses"] == ["mos-s1", "mos-s2"]
+    assert factory.run(two) == 0                                         # now the folder's own settings

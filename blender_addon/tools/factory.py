@@ -83,6 +83,9 @@ def parse(argv):
     p.add_argument("--lens", action="append", default=[], help="lens id or .toml path (repeat for several; "
                                                                "default mos-s1); the first one's camera renders")
     p.add_argument("--out", required=True, help="output folder (created; a resume must use the same settings)")
+    p.add_argument("--add-lens", action="store_true",
+                   help="resume a folder with more --lens than it holds (listed after its own, which stay in "
+                        "their order): the new lenses are simulated on its finished samples too")
     p.add_argument("--seed", type=int, default=0, help="dataset seed")
     p.add_argument("--shard", default="0/1", help="I/N: this job's share of the indices (i %% N == I)")
     p.add_argument("--resolution", type=int, nargs=2, default=[480, 640], metavar=("H", "W"),
@@ -323,10 +326,13 @@ def _lock(out: Path):
     return _FolderLock(fd)
 
 
-def prepare_folder(out: Path, settings: dict) -> tuple[list[dict], list[str]]:
+def prepare_folder(out: Path, settings: dict, add_lens: bool = False) -> tuple[list[dict], list[str], list[str]]:
     """Record the run's settings before the first sample, or compare them with
     the folder's (refusing a mismatch by name); repair a torn manifest
-    record; remove stale temporaries. Returns (finished records, notes)."""
+    record; remove stale temporaries. Returns (finished records, notes, the
+    lenses to add to the finished samples: only with ``add_lens``, when the
+    run's lenses are the folder's followed by new ones and nothing else
+    differs; the settings record is then rewritten once they are added)."""
     from dcdi_core.atomic import write_text
     from dcdi_core.errors import DatasetError
     path = out / SETTINGS_FILE
@@ -341,18 +347,28 @@ def prepare_folder(out: Path, settings: dict) -> tuple[list[dict], list[str]]:
         have = settings_from_manifest(records[0])
     else:
         have = None
+    added = []
     if have is not None:
         diffs = settings_differences(have, settings)
-        if diffs:
+        old, new = list(have.get("lenses", [])), list(settings["lenses"])
+        only_more = (len(new) > len(old) and new[:len(old)] == old
+                     and settings_differences({k: v for k, v in have.items() if k != "lenses"},
+                                              {k: v for k, v in settings.items() if k != "lenses"}) == [])
+        if diffs and add_lens and only_more:
+            added = new[len(old):]
+        elif diffs:
+            hint = (" (to add lenses to its samples: --add-lens, the folder's lenses first)" if only_more else
+                    " (--add-lens adds lenses listed after the folder's own, when nothing else differs)"
+                    if add_lens else "")
             raise DatasetError(f"--out {out} holds samples made with other settings: " + "; ".join(diffs)
-                               + ". Rerun with the folder's settings to resume it, or use another --out")
-    if not path.exists():
+                               + f". Rerun with the folder's settings to resume it{hint}, or use another --out")
+    if not path.exists() and not added:
         write_text(path, json.dumps(settings, indent=2) + "\n")
     records, notes = read_manifest(out / MANIFEST, repair=True)
     gone = remove_stale_files(out)
     if gone:
         notes.append(f"removed {len(gone)} stale temporary file(s) of a killed run")
-    return records, notes
+    return records, notes, added
 
 
 @dataclass(frozen=True)
@@ -516,9 +532,11 @@ def _run(a, out: Path) -> int:
     h, w = a.resolution
     settings = a.psf_settings
     render = a.render
-    records, notes = prepare_folder(out, run_settings(a))
+    records, notes, added = prepare_folder(out, run_settings(a), a.add_lens)
     for note in notes:
         print(f"factory: {note}", flush=True)
+    if added:
+        add_lenses(out, records, [lens for lens in lenses if lens.id in added], a, run_settings(a))
     done = {r["id"] for r in records}
     todo = [i for i in range(a.count) if i % a.shard_count == a.shard_index
             and f"{a.recipe}-{i:06d}" not in done]
@@ -576,6 +594,33 @@ def _run(a, out: Path) -> int:
             print("factory: stopping early (DCDI_FACTORY_STOP_AFTER)", flush=True)
             return 3
     return 0
+
+
+def add_lenses(out: Path, records: list[dict], lenses, a, settings: dict) -> None:
+    """Simulate ``lenses`` on the finished samples (from their aif/ and depth/
+    files), then rewrite the manifest (each record with the new lenses) and
+    the settings record, atomically; killed half-way, the same command
+    starts over (every file is replaced atomically)."""
+    from dcdi_core.atomic import write_text
+    from dcdi_core.io.images import read_depth, read_image, write_image
+    from dcdi_core.progress import psf_progress
+    from dcdi_core.render.geometry import ImageGeometry
+    from dcdi_core.render.simulate import LensSimulator
+
+    h, w = a.resolution
+    print(f"factory: adding {', '.join(x.id for x in lenses)} to {len(records)} finished samples", flush=True)
+    for lens in lenses:
+        sim = LensSimulator(lens, ImageGeometry.full_sensor(lens, h, w), settings=a.psf_settings,
+                            baseline_depth_m=a.baseline_depth, progress=psf_progress(f"factory: PSFs of {lens.id}"))
+        for rec in records:
+            sid = rec["id"]
+            t = time.perf_counter()
+            r = sim(read_image(out / "aif" / f"{sid}.exr"), read_depth(out / "depth" / f"{sid}.exr"))
+            for kind, img in (("aberrated", r.image), ("baseline", r.baseline), ("sharp", r.sharp)):
+                write_image(out / lens.id / kind / f"{sid}.exr", img)
+            rec.setdefault("lenses", {})[lens.id] = {"seconds": round(time.perf_counter() - t, 3), **r.info}
+    write_text(out / MANIFEST, "".join(json.dumps(r) + "\n" for r in records))
+    write_text(out / SETTINGS_FILE, json.dumps(settings, indent=2) + "\n")
 
 
 def append_record(manifest: Path, record: dict) -> None:
