@@ -9,7 +9,7 @@ bpy = pytest.importorskip("bpy")
 from blender_addon.tools import factory  # noqa: E402
 from dcdi_core.io.images import read_depth, read_image  # noqa: E402
 
-SMALL = ["--resolution", "24", "32", "--samples", "2", "--psf-rays", "12", "--psf-wavelengths", "3"]
+SMALL = ["--resolution", "24", "32", "--cycles-samples", "2", "--psf-rays", "12", "--psf-wavelengths", "3"]
 
 
 @pytest.fixture(autouse=True)
@@ -210,12 +210,12 @@ def test_resume_with_other_settings_is_refused_by_name(tmp_path, capsys):
 
     def args(**over):
         a = {"--recipe": "tabletop", "--count": "2", "--seed": "5", "--lens": "mos-s1", "--resolution": "24 32",
-             "--samples": "2", "--psf-rays": "12", "--psf-wavelengths": "3"}
+             "--cycles-samples": "2", "--psf-rays": "12", "--psf-wavelengths": "3"}
         a.update({"--" + k.replace("_", "-"): v for k, v in over.items()})
         return [x for k, v in a.items() for x in (k, *v.split())]
     for over, says in [({"lens": "mos-s2"}, "--lens: the folder mos-s1, this run mos-s2"),
                        ({"resolution": "24 40"}, "--resolution: the folder 24 32, this run 24 40"),
-                       ({"samples": "3"}, "--cycles-samples: the folder 2, this run 3"),
+                       ({"cycles_samples": "3"}, "--cycles-samples: the folder 2, this run 3"),
                        ({"seed": "6"}, "--seed: the folder 5, this run 6"),
                        ({"psf_rays": "10"}, "--psf-rays: the folder 12, this run 10")]:
         _refused(capsys, tmp_path, *args(**over), says=[says, "Rerun with the folder's settings"])
@@ -294,3 +294,12 @@ def test_add_lens_simulates_a_new_lens_on_the_finished_samples(tmp_path, capsys)
         assert read_image(tmp_path / "mos-s2" / "aberrated" / f"{sid}.exr").shape == (24, 32, 3)
     assert json.loads((tmp_path / "dataset.json").read_text())["lenses"] == ["mos-s1", "mos-s2"]
     assert factory.run(two) == 0                                         # now the folder's own settings
+
+
+def test_help_tells_images_from_render_samples(capsys):
+    with pytest.raises(SystemExit):
+        factory.parse(["--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert "--count N images in the whole dataset" in out and "--cycles-samples SPP Cycles render samples" in out
+    assert "--samples" not in out.replace("--cycles-samples", "")      # the old name still works, unlisted
+    assert factory.parse(["--recipe", "room", "--count", "1", "--out", "x", "--samples", "3"]).samples == 3

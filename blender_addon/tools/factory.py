@@ -90,7 +90,9 @@ def parse(argv):
     p.add_argument("--shard", default="0/1", help="I/N: this job's share of the indices (i %% N == I)")
     p.add_argument("--resolution", type=int, nargs=2, default=[480, 640], metavar=("H", "W"),
                    help="image rows and columns (default 480 640)")
-    p.add_argument("--cycles-samples", "--samples", dest="samples", type=int, default=8, metavar="SPP",
+    p.add_argument("--samples", dest="samples", type=int, default=argparse.SUPPRESS,
+                   help=argparse.SUPPRESS)              # the former name of --cycles-samples
+    p.add_argument("--cycles-samples", dest="samples", type=int, default=8, metavar="SPP",
                    help="Cycles render samples per pixel, denoised (not images: see --count; default 8: 45.5 dB "
                         "against 256 samples; 12: 46.7 dB for 30 %% more time; see python -m "
                         "blender_addon.tools.render_noise)")
