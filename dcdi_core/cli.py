@@ -57,15 +57,19 @@ def _dump(obj) -> str:
     return json.dumps(fix(obj), indent=2)
 
 
-def _check_output(path, option: str, *, image: bool = False) -> None:
+def _check_output(path, option: str, *, image: bool = False, suffix: str | None = None) -> None:
     """Refuse, before any work, an output that cannot be written: an image
-    extension that is not supported, a folder that is read-only or a file."""
+    extension that is not supported (or not ``suffix``), a folder that is
+    read-only or a file."""
     if not path:
         return
     from .errors import check_writable_folder
     if image:
         from .io.images import check_image_output
         check_image_output(path)
+    if suffix is not None and not str(path).lower().endswith(suffix):
+        from .errors import InputRangeError
+        raise InputRangeError(option, str(path), f"a file name ending in {suffix} (what it writes)")
     from pathlib import Path
     check_writable_folder(Path(path).resolve().parent, f"{option} {path}")
 
@@ -116,7 +120,7 @@ def cmd_lens_info(args) -> int:
 def cmd_lens_import(args) -> int:
     from .optics.lens import Lens
     from .optics.zemax import read_zmx, write_toml
-    _check_output(args.output, "-o")
+    _check_output(args.output, "-o", suffix=".toml")
     d = read_zmx(args.file)
     if args.id:
         d["id"] = args.id
@@ -200,8 +204,8 @@ def cmd_psf(args) -> int:
     from .psf.compute import pixel_pitch_mm, psf
     from .psf.plots import depth_label, psf_grid_png
     lens = load_lens(args.lens)
-    _check_output(args.out, "--out")
-    _check_output(args.png, "--png")
+    _check_output(args.out, "--out", suffix=".npz")
+    _check_output(args.png, "--png", suffix=".png")
     _check_wavelength(lens, args)
     settings = _psf_settings(args)
     from .psf.compute import check_psf_memory
@@ -242,7 +246,7 @@ def cmd_psflib_build(args) -> int:
     from .progress import psf_progress
     from .psf.library import LibraryGrid, PSFLibrary
     lens = load_lens(args.lens)
-    _check_output(args.output, "-o")
+    _check_output(args.output, "-o", suffix=".npz")
     _check_cache(args)
     grid = LibraryGrid(n_fields=args.fields, n_depths=args.depths, near_m=args.near, far_m=args.far)
     settings = _psf_settings(args)
@@ -264,7 +268,7 @@ def cmd_psflib_show(args) -> int:
     from .optics.lens import load_lens
     from .psf.library import PSFLibrary
     from .psf.plots import depth_label, psf_grid_png
-    _check_output(args.png, "--png")
+    _check_output(args.png, "--png", suffix=".png")
     if args.library.endswith(".npz"):
         lib = PSFLibrary.load(args.library)
     else:
@@ -369,13 +373,26 @@ def _render_inputs(args):
     lens = load_lens(args.lens)
     _check_output(args.output, "-o", image=True)
     _check_output(getattr(args, "sharp_out", None), "--sharp-out", image=True)
-    _check_output(getattr(args, "side_by_side", None), "--side-by-side")
+    _check_output(getattr(args, "side_by_side", None), "--side-by-side", suffix=".png")
     _check_cache()
     check_patch(args.patch)
     check_interpolation(args.interpolation)
-    if getattr(args, "noise", False) and args.seed is None:
+    if getattr(args, "noise", False):
+        from .render.noise import check_noise
+        if args.seed is None:
+            from .errors import InputRangeError
+            raise InputRangeError("--seed", None, "an integer: --noise needs an explicit seed")
+        check_noise(args.full_well, args.read_noise)
+    if getattr(args, "perturb", None) is not None and not 0.0 <= args.perturb_fraction <= 0.5:
         from .errors import InputRangeError
-        raise InputRangeError("--seed", None, "an integer: --noise needs an explicit seed")
+        raise InputRangeError("--perturb-fraction", args.perturb_fraction, "a number in [0, 0.5] (0.1 = +-10 %)")
+    fixed = getattr(args, "fixed_depth", None)
+    if fixed is not None:
+        from .psf.library import LibraryGrid
+        near = LibraryGrid().near_m
+        if fixed < near:
+            from .errors import InputRangeError
+            raise InputRangeError("--fixed-depth", fixed, f">= {near:g} m, the PSF library's nearest depth bin (or inf)")
     _check_wavelength(lens, args)
     from dataclasses import replace
     settings = replace(_psf_settings(args, focus=args.command != "bokeh"), pixel_pitch_mm=None,

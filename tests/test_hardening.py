@@ -372,3 +372,25 @@ def test_trace_chunk_is_a_parameter():
     assert not hasattr(T, "CHUNK") and T.thread_pool is parallel.thread_pool     # the shared pool
     with pytest.raises(ValueError, match="chunk"):
         T.trace(lens, o, dd, 550.0, chunk=0)
+
+
+@pytest.mark.parametrize("command, extra, says", [
+    ("bokeh", ["--side-by-side", "side.jpg"], ["--side-by-side", "ending in .png"]),
+    ("simulate", ["--noise", "--seed", "1", "--full-well", "-1"], ["(--full-well) = -1.0", "> 0"]),
+    ("simulate", ["--noise", "--seed", "1", "--read-noise", "-1"], ["(--read-noise) = -1.0", ">= 0"]),
+    ("simulate", ["--perturb", "3", "--perturb-fraction", "5"], ["--perturb-fraction = 5.0", "[0, 0.5]"]),
+    ("simulate", ["--fixed-depth", "0.1"], ["--fixed-depth = 0.1", ">= 0.7 m"]),
+    ("bokeh", ["--keep", "5", "1"], ["(--keep)", "near <= far"]),
+])
+def test_render_options_found_by_trying_are_refused_before_any_work(scene, capsys, command, extra, says):
+    d, _, _ = scene
+    _refused(capsys, *_render(d, command, *extra), says=says)
+    _nothing_left(d, "out.exr", "side.jpg")
+
+
+def test_other_outputs_need_their_own_extension(tmp_path, capsys):
+    _refused(capsys, "psflib", "build", "mos-s1", "-o", tmp_path / "lib.txt", "--no-cache", *FAST,
+             says=["-o", "ending in .npz"])
+    _refused(capsys, "psf", "mos-s1", "--field", "0", "--depth", "2", "--png", tmp_path / "k.jpg", *FAST,
+             says=["--png", "ending in .png"])
+    assert list(tmp_path.iterdir()) == []

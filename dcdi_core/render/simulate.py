@@ -346,7 +346,7 @@ def _bokeh_focus(keep, focus_m, library: PSFLibrary | None, settings: PSFSetting
         raise InputRangeError("keep / focus", (keep, focus_m),
                               f"exactly one of a keep range, a focus distance or focus {PRESCRIBED!r}")
     if keep is not None and not (len(keep) == 2 and 0 < keep[0] <= keep[1]):
-        raise InputRangeError("keep", keep, "(near, far) with 0 < near <= far metres")
+        raise InputRangeError("keep (--keep)", keep, "(near, far) with 0 < near <= far metres")
     if isinstance(focus_m, str) and focus_m != PRESCRIBED:
         raise InputRangeError("focus", focus_m, f"a distance in metres (> 0, or inf) or {PRESCRIBED!r}")
     if focus_m is not None and not isinstance(focus_m, str) and not (focus_m > 0):
