@@ -711,6 +711,9 @@ def main(argv=None) -> int:
         except MemoryError:
             print(f"dcdi: error: {OUT_OF_MEMORY}", file=sys.stderr)
             return 2
+        except KeyboardInterrupt:
+            print("dcdi: interrupted", file=sys.stderr)
+            return 130
 
 
 if __name__ == "__main__":
