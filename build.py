@@ -1,19 +1,25 @@
 #!/usr/bin/env python3
 """Set-up, test, demo and packaging entry point.
 
-    python build.py demo        # make .venv/, install, run the demo job
-    python build.py test        # make .venv/, install, run the fast test suite
-    python build.py test-slow   # the tests marked slow
-    python build.py bench ARGS  # `dcdi bench ARGS` inside the environment
-    python build.py addon       # the Blender extension zip dist/<id>-<version>.zip
+    python build.py demo [--out DIR]  # make .venv/, install, run the demo job (engine and factory)
+    python build.py test              # make .venv/, install, run the fast test suite
+    python build.py test-slow         # the tests marked slow
+    python build.py bench ARGS        # `dcdi bench ARGS` inside the environment
+    python build.py bench factory [--quick]   # the dataset factory's samples per hour
+    python build.py addon             # the Blender extension zip dist/<id>-<version>.zip
 
 Works from any Python 3 interpreter: it finds a Python 3.11 (bpy 5.0.1 needs
 it), makes the virtual environment `.venv/` beside this file and installs the
 pinned dependencies once; later runs skip the install while requirements.txt
 and pyproject.toml are unchanged (a stamp file records their hash).
 
-`addon` needs no environment: it zips blender_addon/ (without the batch
-tools) as the folder <id>/ with dcdi_core/ and lenses/ vendored inside it,
+The demo and the factory benchmark start the engine (`dcdi`) and the
+Blender batch jobs (blender_addon/tools/factory.py) from here: the engine
+never starts the Blender layer.
+
+`addon` needs no environment: it zips blender_addon/ (without its tools/
+folder of batch jobs and developer tools) as the folder <id>/ with dcdi_core/
+and lenses/ vendored inside it,
 id and version from blender_addon/blender_manifest.toml. The zip installs as
 an extension in Blender 4.2+ (Install from Disk) and as a legacy add-on in
 older Blender (its bl_info). Same sources, same bytes (fixed timestamps).
@@ -121,8 +127,9 @@ def cmd_test(py: Path, marker: str) -> int:
     return code
 
 
-# batch tools that need the repository (scenes/, OpenImageIO): not part of the add-on
-ADDON_EXCLUDE = {"factory.py", "render_noise.py", "screenshots.py"}
+# batch jobs and developer tools (they need the repository: scenes/, OpenImageIO, a
+# Blender binary): not part of the add-on, left out of the zip as a whole
+ADDON_EXCLUDE_DIRS = ("tools",)
 
 
 def _addon_files() -> list[tuple[Path, str]]:
@@ -130,8 +137,9 @@ def _addon_files() -> list[tuple[Path, str]]:
     def tree(folder: Path, prefix: str, keep) -> list[tuple[Path, str]]:
         return [(p, prefix + p.relative_to(folder).as_posix()) for p in sorted(folder.rglob("*"))
                 if p.is_file() and "__pycache__" not in p.parts and keep(p)]
-    files = tree(ROOT / "blender_addon", "", lambda p: p.parent == ROOT / "blender_addon"
-                 and p.name not in ADDON_EXCLUDE and p.suffix in (".py", ".toml", ".md"))
+    addon = ROOT / "blender_addon"
+    files = tree(addon, "", lambda p: p.relative_to(addon).parts[0] not in ADDON_EXCLUDE_DIRS
+                 and p.suffix in (".py", ".toml", ".md"))
     files += tree(ROOT / "dcdi_core", "dcdi_core/", lambda p: p.suffix in (".py", ".csv", ".md", ".json"))
     files += tree(ROOT / "lenses", "lenses/", lambda p: p.suffix in (".toml", ".md"))
     return files
@@ -160,6 +168,104 @@ def build_addon(out_dir: Path = ROOT / "dist") -> Path:
     return out
 
 
+# ------------------------------------------------------------------ demo and benchmark of the factory
+def _option(argv: list[str], name: str, default: str) -> str:
+    return argv[argv.index(name) + 1] if name in argv[:-1] else default
+
+
+def factory_demo(py: Path, out: Path) -> int:
+    """One sample of the dataset factory (bpy, Cycles) with PNG previews and a
+    section appended to the demo's report.md; runs inside the environment."""
+    import time
+
+    folder = out / "factory"
+    t0 = time.perf_counter()
+    code = subprocess.call([str(py), "-m", "blender_addon.tools.factory", "--recipe", "room", "--count", "1",
+                            "--lens", "mos-s1", "--out", str(folder), "--seed", "0", "--resolution", "240", "320"],
+                           cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    if code != 0:
+        print(f"  factory sample failed (exit {code}); run `python -m blender_addon.tools.factory ...` to see why")
+        lines = ["", "## Dataset factory", "", f"the factory sample failed (exit {code})"]
+    else:
+        preview = f"""
+import sys
+from pathlib import Path
+from dcdi_core.io.images import read_depth, read_image, write_image
+from dcdi_core.render.pictures import side_by_side
+out, folder, sid = Path(sys.argv[1]), Path(sys.argv[2]), "room-000000"
+img = read_image(folder / "aif" / f"{{sid}}.exr")
+depth = read_depth(folder / "depth" / f"{{sid}}.exr")
+ab = read_image(folder / "mos-s1" / "aberrated" / f"{{sid}}.exr")
+write_image(out / "factory_aif.png", img)
+write_image(out / "factory_aberrated_mos-s1.png", ab)
+side_by_side(out / "factory_side.png", img, depth, ab, "dataset factory: room scene, MOS-S1 aberrated")
+"""
+        code = subprocess.call([str(py), "-c", preview, str(out), str(folder)], cwd=ROOT)
+        print(f"  factory: one room sample rendered and simulated in {time.perf_counter() - t0:.1f} s "
+              f"(files in {folder})")
+        lines = ["", "## Dataset factory", "", "- `factory_side.png`: a rendered room (AiF, depth, MOS-S1 "
+                 "aberrated); the sample's files are in `factory/`"]
+    report = out / "report.md"
+    if report.exists():
+        tmp = report.with_name(f".{report.name}.tmp")
+        tmp.write_text(report.read_text().rstrip("\n") + "\n" + "\n".join(lines) + "\n")
+        os.replace(tmp, report)
+    return code
+
+
+def bench_factory(py: Path, quick: bool = False) -> int:
+    """Samples per hour of the dataset factory at 480 x 640 (room recipe,
+    default render settings, MOS-S1 simulation included), with the time of
+    each stage from its manifest (seconds per sample). The PSF library is
+    built (or read) by a warm-up run before the timed one; the timed run's
+    wall time includes its process start. CPU seconds and the load average
+    show whether other jobs shared the machine (wall times then grow)."""
+    import json
+    import math
+    import tempfile
+    import time
+
+    h, w, n = (120, 160, 2) if quick else (480, 640, 6)
+    with tempfile.TemporaryDirectory() as d:
+        args = [str(py), "-m", "blender_addon.tools.factory", "--recipe", "room", "--lens", "mos-s1",
+                "--out", d, "--seed", "0", "--resolution", str(h), str(w)]
+        # one warm-up sample builds (or reads) the PSF library for this pixel pitch
+        subprocess.run(args + ["--count", "1"], check=True, capture_output=True, cwd=ROOT)
+        load0 = os.getloadavg()[0]
+        t = time.perf_counter()
+        subprocess.run(args + ["--count", str(n + 1)], check=True, capture_output=True, cwd=ROOT)
+        wall = time.perf_counter() - t
+        load1 = os.getloadavg()[0]
+        with open(os.path.join(d, "manifest.jsonl")) as f:
+            recs = [json.loads(x) for x in f if x.strip()][1:]
+
+    def mean(f):
+        return sum(f(r) for r in recs) / len(recs)
+    stages = ("scene", "render", "read", "write", "simulate")
+    st = {k: mean(lambda r, k=k: r["stage_seconds"].get(k, 0.0)) for k in stages}
+    setup = sum(r["stage_seconds"].get("setup", 0.0) for r in recs)
+    steady = mean(lambda r: r["seconds"] - r["stage_seconds"].get("setup", 0.0))
+    cpu = mean(lambda r: r["cpu_seconds"])
+    per = wall / len(recs)
+    r0 = recs[0]["render"]
+    ncpu = os.cpu_count() or 1
+    print(f"bench factory: {h} x {w}, room, {r0['samples']} samples/pixel, denoiser "
+          f"{r0['denoising_quality'] if r0['denoise'] else 'off'}/{r0['denoising_prefilter']}, MOS-S1 simulation "
+          f"(depth-aware + baseline), {len(recs)} samples, {ncpu} CPU(s), load average {load0:.1f} -> {load1:.1f}")
+    cst = {k: mean(lambda r, k=k: r["stage_seconds"].get("cpu_" + k, math.nan)) for k in stages}
+    print("  per sample, wall (CPU) seconds: "
+          + ", ".join(f"{k} {v:.2f}" + ("" if math.isnan(cst[k]) else f" ({cst[k]:.2f})") for k, v in st.items())
+          + f"; {steady:.2f} s in all ({cpu:.1f} CPU s: {cpu / ncpu:.2f} s if this process had all {ncpu} cores)")
+    print(f"  once per run: process start, PSF library, distortion table and baseline map "
+          f"{wall - steady * len(recs):.1f} s (of which simulator set-up {setup:.1f} s)")
+    print(f"  {per:.2f} s per sample with the process start = {3600 / per:.0f} samples per hour "
+          f"({3600 / steady:.0f} per hour in a long run; goal 600)")
+    if load0 > 1.5 * ncpu / 2 or load1 > ncpu + 0.5:
+        print(f"  note: other jobs shared the {ncpu} cores (load average {load0:.1f} -> {load1:.1f}): "
+              "wall times are longer than on an idle machine; CPU seconds are not")
+    return 0
+
+
 def main(argv: list[str]) -> int:
     if not argv or argv[0] in ("-h", "--help", "help"):
         print(__doc__)
@@ -181,8 +287,13 @@ def main(argv: list[str]) -> int:
     if command == "test-slow":
         return cmd_test(py, "slow")
     if command == "bench":
+        if rest[:1] == ["factory"]:
+            return bench_factory(py, quick="--quick" in rest)
         return _run([py, "-m", "dcdi_core", "bench", *rest])
-    return _run([py, "-m", "dcdi_core", "demo", *rest])
+    code = _run([py, "-m", "dcdi_core", "demo", *rest])
+    if code != 0:
+        return code
+    return factory_demo(py, (ROOT / _option(rest, "--out", "out/demo")).resolve())
 
 
 if __name__ == "__main__":

@@ -28,7 +28,7 @@ _JOBS: set = set()
 
 def _user_errors():
     """Errors whose message is meant for the user (shown as is)."""
-    return (logic.BokehInputError, core("optics.errors").OpticsError, ValueError, OSError, RuntimeError)
+    return (logic.BokehInputError, core("errors").DcdiError, ValueError, OSError, RuntimeError)
 
 
 def _metres_per_unit(scene) -> float:
@@ -56,7 +56,7 @@ def chosen_lens(settings):
                                     "(lenses/*.toml or Import Zemax File)")
     try:
         return logic.load_lens_cached(path), path
-    except core("optics.errors").OpticsError as e:
+    except core("errors").DcdiError as e:
         raise logic.BokehInputError(f"the lens file is broken: {e}") from None
 
 

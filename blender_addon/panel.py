@@ -15,7 +15,7 @@ def _readout(layout, settings):
         return
     try:
         ro = logic.lens_readout(path)
-    except (core("optics.errors").OpticsError, ValueError, OSError) as e:
+    except (core("errors").DcdiError, ValueError, OSError) as e:
         col = box.column(align=True)
         col.alert = True
         col.label(text="Broken lens file:", icon="ERROR")
@@ -42,7 +42,7 @@ def _sharp_range(scene, s) -> str:
         focus = operators.focus_metres(scene, cam, s, logic.lens_readout(path)["entrance_pupil_mm"])
         mpu = scene.unit_settings.scale_length
         near, far = logic.keep_range(focus, s.keep_front * mpu, s.keep_behind * mpu)
-    except (logic.BokehInputError, core("optics.errors").OpticsError, ValueError, OSError) as e:
+    except (logic.BokehInputError, core("errors").DcdiError, ValueError, OSError) as e:
         return str(e)[:60]
     return f"Sharp from {near:.2f} m to {far:.2f} m (focus {focus:.2f} m)"
 

@@ -6,23 +6,64 @@ import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 
+from .errors import DcdiError, output_error
+
 
 @contextmanager
 def atomic_path(path: str | os.PathLike):
     """Yield a temporary path beside ``path``; rename it onto ``path`` only if
-    the block succeeds (the temporary is removed otherwise)."""
+    the block succeeds (the temporary is removed otherwise).
+
+    The temporary is ``.<name>.<random>.tmp<suffix>`` in the target's folder
+    (see :func:`remove_stale_temporaries`). An OSError (a read-only folder, a
+    file where a folder should be, a full disk) becomes an
+    :class:`~dcdi_core.errors.OutputError` naming ``path``."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
-    os.close(fd)
+    tmp = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
+        os.close(fd)
         yield Path(tmp)
         os.chmod(tmp, 0o644)  # mkstemp makes files owner-only
         os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    except DcdiError:
         raise
+    except OSError as e:
+        raise output_error(path, e) from None
+    finally:
+        if tmp is not None and os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+TEMPORARY_PATTERN = ".*.*.tmp*"     # what atomic_path's temporaries look like
+
+
+def remove_stale_temporaries(folder, *, older_than_s: float = 0.0, recursive: bool = True) -> list[Path]:
+    """Remove the temporaries that :func:`atomic_path` left in ``folder`` when
+    its process was killed between creating and renaming them; returns them.
+
+    Only names of atomic_path's form (``.<name>.<random>.tmp[<suffix>]``)
+    are touched, and only those last modified more than ``older_than_s``
+    seconds ago (so that a concurrent writer's live temporary survives when
+    given a margin)."""
+    import re
+    import time
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    form = re.compile(r"^\..+\.[A-Za-z0-9_]{6,}\.tmp(\.[A-Za-z0-9]+)?$")
+    now = time.time()
+    gone = []
+    for p in (folder.rglob(".*") if recursive else folder.glob(".*")):
+        try:
+            if form.match(p.name) and p.is_file() and now - p.stat().st_mtime >= older_than_s:
+                p.unlink()
+                gone.append(p)
+        except OSError:
+            continue
+    return gone
 
 
 def write_text(path, text: str) -> None:

@@ -41,8 +41,8 @@ def bench_trace(n_rays: int, repeat: int) -> int:
     print(f"bench trace: lens double-gauss, {len(lens.surfaces)} surfaces + sensor, "
           f"{n:,} rays ({n_int:,} ray-surface intersections), {os.cpu_count()} CPU(s), best of {repeat}")
 
-    def run(dtype):
-        return T.trace(lens, o, d, wls, dtype=dtype, status=status)
+    def run(dtype, chunk=None):
+        return T.trace(lens, o, d, wls, dtype=dtype, status=status, chunk=chunk)
 
     results = {}
     for name, dtype in (("float64", np.float64), ("float32", np.float32)):
@@ -51,12 +51,7 @@ def bench_trace(n_rays: int, repeat: int) -> int:
         print(f"  {name}: {t * 1e3:8.1f} ms  {n_int / t / 1e6:7.1f} M ray-surface/s  "
               f"{n / t / 1e6:6.2f} M rays/s")
     # baseline: one chunk, no thread pool (plain vectorised numpy)
-    saved = T.CHUNK
-    T.CHUNK = n + 1
-    try:
-        tb, _ = _best(lambda: run(np.float64), repeat)
-    finally:
-        T.CHUNK = saved
+    tb, _ = _best(lambda: run(np.float64, chunk=n + 1), repeat)
     print(f"  baseline float64 (unchunked, 1 thread): {tb * 1e3:8.1f} ms  "
           f"{n_int / tb / 1e6:7.1f} M ray-surface/s")
     print(f"  speed-up over baseline: float64 x{tb / results['float64'][0]:.2f}, "
@@ -94,7 +89,8 @@ def _bench_library(lens, settings, grid):
 
     from .optics.aiming import stop_grid
     from .psf.compute import spectral_samples
-    from .psf.library import PSFLibrary, text_progress
+    from .progress import psf_progress
+    from .psf.library import PSFLibrary
 
     n_psf = grid.n_fields * (grid.n_depths + 1)
     n_p = len(stop_grid(lens, settings.pupil_samples))
@@ -105,7 +101,7 @@ def _bench_library(lens, settings, grid):
           f"({settings.pupil_samples}^2 grid, {settings.precision}) = {n_rays:,} rays, {os.cpu_count()} CPU(s)")
     lib = PSFLibrary(lens, settings, grid, None)
     t = time.perf_counter()
-    lib.build(progress=text_progress("  building"))
+    lib.build(progress=psf_progress("  building"))
     total = time.perf_counter() - t
     with tempfile.TemporaryDirectory() as d:
         t = time.perf_counter()
@@ -135,32 +131,28 @@ def _bench_baseline(lens, settings, grid, per: float) -> None:
     import math as _m
     erf = np.vectorize(_m.erf)
     aimed = sources(lens, [2.0], field=[0.3, 0.6, 0.9])
-    saved = T.CHUNK
+    whole = 1 << 30                               # one chunk: unchunked, on this thread
     t = time.perf_counter()
-    try:
-        T.CHUNK = 1 << 30
-        for i in range(aimed.p.shape[0]):
-            a = Aimed(aimed.depth_mm[i], aimed.p[i], aimed.v_chief[i], aimed.ok[i], aimed.z_ep)
-            o, dd, st, _ = pupil_rays(lens, a, stop_grid(lens, settings.pupil_samples))
-            oc, dc = launch(lens, a.depth_mm, a.p, 0.0, a.v_chief, a.z_ep)
-            cy = T.trace(lens, oc, dc, lens.wavelength_nm, apertures=False).position_mm[0, 1]
-            kern = np.zeros((3, k, k))
-            for j, lam in enumerate(wl):
-                b = T.trace(lens, o, dd, lam, status=st)
-                v = b.valid[0]
-                x = b.position_mm[0, v, 0] / pitch + k / 2
-                y = (b.position_mm[0, v, 1] - cy) / pitch + k / 2
-                ix0, iy0 = np.floor(x).astype(int) - 2, np.floor(y).astype(int) - 2
-                for dx_ in range(5):
-                    gx = erf((ix0 + dx_ + 1 - x) / (sig * _m.sqrt(2))) - erf((ix0 + dx_ - x) / (sig * _m.sqrt(2)))
-                    for dy_ in range(5):
-                        gy = erf((iy0 + dy_ + 1 - y) / (sig * _m.sqrt(2))) - erf((iy0 + dy_ - y) / (sig * _m.sqrt(2)))
-                        ii, jj = iy0 + dy_, ix0 + dx_
-                        ok = (ii >= 0) & (ii < k) & (jj >= 0) & (jj < k)
-                        for c in range(3):
-                            np.add.at(kern[c], (ii[ok], jj[ok]), 0.25 * gx[ok] * gy[ok] * w[j, c])
-    finally:
-        T.CHUNK = saved
+    for i in range(aimed.p.shape[0]):
+        a = Aimed(aimed.depth_mm[i], aimed.p[i], aimed.v_chief[i], aimed.ok[i], aimed.z_ep)
+        o, dd, st, _ = pupil_rays(lens, a, stop_grid(lens, settings.pupil_samples))
+        oc, dc = launch(lens, a.depth_mm, a.p, 0.0, a.v_chief, a.z_ep)
+        cy = T.trace(lens, oc, dc, lens.wavelength_nm, apertures=False, chunk=whole).position_mm[0, 1]
+        kern = np.zeros((3, k, k))
+        for j, lam in enumerate(wl):
+            b = T.trace(lens, o, dd, lam, status=st, chunk=whole)
+            v = b.valid[0]
+            x = b.position_mm[0, v, 0] / pitch + k / 2
+            y = (b.position_mm[0, v, 1] - cy) / pitch + k / 2
+            ix0, iy0 = np.floor(x).astype(int) - 2, np.floor(y).astype(int) - 2
+            for dx_ in range(5):
+                gx = erf((ix0 + dx_ + 1 - x) / (sig * _m.sqrt(2))) - erf((ix0 + dx_ - x) / (sig * _m.sqrt(2)))
+                for dy_ in range(5):
+                    gy = erf((iy0 + dy_ + 1 - y) / (sig * _m.sqrt(2))) - erf((iy0 + dy_ - y) / (sig * _m.sqrt(2)))
+                    ii, jj = iy0 + dy_, ix0 + dx_
+                    ok = (ii >= 0) & (ii < k) & (jj >= 0) & (jj < k)
+                    for c in range(3):
+                        np.add.at(kern[c], (ii[ok], jj[ok]), 0.25 * gx[ok] * gy[ok] * w[j, c])
     per_base = (time.perf_counter() - t) / aimed.p.shape[0]
     print(f"baseline (one PSF at a time, float64, 1 thread, np.add.at deposit; 128^2 rays, 9 wavelengths): "
           f"{per_base * 1e3:.0f} ms/PSF vs {per * 1e3:.1f} ms/PSF for the same workload above: "
@@ -200,8 +192,9 @@ def bench_render(quick: bool = False) -> int:
     t_sim, _ = _best(lambda: simulate(img, depth, mos, geometry=geom, library=lib, distortion=False), rep)
     t_sim_d, _ = _best(lambda: simulate(img, depth, mos, geometry=geom, library=lib, distortion=True), rep)
     from .render import fft
-    with fft.forced("numpy"):                  # the fallback that Blender's Python gets
-        t_sim_np, _ = _best(lambda: simulate(img, depth, mos, geometry=geom, library=lib, distortion=False), 1)
+    # the fallback that Blender's Python gets
+    t_sim_np, _ = _best(lambda: simulate(img, depth, mos, geometry=geom, library=lib, distortion=False,
+                                         fft_backend="numpy"), 1)
     t_bk_plain, _ = _best(lambda: bokeh(img, depth, p6, keep=(1.1, 1.3), library=lib6, occlusion=False), rep)
     t_bk, _ = _best(lambda: bokeh(img, depth, p6, keep=(1.1, 1.3), library=lib6, occlusion=True), rep)
     # peak memory in separate runs (tracing slows numpy's allocations a little)
@@ -242,61 +235,7 @@ def bench_render(quick: bool = False) -> int:
     return 0
 
 
-def bench_factory(quick: bool = False) -> int:
-    """Samples per hour of the dataset factory at 480 x 640 (room recipe,
-    default render settings, MOS-S1 simulation included), with the time of
-    each stage from its manifest (seconds per sample). The PSF library is
-    built (or read) by a warm-up run before the timed one; the timed run's
-    wall time includes its process start. CPU seconds and the load average
-    show whether other jobs shared the machine (wall times then grow)."""
-    import json
-    import subprocess
-    import sys
-    import tempfile
-
-    h, w, n = (120, 160, 2) if quick else (480, 640, 6)
-    with tempfile.TemporaryDirectory() as d:
-        args = [sys.executable, "-m", "blender_addon.factory", "--recipe", "room", "--lens", "mos-s1",
-                "--out", d, "--seed", "0", "--resolution", str(h), str(w)]
-        # one warm-up sample builds (or reads) the PSF library for this pixel pitch
-        subprocess.run(args + ["--count", "1"], check=True, capture_output=True)
-        load0 = os.getloadavg()[0]
-        t = time.perf_counter()
-        subprocess.run(args + ["--count", str(n + 1)], check=True, capture_output=True)
-        wall = time.perf_counter() - t
-        load1 = os.getloadavg()[0]
-        recs = [json.loads(x) for x in open(os.path.join(d, "manifest.jsonl"))][1:]
-    def mean(f):
-        return sum(f(r) for r in recs) / len(recs)
-    stages = ("scene", "render", "read", "write", "simulate")
-    st = {k: mean(lambda r, k=k: r["stage_seconds"].get(k, 0.0)) for k in stages}
-    setup = sum(r["stage_seconds"].get("setup", 0.0) for r in recs)
-    steady = mean(lambda r: r["seconds"] - r["stage_seconds"].get("setup", 0.0))
-    cpu = mean(lambda r: r["cpu_seconds"])
-    per = wall / len(recs)
-    r0 = recs[0]["render"]
-    print(f"bench factory: {h} x {w}, room, {r0['samples']} samples/pixel, denoiser "
-          f"{r0['denoising_quality'] if r0['denoise'] else 'off'}/{r0['denoising_prefilter']}, MOS-S1 simulation "
-          f"(depth-aware + baseline), {len(recs)} samples, {os.cpu_count()} CPU(s), load average {load0:.1f} -> "
-          f"{load1:.1f}")
-    cst = {k: mean(lambda r, k=k: r["stage_seconds"].get("cpu_" + k, math.nan)) for k in stages}
-    print("  per sample, wall (CPU) seconds: "
-          + ", ".join(f"{k} {v:.2f}" + ("" if math.isnan(cst[k]) else f" ({cst[k]:.2f})") for k, v in st.items())
-          + f"; {steady:.2f} s in all ({cpu:.1f} CPU s: {cpu / (os.cpu_count() or 1):.2f} s if this process had "
-            f"all {os.cpu_count()} cores)")
-    print(f"  once per run: process start, PSF library, distortion table and baseline map "
-          f"{wall - steady * len(recs):.1f} s (of which simulator set-up {setup:.1f} s)")
-    print(f"  {per:.2f} s per sample with the process start = {3600 / per:.0f} samples per hour "
-          f"({3600 / steady:.0f} per hour in a long run; goal 600)")
-    if load0 > 1.5 * (os.cpu_count() or 1) / 2 or load1 > (os.cpu_count() or 1) + 0.5:
-        print(f"  note: other jobs shared the {os.cpu_count()} cores (load average {load0:.1f} -> {load1:.1f}): "
-              "wall times are longer than on an idle machine; CPU seconds are not")
-    return 0
-
-
 def run(what: str, args) -> int:
-    if what == "factory":
-        return bench_factory(getattr(args, "quick", False))
     if what == "render":
         return bench_render(getattr(args, "quick", False))
     if what == "trace":

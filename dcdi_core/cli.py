@@ -8,6 +8,7 @@ semi-diagonal).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import sys
@@ -56,6 +57,47 @@ def _dump(obj) -> str:
     return json.dumps(fix(obj), indent=2)
 
 
+def _check_output(path, option: str, *, image: bool = False, suffix: str | None = None) -> None:
+    """Refuse, before any work, an output that cannot be written: an image
+    extension that is not supported (or not ``suffix``), a folder that is
+    read-only or a file."""
+    if not path:
+        return
+    from .errors import check_writable_folder
+    if image:
+        from .io.images import check_image_output
+        check_image_output(path)
+    if suffix is not None and not str(path).lower().endswith(suffix):
+        from .errors import InputRangeError
+        raise InputRangeError(option, str(path), f"a file name ending in {suffix} (what it writes)")
+    from pathlib import Path
+    check_writable_folder(Path(path).resolve().parent, f"{option} {path}")
+
+
+def _check_cache(args=None) -> None:
+    """Refuse, before any work, a PSF cache folder that cannot be written."""
+    if args is not None and getattr(args, "no_cache", False):
+        return
+    from .errors import check_writable_folder
+    from .psf.library import default_cache_dir
+    check_writable_folder(default_cache_dir(), "the PSF cache (set DCDI_CACHE_DIR to a writable folder)")
+
+
+def _check_wavelength(lens, args) -> None:
+    if getattr(args, "wavelength", None) is not None:
+        lens.check_wavelengths(args.wavelength, "--wavelength")
+
+
+def _check_library_memory(settings, grid=None, *, map_kernels: int = 0) -> None:
+    """Refuse, before any work, a PSF library that would not fit in memory."""
+    from .psf.compute import check_psf_memory
+    from .psf.library import LibraryGrid
+    g = grid or LibraryGrid()
+    n = g.n_fields * (g.n_depths + 1)
+    check_psf_memory(settings, n, 1 if settings.wavelength_nm is not None else None, library_psfs=n,
+                     map_kernels=map_kernels)
+
+
 # ------------------------------------------------------------------ commands
 def cmd_lens_list(args) -> int:
     from .optics.lens import available_lenses, load_lens
@@ -69,6 +111,7 @@ def cmd_lens_info(args) -> int:
     from .optics.lens import load_lens
     from .optics.report import format_info, lens_info
     lens = load_lens(args.lens)
+    _check_wavelength(lens, args)
     info = lens_info(lens, args.wavelength, real_rays=not args.paraxial_only)
     print(_dump(info) if args.json else format_info(info))
     return 0
@@ -77,6 +120,7 @@ def cmd_lens_info(args) -> int:
 def cmd_lens_import(args) -> int:
     from .optics.lens import Lens
     from .optics.zemax import read_zmx, write_toml
+    _check_output(args.output, "-o", suffix=".toml")
     d = read_zmx(args.file)
     if args.id:
         d["id"] = args.id
@@ -86,13 +130,27 @@ def cmd_lens_import(args) -> int:
     return 0
 
 
+def _where(args):
+    """(option, value) of the field asked for: --field or --angle."""
+    return ("--field", args.field) if args.field is not None else ("--angle", args.angle)
+
+
 def cmd_spot(args) -> int:
     import numpy as np
     from .optics.analysis import spot_diagram
     from .optics.lens import load_lens
+    from .memory import check_fits
+    from .psf.compute import BYTES_PER_RAY, stop_ray_count
     lens = load_lens(args.lens)
+    _check_wavelength(lens, args)
+    check_fits(stop_ray_count(args.rays) * BYTES_PER_RAY["float64"] * 2, f"spot --rays {args.rays} "
+               f"({args.rays} x {args.rays} rays)", "lower --rays (memory grows as its square)")
     kw = {"field": [args.field]} if args.field is not None else {"angle_deg": [args.angle]}
     s = spot_diagram(lens, [args.depth], [args.wavelength], rays=args.rays, **kw)
+    if not s.aimed.ok[0, 0] or s.vignetted_fraction[0, 0, 0] >= 1.0:
+        from .errors import InputRangeError
+        raise InputRangeError(*_where(args), "a field some ray of which reaches the sensor (no ray of this one "
+                              "does: fully vignetted or beyond the image circle; no spot)")
     res = {
         "lens": lens.id,
         "depth_m": args.depth,
@@ -146,14 +204,19 @@ def cmd_psf(args) -> int:
     from .psf.compute import pixel_pitch_mm, psf
     from .psf.plots import depth_label, psf_grid_png
     lens = load_lens(args.lens)
+    _check_output(args.out, "--out", suffix=".npz")
+    _check_output(args.png, "--png", suffix=".png")
+    _check_wavelength(lens, args)
     settings = _psf_settings(args)
+    from .psf.compute import check_psf_memory
+    check_psf_memory(settings, 1, 1 if args.wavelength is not None else None)
     r = psf(lens, depth_m=args.depth, field=args.field, angle_deg=args.angle, settings=settings,
             response=_response(args), wavelength_nm=args.wavelength)
     pitch = pixel_pitch_mm(lens, settings)
     if r.zero_energy:
-        print("dcdi: error: no ray of this field reaches the sensor (fully vignetted or beyond the "
-              "image circle); the kernel would be empty", file=sys.stderr)
-        return 2
+        from .errors import InputRangeError
+        raise InputRangeError(*_where(args), "a field some ray of which reaches the sensor (no ray of this one "
+                              "does: fully vignetted or beyond the image circle; the kernel would be empty)")
     res = {
         "lens": lens.id, "depth_m": args.depth, "field": args.field, "angle_deg": args.angle,
         "wavelength_nm": args.wavelength, "kernel_size": settings.kernel_size, "pixel_pitch_mm": pitch,
@@ -180,12 +243,18 @@ def cmd_psf(args) -> int:
 
 def cmd_psflib_build(args) -> int:
     from .optics.lens import load_lens
-    from .psf.library import LibraryGrid, PSFLibrary, text_progress
+    from .progress import psf_progress
+    from .psf.library import LibraryGrid, PSFLibrary
     lens = load_lens(args.lens)
+    _check_output(args.output, "-o", suffix=".npz")
+    _check_cache(args)
     grid = LibraryGrid(n_fields=args.fields, n_depths=args.depths, near_m=args.near, far_m=args.far)
-    lib = PSFLibrary.open(lens, _psf_settings(args), grid, _response(args), cache=not args.no_cache)
+    settings = _psf_settings(args)
+    _check_library_memory(settings, grid)
+    lib = PSFLibrary.open(lens, settings, grid, _response(args), cache=not args.no_cache)
     t = time.perf_counter()
-    done = lib.build(progress=text_progress(f"psflib {lens.id}"))
+    bar = psf_progress(f"psflib {lens.id}")
+    done = lib.build(progress=bar)
     lib.save(args.output)
     print(f"wrote {args.output}: {len(lib.depths_m)} depth bins x {len(lib.fields)} fields x 3 x "
           f"{lib.kernel_size} x {lib.kernel_size}; computed {len(done)} bins in "
@@ -199,10 +268,21 @@ def cmd_psflib_show(args) -> int:
     from .optics.lens import load_lens
     from .psf.library import PSFLibrary
     from .psf.plots import depth_label, psf_grid_png
+    _check_output(args.png, "--png", suffix=".png")
     if args.library.endswith(".npz"):
         lib = PSFLibrary.load(args.library)
     else:
-        lib = PSFLibrary.open(load_lens(args.library), _psf_settings(args))
+        lens = load_lens(args.library)
+        _check_cache()
+        settings = _psf_settings(args)
+        _check_library_memory(settings)
+        from .psf.library import LibraryGrid
+        near = LibraryGrid().near_m
+        if min(args.show_depths) < near:
+            from .errors import InputRangeError
+            raise InputRangeError("--show-depths", min(args.show_depths), f">= {near:g} m, the library's nearest "
+                                  "depth bin")
+        lib = PSFLibrary.open(lens, settings)
     fields = np.array(args.show_fields)
     depths = np.array(args.show_depths)
     if lib.lens is None:   # a file: show the bins it holds, nearest to what was asked
@@ -220,12 +300,21 @@ def cmd_psflib_show(args) -> int:
 
 
 def _read_rgbd(args):
+    """The image and depth map, checked: same size; a depth map with no valid
+    pixel refused; an implausible one (another unit) or negative light warned
+    about (render.inputs)."""
+    import warnings
+
     from .io.images import read_depth, read_image
+    from .render.inputs import InputWarning, depth_problems, light_problems
     img = read_image(args.image)
-    depth = read_depth(args.depth)
+    depth = read_depth(args.depth, channel=args.depth_channel)
     if depth.shape != img.shape[:2]:
-        from .optics.errors import InputRangeError
+        from .errors import InputRangeError
         raise InputRangeError(f"depth map {args.depth}", depth.shape, f"{img.shape[:2]} (the image {args.image})")
+    for msg in light_problems(img, args.image) + ([] if getattr(args, "fixed_depth", None) is not None
+                                                   else depth_problems(depth, args.depth)):
+        warnings.warn(msg, InputWarning)
     return img, depth
 
 
@@ -278,57 +367,100 @@ def _geometries(args, lens, shape):
 def _render_inputs(args):
     """Everything simulate and bokeh check before any work: the lens, the
     output paths, the response file, the images and the geometry."""
-    from .io.images import check_image_output
     from .optics.lens import load_lens
+    from .render.distortion import check_interpolation
+    from .render.simulate import MAX_FITTED_KERNEL, check_patch
     lens = load_lens(args.lens)
-    for path in (args.output, getattr(args, "sharp_out", None)):
-        if path:
-            check_image_output(path)
+    _check_output(args.output, "-o", image=True)
+    _check_output(getattr(args, "sharp_out", None), "--sharp-out", image=True)
+    _check_output(getattr(args, "side_by_side", None), "--side-by-side", suffix=".png")
+    _check_cache()
+    check_patch(args.patch)
+    check_interpolation(args.interpolation)
+    if getattr(args, "noise", False):
+        from .render.noise import check_noise
+        if args.seed is None:
+            from .errors import InputRangeError
+            raise InputRangeError("--seed", None, "an integer: --noise needs an explicit seed")
+        check_noise(args.full_well, args.read_noise)
+    if getattr(args, "perturb", None) is not None and not 0.0 <= args.perturb_fraction <= 0.5:
+        from .errors import InputRangeError
+        raise InputRangeError("--perturb-fraction", args.perturb_fraction, "a number in [0, 0.5] (0.1 = +-10 %)")
+    fixed = getattr(args, "fixed_depth", None)
+    if fixed is not None:
+        from .psf.library import LibraryGrid
+        near = LibraryGrid().near_m
+        if fixed < near:
+            from .errors import InputRangeError
+            raise InputRangeError("--fixed-depth", fixed, f">= {near:g} m, the PSF library's nearest depth bin (or inf)")
+    _check_wavelength(lens, args)
     from dataclasses import replace
     settings = replace(_psf_settings(args, focus=args.command != "bokeh"), pixel_pitch_mm=None,
                        wavelength_nm=args.wavelength)
     response = _response(args)
     img, depth = _read_rgbd(args)
     geom, source = _geometries(args, lens, img.shape[:2])
-    from .render.simulate import check_patch
-    check_patch(args.patch)
-    from .render.distortion import check_interpolation
-    check_interpolation(args.interpolation)
+    # the largest kernel the run may use: --kernel, or the fitted kernel's ceiling
+    biggest = settings if args.kernel else replace(settings, kernel_size=MAX_FITTED_KERNEL)
+    patches = -(-geom.height // args.patch) * -(-geom.width // args.patch)
+    _check_library_memory(biggest, map_kernels=patches)
     return lens, settings, response, img, depth, geom, source
+
+
+@contextlib.contextmanager
+def _quiet_input_warnings():
+    """The engine repeats the input warnings that _read_rgbd gave (naming the files): silence its copies."""
+    import warnings
+
+    from .render.inputs import InputWarning
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", InputWarning)
+        yield
 
 
 def cmd_simulate(args) -> int:
     from .io.images import write_image
+    from .progress import Steps, psf_progress
     from .render.simulate import LensSimulator
     lens, settings, response, img, depth, geom, source = _render_inputs(args)
+    steps = Steps("dcdi simulate")
+    steps.start("PSF library (built once per lens and setting, then read from the cache)")
     record = None
     if args.perturb is not None:
         from .optics.perturb import perturb_lens
         lens, record = perturb_lens(lens, seed=args.perturb, fraction=args.perturb_fraction)
     noise = {"full_well_electrons": args.full_well, "read_noise_electrons": args.read_noise} if args.noise else None
-    if noise is not None and args.seed is None:
-        from .optics.errors import InputRangeError
-        raise InputRangeError("--seed", None, "an integer: --noise needs an explicit seed")
     # without --kernel, the kernel grows to hold the PSFs this depth map needs
     sim = LensSimulator(lens, geom, source_geometry=source, settings=settings,
                         response=response, patch=args.patch, distortion=not args.no_distortion,
-                        interpolation=args.interpolation, fit_depth_m=None if args.kernel else depth)
-    r = sim(img, depth, fixed_depth_m=args.fixed_depth, noise=noise, seed=args.seed)
+                        interpolation=args.interpolation, fit_depth_m=None if args.kernel else depth,
+                        progress=psf_progress("PSFs"))
+    steps.start(f"distortion, PSF map and convolution of {img.shape[0]} x {img.shape[1]} pixels")
+    with _quiet_input_warnings():
+        r = sim(img, depth, fixed_depth_m=args.fixed_depth, noise=noise, seed=args.seed)
+    steps.start("writing")
     write_image(args.output, r.image)
     if args.sharp_out:
         write_image(args.sharp_out, r.sharp)
+    steps.done()
     print(_dump({"output": args.output, **r.info, "perturbation": record}))
     return 0
 
 
 def cmd_bokeh(args) -> int:
     from .io.images import write_image
+    from .progress import Steps, bar, psf_progress
     from .render.simulate import bokeh
     lens, settings, response, img, depth, geom, source = _render_inputs(args)
+    steps = Steps("dcdi bokeh")
+    steps.start("PSF library (built once per lens, focus and setting, then read from the cache), then the blur")
     keep = tuple(args.keep) if args.keep else None
-    r = bokeh(img, depth, lens, keep=keep, focus_m=args.focus, geometry=geom, source_geometry=source,
-              distortion=args.distort, interpolation=args.interpolation, patch=args.patch,
-              occlusion=not args.plain, settings=settings, response=response, fit_kernel=not args.kernel)
+    with _quiet_input_warnings():
+        r = bokeh(img, depth, lens, keep=keep, focus_m=args.focus, geometry=geom, source_geometry=source,
+                  distortion=args.distort, interpolation=args.interpolation, patch=args.patch,
+                  occlusion=not args.plain, settings=settings, response=response, fit_kernel=not args.kernel,
+                  progress=psf_progress("PSFs"), layer_progress=bar("depth layers", "layer"))
+    steps.start("writing")
     write_image(args.output, r.image)
     if args.side_by_side:
         from .render.pictures import side_by_side
@@ -336,6 +468,7 @@ def cmd_bokeh(args) -> int:
                 "as prescribed" if args.focus == "prescribed" else f"focus {args.focus:g} m")
         side_by_side(args.side_by_side, img if r.sharp is None else r.sharp,
                      depth if r.depth is None else r.depth, r.image, f"{lens.name}: {what}")
+    steps.done()
     print(_dump({"output": args.output, **r.info}))
     return 0
 
@@ -579,10 +712,15 @@ def build_parser() -> argparse.ArgumentParser:
     psf_options(b)
     b.set_defaults(func=cmd_psflib_build)
     s_ = psub.add_parser("show", help="a PNG grid of PSFs across field and depth")
-    s_.add_argument("library", help="a library file (.npz from psflib build) or a lens id")
-    s_.add_argument("--png", required=True, metavar="FILE.png")
-    s_.add_argument("--show-fields", type=float, nargs="+", default=[0.0, 0.5, 0.7, 1.0], metavar="F")
-    s_.add_argument("--show-depths", type=_depth, nargs="+", default=[0.7, 1.0, 2.0, 5.0, math.inf], metavar="D")
+    s_.add_argument("library", help="a library file (.npz from psflib build: its own settings and bins) or a "
+                                    "lens id or .toml path (its library with the options below, from the cache)")
+    s_.add_argument("--png", required=True, metavar="FILE.png", help="the picture to write (PNG)")
+    s_.add_argument("--show-fields", type=float, nargs="+", default=[0.0, 0.5, 0.7, 1.0], metavar="F",
+                    help="fields to show, normalised image height in [0, 1] (default 0 0.5 0.7 1); from a "
+                         "file, the nearest fields it holds")
+    s_.add_argument("--show-depths", type=_depth, nargs="+", default=[0.7, 1.0, 2.0, 5.0, math.inf], metavar="D",
+                    help="depths to show, metres >= 0.7 or inf (default 0.7 1 2 5 inf); from a file, the "
+                         "nearest computed bins")
     psf_options(s_)
     s_.set_defaults(func=cmd_psflib_show)
 
@@ -592,6 +730,9 @@ def build_parser() -> argparse.ArgumentParser:
     def rgbd_options(q):
         q.add_argument("--image", required=True, help="all-in-focus image (EXR linear, or PNG/JPEG sRGB)")
         q.add_argument("--depth", required=True, help="metric depth map (EXR, metres from the lens; NaN/0/<0 invalid)")
+        q.add_argument("--depth-channel", default=None, metavar="NAME",
+                       help="the depth map's channel, e.g. Z or ViewLayer.Depth.Z (default: the first of "
+                            "Z, depth.Z, Depth.V, V, depth, R, Y found)")
         q.add_argument("--lens", required=True, help="lens id or .toml path")
         q.add_argument("-o", "--output", required=True, help="output image (.exr linear, or .png)")
         q.add_argument("--patch", type=_positive_int, default=16, help="patch size m in pixels (default 16)")
@@ -652,14 +793,17 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--quick", action="store_true", help="a small image and sweep (for tests)")
     r.set_defaults(func=cmd_report_sim)
 
-    q = sub.add_parser("bench", help="benchmarks (times, not tests)")
-    q.add_argument("what", choices=["trace", "psflib", "render", "factory"], help="what to benchmark")
+    q = sub.add_parser("bench", help="benchmarks (times, not tests)",
+                       description="Benchmarks of the engine; the dataset factory's is `python build.py bench "
+                                   "factory` (it starts the Blender layer, which the engine never does).")
+    q.add_argument("what", choices=["trace", "psflib", "render"], help="what to benchmark")
     q.add_argument("--rays", type=_positive_int, default=1 << 20, help="rays per trace (default 2^20)")
     q.add_argument("--repeat", type=_positive_int, default=3, help="timed repetitions (best is kept)")
     q.add_argument("--quick", action="store_true", help="psflib: a small library (for tests)")
     q.set_defaults(func=cmd_bench)
 
-    q = sub.add_parser("demo", help="the demo job: lens reports and spot diagrams of all lenses")
+    q = sub.add_parser("demo", help="the demo job: lens reports, spot diagrams and PSFs of all lenses, simulation "
+                                    "and bokeh on a synthetic scene (python build.py demo adds a factory sample)")
     q.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     q.set_defaults(func=cmd_demo)
 
@@ -667,14 +811,39 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _one_line(text) -> str:
+    return " ".join(str(text).split())
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    print(f"dcdi: warning: {_one_line(message)}", file=sys.stderr)
+
+
+OUT_OF_MEMORY = ("out of memory: the work did not fit in this machine's memory; lower --rays (memory grows as its "
+                 "square), --wavelengths or --kernel, or use a smaller image")
+
+
 def main(argv=None) -> int:
-    from .optics.errors import OpticsError
+    """The `dcdi` command: exit 0 on success, 2 with one line on stderr for any
+    error a user can cause (a DcdiError, or memory running out); anything
+    else is a bug and keeps its traceback."""
+    import warnings
+
+    from .errors import DcdiError
     args = build_parser().parse_args(argv)
-    try:
-        return args.func(args)
-    except OpticsError as e:
-        print(f"dcdi: error: {e}", file=sys.stderr)
-        return 2
+    with warnings.catch_warnings():
+        warnings.showwarning = _show_warning          # one line each, no source line
+        try:
+            return args.func(args)
+        except DcdiError as e:
+            print(f"dcdi: error: {_one_line(e)}", file=sys.stderr)
+            return 2
+        except MemoryError:
+            print(f"dcdi: error: {OUT_OF_MEMORY}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            print("dcdi: interrupted", file=sys.stderr)
+            return 130
 
 
 if __name__ == "__main__":

@@ -1,7 +1,10 @@
-"""`python build.py demo` / `dcdi demo`: the main job on built-in defaults.
+"""`dcdi demo`: the engine's demo job on built-in defaults.
 
-For now (the optics core): a report for every lens in lenses/ and a picture
-of its spot diagrams across field and depth, written to one folder.
+A report for every lens in lenses/, pictures of its spot diagrams and PSFs
+across field and depth, and the simulation and bokeh on the built-in
+synthetic RGB-D scene, written to one folder with a summary (report.md).
+`python build.py demo` runs this and then one sample of the dataset factory
+(the Blender layer, started from build.py: the engine never starts it).
 """
 from __future__ import annotations
 
@@ -123,35 +126,6 @@ def render_demo(out: Path) -> list[str]:
     return lines
 
 
-def factory_demo(out: Path) -> list[str]:
-    """One sample of the dataset factory (bpy, Cycles) with PNG previews."""
-    import subprocess
-    import sys
-
-    from .io.images import read_depth, read_image, write_image
-    from .render.pictures import side_by_side
-
-    folder = out / "factory"
-    t0 = time.perf_counter()
-    code = subprocess.call([sys.executable, "-m", "blender_addon.factory", "--recipe", "room", "--count", "1",
-                            "--lens", "mos-s1", "--out", str(folder), "--seed", "0", "--resolution", "240", "320"],
-                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    if code != 0:
-        print(f"  factory sample failed (exit {code}); run `python -m blender_addon.factory ...` to see why")
-        return ["", "## Dataset factory", "", f"the factory sample failed (exit {code})"]
-    sid = "room-000000"
-    img = read_image(folder / "aif" / f"{sid}.exr")
-    depth = read_depth(folder / "depth" / f"{sid}.exr")
-    ab = read_image(folder / "mos-s1" / "aberrated" / f"{sid}.exr")
-    write_image(out / "factory_aif.png", img)
-    write_image(out / "factory_aberrated_mos-s1.png", ab)
-    side_by_side(out / "factory_side.png", img, depth, ab, "dataset factory: room scene, MOS-S1 aberrated")
-    print(f"  factory: one room sample rendered and simulated in {time.perf_counter() - t0:.1f} s "
-          f"(files in {folder})")
-    return ["", "## Dataset factory", "", "- `factory_side.png`: a rendered room (AiF, depth, MOS-S1 "
-            "aberrated); the sample's files are in `factory/`"]
-
-
 def run(out: str | Path) -> int:
     from .optics.analysis import spot_diagram
     from .optics.lens import available_lenses, load_lens
@@ -161,8 +135,9 @@ def run(out: str | Path) -> int:
     out.mkdir(parents=True, exist_ok=True)
     print(f"dcdi demo: writing to {out.resolve()}")
     summary = ["# dcdi demo: lens reports", "",
-               "| lens | EFL mm (stated) | F/# (stated) | working F/# | FoV diag deg (stated) | "
-               "in-focus object m | spot rms on axis at inf, um |", "|---|---|---|---|---|---|---|"]
+               "| lens | EFL mm (stated) | F/# (stated) | working F/# | FoV diagonal, real, deg | FoV stated, deg "
+               "(its own measure: see lenses/README.md) | in-focus object m | spot rms on axis at inf, um |",
+               "|---|---|---|---|---|---|---|---|"]
     for lid in available_lenses():
         t0 = time.perf_counter()
         lens = load_lens(lid)
@@ -178,12 +153,11 @@ def run(out: str | Path) -> int:
         summary.append(
             f"| {lid} | {info['effective_focal_length_mm']:.3f} ({st.get('effective_focal_length_mm', '-')}) "
             f"| {info['f_number']:.3f} ({st.get('f_number', '-')}) | {info['working_f_number']:.3f} "
-            f"| {info['field_of_view_deg']:.2f} ({st.get('field_of_view_deg', '-')}) "
+            f"| {info['field_of_view_deg']:.2f} | {st.get('field_of_view_deg', '-')} "
             f"| {info['in_focus_object_distance_m'] if isinstance(info['in_focus_object_distance_m'], str) else round(info['in_focus_object_distance_m'], 4)} "
             f"| {spots.rms_radius_mm[0, -1, 1] * 1000:.2f} |")
         print(f"  {lid}: report, info JSON, spot diagrams and PSFs in {time.perf_counter() - t0:.1f} s; {clip}")
     summary += render_demo(out)
-    summary += factory_demo(out)
     summary += ["", "Per lens: `<id>_report.txt` (text), `<id>_info.json` (all figures), "
                 "`<id>_spots.png` (spot diagrams across field and depth), `<id>_psfs.png` (RGB PSFs "
                 "at the sensor's pixel pitch across field and depth).", ""]

@@ -79,7 +79,7 @@ def room(rng) -> None:
     0.7-1.3 m off centre, a sideboard or two with small things on top at
     1.2-3.5 m, furniture-scale boxes and spheres on the floor at 2.5-5 m; a
     ceiling area light. (Measured depth bands: python -m
-    blender_addon.depth_histogram; at a 46 degree vertical field the floor
+    blender_addon.tools.depth_histogram; at a 46 degree vertical field the floor
     only enters the frame beyond 2.9 m, so near content must stand tall.)"""
     floor = -1.2
     back = rng.uniform(6.0, 9.0)

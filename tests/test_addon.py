@@ -48,7 +48,9 @@ def test_zip_is_an_extension_with_the_engine_and_lenses_inside(addon_zip, tmp_pa
     for need in ("dcdi_core/render/simulate.py", "dcdi_core/io/rawexr.py", "dcdi_core/psf/data/default_rgb_response.csv",
                  "operators.py", "panel.py", "props.py"):
         assert f"{EXT_ID}/{need}" in names
-    assert not any(n.endswith(("factory.py", "render_noise.py", "screenshots.py")) or "__pycache__" in n
+    tools = {p.name for p in (ROOT / "blender_addon" / "tools").glob("*.py")}
+    assert {"factory.py", "render_noise.py", "depth_histogram.py", "screenshots.py"} <= tools
+    assert not any(n.rsplit("/", 1)[-1] in tools - {"__init__.py"} or "/tools/" in n or "__pycache__" in n
                    for n in names)
     again = _build_module().build_addon(tmp_path)
     assert again.read_bytes() == addon_zip.read_bytes()              # same sources, same bytes
@@ -76,6 +78,67 @@ print(round(ro["focal_length_mm"], 3), round(ro["f_number"], 3))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=tmp_path)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["19.946", "4.999"]
+
+
+_IMPORT_ALL = """
+import importlib, json, sys, traceback
+sys.path = [p for p in sys.path if p not in ('', {root!r})]
+sys.path.insert(0, {where!r})
+for m in {blocked!r}:
+    sys.modules[m] = None                      # as absent as in Blender's own Python
+res = {{}}
+for name in {modules!r}:
+    try:
+        importlib.import_module(name)
+        res[name] = None
+    except BaseException as e:                 # noqa: BLE001 - reported by name
+        res[name] = f"{{type(e).__name__}}: {{e}}"
+print(json.dumps(res))
+"""
+
+
+def _import_all(where, modules, blocked):
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "DCDI_LENS_PATH")}
+    code = _IMPORT_ALL.format(root=str(ROOT), where=str(where), blocked=list(blocked), modules=modules)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=where,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_every_module_of_the_zip_imports(addon_zip, tmp_path):
+    """Every module in the zip imports from the unpacked zip alone: in a
+    Python like Blender's own (numpy, no torch, scipy, tqdm, OpenImageIO,
+    matplotlib) only the bpy modules may fail, and only for want of bpy;
+    with bpy (the pip module) every module imports (torch-only modules of
+    dcdi_core.models, when there are any, only where torch is installed)."""
+    with zipfile.ZipFile(addon_zip) as z:
+        z.extractall(tmp_path)
+        names = [n for n in z.namelist() if n.endswith(".py")]
+    # (a __main__ module runs its program when imported: an entry point, not imported here)
+    modules = sorted(n[:-3].replace("/", ".").removesuffix(".__init__") for n in names
+                     if not n.endswith("/__main__.py"))
+    assert len(modules) > 40 and f"{EXT_ID}.dcdi_core.render.simulate" in modules
+    bpy_only = {f"{EXT_ID}.{m}" for m in ("operators", "panel", "props", "bpy_render")}
+    bare = _import_all(tmp_path, modules, ["bpy", "torch", "scipy", "tqdm", "OpenImageIO", "OpenEXR",
+                                           "matplotlib"])
+    failed = {m: e for m, e in bare.items() if e}
+    assert set(failed) <= bpy_only | {m for m in modules if ".dcdi_core.models." in m
+                                      and ".runtime" not in m}, failed
+    assert all("bpy" in e or "torch" in e for e in failed.values()), failed
+    if importlib.util.find_spec("bpy") is None:
+        pytest.skip("pip bpy not installed: the bpy modules were not imported")
+    blocked = [] if importlib.util.find_spec("torch") else ["torch"]
+    full = _import_all(tmp_path, modules, blocked)
+    failed = {m: e for m, e in full.items() if e and not (blocked and "torch" in e)}
+    assert not failed, failed
+
+
+def test_the_engine_never_imports_or_starts_the_blender_layer():
+    for p in (ROOT / "dcdi_core").rglob("*.py"):
+        text = p.read_text()
+        assert "blender_addon" not in text and "import bpy" not in text, p
+        assert "from scenes" not in text and "import scenes" not in text, p
 
 
 # ------------------------------------------------------------------ logic without bpy

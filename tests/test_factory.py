@@ -6,10 +6,10 @@ import pytest
 
 bpy = pytest.importorskip("bpy")
 
-from blender_addon import factory  # noqa: E402
+from blender_addon.tools import factory  # noqa: E402
 from dcdi_core.io.images import read_depth, read_image  # noqa: E402
 
-SMALL = ["--resolution", "24", "32", "--samples", "2", "--psf-rays", "12", "--psf-wavelengths", "3"]
+SMALL = ["--resolution", "24", "32", "--cycles-samples", "2", "--psf-rays", "12", "--psf-wavelengths", "3"]
 
 
 @pytest.fixture(autouse=True)
@@ -73,13 +73,18 @@ def test_shards_split_the_indices(tmp_path):
 
 @pytest.mark.slow
 def test_bench_factory_quick(capsys):
-    from dcdi_core.cli import main
-    assert main(["bench", "factory", "--quick"]) == 0
+    import importlib.util
+    import sys
+    from pathlib import Path
+    spec = importlib.util.spec_from_file_location("dcdi_build", Path(__file__).resolve().parent.parent / "build.py")
+    build = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(build)
+    assert build.bench_factory(Path(sys.executable), quick=True) == 0
     assert "samples per hour" in capsys.readouterr().out
 
 
 def test_render_noise_table_runs(capsys):
-    from blender_addon.render_noise import main
+    from blender_addon.tools.render_noise import main
     assert main(["--resolution", "12", "16", "--reference", "8"]) == 0
     out = capsys.readouterr().out
     assert "| 4 | True | HIGH | ACCURATE | 2 |" in out and "| 6 | True | HIGH | NONE | 2 |" in out
@@ -116,7 +121,7 @@ def test_render_settings_refuse_bad_values():
 
 
 def test_band_fractions():
-    from blender_addon.depth_histogram import BANDS, band_fractions
+    from blender_addon.tools.depth_histogram import BANDS, band_fractions
     d = np.array([0.5, 0.7, 0.99, 1.0, 3.0, 7.0, 10.0, 50.0, np.inf, np.inf])
     f = band_fractions(d)
     assert dict(zip(BANDS, f.round(2))) == {"<0.7": 0.1, "0.7-1": 0.2, "1-2": 0.1, "2-5": 0.1, "5-10": 0.1,
@@ -128,7 +133,7 @@ def test_band_fractions():
 def test_recipes_cover_the_depth_bands():
     # the paper's data spans 0.7 m to beyond 10 m: pooled over the three recipes every band
     # from 0.7 m to infinity holds a share of the pixels, and the room reaches closer than 1 m
-    from blender_addon.depth_histogram import BANDS, depth_histogram
+    from blender_addon.tools.depth_histogram import BANDS, depth_histogram
     hist = depth_histogram(seeds=3, height=48, width=64)
     pooled = dict(zip(BANDS, np.mean([f for f, _, _ in hist.values()], axis=0)))
     assert pooled["<0.7"] < 0.01
@@ -141,3 +146,160 @@ def test_too_old_blender_is_refused_by_name(monkeypatch):
     monkeypatch.setattr(factory, "MIN_BLENDER", (99, 0, 0))
     with pytest.raises(SystemExit, match=r"is too old: the factory needs Blender >= 99\.0\.0"):
         factory.check_blender()
+
+
+# ------------------------------------------------------------------ refusals, resume, repair (issue 11)
+def _refused(capsys, out, *args, says):
+    import time
+    t = time.perf_counter()
+    code = factory.run(["--out", str(out), *args])
+    dt = time.perf_counter() - t
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and err.startswith("factory: error:") and "\n" not in err and "Traceback" not in err, err
+    for s in says:
+        assert s in err, err
+    return err, dt
+
+
+@pytest.mark.parametrize("args, says", [
+    (["--recipe", "kitchen"], ["--recipe", "'kitchen'", "room, tabletop, street, plane"]),
+    (["--recipe", "room", "--lens", "no-such-lens"], ["no lens 'no-such-lens'", "mos-s1"]),
+    (["--recipe", "room", "--resolution", "0", "0"], ["--resolution", "'0 0'", "from 4 to 65536"]),
+    (["--recipe", "room", "--count", "-1"], ["--count", "-1", ">= 0"]),
+    (["--recipe", "room", "--shard", "2/2"], ["--shard", "'2/2'", "0 <= I < N"]),
+    (["--recipe", "room", "--cycles-samples", "0"], ["--cycles-samples", "[1, 65536]"]),
+    (["--recipe", "room", "--psf-rays", "100000"], ["--rays 100000", "GiB", "lower --rays"]),
+])
+def test_bad_arguments_are_refused_in_one_line_and_leave_no_folder(tmp_path, capsys, args, says):
+    out = tmp_path / "new" / "ds"
+    full = [*args, "--count", "2"] if "--count" not in args else args
+    _, dt = _refused(capsys, out, *full, says=says)
+    assert not (tmp_path / "new").exists() and dt < 1.0
+
+
+def test_an_out_that_is_a_file_or_read_only_is_refused(tmp_path, capsys, monkeypatch):
+    f = tmp_path / "file"
+    f.write_text("x")
+    _refused(capsys, f, "--recipe", "room", "--count", "1", says=[str(f), "--out must be a folder"])
+    assert f.read_text() == "x"
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    real = __import__("os").access
+    monkeypatch.setattr("os.access", lambda p, mode: False if str(p) == str(ro) else real(p, mode))
+    _refused(capsys, ro / "ds", "--recipe", "room", "--count", "1", says=[str(ro), "not writable"])
+    assert list(ro.iterdir()) == []
+
+
+def test_a_failed_first_sample_leaves_no_folder(tmp_path, capsys, monkeypatch):
+    from dcdi_core.errors import RenderError
+
+    def broken(*a, **k):
+        raise RenderError("the scene could not be rendered")
+    monkeypatch.setattr(factory, "render_rgbd", broken)
+    out = tmp_path / "ds"
+    _refused(capsys, out, "--recipe", "tabletop", "--count", "1", *SMALL, says=["could not be rendered"])
+    assert not out.exists()
+
+
+def test_resume_with_other_settings_is_refused_by_name(tmp_path, capsys):
+    assert _run(tmp_path, count=1) == 0
+    before = (tmp_path / "manifest.jsonl").read_bytes()
+    settings = json.loads((tmp_path / "dataset.json").read_text())
+    assert settings["resolution"] == [24, 32] and settings["lenses"] == ["mos-s1"] and settings["seed"] == 5
+    capsys.readouterr()
+
+    def args(**over):
+        a = {"--recipe": "tabletop", "--count": "2", "--seed": "5", "--lens": "mos-s1", "--resolution": "24 32",
+             "--cycles-samples": "2", "--psf-rays": "12", "--psf-wavelengths": "3"}
+        a.update({"--" + k.replace("_", "-"): v for k, v in over.items()})
+        return [x for k, v in a.items() for x in (k, *v.split())]
+    for over, says in [({"lens": "mos-s2"}, "--lens: the folder mos-s1, this run mos-s2"),
+                       ({"resolution": "24 40"}, "--resolution: the folder 24 32, this run 24 40"),
+                       ({"cycles_samples": "3"}, "--cycles-samples: the folder 2, this run 3"),
+                       ({"seed": "6"}, "--seed: the folder 5, this run 6"),
+                       ({"psf_rays": "10"}, "--psf-rays: the folder 12, this run 10")]:
+        _refused(capsys, tmp_path, *args(**over), says=[says, "Rerun with the folder's settings"])
+    err, _ = _refused(capsys, tmp_path, *args(seed="6", resolution="24 40"),
+                      says=["--seed: the folder 5, this run 6", "--resolution: the folder 24 32"])
+    assert (tmp_path / "manifest.jsonl").read_bytes() == before
+    assert _run(tmp_path, count=2) == 0                 # the same settings (a larger count) resume
+
+
+def test_torn_manifest_record_is_repaired_and_stale_temporaries_removed(tmp_path, capsys):
+    assert _run(tmp_path, count=2) == 0
+    manifest = tmp_path / "manifest.jsonl"
+    lines = manifest.read_text().splitlines(keepends=True)
+    manifest.write_text(lines[0] + lines[1][:len(lines[1]) // 2])          # killed while appending the 2nd
+    stale = [tmp_path / "aif" / ".tabletop-000001.exr.k3j2x9qa.tmp.exr", tmp_path / ".tabletop-000001.render.exr"]
+    for p in stale:
+        p.write_bytes(b"partial")
+    keep = tmp_path / "aif" / ".notes"                                       # not a temporary of the run
+    keep.write_text("mine")
+    assert factory.finished_ids(manifest) == {"tabletop-000000"}
+    capsys.readouterr()
+    assert _run(tmp_path, count=2) == 0
+    out = capsys.readouterr().out
+    assert "dropped a torn last record" in out and "removed 2 stale temporary file(s)" in out
+    assert "1 samples to do" in out
+    recs = [json.loads(x) for x in manifest.read_text().splitlines()]
+    assert [r["id"] for r in recs] == ["tabletop-000000", "tabletop-000001"]
+    assert not any(p.exists() for p in stale) and keep.read_text() == "mine"
+
+
+def test_a_torn_record_with_the_next_glued_to_it_keeps_the_glued_one(tmp_path):
+    manifest = tmp_path / "manifest.jsonl"
+    a, b, c = ({"id": f"room-00000{i}", "index": i} for i in range(3))
+    manifest.write_text(json.dumps(a) + "\n" + json.dumps(b)[:9] + json.dumps(c) + "\n")
+    recs, notes = factory.read_manifest(manifest, repair=True)
+    assert [r["id"] for r in recs] == ["room-000000", "room-000002"] and "kept room-000002" in notes[0]
+    assert manifest.read_text() == json.dumps(a) + "\n" + json.dumps(c) + "\n"
+    assert factory.read_manifest(manifest, repair=True) == (recs, [])     # repaired once, clean after
+
+
+def test_a_folder_from_before_the_settings_record_is_compared_by_its_manifest():
+    rec = {"id": "room-000000", "recipe": "room", "dataset_seed": 0, "resolution": [480, 640],
+           "render": {"engine": "CYCLES", "samples": 8, "seconds": 3.2}, "psf_settings": {"pupil_samples": 64},
+           "lenses": {"mos-s1": {"baseline_depth_m": 2.0}}}
+    have = factory.settings_from_manifest(rec)
+    want = dict(have, resolution=[240, 320], render={"samples": 8}, lenses=["mos-s1", "6p"],
+                shard="0/1", lens_fingerprints={})
+    diffs = factory.settings_differences(have, want)
+    assert diffs == ["--lens: the folder mos-s1, this run mos-s1 6p",
+                     "--resolution: the folder 480 640, this run 240 320"]
+
+
+def test_a_second_run_into_the_same_folder_is_refused(tmp_path):
+    from dcdi_core.errors import DatasetError
+    lock = factory._lock(tmp_path)
+    try:
+        with pytest.raises(DatasetError, match="another factory run is writing into this folder"):
+            factory._lock(tmp_path)
+    finally:
+        lock.close()
+    factory._lock(tmp_path).close()                     # free again
+
+
+def test_add_lens_simulates_a_new_lens_on_the_finished_samples(tmp_path, capsys):
+    assert _run(tmp_path, count=1) == 0
+    capsys.readouterr()
+    two = ["--recipe", "tabletop", "--count", "2", "--lens", "mos-s1", "--lens", "mos-s2", "--out", str(tmp_path),
+           "--seed", "5", *SMALL]
+    assert factory.run(two) == 2
+    assert "--add-lens" in capsys.readouterr().err                       # refused, with the way out named
+    assert factory.run([*two, "--add-lens"]) == 0
+    assert "adding mos-s2 to 1 finished samples" in capsys.readouterr().out
+    recs = [json.loads(x) for x in (tmp_path / "manifest.jsonl").read_text().splitlines()]
+    assert [sorted(r["lenses"]) for r in recs] == [["mos-s1", "mos-s2"]] * 2
+    for sid in ("tabletop-000000", "tabletop-000001"):
+        assert read_image(tmp_path / "mos-s2" / "aberrated" / f"{sid}.exr").shape == (24, 32, 3)
+    assert json.loads((tmp_path / "dataset.json").read_text())["lenses"] == ["mos-s1", "mos-s2"]
+    assert factory.run(two) == 0                                         # now the folder's own settings
+
+
+def test_help_tells_images_from_render_samples(capsys):
+    with pytest.raises(SystemExit):
+        factory.parse(["--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert "--count N images in the whole dataset" in out and "--cycles-samples SPP Cycles render samples" in out
+    assert "--samples" not in out.replace("--cycles-samples", "")      # the old name still works, unlisted
+    assert factory.parse(["--recipe", "room", "--count", "1", "--out", "x", "--samples", "3"]).samples == 3

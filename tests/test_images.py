@@ -17,7 +17,7 @@ from dcdi_core.io.images import (  # noqa: E402
     write_depth,
     write_image,
 )
-from dcdi_core.optics.errors import OpticsError  # noqa: E402
+from dcdi_core.errors import DcdiError  # noqa: E402
 
 
 def _gradient(h=16, w=256):
@@ -192,7 +192,7 @@ def test_writing_non_finite_fails_and_leaves_nothing(tmp_path, bad, name):
         write_image(tmp_path / "sub" / name, img)
     msg = str(info.value)
     assert name in msg and "non-finite" in msg and "row 2, column 3, channel G" in msg
-    assert isinstance(info.value, OpticsError) and isinstance(info.value, ValueError)
+    assert isinstance(info.value, DcdiError) and isinstance(info.value, ValueError)
     assert not (tmp_path / "sub").exists() or _listing(tmp_path / "sub") == []
 
 

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_path
-from ..optics.errors import OpticsError
+from ..errors import DcdiError
 
 __all__ = [
     "ImageFileError",
@@ -70,7 +70,7 @@ _HALF_MAX = 65504.0
 _MAX_LISTED_CHANNELS = 24
 
 
-class ImageFileError(OpticsError, ValueError):
+class ImageFileError(DcdiError, ValueError):
     """An image or depth file that cannot be read or written as asked.
 
     ``path`` is the file; the message says what is wrong with it (and which
@@ -309,7 +309,7 @@ def _choose_depth(parts, channel, path):
             found = ", ".join(f"'{p.qualified(i)}' ({p.label})" for p, i in matches)
             raise ImageFileError(
                 path, f"several channels match depth channel '{name}': {found}; "
-                      f"pass channel='<part>.<channel>' to choose one")
+                      f"choose one as '<part>.<channel>' (--depth-channel in the dcdi command, channel= in read_depth)")
         return matches[0] if matches else None
 
     # 1. exact channel names, in order of preference, across every part
@@ -335,7 +335,7 @@ def _choose_depth(parts, channel, path):
         raise ImageFileError(path, f"no channel '{channel}'; {_describe(parts)}")
     raise ImageFileError(
         path, f"no depth channel found (looked for {', '.join(DEPTH_CHANNELS)} in every part); "
-              f"{_describe(parts)}; pass channel=... to choose one")
+              f"{_describe(parts)}; choose one (--depth-channel in the dcdi command, channel= in read_depth)")
 
 
 def _read_depth_npy(path: Path):

@@ -5,9 +5,12 @@ in the prescription tables), the field and the allowed range.
 """
 from __future__ import annotations
 
+from ..errors import DcdiError, InputRangeError  # noqa: F401  (InputRangeError: re-exported)
 
-class OpticsError(Exception):
-    """Base class of every error raised by ``dcdi_core.optics``."""
+
+class OpticsError(DcdiError):
+    """Base class of the errors of ``dcdi_core.optics`` (lens files, glasses,
+    aiming, import); a :class:`dcdi_core.errors.DcdiError`."""
 
 
 class LensFileError(OpticsError, ValueError):
@@ -60,18 +63,11 @@ class ZemaxImportError(OpticsError, ValueError):
         self.path = str(path)
         self.line_number = line_number
         self.line = line
-        super().__init__(f"{self.path}:{line_number}: {message}: {line.strip()!r}")
+        if line_number:
+            super().__init__(f"{self.path}:{line_number}: {message}: {line.strip()!r}")
+        else:                                  # about the file as a whole (it cannot be read)
+            super().__init__(f"{self.path}: {message}")
 
 
 class AimingError(OpticsError, ValueError):
     """A field or depth for which no real chief ray exists (reported per call)."""
-
-
-class InputRangeError(OpticsError, ValueError):
-    """An argument outside its allowed range (names the argument and range)."""
-
-    def __init__(self, name, value, allowed):
-        self.name = name
-        self.value = value
-        self.allowed = allowed
-        super().__init__(f"{name} = {value!r} is out of range; allowed: {allowed}")

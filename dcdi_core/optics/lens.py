@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import LensFileError, OpticsError, UnknownGlassError
+from .errors import InputRangeError, LensFileError, OpticsError, UnknownGlassError
 from .materials import AIR, get_material
 from .surfaces import Surface
 
@@ -98,10 +98,38 @@ class Lens:
         """First vertex to sensor, mm."""
         return self.sensor_z_mm
 
+    @property
+    def wavelength_range_nm(self) -> tuple[float, float]:
+        """Wavelengths (nm) where the data of every glass of the lens are
+        valid: the intersection of the glasses' own validity ranges."""
+        lo, hi = 0.0, math.inf
+        for s in self.surfaces:
+            a, b = s.material.wavelength_range_nm
+            lo, hi = max(lo, float(a)), min(hi, float(b))
+        return lo, hi
+
+    def check_wavelengths(self, wavelength_nm, what: str = "wavelength_nm") -> np.ndarray:
+        """Refuse wavelengths where a glass of the lens has no valid data (the
+        one rule of every command: each glass's own validity range); returns
+        them as a float64 array. ``what`` names the option or argument."""
+        wl = np.asarray(wavelength_nm, dtype=np.float64)
+        lo, hi = self.wavelength_range_nm
+        bad = ~((wl >= lo) & (wl <= hi))
+        if bad.any():
+            v = float(wl[bad].flat[0]) if wl.ndim else float(wl)
+            edge = 0 if not v > lo else 1          # the limit crossed: lower (or NaN) or upper
+            limits = sorted({(s.material.name, *s.material.wavelength_range_nm) for s in self.surfaces
+                             if s.material.wavelength_range_nm[edge] == (lo, hi)[edge]})
+            why = ", ".join(f"{name}'s data are valid for {a:g}-{b:g} nm" for name, a, b in limits)
+            raise InputRangeError(what, v if math.isfinite(v) else str(v),
+                                  f"{lo:g}-{hi:g} nm for lens {self.id} ({why or 'finite wavelengths'})")
+        return wl
+
     def refractive_indices(self, wavelength_nm) -> np.ndarray:
         """Indices (n_surfaces + 1, *wavelength shape): object space first,
-        then the medium after each surface."""
-        wl = np.asarray(wavelength_nm, dtype=np.float64)
+        then the medium after each surface. Wavelengths outside
+        :attr:`wavelength_range_nm` are refused (InputRangeError)."""
+        wl = self.check_wavelengths(wavelength_nm)
         cache: dict[int, np.ndarray] = {}
         rows = [AIR.refractive_index(wl) * np.ones_like(wl)]
         for s in self.surfaces:
@@ -155,10 +183,15 @@ class Lens:
         if len(stops) != 1:
             raise err("exactly one surface must have stop = true",
                       field="stop", value=[i + 1 for i in stops])
-        return cls(id=lens_id, name=str(d.get("name", lens_id)), surfaces=tuple(surfaces),
+        lens = cls(id=lens_id, name=str(d.get("name", lens_id)), surfaces=tuple(surfaces),
                    sensor=sensor, stated=dict(stated), source=str(d.get("source", "")),
                    notes=str(d.get("notes", "")), wavelength_nm=wl, path=path,
                    content_hash=content_hash)
+        lo, hi = lens.wavelength_range_nm
+        if not lo <= wl <= hi:
+            raise err("the design wavelength lies outside the glass data's validity", field="wavelength_nm",
+                      value=wl, allowed=f"[{lo:g}, {hi:g}] nm")
+        return lens
 
     @classmethod
     def from_toml(cls, path: str | os.PathLike) -> "Lens":
@@ -194,7 +227,12 @@ def _number(v, err, name, surface, lo=None, hi=None, lo_open=False, allow_inf=Fa
     v = float(v)
     if math.isnan(v) or (math.isinf(v) and not allow_inf):
         raise err("must be finite", surface=surface, field=name, value=v)
-    rng = f"{'(' if lo_open else '['}{lo}, {hi}]"
+    if hi is None:
+        rng = None if lo is None else f"{'>' if lo_open else '>='} {lo:g}"
+    elif lo is None:
+        rng = f"<= {hi:g}"
+    else:
+        rng = f"{'(' if lo_open else '['}{lo:g}, {hi:g}]"
     if lo is not None and (v < lo or (lo_open and v == lo)):
         raise err("out of range", surface=surface, field=name, value=v, allowed=rng)
     if hi is not None and v > hi:

@@ -77,8 +77,8 @@ def format_info(info: dict) -> str:
         ("exit pupil diameter", "exit_pupil_diameter_mm", "mm", None),
         ("in-focus object distance", "in_focus_object_distance_m", "m (negative: virtual)", None),
         ("best-focus object distance (real, on axis)", "best_focus_object_distance_m", "m", None),
-        ("sensor semi-diagonal", "sensor_semi_diagonal_mm", "mm", "image_semi_diameter_mm"),
-        ("field of view (diagonal, real)", "field_of_view_deg", "deg", "field_of_view_deg"),
+        ("sensor semi-diagonal", "sensor_semi_diagonal_mm", "mm", None),
+        ("field of view (diagonal, real)", "field_of_view_deg", "deg", None),
         ("field of view (vertical, real)", "vertical_field_of_view_deg", "deg", None),
         ("field of view (horizontal, real)", "horizontal_field_of_view_deg", "deg", None),
         ("distortion at field 1", "distortion_at_field_1", "", None),
@@ -93,6 +93,14 @@ def format_info(info: dict) -> str:
         if skey and skey in stated:
             line += f"   [stated: {stated[skey]}]"
         out.append(line)
+    # stated values that measure another quantity than any computed row: on lines of their own
+    for key, label, unit in (("image_semi_diameter_mm", "stated image semi-diameter (source's table)", "mm"),
+                             ("field_of_view_deg", "stated field of view (source's table)", "deg")):
+        if key in stated:
+            note = stated.get("field_of_view_note" if key == "field_of_view_deg" else "sensor_note")
+            out.append(f"  {label:<44} {stated[key]!s:>12} {unit}"
+                       + (f"   ({note})" if note else "   (as the source gives it, a diagonal, vertical or "
+                          "horizontal angle: compare with those above)" if key == "field_of_view_deg" else ""))
     if info.get("in_focus_is_virtual"):
         out.append("  note: the in-focus object is VIRTUAL: the sensor sits in front of the paraxial "
                    "focus, so no real object depth is in paraxial focus.")

@@ -3,8 +3,9 @@
 Rays are traced in the lens frame: z along the optical axis, the first vertex
 at z = 0, lengths in mm. Internally the rays are kept as separate x, y, z,
 dx, dy, dz arrays (structure of arrays) and processed in chunks that fit in
-the CPU cache, spread over a thread pool (numpy releases the GIL inside its
-element-wise loops, so chunks run in parallel).
+the CPU cache, spread over the shared thread pool (``dcdi_core.parallel``;
+numpy releases the GIL inside its element-wise loops, so chunks run in
+parallel).
 
 Every ray carries a status code (``surfaces.OK`` or the first reason it died)
 and the index of the surface where it died. A dead ray is frozen at its last
@@ -12,27 +13,16 @@ valid position and direction: it never produces NaN or inf downstream.
 """
 from __future__ import annotations
 
-import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 
+from ..parallel import thread_pool
 from . import surfaces as S
 
 # rays per chunk: 256 kB per coordinate array keeps a chunk's working set in
 # cache while amortising numpy's per-call overhead (measured: dcdi bench trace)
 CHUNK_BYTES = 1 << 18
-CHUNK = None   # set to force a chunk length in rays (the benchmark's baseline does)
-_POOL: ThreadPoolExecutor | None = None
-
-
-def thread_pool() -> ThreadPoolExecutor:
-    """The process-wide worker pool (numpy releases the GIL in its loops and FFTs)."""
-    global _POOL
-    if _POOL is None:
-        _POOL = ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1))
-    return _POOL
 
 
 @dataclass
@@ -242,7 +232,7 @@ def _newton_asphere(c, k, coeffs, x0, y0, dx, dy, dz, t, tol, max_iter):
 def trace(lens, origins, directions, wavelength_nm, *, dtype=np.float64,
           apertures: bool = True, upto_surface: int | None = None,
           newton_tol: float | None = None, newton_iter: int = 30,
-          status=None) -> RayBundle:
+          status=None, chunk: int | None = None) -> RayBundle:
     """Trace rays through ``lens`` to its sensor plane.
 
     origins (..., 3) mm, directions (..., 3) unit vectors, in the lens frame;
@@ -251,7 +241,10 @@ def trace(lens, origins, directions, wavelength_nm, *, dtype=np.float64,
     float32. ``apertures=False`` ignores semi-diameters (ray aiming uses it).
     ``upto_surface`` stops at that surface (0-based) instead of the sensor,
     without refracting there. ``status`` gives rays already dead before the
-    trace (e.g. aiming failures). Returns a :class:`RayBundle`.
+    trace (e.g. aiming failures). ``chunk``: rays per chunk (default:
+    CHUNK_BYTES of each coordinate); a chunk as large as the bundle traces it
+    in one piece on the calling thread (the benchmark's baseline). Returns a
+    :class:`RayBundle`.
     """
     dtype = np.dtype(dtype)
     origins = np.asarray(origins, dtype=np.float64)
@@ -289,7 +282,10 @@ def trace(lens, origins, directions, wavelength_nm, *, dtype=np.float64,
                      x[sl], y[sl], z[sl], dx[sl], dy[sl], dz[sl], st[sl], failed[sl],
                      tol, newton_iter)
 
-    chunk = CHUNK or max(1024, CHUNK_BYTES // dtype.itemsize)
+    if chunk is None:
+        chunk = max(1024, CHUNK_BYTES // dtype.itemsize)
+    elif isinstance(chunk, bool) or not isinstance(chunk, (int, np.integer)) or chunk < 1:
+        raise ValueError(f"chunk = {chunk!r}: allowed an integer >= 1 (rays)")
     slices = [slice(i, min(i + chunk, n)) for i in range(0, n, chunk)]
     if len(slices) > 1:
         list(thread_pool().map(run, slices))

@@ -32,6 +32,48 @@ CLIP_WARNING = 0.01
 BATCH_RAYS = 750_000
 
 
+# peak memory per traced ray (bytes): measured with `dcdi psf --rays 1024 / 2048
+# --wavelengths 31` (float32: 113 and 109 B; float64 adds its wider coordinates)
+BYTES_PER_RAY = {"float32": 120, "float64": 160}
+
+
+def stop_ray_count(pupil_samples: int) -> int:
+    """Rays of an N x N grid that fall in a circular stop (about pi / 4 N^2)."""
+    return max(1, math.ceil(math.pi / 4.0 * pupil_samples * pupil_samples))
+
+
+def psf_memory_bytes(settings: "PSFSettings", n_sources: int, n_wavelengths: int | None = None, *,
+                     library_psfs: int = 0, map_kernels: int = 0) -> float:
+    """Peak memory (bytes, an estimate) of computing ``n_sources`` PSFs with
+    these settings: the rays of one batch, the kernels computed, the
+    library's arrays (``library_psfs`` kernels) and an image's PSF map
+    (``map_kernels`` kernels)."""
+    w = settings.n_wavelengths if n_wavelengths is None else n_wavelengths
+    per_source = stop_ray_count(settings.pupil_samples) * w
+    sources_per_batch = min(max(1, n_sources), max(1, BATCH_RAYS // per_source))
+    rays = BYTES_PER_RAY[settings.precision] * sources_per_batch * per_source
+    k2 = 3 * settings.kernel_size ** 2
+    # float32 kernels (computed, the library's, the map's: measured 2.07 GB peak for
+    # simulate 1280 x 1920 at --kernel 129, estimated 2.45 GB) and a batch's float64 deposits
+    kernels = 4.0 * k2 * (n_sources + library_psfs + map_kernels) + 8.0 * k2 * 3 * sources_per_batch
+    return rays + kernels
+
+
+def check_psf_memory(settings: "PSFSettings", n_sources: int, n_wavelengths: int | None = None, *,
+                     library_psfs: int = 0, map_kernels: int = 0, available: int | None = None) -> None:
+    """Refuse, before the work, PSFs that would not fit in memory, naming the
+    options that size them (--rays, --wavelengths, --kernel)."""
+    from ..memory import check_fits
+    w = settings.n_wavelengths if n_wavelengths is None else n_wavelengths
+    need = psf_memory_bytes(settings, n_sources, w, library_psfs=library_psfs, map_kernels=map_kernels)
+    n = settings.pupil_samples
+    what = (f"{n_sources} PSF{'s' if n_sources != 1 else ''} of --rays {n} (pupil_samples: {n} x {n} grid) x "
+            f"--wavelengths {w} (n_wavelengths) x --kernel {settings.kernel_size} (kernel_size)"
+            + (f" with a PSF map of {map_kernels} patches" if map_kernels else ""))
+    check_fits(need, what, "lower --rays (memory grows as its square), --wavelengths or --kernel",
+               available=available)
+
+
 class KernelTooSmallWarning(UserWarning):
     """The k x k kernel clips more than 1 % of a PSF's energy."""
 
@@ -58,11 +100,11 @@ class PSFSettings:
 
     def __post_init__(self):
         if self.kernel_size < 1 or self.kernel_size % 2 == 0:
-            raise InputRangeError("kernel_size", self.kernel_size, "odd integer >= 1")
+            raise InputRangeError("kernel_size (--kernel)", self.kernel_size, "odd integer >= 1")
         if self.pupil_samples < 1:
-            raise InputRangeError("pupil_samples", self.pupil_samples, ">= 1")
+            raise InputRangeError("pupil_samples (--rays)", self.pupil_samples, ">= 1")
         if self.n_wavelengths < 1:
-            raise InputRangeError("n_wavelengths", self.n_wavelengths, ">= 1")
+            raise InputRangeError("n_wavelengths (--wavelengths)", self.n_wavelengths, ">= 1")
         lo, hi = self.band_nm
         if not (300.0 <= lo < hi <= 1100.0):
             raise InputRangeError("band_nm", self.band_nm, "300 <= lo < hi <= 1100 nm")
@@ -72,11 +114,11 @@ class PSFSettings:
             raise InputRangeError("oversample", self.oversample, ">= 1")
         if not (isinstance(self.deposit_sigma_px, (int, float)) and math.isfinite(self.deposit_sigma_px)
                 and 0.0 <= self.deposit_sigma_px <= 3.0):
-            raise InputRangeError("deposit_sigma_px", self.deposit_sigma_px, "0 <= sigma <= 3 pixels")
+            raise InputRangeError("deposit_sigma_px (--deposit-sigma)", self.deposit_sigma_px, "0 <= sigma <= 3 pixels")
         if self.wavelength_nm is not None and not (200.0 < self.wavelength_nm < 2500.0):
-            raise InputRangeError("wavelength_nm", self.wavelength_nm, "(200, 2500) nm, or None for the band")
+            raise InputRangeError("wavelength_nm (--wavelength)", self.wavelength_nm, "(200, 2500) nm, or None for the band")
         if self.pixel_pitch_mm is not None and not (self.pixel_pitch_mm > 0):
-            raise InputRangeError("pixel_pitch_mm", self.pixel_pitch_mm, "> 0 mm")
+            raise InputRangeError("pixel_pitch_mm (--pixel-pitch)", self.pixel_pitch_mm, "> 0 mm")
 
     def as_dict(self) -> dict:
         d = asdict(self)
@@ -187,6 +229,7 @@ def compute_sources(lens: Lens, aimed: Aimed, settings: PSFSettings, wavelengths
     flat = Aimed(aimed.depth_mm.ravel(), aimed.p.ravel(), aimed.v_chief.ravel(), aimed.ok.ravel(), aimed.z_ep)
     n = flat.p.size
     per_batch = max(1, BATCH_RAYS // (n_p * wl.size))
+    check_psf_memory(settings, int(np.prod(aimed.p.shape)), wl.size)
     psf = np.zeros((n, 3, k, k), np.float32)
     outside = np.zeros((n, 3))
     vig = np.ones((n, 3))

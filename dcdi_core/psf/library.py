@@ -19,7 +19,6 @@ import hashlib
 import json
 import math
 import os
-import sys
 import time
 import warnings
 from dataclasses import asdict, dataclass, replace
@@ -56,11 +55,11 @@ class LibraryGrid:
 
     def __post_init__(self):
         if self.n_fields < 2:
-            raise InputRangeError("n_fields", self.n_fields, ">= 2")
+            raise InputRangeError("n_fields (--fields)", self.n_fields, ">= 2")
         if self.n_depths < 2:
-            raise InputRangeError("n_depths", self.n_depths, ">= 2 (near and far at least)")
+            raise InputRangeError("n_depths (--depths)", self.n_depths, ">= 2 (near and far at least)")
         if not (0 < self.near_m < self.far_m < math.inf):
-            raise InputRangeError("near_m, far_m", (self.near_m, self.far_m), "0 < near < far < inf metres")
+            raise InputRangeError("near_m, far_m (--near, --far)", (self.near_m, self.far_m), "0 < near < far < inf metres")
 
     @property
     def fields(self) -> np.ndarray:
@@ -145,6 +144,8 @@ class PSFLibrary:
         self.zero_energy = np.zeros((nd, nf), bool)
         self.kernel_size_needed = np.zeros((nd, nf), np.int64)
         self.computed = np.zeros(nd, bool)
+        # progress(done, total) of the bins computed by ensure() calls that pass none of their own
+        self.progress = None
         self.cache_path = None
         if cache_dir is not None:
             self.cache_path = Path(cache_dir) / f"{meta['lens_id']}-{self.key[:20]}.npz"
@@ -176,7 +177,7 @@ class PSFLibrary:
         near = self.grid.near_m
         if (d < near).any() and not clamp_near:
             raise InputRangeError("depth_m", float(d.min()),
-                                  f">= the library's near limit {near} m (or pass clamp_near=True)")
+                                  f">= the library's near limit {near} m (its nearest depth bin)")
         d = np.maximum(d, near)
         far = d >= self.grid.far_m
         x = np.where(far, 0.0, 1.0 / np.where(far, 1.0, d))
@@ -199,7 +200,9 @@ class PSFLibrary:
 
     def ensure(self, depth_m=None, *, bins=None, clamp_near: bool = False, progress=None) -> list[int]:
         """Compute (or load) the bins that ``depth_m`` needs, or ``bins``;
-        returns the bins that were computed now."""
+        returns the bins that were computed now. ``progress(done, total)``
+        (default: the library's ``progress`` attribute) is called as PSFs
+        are computed."""
         if self.lens is None:
             raise OpticsError("this library was loaded without its lens: it can only serve computed bins")
         want = np.asarray(bins if bins is not None else self.bins_needed(depth_m, clamp_near=clamp_near), int)
@@ -210,7 +213,7 @@ class PSFLibrary:
         aimed = sources(lens_f, self.depths_m[todo], field=self.fields)     # (F, n_todo)
         wl, w = np.asarray(self.meta["wavelengths_nm"]), np.asarray(self.meta["channel_weights"])
         plain = replace(self.settings, focus_distance_m=None)
-        batch = compute_sources(lens_f, aimed, plain, wl, w, progress=progress)
+        batch = compute_sources(lens_f, aimed, plain, wl, w, progress=progress or self.progress)
         for j, b in enumerate(todo):
             self.psf[b] = batch.psf[:, j]
             self.energy_outside[b] = batch.energy_outside[:, j]
@@ -327,22 +330,3 @@ def _checksum(arrays: dict) -> str:
         h.update(str(a.dtype).encode() + str(a.shape).encode())
         h.update(a.tobytes())
     return h.hexdigest()
-
-
-def text_progress(label: str, stream=None):
-    """A progress callback printing a bar with rate and ETA to ``stream``
-    (standard error by default)."""
-    t0 = time.perf_counter()
-
-    def report(done: int, total: int) -> None:
-        out = stream or sys.stderr
-        el = time.perf_counter() - t0
-        frac = done / max(total, 1)
-        eta = el / frac - el if frac > 0 else 0.0
-        bar = "#" * int(30 * frac)
-        out.write(f"\r{label} [{bar:<30}] {done}/{total} PSFs  {done / max(el, 1e-9):.1f}/s  "
-                  f"elapsed {el:.1f} s  ETA {eta:.1f} s")
-        if done >= total:
-            out.write("\n")
-        out.flush()
-    return report

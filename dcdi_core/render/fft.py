@@ -5,12 +5,11 @@ natively and is 3-4x faster on the small (48-80 px) transforms the
 convolution makes (``dcdi bench render`` prints which backend ran). scipy is
 optional: Blender's own Python has numpy but not scipy, so without it the
 numpy backend runs, with results equal to float32 rounding (tested).
-``DCDI_FFT=numpy`` forces the numpy backend.
+The backend is a parameter of each call (``backend='numpy'`` forces numpy's;
+``patch_convolve``, ``simulate``, ``bokeh`` and ``LensSimulator`` pass their
+``fft_backend`` down): no process-wide switch.
 """
 from __future__ import annotations
-
-import contextlib
-import os
 
 import numpy as np
 
@@ -19,39 +18,38 @@ try:                                    # optional accelerator, absent in Blende
 except ImportError:                     # pragma: no cover - depends on the environment
     _sfft = None
 
-
-def backend() -> str:
-    """'scipy' (float32) or 'numpy' (float64), the backend the next call uses."""
-    if _sfft is not None and os.environ.get("DCDI_FFT", "").lower() != "numpy":
-        return "scipy"
-    return "numpy"
+BACKENDS = ("scipy", "numpy")
 
 
-@contextlib.contextmanager
-def forced(name: str):
-    """Within the block, use backend ``name`` ('numpy' or 'scipy'), as ``DCDI_FFT`` would."""
-    saved = os.environ.get("DCDI_FFT")
-    os.environ["DCDI_FFT"] = name
-    try:
-        yield
-    finally:
-        if saved is None:
-            os.environ.pop("DCDI_FFT", None)
-        else:
-            os.environ["DCDI_FFT"] = saved
+def available() -> list[str]:
+    """The backends this Python has: 'scipy' (if installed) and 'numpy'."""
+    return (["scipy"] if _sfft is not None else []) + ["numpy"]
 
 
-def rfft2(x: np.ndarray, s: tuple[int, int]) -> np.ndarray:
+def backend(name: str | None = None) -> str:
+    """The backend a call with ``backend=name`` uses: ``name`` itself ('scipy'
+    needs scipy), or by default 'scipy' (float32) when installed, else
+    'numpy' (float64)."""
+    if name is None:
+        return "scipy" if _sfft is not None else "numpy"
+    if name not in BACKENDS:
+        raise ValueError(f"FFT backend {name!r}: allowed {', '.join(BACKENDS)} (or None: the fastest installed)")
+    if name == "scipy" and _sfft is None:
+        raise ValueError("FFT backend 'scipy' asked for, but scipy is not installed here")
+    return name
+
+
+def rfft2(x: np.ndarray, s: tuple[int, int], backend_name: str | None = None) -> np.ndarray:
     """Real FFT over the last two axes, zero-padded to ``s``; complex64 with
     scipy, complex128 with numpy. One thread: callers run chunks on the pool."""
-    if backend() == "scipy":
+    if backend(backend_name) == "scipy":
         return _sfft.rfft2(np.asarray(x, np.float32), s=s, workers=1)
     return np.fft.rfft2(x, s=s)
 
 
-def irfft2(spec: np.ndarray, s: tuple[int, int]) -> np.ndarray:
+def irfft2(spec: np.ndarray, s: tuple[int, int], backend_name: str | None = None) -> np.ndarray:
     """Inverse of ``rfft2`` to a real (..., s[0], s[1]) array."""
-    if backend() == "scipy":
+    if backend(backend_name) == "scipy":
         return _sfft.irfft2(spec, s=s, workers=1)
     return np.fft.irfft2(spec, s=s)
 

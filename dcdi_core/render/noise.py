@@ -22,6 +22,15 @@ def _number(name, v, *, lo, lo_open, unit):
     return float(v)
 
 
+def check_noise(full_well_electrons: float, read_noise_electrons: float) -> tuple[float, float]:
+    """The noise settings checked (as :func:`add_sensor_noise` will): full well
+    > 0, read noise >= 0 electrons."""
+    return (_number("full_well_electrons (--full-well)", full_well_electrons, lo=0.0, lo_open=True,
+                    unit="electrons"),
+            _number("read_noise_electrons (--read-noise)", read_noise_electrons, lo=0.0, lo_open=False,
+                    unit="electrons RMS"))
+
+
 def add_sensor_noise(image, *, seed: int, full_well_electrons: float = 10000.0,
                      read_noise_electrons: float = 3.0, clip: bool = True) -> np.ndarray:
     """``image`` with shot and read noise, float32 of the same shape.
@@ -35,8 +44,8 @@ def add_sensor_noise(image, *, seed: int, full_well_electrons: float = 10000.0,
     values raise InputRangeError."""
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise InputRangeError("seed", seed, "an integer >= 0")
-    fw = _number("full_well_electrons", full_well_electrons, lo=0.0, lo_open=True, unit="electrons")
-    read = _number("read_noise_electrons", read_noise_electrons, lo=0.0, lo_open=False, unit="electrons RMS")
+    fw = _number("full_well_electrons (--full-well)", full_well_electrons, lo=0.0, lo_open=True, unit="electrons")
+    read = _number("read_noise_electrons (--read-noise)", read_noise_electrons, lo=0.0, lo_open=False, unit="electrons RMS")
     x = np.asarray(image, dtype=np.float64)
     if not np.isfinite(x).all():
         raise InputRangeError("image", "NaN or infinite values", "finite linear values >= 0 (1.0 = full well)")

@@ -102,7 +102,7 @@ def rotate_radial_kernels(kernels: np.ndarray, outward: np.ndarray, chunk: int =
     Bilinear (the centre's peak kept in place unless ``keep_peak`` is
     False), zero outside, each channel renormalised to its former sum.
     Chunks run on the thread pool (float32 throughout)."""
-    from ..optics.trace import thread_pool
+    from ..parallel import thread_pool
 
     p, c, k, _ = kernels.shape
     flat = np.ascontiguousarray(kernels, dtype=np.float32).reshape(p, c, k * k)
@@ -131,7 +131,7 @@ def _rotated_patch_kernels(library, field, depth, outward, kernels_flat, where, 
     depth and rotated to ``outward``, each computed only over the centred
     square its energy needs (support_radius + 1): the cost of a small PSF is
     that of its support, not of the library's kernel size."""
-    from ..optics.trace import thread_pool
+    from ..parallel import thread_pool
 
     i0, i1, t = library.depth_bins(depth, clamp_near=True)
     library.ensure(bins=library.bins_needed(depth, clamp_near=True))

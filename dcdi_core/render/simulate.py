@@ -30,6 +30,7 @@ from ..psf.compute import KernelTooSmallWarning, PSFSettings
 from ..psf.library import LibraryGrid, PSFLibrary
 from .convolve import patch_convolve
 from .geometry import ImageGeometry
+from .inputs import check_rgbd
 from .psfmap import PSFMap, psf_map, valid_depth_mask
 
 
@@ -101,13 +102,15 @@ def open_library(lens, geometry: ImageGeometry, settings: PSFSettings | None = N
     library is reopened with the odd kernel size that holds them, at most
     MAX_FITTED_KERNEL px (beyond that the usual KernelTooSmallWarning says
     how much is clipped). Without it the kernel size is the settings'.
-    progress(done, total): called as PSF bins are computed."""
+    progress(done, total): called as PSF bins are computed; layer_progress(done,
+    total): after each depth layer of the occlusion-aware renderer."""
     s = settings or PSFSettings()
     if s.pixel_pitch_mm is not None and not math.isclose(s.pixel_pitch_mm, geometry.pixel_pitch_mm, rel_tol=1e-9):
         raise InputRangeError("pixel pitch", s.pixel_pitch_mm,
                               f"{geometry.pixel_pitch_mm:.6g} mm, the image's own pixel pitch (give one, not two)")
     s = replace(s, pixel_pitch_mm=geometry.pixel_pitch_mm)
     library = PSFLibrary.open(lens, s, grid, response, cache=cache)
+    library.progress = progress
     if fit_depth_m is None:
         return library
     d = np.asarray(fit_depth_m, dtype=np.float64)
@@ -122,7 +125,8 @@ def open_library(lens, geometry: ImageGeometry, settings: PSFSettings | None = N
         return library
     library = PSFLibrary.open(lens, replace(s, kernel_size=min(need | 1, MAX_FITTED_KERNEL)), grid, response,
                               cache=cache)
-    library.ensure(d, clamp_near=True, progress=progress)
+    library.progress = progress
+    library.ensure(d, clamp_near=True)
     return library
 
 
@@ -191,8 +195,11 @@ class LensSimulator:
                  library: PSFLibrary | None = None, settings: PSFSettings | None = None,
                  grid: LibraryGrid | None = None, response=None, patch: int = 16, distortion: bool = True,
                  interpolation: str = DEFAULT_INTERPOLATION, baseline_depth_m: float | None = None,
-                 fit_depth_m=None, cache: bool = True, progress=None):
+                 fit_depth_m=None, cache: bool = True, progress=None, fft_backend: str | None = None):
+        from . import fft
         from .distortion import check_interpolation, radial_distortion
+
+        self.fft_backend = fft.backend(fft_backend)
 
         self.patch = check_patch(patch)
         self.interpolation = check_interpolation(interpolation)
@@ -258,6 +265,10 @@ class LensSimulator:
         keyword arguments of ``noise.add_sensor_noise`` (needs ``seed``),
         added to the aberrated image only."""
         img, d = _check(image, depth, self.source_geometry)
+        check_rgbd(img, None if fixed_depth_m is not None else d)
+        return self._run(img, d, fixed_depth_m, noise, seed)
+
+    def _run(self, img, d, fixed_depth_m, noise, seed) -> RenderResult:
         if noise is not None and seed is None:
             raise InputRangeError("seed", None, "an integer: noise needs an explicit seed")
         sharp, d_s, valid = self.on_sensor(img, d)
@@ -266,13 +277,15 @@ class LensSimulator:
         else:
             pm = psf_map(self.library, self.work_geometry, d_s, self.patch, clamp_field=self.margin > 0)
         # non-negative kernels on a non-negative image: below 0 is FFT round-off (~1e-7)
-        out = np.maximum(patch_convolve(sharp, pm.kernels, self.patch, identity=pm.identity), 0.0)
+        out = np.maximum(patch_convolve(sharp, pm.kernels, self.patch, identity=pm.identity,
+                                        fft_backend=self.fft_backend), 0.0)
         info = dict(pm.info, depth_aware=fixed_depth_m is None, distortion=self.table is not None,
                     interpolation=self.interpolation, not_imaged_pixels=int((~self._crop(valid)).sum()))
         baseline = None
         if self.baseline is not None:
             baseline = np.maximum(patch_convolve(sharp, self.baseline.kernels, self.patch,
-                                                 identity=self.baseline.identity), 0.0)
+                                                 identity=self.baseline.identity, fft_backend=self.fft_backend),
+                                  0.0)
             info["baseline_depth_m"] = self.baseline_depth_m
         if noise is not None:
             from .noise import add_sensor_noise
@@ -289,17 +302,19 @@ def simulate(image, depth, lens, *, geometry: ImageGeometry | None = None,
              library: PSFLibrary | None = None, settings: PSFSettings | None = None, response=None,
              fixed_depth_m: float | None = None, distortion: bool = True,
              interpolation: str = DEFAULT_INTERPOLATION, noise: dict | None = None,
-             seed: int | None = None) -> RenderResult:
+             seed: int | None = None, fft_backend: str | None = None) -> RenderResult:
     """Aberrated image of an all-in-focus ``image`` (H, W, 3) with metric
     ``depth`` (H, W) through ``lens``: :class:`LensSimulator` used once.
     geometry: the output frame on the sensor (default: the image spans the
-    sensor's diagonal); source_geometry: the input's, if it differs."""
+    sensor's diagonal); source_geometry: the input's, if it differs.
+    fft_backend: 'scipy' or 'numpy' (default: the fastest installed)."""
     img, d = _check(image, depth, source_geometry)
+    check_rgbd(img, None if fixed_depth_m is not None else d)
     geometry = geometry or source_geometry or ImageGeometry.full_sensor(lens, img.shape[0], img.shape[1])
     sim = LensSimulator(lens, geometry, source_geometry=source_geometry, library=library, settings=settings,
                         response=response, patch=patch, distortion=distortion, interpolation=interpolation,
-                        fit_depth_m=d if library is None else None)
-    return sim(img, d, fixed_depth_m=fixed_depth_m, noise=noise, seed=seed)
+                        fit_depth_m=d if library is None else None, fft_backend=fft_backend)
+    return sim._run(img, d, fixed_depth_m, noise, seed)
 
 
 def _layers(inv: np.ndarray, valid: np.ndarray, n_layers: int):
@@ -333,7 +348,7 @@ def _bokeh_focus(keep, focus_m, library: PSFLibrary | None, settings: PSFSetting
         raise InputRangeError("keep / focus", (keep, focus_m),
                               f"exactly one of a keep range, a focus distance or focus {PRESCRIBED!r}")
     if keep is not None and not (len(keep) == 2 and 0 < keep[0] <= keep[1]):
-        raise InputRangeError("keep", keep, "(near, far) with 0 < near <= far metres")
+        raise InputRangeError("keep (--keep)", keep, "(near, far) with 0 < near <= far metres")
     if isinstance(focus_m, str) and focus_m != PRESCRIBED:
         raise InputRangeError("focus", focus_m, f"a distance in metres (> 0, or inf) or {PRESCRIBED!r}")
     if focus_m is not None and not isinstance(focus_m, str) and not (focus_m > 0):
@@ -360,7 +375,7 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
           distortion: bool = False, interpolation: str = DEFAULT_INTERPOLATION, patch: int = 16,
           occlusion: bool = True, n_layers: int = 12, library: PSFLibrary | None = None,
           settings: PSFSettings | None = None, response=None, fit_kernel: bool = True,
-          cancelled=None) -> RenderResult:
+          cancelled=None, fft_backend: str | None = None, progress=None, layer_progress=None) -> RenderResult:
     """``image`` as ``lens`` would take it, keeping [near, far] metres sharp
     (``keep``), or focused at ``focus_m`` metres, or with ``focus_m =
     "prescribed"`` the lens as its prescription stands (full physical
@@ -371,12 +386,15 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
     ``settings`` and ``response``, the kernel grown to hold the depth map's
     blur unless ``fit_kernel`` is False. ``cancelled()``, if given, is
     called before each layer's convolution; when it returns True,
-    :class:`Cancelled` is raised."""
+    :class:`Cancelled` is raised. fft_backend: as :func:`simulate`.
+    progress(done, total): called as PSF bins are computed; layer_progress(done,
+    total): after each depth layer of the occlusion-aware renderer."""
     s = _bokeh_focus(keep, focus_m, library, settings)
     m = check_patch(patch)
     if isinstance(n_layers, bool) or not isinstance(n_layers, (int, np.integer)) or not 1 <= n_layers <= 256:
         raise InputRangeError("n_layers", n_layers, "an integer in [1, 256]")
     img, d = _check(image, depth, source_geometry)
+    check_rgbd(img, d)
     geometry = geometry or source_geometry or ImageGeometry.full_sensor(lens, img.shape[0], img.shape[1])
     check_within_sensor(geometry)
     moved = distortion or (source_geometry is not None and source_geometry != geometry)
@@ -385,8 +403,11 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
         table = radial_distortion(lens) if distortion else None
         img, d, _ = on_sensor(img, d, lens, geometry, source_geometry=source_geometry, distortion=table,
                               interpolation=check_interpolation(interpolation))
+    from . import fft
+    fft_backend = fft.backend(fft_backend)
     if library is None:
-        library = open_library(lens, geometry, s, response=response, fit_depth_m=d if fit_kernel else None)
+        library = open_library(lens, geometry, s, response=response, fit_depth_m=d if fit_kernel else None,
+                               progress=progress)
     _check_library(library, geometry)
     patch = m
     valid = valid_depth_mask(d)
@@ -398,7 +419,7 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
         if cancelled is not None and cancelled():
             raise Cancelled("bokeh cancelled")
         pm = psf_map(library, geometry, d, patch, keep_range_m=keep)
-        out = patch_convolve(img, pm.kernels, patch, identity=pm.identity)
+        out = patch_convolve(img, pm.kernels, patch, identity=pm.identity, fft_backend=fft_backend)
         return RenderResult(out, dict(info, **pm.info), img if moved else None, pm, depth=d if moved else None)
     # layered, back to front: each layer's colour and coverage blurred alike.
     # ``col`` is the colour seen so far, un-premultiplied, where ``seen``: what
@@ -418,7 +439,9 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
     # each layer is blurred on its own patch-aligned bounding box, grown by the
     # kernel's reach: outside it the layer is empty and its blur is zero
     grow = patch * math.ceil((library.kernel_size // 2 + patch) / patch)
-    for mask, is_sharp in ((m_, s_) for _, m_, s_ in order):
+    for n_done, (mask, is_sharp) in enumerate((m_, s_) for _, m_, s_ in order):
+        if layer_progress is not None:
+            layer_progress(n_done, len(order))
         if cancelled is not None and not is_sharp and cancelled():
             raise Cancelled("bokeh cancelled")
         ys, xs = _box(mask, patch, grow if not is_sharp else 0)
@@ -434,12 +457,15 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
         # each colour's coverage blurred with that colour's own PSF: the
         # normalisation above is then exact for any colour fringe
         blurred = patch_convolve(np.concatenate([img[ys, xs] * af, af], axis=-1), pm.kernels, patch,
-                                 identity=pm.identity, pairs=((0, 0), (1, 1), (2, 2), (3, 0), (3, 1), (3, 2)))
+                                 identity=pm.identity, pairs=((0, 0), (1, 1), (2, 2), (3, 0), (3, 1), (3, 2)),
+                                 fft_backend=fft_backend)
         cover = np.clip(blurred[..., 3:], 0.0, 1.0)
         behind = seen[ys, xs]
         premultiplied = blurred[..., :3] + (1.0 - cover) * np.where(behind, col[ys, xs], 0.0)
         total = np.where(behind, 1.0, cover)
         seen[ys, xs] = (total > 1e-4).all(axis=-1, keepdims=True)
         col[ys, xs] = np.where(total > 1e-4, premultiplied / np.maximum(total, 1e-4), 0.0)
+    if layer_progress is not None:
+        layer_progress(len(order), len(order))
     info["layers"] = len(order)
     return RenderResult(col, info, img if moved else None, depth=d if moved else None)

@@ -1,6 +1,6 @@
 """Screenshots of the Lens Bokeh add-on in a real Blender UI, for the README.
 
-    python blender_addon/screenshots.py [--blender blender] [--zip dist/dcdi_lens_bokeh-0.1.0.zip] [--out docs]
+    python blender_addon/tools/screenshots.py [--blender blender] [--zip dist/dcdi_lens_bokeh-0.1.0.zip] [--out docs]
 
 Runs Blender twice: once in the background to build a demo scene (a row of
 spheres at 1.2-10 m on a checker floor) and save it, then with a window
@@ -30,7 +30,7 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 # ------------------------------------------------------------------ driver (plain Python)

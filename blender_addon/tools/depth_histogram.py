@@ -1,6 +1,6 @@
 """How the factory's scenes spread over depth: a table and a PNG per recipe.
 
-    python -m blender_addon.depth_histogram [--recipe room ...] [--seeds 8] [--resolution 120 160] [--png FILE.png]
+    python -m blender_addon.tools.depth_histogram [--recipe room ...] [--seeds 8] [--resolution 120 160] [--png FILE.png]
 
 Renders the depth (Cycles Z pass, 1 sample, no denoiser: only depth is
 wanted, and the Z pass of one sample is the first hit's distance) of
@@ -22,9 +22,9 @@ from pathlib import Path
 import numpy as np
 
 if __package__ in (None, ""):
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from blender_addon.factory import RenderSettings, render_rgbd, sample_seed  # noqa: E402
+from blender_addon.tools.factory import RenderSettings, render_rgbd, sample_seed  # noqa: E402
 
 # band edges in metres; the last finite band is [10, inf), then infinity itself
 EDGES_M = (0.7, 1.0, 2.0, 5.0, 10.0)

@@ -1,0 +1,11 @@
+"""Batch jobs and developer tools beside the add-on, not part of it (left
+out of the extension zip as a whole by ``build.py``): they need the
+repository (``scenes/``, OpenImageIO, a Blender binary).
+
+- ``factory``: the dataset factory (``python -m blender_addon.tools.factory``
+  or ``blender --background --python blender_addon/tools/factory.py -- ...``);
+- ``render_noise``: the render error-against-time table the factory's
+  defaults come from;
+- ``depth_histogram``: how the factory's scenes spread over depth;
+- ``screenshots``: the README's screenshots of the add-on in a real Blender UI.
+"""

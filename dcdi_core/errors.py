@@ -1,0 +1,108 @@
+"""The error family of dcdi: one root, :class:`DcdiError`.
+
+Every error a user can cause (a bad file, option, value, folder, or work too
+large for this machine) is a ``DcdiError`` with a message that says what to
+change: which file or option, what was found, what is allowed. The ``dcdi``
+command and the dataset factory catch the root, print its message on one
+line and exit 2; any other exception is a bug.
+
+Below the root (each subclass also derives from the builtin a caller would
+expect, so ``except ValueError`` keeps working where it did):
+
+- ``optics.errors.OpticsError``: lens files, glasses, ray aiming, Zemax import;
+- :class:`InputRangeError`: an argument outside its allowed range;
+- ``io.images.ImageFileError``: an image or depth file;
+- ``psf.spectral.SpectralFileError``: a sensor response file;
+- :class:`RenderError`: simulation and bokeh inputs (depth maps, images);
+- :class:`OutputError`: a file or folder that cannot be written;
+- :class:`MemoryLimitError`: work that would not fit in memory;
+- :class:`DatasetError`: a dataset folder (the factory's) that does not match;
+- :class:`ModelError`: the networks (weights, configs, checkpoints).
+"""
+from __future__ import annotations
+
+import errno
+import os
+
+
+class DcdiError(Exception):
+    """The root of every error meant for the user."""
+
+
+class InputRangeError(DcdiError, ValueError):
+    """An argument outside its allowed range (names the argument and range).
+
+    ``value=None`` means the argument is missing: the message then says what
+    is needed instead of calling None out of range."""
+
+    def __init__(self, name, value, allowed):
+        self.name = name
+        self.value = value
+        self.allowed = allowed
+        if value is None:
+            text = f"{name} is missing; needed: {allowed}"
+        else:
+            text = f"{name} = {value!r} is out of range; allowed: {allowed}"
+        super().__init__(text)
+
+
+class RenderError(DcdiError, ValueError):
+    """Simulation or bokeh input that cannot be rendered (a depth map with
+    no valid pixel, negative light, ...)."""
+
+
+class OutputError(DcdiError, OSError):
+    """A file or folder that cannot be written (read-only, not a folder,
+    disk full); ``path`` is what could not be written."""
+
+    def __init__(self, path, message):
+        self.path = str(path)
+        DcdiError.__init__(self, f"{self.path}: {message}")
+
+    def __str__(self):
+        return self.args[0]
+
+
+class MemoryLimitError(DcdiError, MemoryError):
+    """Work that would not fit in this machine's memory (estimated before it
+    starts, or a MemoryError caught while it ran)."""
+
+
+class DatasetError(DcdiError, ValueError):
+    """A dataset folder whose contents do not match the run (another run's
+    settings, a file where a folder should be)."""
+
+
+class ModelError(DcdiError, ValueError):
+    """A network's weights, configuration or checkpoint that cannot be used."""
+
+
+def output_error(path, exc: OSError, what: str = "cannot write here") -> OutputError:
+    """An :class:`OutputError` for an OSError met while writing ``path``."""
+    reason = {errno.EACCES: "permission denied (read-only folder?)", errno.EPERM: "permission denied",
+              errno.EROFS: "read-only file system", errno.ENOSPC: "no space left on the device",
+              errno.ENOTDIR: "a file stands where a folder is needed",
+              errno.EEXIST: "a file stands where a folder is needed",
+              errno.EISDIR: "a folder stands where a file is needed"}.get(exc.errno, exc.strerror or str(exc))
+    at = getattr(exc, "filename", None)
+    at = f" (at {at})" if at and os.path.abspath(os.fspath(at)) != os.path.abspath(os.fspath(path)) else ""
+    return OutputError(path, f"{what}: {reason}{at}")
+
+
+def check_writable_folder(folder, what: str) -> None:
+    """Refuse, before any work, a folder that cannot be created or written.
+
+    ``what`` names the option or setting it comes from (``-o``, the PSF
+    cache). The folder is not created: only its nearest existing ancestor is
+    checked (it must be a folder and writable)."""
+    folder = os.path.abspath(os.fspath(folder))
+    probe = folder
+    while not os.path.exists(probe):
+        parent = os.path.dirname(probe)
+        if parent == probe:
+            break
+        probe = parent
+    if not os.path.isdir(probe):
+        raise OutputError(folder, f"{what}: {probe} is a file, not a folder")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise OutputError(folder, f"{what}: the folder {probe} is not writable (read-only?)")

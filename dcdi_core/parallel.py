@@ -1,0 +1,30 @@
+"""The process-wide worker pool shared by the ray tracer, the PSF map and the
+convolution.
+
+numpy releases the GIL inside its element-wise loops and FFTs, so threads
+run chunks of one array operation in parallel. One pool serves every caller:
+nested pools would oversubscribe the cores. It is made on first use.
+"""
+from __future__ import annotations
+
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
+_POOL: ThreadPoolExecutor | None = None
+_LOCK = threading.Lock()
+
+
+def workers() -> int:
+    """Threads of the pool: one per CPU."""
+    return max(1, os.cpu_count() or 1)
+
+
+def thread_pool() -> ThreadPoolExecutor:
+    """The shared worker pool (created on first use)."""
+    global _POOL
+    if _POOL is None:
+        with _LOCK:
+            if _POOL is None:
+                _POOL = ThreadPoolExecutor(max_workers=workers(), thread_name_prefix="dcdi")
+    return _POOL
