@@ -16,7 +16,7 @@ from dcdi_core.models import (CheckpointMismatchError, LensMismatchError, ModelF
 from dcdi_core.models.arch.spec import SIZES, OLFSpec
 from dcdi_core.models.data.psf_samples import PSFDataConfig, energy_kernel_size
 from dcdi_core.models.runtime.olf import OmniLensField, encode_paper, encode_radial
-from dcdi_core.optics.errors import InputRangeError, OpticsError
+from dcdi_core.errors import DcdiError, InputRangeError
 from dcdi_core.optics.lens import load_lens
 
 torch = pytest.importorskip("torch")
@@ -159,7 +159,7 @@ def test_changed_prescription_is_not_served(exported):
     changed = lens.with_surfaces(surfaces)
     with pytest.raises(LensMismatchError, match="differs optically.*trace") as e:
         olf.psf(changed, 0.5, 2.0)
-    assert str(path) in str(e.value) and isinstance(e.value, OpticsError)
+    assert str(path) in str(e.value) and isinstance(e.value, DcdiError)
     assert not olf.covers(changed)
     with pytest.raises(LensMismatchError, match="not one this OLF learned"):
         olf.psf(load_lens("6p"), 0.5, 2.0)

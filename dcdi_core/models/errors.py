@@ -1,15 +1,12 @@
-"""Errors of ``dcdi_core.models`` (all below the engine's root, ``OpticsError``).
+"""Errors of ``dcdi_core.models`` (all below the engine's root, ``DcdiError``,
+through its ``ModelError``).
 
 Each names what the user can act on: the file, the field or setting, what was
 found and what is allowed.
 """
 from __future__ import annotations
 
-from ..optics.errors import InputRangeError, OpticsError
-
-
-class ModelError(OpticsError):
-    """Base class of every error raised by ``dcdi_core.models``."""
+from ..errors import InputRangeError, ModelError  # noqa: F401  (ModelError: the base of every error here)
 
 
 class TorchMissingError(ModelError, ImportError):
