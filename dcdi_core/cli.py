@@ -35,7 +35,11 @@ def _focus(text: str):
     """A focus distance in metres, 'inf', or 'prescribed' (the lens as its prescription stands)."""
     if text.strip().lower() == "prescribed":
         return "prescribed"
-    return _depth(text)
+    try:
+        return _depth(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"focus must be a distance in metres (> 0), 'inf' or 'prescribed', "
+                                         f"got {text!r}") from None
 
 
 def _positive_int(text: str) -> int:
