@@ -95,3 +95,73 @@ def test_deform_conv_module_starts_as_half_a_conv_and_learns_offsets():
     d = D2CB(8)
     y = d(torch.randn(2, 8, 5, 7), torch.randn(2, 8, 5, 7))
     assert y.shape == (2, 8, 5, 7)
+
+
+# --------------------------------------------------------------- attention
+def test_rdicab_is_image_twice_at_zero_projections_and_depth_steers_it():
+    from dcdi_core.models.layers.attention import RDICAB, heads_dividing
+    assert [heads_dividing(c, 6) for c in (32, 48, 60, 180, 7)] == [4, 6, 6, 6, 1]
+    torch.manual_seed(0)
+    m = RDICAB(16, heads=4)
+    img, dep = torch.randn(2, 16, 5, 6), torch.randn(2, 16, 5, 6)
+    out = m(img, dep)
+    assert out.shape == img.shape
+    assert not torch.allclose(m(img, dep), m(img, torch.randn_like(dep)))      # K, V come from the depth
+    with torch.no_grad():
+        m.attn.proj.weight.zero_()
+        m.mlp.fc2.weight.zero_()
+        m.mlp.fc2.bias.zero_()
+    torch.testing.assert_close(m(img, dep), 2 * img)                          # the residual and the long skip
+    assert m.attn.temperature.shape == (4, 1, 1)
+
+
+def test_channel_attention_is_linear_in_pixels_and_normalised():
+    from dcdi_core.models.layers.attention import ChannelCrossAttention
+    torch.manual_seed(1)
+    a = ChannelCrossAttention(8, heads=2)
+    x, y = torch.randn(1, 8, 4, 4), torch.randn(1, 8, 4, 4)
+    # L2-normalised Q and K: scaling the inputs leaves the attention weights alone, V scales
+    torch.testing.assert_close(a(x * 5.0, y * 3.0), 3.0 * a(x, y), atol=1e-5, rtol=1e-5)
+
+
+# -------------------------------------------------------------------- swin
+def _swinir_mask(h, w, ws, s):
+    """The shifted-window mask as SwinIR builds it (three slices per axis)."""
+    from dcdi_core.models.layers.swin import window_partition
+    img = torch.zeros(1, h, w, 1)
+    cnt = 0
+    for hs in (slice(0, -ws), slice(-ws, -s), slice(-s, None)):
+        for wsl in (slice(0, -ws), slice(-ws, -s), slice(-s, None)):
+            img[:, hs, wsl, :] = cnt
+            cnt += 1
+    mw = window_partition(img, ws).squeeze(-1)
+    m = mw[:, None, :] - mw[:, :, None]
+    return m.masked_fill(m != 0, -100.0).masked_fill(m == 0, 0.0)
+
+
+def test_swin_mask_is_swinirs_and_never_lets_a_pixel_attend_to_padding():
+    from dcdi_core.models.layers.swin import attention_mask
+    torch.testing.assert_close(attention_mask(16, 24, 8, 4), _swinir_mask(16, 24, 8, 4))
+    assert attention_mask(16, 24, 8, 0) is None
+    h, w, ws, s = 6, 11, 4, 2
+    m = attention_mask(h, w, ws, s)
+    hp, wp = 8, 12
+    src_r = (torch.arange(hp) + s) % hp
+    src_c = (torch.arange(wp) + s) % wp
+    pad = (src_r[:, None] >= h) | (src_c[None, :] >= w)                  # rolled grid position holds padding
+    from dcdi_core.models.layers.swin import window_partition
+    pw = window_partition(pad.view(1, hp, wp, 1).float(), ws).squeeze(-1).bool()     # (windows, n)
+    real_to_pad = (~pw)[:, :, None] & pw[:, None, :]
+    assert real_to_pad.any() and (m[real_to_pad] == -100.0).all()
+
+
+def test_swin_block_on_a_partial_window_sees_only_its_real_pixels():
+    from dcdi_core.models.layers.swin import SwinBlock
+    torch.manual_seed(0)
+    blk = SwinBlock(12, heads=3, window=4, shift=0)
+    x = torch.randn(1, 6, 7, 12)
+    y = blk(x)
+    # the bottom-right window holds rows 4-5, columns 4-6: alone, it gives the same
+    torch.testing.assert_close(y[:, 4:, 4:], blk(x[:, 4:, 4:].contiguous()), atol=1e-5, rtol=1e-5)
+    shifted = SwinBlock(12, heads=3, window=4, shift=2)
+    assert shifted(x).shape == x.shape and torch.isfinite(shifted(x)).all()
