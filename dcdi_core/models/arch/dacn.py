@@ -82,6 +82,11 @@ class DACN(nn.Module):
         else:
             self.tail = PaperTail(c)
         self.apply(_init)
+        # the last conv starts at zero: the untrained network returns its input
+        # (the global residual), and training starts from the capture's error
+        last = self.tail[0] if spec.tail == "direct" else self.tail.last
+        nn.init.zeros_(last.weight)
+        nn.init.zeros_(last.bias)
 
     def forward(self, image, depth):
         if image.ndim != 4 or image.shape[1] != 3 or depth.shape != (image.shape[0], 1, *image.shape[2:]):
