@@ -18,7 +18,6 @@ cosine from ``lr`` to ``lr_min`` over ``iters``, then the EMA of the weights.
 """
 from __future__ import annotations
 
-import copy
 import json
 import math
 import time
@@ -30,16 +29,14 @@ import numpy as np
 from ... import __version__
 from ...atomic import atomic_path, write_text
 from .. import require_torch
-from ..errors import CheckpointMismatchError, ModelFileError
+from ..errors import CheckpointMismatchError
 from ..metrics import psf_scores
 from ..data.psf_samples import OLFData, build_data, data_key
-from .config import OLFTrainConfig, differences
+from .checkpoint import CHECKPOINT_FORMAT, ema_update, make_ema, resumable, save_checkpoint
+from .config import OLFTrainConfig
 
 torch = require_torch()
 from ..arch.olf import OLF  # noqa: E402  (after the torch check)
-
-CHECKPOINT_FORMAT = 1
-
 
 @dataclass
 class TrainResult:
@@ -115,22 +112,6 @@ def _init_heads_from_data(model, data: OLFData):
             model.heads[li].bias.copy_(torch.from_numpy(np.log(mean + 1e-8)).float())
 
 
-def _save_checkpoint(path: Path, state: dict) -> None:
-    with atomic_path(path) as tmp:
-        torch.save(state, tmp)
-
-
-def _load_checkpoint(path: Path) -> dict:
-    try:
-        ck = torch.load(path, weights_only=True)
-    except Exception as e:  # noqa: BLE001 - any failure: say which file
-        raise ModelFileError(path, f"not a readable checkpoint ({e}); delete it to start afresh") from None
-    if ck.get("format") != CHECKPOINT_FORMAT:
-        raise ModelFileError(path, f"checkpoint format {ck.get('format')!r}", field="format",
-                             allowed=str(CHECKPOINT_FORMAT))
-    return ck
-
-
 def train(config: OLFTrainConfig, run_dir, *, cache_dir=None, lenses: dict | None = None, progress=None,
           on_step=None, log=None) -> TrainResult:
     """Train (or resume) the run in ``run_dir``. ``cache_dir``: the PSF
@@ -143,12 +124,7 @@ def train(config: OLFTrainConfig, run_dir, *, cache_dir=None, lenses: dict | Non
     run_dir.mkdir(parents=True, exist_ok=True)
     ckpt_path = run_dir / "checkpoint.pt"
     settings = config.result_settings()
-    ck = None
-    if ckpt_path.exists():
-        ck = _load_checkpoint(ckpt_path)
-        diff = differences(json.loads(ck["settings"]), settings)
-        if diff:
-            raise CheckpointMismatchError(ckpt_path, diff)
+    ck = resumable(ckpt_path, settings)
     write_text(run_dir / "config.json", config.to_json() + "\n")
 
     data = build_data(config.data, cache_dir=cache_dir, points_file=run_dir / "points.npz", lenses=lenses,
@@ -161,9 +137,7 @@ def train(config: OLFTrainConfig, run_dir, *, cache_dir=None, lenses: dict | Non
     torch.manual_seed(config.seed)
     model = OLF(spec)
     _init_heads_from_data(model, data)
-    ema = copy.deepcopy(model)
-    for p in ema.parameters():
-        p.requires_grad_(False)
+    ema = make_ema(model)
     opt = torch.optim.AdamW(model.parameters(), lr=config.lr, betas=config.betas,
                             weight_decay=config.weight_decay)
     rng = np.random.default_rng([config.seed, 7])
@@ -179,7 +153,7 @@ def train(config: OLFTrainConfig, run_dir, *, cache_dir=None, lenses: dict | Non
         say(f"resumed {ckpt_path} at iteration {step} of {config.iters}")
 
     def checkpoint():
-        _save_checkpoint(ckpt_path, {
+        save_checkpoint(ckpt_path, {
             "format": CHECKPOINT_FORMAT, "dcdi_version": __version__, "step": step,
             "settings": json.dumps(settings, sort_keys=True), "config": config.to_json(), "data_key": key,
             "model": model.state_dict(), "ema": ema.state_dict(), "optim": opt.state_dict(),
@@ -187,9 +161,6 @@ def train(config: OLFTrainConfig, run_dir, *, cache_dir=None, lenses: dict | Non
             "history": json.dumps(history)})
 
     t0 = time.perf_counter()
-    d = config.ema_decay
-    ema_params = list(ema.parameters())
-    params = list(model.parameters())
     model.train()
     loss_v = float("nan")
     with open(run_dir / "log.jsonl", "a", encoding="utf-8") as logf:
@@ -201,9 +172,7 @@ def train(config: OLFTrainConfig, run_dir, *, cache_dir=None, lenses: dict | Non
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
-            with torch.no_grad():
-                for pe, p in zip(ema_params, params):
-                    pe.mul_(d).add_(p, alpha=1.0 - d)
+            ema_update(ema, model, config.ema_decay)
             step += 1
             loss_v = float(loss.detach())
             if config.validate_every and step % config.validate_every == 0 and step < config.iters:
