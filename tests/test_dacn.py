@@ -1,6 +1,5 @@
 """DACN: parameter counts of the named configurations, the ablation switches,
 shapes for any size, determinism, a tiny model overfits one pair."""
-import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch")

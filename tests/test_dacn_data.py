@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from dcdi_core.io.images import linear_to_srgb, read_image, write_depth, write_image
+from dcdi_core.io.images import linear_to_srgb, write_depth, write_image
 from dcdi_core.models.data.depth import encode_depth
 from dcdi_core.models.data.rgbd import (FactoryFolder, Middlebury2014, NYUv2Labeled, RGBDFolder,
                                         middlebury_depth_m, open_source, read_pfm)

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from ... import __version__
-from ...atomic import atomic_path, write_text
+from ...atomic import write_text
 from .. import require_torch
 from ..errors import CheckpointMismatchError
 from ..metrics import psf_scores
