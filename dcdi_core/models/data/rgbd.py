@@ -110,7 +110,9 @@ def read_depth_png_mm(path) -> np.ndarray:
     return d
 
 
-def _read_any_depth(path: Path) -> np.ndarray:
+def read_any_depth(path) -> np.ndarray:
+    """Depth in metres from an EXR, a .npy or a 16-bit PNG in mm."""
+    path = Path(path)
     if path.suffix.lower() == ".png":
         return read_depth_png_mm(path)
     return read_depth(path)
@@ -168,7 +170,7 @@ class RGBDFolder(RGBDSource):
 
     def load(self, id):
         img = read_image(_first(self.root / "images", id, self.IMAGE_EXTS, "image"))
-        dep = _read_any_depth(_first(self.root / "depth", id, self.DEPTH_EXTS, "depth"))
+        dep = read_any_depth(_first(self.root / "depth", id, self.DEPTH_EXTS, "depth"))
         if dep.shape != img.shape[:2]:
             raise ModelError(f"{self.root}: depth of '{id}' is {dep.shape}, its image {img.shape[:2]}")
         return RGBDFrame(id, self.scene(id), img, dep, self.name)
