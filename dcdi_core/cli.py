@@ -392,6 +392,21 @@ def _progress_bar(desc: str):
     return progress, log, close
 
 
+def _run_training(desc: str, run, train_fn):
+    """train_fn(progress=..., log=...) under a progress bar; None (after
+    saying how to resume) when interrupted."""
+    progress, log, close = _progress_bar(desc)
+    try:
+        result = train_fn(progress=progress, log=log)
+    except KeyboardInterrupt:
+        close()
+        print(f"dcdi: interrupted; the last checkpoint is in {run}: run the same command to resume",
+              file=sys.stderr)
+        return None
+    close()
+    return result
+
+
 def cmd_olf_train(args) -> int:
     import os
     from pathlib import Path
@@ -407,15 +422,9 @@ def cmd_olf_train(args) -> int:
     from .models.export import export_olf               # torch from here on
     from .models.train.loop import train
     run = Path(args.run or (str(args.output) + ".run"))
-    progress, log, close = _progress_bar("olf train")
-    try:
-        result = train(config, run, progress=progress, log=log)
-    except KeyboardInterrupt:
-        close()
-        print(f"dcdi: interrupted; the last checkpoint is in {run}: run the same command to resume",
-              file=sys.stderr)
+    result = _run_training("olf train", run, lambda **kw: train(config, run, **kw))
+    if result is None:
         return 130
-    close()
     meta = export_olf(result, args.output, weights=args.weights)
     h = meta["held_out"]["mean"]
     rate = result.step / result.seconds if result.seconds > 0 else float("nan")
@@ -541,15 +550,9 @@ def cmd_train_dacn(args) -> int:
                              checkpoint_every=args.checkpoint_every, validate_every=args.validate_every)
     from .models.train.dacn_loop import train_dacn       # torch from here on
     run = Path(args.output)
-    progress, log, close = _progress_bar("dacn train")
-    try:
-        result = train_dacn(config, run, progress=progress, log=log)
-    except KeyboardInterrupt:
-        close()
-        print(f"dcdi: interrupted; the last checkpoint is in {run}: run the same command to resume",
-              file=sys.stderr)
+    result = _run_training("dacn train", run, lambda **kw: train_dacn(config, run, **kw))
+    if result is None:
         return 130
-    close()
     v = result.validation["ema"].get("mean")
     rate = result.step / result.seconds if result.seconds > 0 else float("nan")
     print(f"trained {run} ({args.config}, {result.step} iterations, {result.seconds:.1f} s here, {rate:.2f} it/s)")

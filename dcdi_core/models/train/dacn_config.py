@@ -7,11 +7,11 @@ rotations) at this machine's scale (batch 4 of 128^2 instead of 8 of
 256^2)."""
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field, fields
 
 from ...optics.errors import InputRangeError
 from ..arch.dacn_spec import CONFIGS, DACNSpec, named
+from .config import JSONConfig
 
 # data: where the pre-built pairs are (they may move; what they hold is keyed)
 OPERATIONAL = ("data", "checkpoint_every", "validate_every")
@@ -19,7 +19,7 @@ INPUTS = ("capture", "baseline")
 
 
 @dataclass(frozen=True)
-class DACNTrainConfig:
+class DACNTrainConfig(JSONConfig):
     data: str                                  # a folder of pre-built DA2T pairs (models.data.da2t)
     config: str = "tiny"                       # a named DACN configuration
     arch: dict = field(default_factory=dict)   # DACNSpec fields replaced (switches, sizes, depth_encoding)
@@ -82,13 +82,3 @@ class DACNTrainConfig:
         out.update({f"spec.{k}": v for k, v in self.spec().as_dict().items()})
         return out
 
-    def to_json(self) -> str:
-        return json.dumps(self.as_dict(), indent=2, sort_keys=True)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "DACNTrainConfig":
-        return cls(**d)
-
-    @classmethod
-    def from_json(cls, text: str) -> "DACNTrainConfig":
-        return cls.from_dict(json.loads(text))

@@ -26,15 +26,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ... import __version__
 from ...atomic import write_text
 from .. import require_torch
 from ..data.da2t import PairCrops, finished_pairs, load_pair, pair_path
 from ..data.depth import encode_depth
 from ..data.split import Split, split_by_scene
-from ..errors import CheckpointMismatchError, ModelError
+from ..errors import ModelError
 from ..metrics import psnr, ssim
-from .checkpoint import CHECKPOINT_FORMAT, ema_update, make_ema, resumable, save_checkpoint
+from .checkpoint import check_data, make_ema, open_run, restore, save_checkpoint, training_state, update
 from .dacn_config import DACNTrainConfig
 
 torch = require_torch()
@@ -135,16 +134,9 @@ def train_dacn(config: DACNTrainConfig, run_dir, *, progress=None, on_step=None,
     loss)`` after each step; ``on_step(step)`` too (an exception there stops
     the run as a kill would, after the step and before any later checkpoint)."""
     say = log or (lambda s: None)
-    torch.set_num_threads(config.threads)
-    run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    ckpt_path = run_dir / "checkpoint.pt"
-    settings = config.result_settings()
-    ck = resumable(ckpt_path, settings)
+    run_dir, ckpt_path, settings, ck = open_run(run_dir, config)
     data = open_data(config)
-    if ck is not None and ck["data_key"] != data.key:
-        raise CheckpointMismatchError(ckpt_path, {"data (pairs, their DA2T settings or the split)":
-                                                  (ck["data_key"][:12], data.key[:12])})
+    check_data(ck, ckpt_path, data.key, "data (pairs, their DA2T settings or the split)")
     write_text(run_dir / "config.json", config.to_json() + "\n")
     data.split.save(run_dir / "split.json")
     write_text(run_dir / "data.json", json.dumps({"root": str(data.root), "key": data.key, "train": data.train,
@@ -158,37 +150,22 @@ def train_dacn(config: DACNTrainConfig, run_dir, *, progress=None, on_step=None,
     crops = PairCrops([pair_path(data.root, p) for p in data.train], spec.depth_encoding, augment=config.augment)
     step, history = 0, []
     if ck is not None:
-        model.load_state_dict(ck["model"])
-        ema.load_state_dict(ck["ema"])
-        opt.load_state_dict(ck["optim"])
-        torch.set_rng_state(ck["torch_rng"])
-        rng.bit_generator.state = json.loads(ck["numpy_rng"])
-        step = int(ck["step"])
-        history = json.loads(ck["history"])
+        step, history = restore(ck, model, ema, opt, rng)
         say(f"resumed {ckpt_path} at iteration {step} of {config.iters}")
 
     def checkpoint():
-        save_checkpoint(ckpt_path, {
-            "format": CHECKPOINT_FORMAT, "kind": "dacn", "dcdi_version": __version__, "step": step,
-            "settings": json.dumps(settings, sort_keys=True), "config": config.to_json(),
-            "spec": json.dumps(spec.as_dict()), "data_key": data.key,
-            "model": model.state_dict(), "ema": ema.state_dict(), "optim": opt.state_dict(),
-            "torch_rng": torch.get_rng_state(), "numpy_rng": json.dumps(rng.bit_generator.state),
-            "history": json.dumps(history)})
+        save_checkpoint(ckpt_path, training_state(
+            step=step, settings=settings, config_json=config.to_json(), data_key=data.key, model=model, ema=ema,
+            opt=opt, rng=rng, history=history, kind="dacn", spec=json.dumps(spec.as_dict())))
 
     t0 = time.perf_counter()
     model.train()
     loss_v = float("nan")
     with open(run_dir / "log.jsonl", "a", encoding="utf-8") as logf:
         while step < config.iters:
-            for g in opt.param_groups:
-                g["lr"] = config.lr_at(step)
             x, y, d = (_tensor(a) for a in crops.sample(rng, config.batch, config.crop, input=config.input))
             loss = (model(x, d) - y).abs().mean()
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            ema_update(ema, model, config.ema_decay)
+            update(opt, loss, config.lr_at(step), model, ema, config.ema_decay)
             step += 1
             loss_v = float(loss.detach())
             if config.validate_every and step % config.validate_every == 0 and step < config.iters:

@@ -22,17 +22,14 @@ import json
 import math
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
-from ... import __version__
 from ...atomic import write_text
 from .. import require_torch
-from ..errors import CheckpointMismatchError
 from ..metrics import psf_scores
 from ..data.psf_samples import OLFData, build_data, data_key
-from .checkpoint import CHECKPOINT_FORMAT, ema_update, make_ema, resumable, save_checkpoint
+from .checkpoint import check_data, make_ema, open_run, restore, save_checkpoint, training_state, update
 from .config import OLFTrainConfig
 
 torch = require_torch()
@@ -119,20 +116,13 @@ def train(config: OLFTrainConfig, run_dir, *, cache_dir=None, lenses: dict | Non
     loss)`` after each step; ``on_step(step)`` too (an exception there stops
     the run as a kill would, after the step and before any later checkpoint)."""
     say = log or (lambda s: None)
-    torch.set_num_threads(config.threads)
-    run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    ckpt_path = run_dir / "checkpoint.pt"
-    settings = config.result_settings()
-    ck = resumable(ckpt_path, settings)
+    run_dir, ckpt_path, settings, ck = open_run(run_dir, config)
     write_text(run_dir / "config.json", config.to_json() + "\n")
 
     data = build_data(config.data, cache_dir=cache_dir, points_file=run_dir / "points.npz", lenses=lenses,
                       log=say)
     key = data_key(config.data, [ls.lens for ls in data.lenses])
-    if ck is not None and ck["data_key"] != key:
-        raise CheckpointMismatchError(ckpt_path, {"data (a lens's optics or the PSF algorithm)":
-                                                  (ck["data_key"][:12], key[:12])})
+    check_data(ck, ckpt_path, key, "data (a lens's optics or the PSF algorithm)")
     spec = data.spec(**config.arch())
     torch.manual_seed(config.seed)
     model = OLF(spec)
@@ -143,36 +133,22 @@ def train(config: OLFTrainConfig, run_dir, *, cache_dir=None, lenses: dict | Non
     rng = np.random.default_rng([config.seed, 7])
     step, history = 0, []
     if ck is not None:
-        model.load_state_dict(ck["model"])
-        ema.load_state_dict(ck["ema"])
-        opt.load_state_dict(ck["optim"])
-        torch.set_rng_state(ck["torch_rng"])
-        rng.bit_generator.state = json.loads(ck["numpy_rng"])
-        step = int(ck["step"])
-        history = json.loads(ck["history"])
+        step, history = restore(ck, model, ema, opt, rng)
         say(f"resumed {ckpt_path} at iteration {step} of {config.iters}")
 
     def checkpoint():
-        save_checkpoint(ckpt_path, {
-            "format": CHECKPOINT_FORMAT, "dcdi_version": __version__, "step": step,
-            "settings": json.dumps(settings, sort_keys=True), "config": config.to_json(), "data_key": key,
-            "model": model.state_dict(), "ema": ema.state_dict(), "optim": opt.state_dict(),
-            "torch_rng": torch.get_rng_state(), "numpy_rng": json.dumps(rng.bit_generator.state),
-            "history": json.dumps(history)})
+        save_checkpoint(ckpt_path, training_state(
+            step=step, settings=settings, config_json=config.to_json(), data_key=key, model=model, ema=ema,
+            opt=opt, rng=rng, history=history))
 
     t0 = time.perf_counter()
     model.train()
     loss_v = float("nan")
     with open(run_dir / "log.jsonl", "a", encoding="utf-8") as logf:
         while step < config.iters:
-            for g in opt.param_groups:
-                g["lr"] = cosine_lr(config, step)
             groups = _groups_to_torch(data.sample(rng, config.batch))
             loss = loss_of(model, groups)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            ema_update(ema, model, config.ema_decay)
+            update(opt, loss, cosine_lr(config, step), model, ema, config.ema_decay)
             step += 1
             loss_v = float(loss.detach())
             if config.validate_every and step % config.validate_every == 0 and step < config.iters:
