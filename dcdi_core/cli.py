@@ -525,7 +525,8 @@ def cmd_dacn_pairs(args) -> int:
     noise = None if args.no_noise else {"full_well_electrons": args.full_well, "read_noise_electrons": args.read_noise}
     config = DA2TConfig(lens=args.lens, perturb_fraction=args.perturb, noise=noise,
                         baseline_depth_m=args.baseline_depth, sensor_px=args.sensor_px, pupil_samples=args.rays,
-                        n_wavelengths=args.wavelengths, n_fields=args.fields, n_depths=args.depths, seed=args.seed)
+                        n_wavelengths=args.wavelengths, n_fields=args.fields, n_depths=args.depths,
+                        lens_pool=args.lens_pool, seed=args.seed)
     t0 = time.perf_counter()
     done = build_pairs(source, args.output, config, variants=args.variants, shard=args.shard,
                        log=lambda t: print(t, file=sys.stderr))
@@ -611,6 +612,8 @@ def add_dacn_commands(sub) -> None:
     t.add_argument("-o", "--output", required=True, help="pairs folder")
     t.add_argument("--variants", type=_positive_int, default=1, help="perturbed lenses per frame (default 1)")
     t.add_argument("--perturb", type=float, default=0.10, help="perturbation fraction (default 0.10 = +-10 %%)")
+    t.add_argument("--lens-pool", type=int, default=0,
+                   help="K perturbed lenses shared by all frames (0: a new one per frame; each costs a PSF library)")
     t.add_argument("--baseline-depth", type=float, default=2.0, help="the depth-unaware baseline's depth, m")
     t.add_argument("--no-noise", action="store_true", help="no sensor noise")
     t.add_argument("--full-well", type=float, default=10000.0, help="full well, electrons")

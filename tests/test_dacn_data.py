@@ -240,3 +240,14 @@ def test_prebuilt_pairs_resume_and_crops_stay_aligned(tmp_path):
     assert not np.isnan(p.depth[r:r + 16, c:c + 16]).any()
     xb, yb, db = PairCrops(crops.paths, "diopter").sample(rng, 3, 16)
     assert xb.shape == yb.shape == (3, 3, 16, 16) and db.shape == (3, 1, 16, 16) and xb.dtype == np.float32
+
+
+def test_a_lens_pool_reuses_a_few_perturbed_lenses():
+    from dcdi_core.models.data.da2t import DA2TConfig, degrade
+    cfg = DA2TConfig(lens="mos-s2", lens_pool=2, **FAST)
+    sims = {}
+    recs = [degrade(_frame(fid=f"f{k}"), cfg, 0, simulators=sims).record for k in range(5)]
+    seeds = {r["perturbation"]["seed"] for r in recs}
+    assert len(seeds) == 2 and len(sims) == 2                    # two lenses, each simulator built once
+    again = degrade(_frame(fid="f3"), cfg, 0)                      # the same draw without the shared dict
+    assert again.record == recs[3]

@@ -144,3 +144,12 @@ def test_commands(pairs, tmp_path, capsys):
     assert main(["correct", "--image", str(tmp_path / "cap.exr"), "--depth", str(tmp_path / "d.exr"), "--model",
                  str(run), "--lens", "mos-s2", "-o", str(tmp_path / "out.exr")]) == 0
     assert read_image(tmp_path / "out.exr").shape == (20, 30, 3)
+    # dcdi dacn pairs on a generic RGB-D folder
+    f = Frames().load("scene1")
+    write_image(tmp_path / "src" / "images" / "a.exr", f.image)
+    (tmp_path / "src" / "depth").mkdir()
+    np.save(tmp_path / "src" / "depth" / "a.npy", f.depth)
+    assert main(["dacn", "pairs", str(tmp_path / "src"), "--lens", "mos-s1", "-o", str(tmp_path / "p"), "--rays", "8",
+                 "--wavelengths", "3", "--fields", "6", "--depths", "3", "--lens-pool", "1"]) == 0
+    assert "1 DA2T pairs of folder (1 frames) for mos-s1" in capsys.readouterr().out
+    assert json.loads((tmp_path / "p" / "da2t.json").read_text())["lens_pool"] == 1
