@@ -82,8 +82,13 @@ def training_state(*, step: int, settings: dict, config_json: str, data_key: str
             "history": json.dumps(history), **extra}
 
 
-def restore(ck: dict, model, ema, opt, rng) -> tuple[int, list]:
-    """Load a checkpoint's state into the run's objects: (step, history)."""
+def restore(ck: dict | None, model, ema, opt, rng, *, say=None, path=None, iters=None) -> tuple[int, list]:
+    """Load a checkpoint's state into the run's objects: (step, history);
+    (0, []) without one. ``say`` is told where the run resumes."""
+    if ck is None:
+        return 0, []
+    if say is not None:
+        say(f"resumed {path} at iteration {int(ck['step'])} of {iters}")
     model.load_state_dict(ck["model"])
     ema.load_state_dict(ck["ema"])
     opt.load_state_dict(ck["optim"])

@@ -148,10 +148,7 @@ def train_dacn(config: DACNTrainConfig, run_dir, *, progress=None, on_step=None,
     opt = torch.optim.Adam(model.parameters(), lr=config.lr, betas=config.betas)
     rng = np.random.default_rng([config.seed, 13])
     crops = PairCrops([pair_path(data.root, p) for p in data.train], spec.depth_encoding, augment=config.augment)
-    step, history = 0, []
-    if ck is not None:
-        step, history = restore(ck, model, ema, opt, rng)
-        say(f"resumed {ckpt_path} at iteration {step} of {config.iters}")
+    step, history = restore(ck, model, ema, opt, rng, say=say, path=ckpt_path, iters=config.iters)
 
     def checkpoint():
         save_checkpoint(ckpt_path, training_state(

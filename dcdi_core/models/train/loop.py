@@ -131,10 +131,7 @@ def train(config: OLFTrainConfig, run_dir, *, cache_dir=None, lenses: dict | Non
     opt = torch.optim.AdamW(model.parameters(), lr=config.lr, betas=config.betas,
                             weight_decay=config.weight_decay)
     rng = np.random.default_rng([config.seed, 7])
-    step, history = 0, []
-    if ck is not None:
-        step, history = restore(ck, model, ema, opt, rng)
-        say(f"resumed {ckpt_path} at iteration {step} of {config.iters}")
+    step, history = restore(ck, model, ema, opt, rng, say=say, path=ckpt_path, iters=config.iters)
 
     def checkpoint():
         save_checkpoint(ckpt_path, training_state(
