@@ -498,6 +498,52 @@ def cmd_demo(args) -> int:
 
 
 # ------------------------------------------------------- olf (dcdi_core.models)
+def _progress_bar(desc: str):
+    """(progress(step, total, loss), log(text), close()) for a training run:
+    a tqdm bar on a terminal, made at the first step so that its rate is the
+    training's (a resumed run starts at its step); nothing without a
+    terminal or without tqdm."""
+    tty = sys.stderr.isatty()
+    bar = None
+
+    def progress(step, total, loss):
+        nonlocal bar
+        if not tty:
+            return
+        if bar is None:
+            try:
+                from tqdm import tqdm
+            except ImportError:     # no bar without tqdm (requirements.txt has it)
+                return
+            bar = tqdm(total=total, initial=step - 1, desc=desc, unit="it", file=sys.stderr, dynamic_ncols=True)
+        bar.set_postfix(loss=f"{loss:.3g}", refresh=False)
+        bar.update(step - bar.n)
+
+    def log(text):
+        if tty:
+            (bar.write if bar is not None else lambda t: print(t, file=sys.stderr))(text)
+
+    def close():
+        if bar is not None:
+            bar.close()
+    return progress, log, close
+
+
+def _run_training(desc: str, run, train_fn):
+    """train_fn(progress=..., log=...) under a progress bar; None (after
+    saying how to resume) when interrupted."""
+    progress, log, close = _progress_bar(desc)
+    try:
+        result = train_fn(progress=progress, log=log)
+    except KeyboardInterrupt:
+        close()
+        print(f"dcdi: interrupted; the last checkpoint is in {run}: run the same command to resume",
+              file=sys.stderr)
+        return None
+    close()
+    return result
+
+
 def cmd_olf_train(args) -> int:
     import os
     from pathlib import Path
@@ -513,36 +559,9 @@ def cmd_olf_train(args) -> int:
     from .models.export import export_olf               # torch from here on
     from .models.train.loop import train
     run = Path(args.run or (str(args.output) + ".run"))
-    tty = sys.stderr.isatty()
-    bar = None
-
-    def progress(step, total, loss):
-        nonlocal bar
-        if not tty:
-            return
-        if bar is None:             # made at the first step, so that its rate is the training's
-            try:
-                from tqdm import tqdm
-            except ImportError:     # no bar without tqdm (requirements.txt has it)
-                return
-            bar = tqdm(total=total, initial=step - 1, desc="olf train", unit="it", file=sys.stderr,
-                       dynamic_ncols=True)
-        bar.set_postfix(loss=f"{loss:.3g}", refresh=False)
-        bar.update(step - bar.n)
-
-    def log(text):
-        if tty:
-            print(text, file=sys.stderr)
-    try:
-        result = train(config, run, progress=progress, log=log)
-    except KeyboardInterrupt:
-        if bar is not None:
-            bar.close()
-        print(f"dcdi: interrupted; the last checkpoint is in {run}: run the same command to resume",
-              file=sys.stderr)
+    result = _run_training("olf train", run, lambda **kw: train(config, run, **kw))
+    if result is None:
         return 130
-    if bar is not None:
-        bar.close()
     meta = export_olf(result, args.output, weights=args.weights)
     h = meta["held_out"]["mean"]
     rate = result.step / result.seconds if result.seconds > 0 else float("nan")
@@ -623,6 +642,170 @@ def add_olf_commands(sub) -> None:
     i.add_argument("file", help="an exported OLF (.npz)")
     i.add_argument("--json", action="store_true", help="machine-readable output")
     i.set_defaults(func=cmd_olf_info)
+
+
+# ------------------------------------------------------ dacn (dcdi_core.models)
+def _shard(text: str):
+    try:
+        i, n = (int(v) for v in text.split("/"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}': expected I/N, e.g. 0/4") from None
+    if not (n >= 1 and 0 <= i < n):
+        raise argparse.ArgumentTypeError(f"'{text}': need 0 <= I < N")
+    return i, n
+
+
+def cmd_dacn_pairs(args) -> int:
+    from .models.data.da2t import DA2TConfig, build_pairs
+    from .models.data.rgbd import open_source
+    source = open_source(args.source, args.kind)
+    noise = None if args.no_noise else {"full_well_electrons": args.full_well, "read_noise_electrons": args.read_noise}
+    config = DA2TConfig(lens=args.lens, perturb_fraction=args.perturb, noise=noise,
+                        baseline_depth_m=args.baseline_depth, sensor_px=args.sensor_px, pupil_samples=args.rays,
+                        n_wavelengths=args.wavelengths, n_fields=args.fields, n_depths=args.depths,
+                        lens_pool=args.lens_pool, seed=args.seed)
+    t0 = time.perf_counter()
+    done = build_pairs(source, args.output, config, variants=args.variants, shard=args.shard,
+                       log=lambda t: print(t, file=sys.stderr))
+    print(f"{len(done)} DA2T pairs of {source.name} ({len(source)} frames) for {args.lens} in {args.output} "
+          f"({time.perf_counter() - t0:.1f} s this run)")
+    return 0
+
+
+def cmd_train_dacn(args) -> int:
+    from pathlib import Path
+    from .models.train.dacn_config import DACNTrainConfig
+    arch = {}
+    if args.no_rdicab:
+        arch["rdicab"] = False
+    if args.no_d2cb:
+        arch["d2cb"] = False
+    for k in ("racm", "depth_encoding", "channels", "groups", "blocks"):
+        if getattr(args, k) is not None:
+            arch[k] = getattr(args, k)
+    config = DACNTrainConfig(data=args.data, config=args.config, arch=arch, input=args.input, iters=args.iters,
+                             batch=args.batch, crop=args.crop, lr=args.lr, seed=args.seed, threads=args.threads,
+                             checkpoint_every=args.checkpoint_every, validate_every=args.validate_every)
+    from .models.train.dacn_loop import train_dacn       # torch from here on
+    run = Path(args.output)
+    result = _run_training("dacn train", run, lambda **kw: train_dacn(config, run, **kw))
+    if result is None:
+        return 130
+    v = result.validation["ema"].get("mean")
+    rate = result.step / result.seconds if result.seconds > 0 else float("nan")
+    print(f"trained {run} ({args.config}, {result.step} iterations, {result.seconds:.1f} s here, {rate:.2f} it/s)")
+    if v:
+        print(f"validation ({len(result.data.val)} pairs, EMA): PSNR {v['psnr']:.2f} dB (input {v['psnr_input']:.2f})"
+              + (f", SSIM {v['ssim']:.4f} (input {v['ssim_input']:.4f})" if "ssim" in v else ""))
+    else:
+        print("no validation pairs (the split gave no 'val' scene)")
+    return 0
+
+
+def cmd_correct(args) -> int:
+    from .io.images import check_image_output, read_image, write_image
+    if args.depth is None:
+        print("dcdi: error: correction needs the scene's depth: give --depth DEPTH (metres: EXR 'Z', .npy, or a "
+              "16-bit PNG in mm), e.g. the factory's depth/<id>.exr or a metric monocular estimate of the capture",
+              file=sys.stderr)
+        return 2
+    out = check_image_output(args.output)
+    from .models.data.rgbd import read_any_depth
+    image = read_image(args.image)
+    depth = read_any_depth(args.depth)
+    import torch
+    torch.set_num_threads(args.threads)
+    from .models.correct import correct, load_dacn
+    model, info = load_dacn(args.model, weights=args.weights)
+    trained = (info.get("da2t") or {}).get("lens")
+    if args.lens is not None and trained is not None and args.lens != trained:
+        print(f"dcdi: error: {args.model} was trained for lens {trained}, not {args.lens}", file=sys.stderr)
+        return 2
+    t0 = time.perf_counter()
+    tty = sys.stderr.isatty()
+
+    def progress(done, total):
+        if tty:
+            print(f"\rdcdi correct: tile {done}/{total}", end="" if done < total else "\n", file=sys.stderr)
+    result = correct(model, image, depth, tile=args.tile, overlap=args.overlap, progress=progress)
+    write_image(out, result)
+    print(f"wrote {out} ({image.shape[1]} x {image.shape[0]}, {time.perf_counter() - t0:.1f} s, "
+          f"lens {trained or 'unknown'})")
+    return 0
+
+
+def add_dacn_commands(sub) -> None:
+    """`dcdi dacn pairs`, `dcdi train dacn`, `dcdi correct`: the depth-aware correction network."""
+    q = sub.add_parser("dacn", help="depth-aware correction network: DA2T training pairs",
+                       description="DACN's training data. " + UNITS)
+    dsub = q.add_subparsers(dest="dacn_command", required=True, metavar="SUBCOMMAND")
+    t = dsub.add_parser("pairs", help="pre-build DA2T pairs from an RGB-D source (resumable, sharded)",
+                        description="Simulate every frame of an RGB-D source through a (perturbed) lens: "
+                                    "capture, aligned target, depth on the sensor, depth-unaware baseline.")
+    t.add_argument("source", help="factory folder, images/+depth/ folder, NYUv2 labeled .mat or Middlebury 2014")
+    t.add_argument("--kind", choices=["factory", "folder", "nyuv2", "middlebury2014"], default=None,
+                   help="the source's kind (default: found from what is there)")
+    t.add_argument("--lens", required=True, help="lens id")
+    t.add_argument("-o", "--output", required=True, help="pairs folder")
+    t.add_argument("--variants", type=_positive_int, default=1, help="perturbed lenses per frame (default 1)")
+    t.add_argument("--perturb", type=float, default=0.10, help="perturbation fraction (default 0.10 = +-10 %%)")
+    t.add_argument("--lens-pool", type=int, default=0,
+                   help="K perturbed lenses shared by all frames (0: a new one per frame; each costs a PSF library)")
+    t.add_argument("--baseline-depth", type=float, default=2.0, help="the depth-unaware baseline's depth, m")
+    t.add_argument("--no-noise", action="store_true", help="no sensor noise")
+    t.add_argument("--full-well", type=float, default=10000.0, help="full well, electrons")
+    t.add_argument("--read-noise", type=float, default=3.0, help="read noise, electrons RMS")
+    t.add_argument("--sensor-px", type=int, nargs=2, default=None, metavar=("ROWS", "COLS"),
+                   help="frames are the centre of a sensor of this many pixels (the paper: 1280 1920)")
+    t.add_argument("--rays", type=_positive_int, default=64, help="pupil samples per side (PSF settings)")
+    t.add_argument("--wavelengths", type=_positive_int, default=31, help="wavelengths per PSF")
+    t.add_argument("--fields", type=_positive_int, default=64, help="library fields")
+    t.add_argument("--depths", type=_positive_int, default=20, help="library depth bins (plus infinity)")
+    t.add_argument("--seed", type=int, default=0, help="seed of perturbations and noise")
+    t.add_argument("--shard", type=_shard, default=(0, 1), help="I/N: the frames at positions i %% N == I")
+    t.set_defaults(func=cmd_dacn_pairs)
+
+    q = sub.add_parser("train", help="train a network (dacn)")
+    tsub = q.add_subparsers(dest="train_command", required=True, metavar="NETWORK")
+    t = tsub.add_parser("dacn", help="train (or resume) DACN on pre-built DA2T pairs",
+                        description="Train DACN (CPU, seeded, Adam, L1, EMA). Checkpoints go to the run folder; "
+                                    "the same command again resumes a killed run and ends where an uninterrupted "
+                                    "one would.")
+    t.add_argument("--data", required=True, help="pairs folder (dcdi dacn pairs)")
+    t.add_argument("--config", default="tiny", help="named configuration: tiny, tiny-rb, demo, paper")
+    t.add_argument("--iters", type=_positive_int, default=1000, help="iterations (the paper: 200000)")
+    t.add_argument("-o", "--output", required=True, help="run folder")
+    t.add_argument("--batch", type=_positive_int, default=4, help="batch (default 4; the paper 8)")
+    t.add_argument("--crop", type=_positive_int, default=128, help="crop size (default 128; the paper 256)")
+    t.add_argument("--lr", type=float, default=2e-4, help="initial learning rate (halved at 50/80/90/95 %%)")
+    t.add_argument("--seed", type=int, default=0, help="seed of weights and crops")
+    t.add_argument("--threads", type=_positive_int, default=1, help="torch threads (default 1)")
+    t.add_argument("--checkpoint-every", type=_positive_int, default=500, help="iterations between checkpoints")
+    t.add_argument("--validate-every", type=int, default=0, help="iterations between validations (0: at the end)")
+    t.add_argument("--input", choices=["capture", "baseline"], default="capture",
+                   help="train on the depth-aware capture (DA2T) or the depth-unaware baseline")
+    t.add_argument("--no-rdicab", action="store_true", help="ablation: without RDICAB")
+    t.add_argument("--no-d2cb", action="store_true", help="ablation: without D2CB")
+    t.add_argument("--racm", choices=["rb", "rstb"], default=None, help="replace the blocks (EDSR or Swin)")
+    t.add_argument("--depth-encoding", choices=["minmax", "diopter"], default=None, help="depth at the input")
+    t.add_argument("--channels", type=_positive_int, default=None, help="override C")
+    t.add_argument("--groups", type=_positive_int, default=None, help="override G")
+    t.add_argument("--blocks", type=_positive_int, default=None, help="override B")
+    t.set_defaults(func=cmd_train_dacn)
+
+    t = sub.add_parser("correct", help="undo a lens's blur with a trained DACN (tiled, any size)",
+                       description="Correct a capture with a trained DACN: overlapping tiles cross-faded, "
+                                   "memory bounded by one tile. " + UNITS)
+    t.add_argument("--image", required=True, help="the capture (EXR linear, or PNG/JPEG sRGB)")
+    t.add_argument("--depth", default=None, help="its depth map in metres (EXR, .npy, 16-bit PNG in mm)")
+    t.add_argument("--model", required=True, help="a DACN run folder (or its checkpoint.pt)")
+    t.add_argument("--lens", default=None, help="refuse a model trained for another lens")
+    t.add_argument("-o", "--output", required=True, help="the corrected image (.exr, .png, .jpg)")
+    t.add_argument("--tile", type=_positive_int, default=256, help="tile size, px (default 256)")
+    t.add_argument("--overlap", type=int, default=32, help="tile overlap, px (default 32)")
+    t.add_argument("--weights", choices=["ema", "model"], default="ema", help="which weights")
+    t.add_argument("--threads", type=_positive_int, default=1, help="torch threads (default 1)")
+    t.set_defaults(func=cmd_correct)
 
 
 # ------------------------------------------------------------------- parser
@@ -812,6 +995,7 @@ def build_parser() -> argparse.ArgumentParser:
     q.set_defaults(func=cmd_demo)
 
     add_olf_commands(sub)
+    add_dacn_commands(sub)
     return p
 
 

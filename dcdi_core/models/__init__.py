@@ -1,13 +1,16 @@
 """Networks of the project (torch), and the numpy runtime that serves them.
 
 Torch is imported only inside this package and only when a module that needs
-it is imported (``arch``, ``data.psf_samples``, ``train``, ``export``);
+it is imported (``arch``, ``layers``, ``data.psf_samples``, ``train``, ``export``);
 ``import dcdi_core.models`` itself, ``metrics`` (numpy part) and ``runtime``
 never import it, so Blender's own Python (numpy, no torch) can run an exported
 Omni-Lens-Field. Layout (DESIGN.md):
 
-  arch/      nn.Modules only (``arch.olf``) and their torch-free specs (``arch.spec``)
-  data/      training samples (``data.psf_samples``: ray-traced PSFs for the OLF)
+  arch/      nn.Modules only (``arch.olf``, ``arch.dacn``) and their torch-free
+             specs (``arch.spec``, ``arch.dacn_spec``)
+  layers/    building blocks: deformable conv, cross-attention, Swin and EDSR blocks
+  data/      training samples (``data.psf_samples``: ray-traced PSFs for the OLF;
+             ``data.rgbd``, ``data.da2t``, ``data.split``, ``data.depth``: DACN's)
   train/     configs as data, a plain loop, atomic checkpoints and exact resume
   export     torch -> .npz arrays + JSON metadata (no pickle)
   runtime/   numpy only: loads an exported .npz and runs it

@@ -8,7 +8,7 @@ field.
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import dataclass, fields
 
 from ...optics.errors import InputRangeError
 from ..arch.spec import SIZES, VARIANTS
@@ -17,8 +17,23 @@ from ..data.psf_samples import PSFDataConfig
 OPERATIONAL = ("checkpoint_every", "validate_every")
 
 
+class JSONConfig:
+    """JSON round-trip of a frozen config dataclass with an ``as_dict``."""
+
+    def to_json(self) -> str:
+        return json.dumps(self.as_dict(), indent=2, sort_keys=True)
+
+    @classmethod
+    def from_dict(cls, d: dict):
+        return cls(**d)
+
+    @classmethod
+    def from_json(cls, text: str):
+        return cls.from_dict(json.loads(text))
+
+
 @dataclass(frozen=True)
-class OLFTrainConfig:
+class OLFTrainConfig(JSONConfig):
     """An Omni-Lens-Field training run. Defaults: the paper's released
     settings (AdamW lr 1e-4, betas (0.9, 0.99), weight decay 0; cosine to
     1e-7; MSE; EMA 0.999; batch 256)."""
@@ -79,17 +94,6 @@ class OLFTrainConfig:
         out = {k: v for k, v in d.items() if k not in OPERATIONAL and k != "data"}
         out.update({f"data.{k}": v for k, v in d["data"].items()})
         return out
-
-    def to_json(self) -> str:
-        return json.dumps(self.as_dict(), indent=2, sort_keys=True)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "OLFTrainConfig":
-        return cls(**d)
-
-    @classmethod
-    def from_json(cls, text: str) -> "OLFTrainConfig":
-        return cls.from_dict(json.loads(text))
 
 
 def differences(a: dict, b: dict) -> dict:

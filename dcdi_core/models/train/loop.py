@@ -18,28 +18,22 @@ cosine from ``lr`` to ``lr_min`` over ``iters``, then the EMA of the weights.
 """
 from __future__ import annotations
 
-import copy
 import json
 import math
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
-from ... import __version__
-from ...atomic import atomic_path, write_text
+from ...atomic import write_text
 from .. import require_torch
-from ..errors import CheckpointMismatchError, ModelFileError
 from ..metrics import psf_scores
 from ..data.psf_samples import OLFData, build_data, data_key
-from .config import OLFTrainConfig, differences
+from .checkpoint import check_data, make_ema, open_run, restore, save_checkpoint, training_state, update
+from .config import OLFTrainConfig
 
 torch = require_torch()
 from ..arch.olf import OLF  # noqa: E402  (after the torch check)
-
-CHECKPOINT_FORMAT = 1
-
 
 @dataclass
 class TrainResult:
@@ -115,22 +109,6 @@ def _init_heads_from_data(model, data: OLFData):
             model.heads[li].bias.copy_(torch.from_numpy(np.log(mean + 1e-8)).float())
 
 
-def _save_checkpoint(path: Path, state: dict) -> None:
-    with atomic_path(path) as tmp:
-        torch.save(state, tmp)
-
-
-def _load_checkpoint(path: Path) -> dict:
-    try:
-        ck = torch.load(path, weights_only=True)
-    except Exception as e:  # noqa: BLE001 - any failure: say which file
-        raise ModelFileError(path, f"not a readable checkpoint ({e}); delete it to start afresh") from None
-    if ck.get("format") != CHECKPOINT_FORMAT:
-        raise ModelFileError(path, f"checkpoint format {ck.get('format')!r}", field="format",
-                             allowed=str(CHECKPOINT_FORMAT))
-    return ck
-
-
 def train(config: OLFTrainConfig, run_dir, *, cache_dir=None, lenses: dict | None = None, progress=None,
           on_step=None, log=None) -> TrainResult:
     """Train (or resume) the run in ``run_dir``. ``cache_dir``: the PSF
@@ -138,72 +116,36 @@ def train(config: OLFTrainConfig, run_dir, *, cache_dir=None, lenses: dict | Non
     loss)`` after each step; ``on_step(step)`` too (an exception there stops
     the run as a kill would, after the step and before any later checkpoint)."""
     say = log or (lambda s: None)
-    torch.set_num_threads(config.threads)
-    run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    ckpt_path = run_dir / "checkpoint.pt"
-    settings = config.result_settings()
-    ck = None
-    if ckpt_path.exists():
-        ck = _load_checkpoint(ckpt_path)
-        diff = differences(json.loads(ck["settings"]), settings)
-        if diff:
-            raise CheckpointMismatchError(ckpt_path, diff)
+    run_dir, ckpt_path, settings, ck = open_run(run_dir, config)
     write_text(run_dir / "config.json", config.to_json() + "\n")
 
     data = build_data(config.data, cache_dir=cache_dir, points_file=run_dir / "points.npz", lenses=lenses,
                       log=say)
     key = data_key(config.data, [ls.lens for ls in data.lenses])
-    if ck is not None and ck["data_key"] != key:
-        raise CheckpointMismatchError(ckpt_path, {"data (a lens's optics or the PSF algorithm)":
-                                                  (ck["data_key"][:12], key[:12])})
+    check_data(ck, ckpt_path, key, "data (a lens's optics or the PSF algorithm)")
     spec = data.spec(**config.arch())
     torch.manual_seed(config.seed)
     model = OLF(spec)
     _init_heads_from_data(model, data)
-    ema = copy.deepcopy(model)
-    for p in ema.parameters():
-        p.requires_grad_(False)
+    ema = make_ema(model)
     opt = torch.optim.AdamW(model.parameters(), lr=config.lr, betas=config.betas,
                             weight_decay=config.weight_decay)
     rng = np.random.default_rng([config.seed, 7])
-    step, history = 0, []
-    if ck is not None:
-        model.load_state_dict(ck["model"])
-        ema.load_state_dict(ck["ema"])
-        opt.load_state_dict(ck["optim"])
-        torch.set_rng_state(ck["torch_rng"])
-        rng.bit_generator.state = json.loads(ck["numpy_rng"])
-        step = int(ck["step"])
-        history = json.loads(ck["history"])
-        say(f"resumed {ckpt_path} at iteration {step} of {config.iters}")
+    step, history = restore(ck, model, ema, opt, rng, say=say, path=ckpt_path, iters=config.iters)
 
     def checkpoint():
-        _save_checkpoint(ckpt_path, {
-            "format": CHECKPOINT_FORMAT, "dcdi_version": __version__, "step": step,
-            "settings": json.dumps(settings, sort_keys=True), "config": config.to_json(), "data_key": key,
-            "model": model.state_dict(), "ema": ema.state_dict(), "optim": opt.state_dict(),
-            "torch_rng": torch.get_rng_state(), "numpy_rng": json.dumps(rng.bit_generator.state),
-            "history": json.dumps(history)})
+        save_checkpoint(ckpt_path, training_state(
+            step=step, settings=settings, config_json=config.to_json(), data_key=key, model=model, ema=ema,
+            opt=opt, rng=rng, history=history))
 
     t0 = time.perf_counter()
-    d = config.ema_decay
-    ema_params = list(ema.parameters())
-    params = list(model.parameters())
     model.train()
     loss_v = float("nan")
     with open(run_dir / "log.jsonl", "a", encoding="utf-8") as logf:
         while step < config.iters:
-            for g in opt.param_groups:
-                g["lr"] = cosine_lr(config, step)
             groups = _groups_to_torch(data.sample(rng, config.batch))
             loss = loss_of(model, groups)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            with torch.no_grad():
-                for pe, p in zip(ema_params, params):
-                    pe.mul_(d).add_(p, alpha=1.0 - d)
+            update(opt, loss, cosine_lr(config, step), model, ema, config.ema_decay)
             step += 1
             loss_v = float(loss.detach())
             if config.validate_every and step % config.validate_every == 0 and step < config.iters:

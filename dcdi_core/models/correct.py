@@ -1,0 +1,108 @@
+"""Aberration correction with a trained DACN (torch), tiled for any size.
+
+``load_dacn(RUN or checkpoint.pt)`` rebuilds the network from the
+checkpoint's spec with its EMA weights (or the raw ones). ``correct(model,
+image, depth_m)``: the image is cut into tiles of ``tile`` px overlapping by
+``overlap`` px; each tile's result is weighted by a ramp over the overlap
+(rising from the tile's edges) and the weighted sum divided by the weights,
+so neighbouring tiles cross-fade and leave no seam; memory is bounded by one
+tile. The depth is encoded once for the whole image (min-max over the whole
+image, not per tile), so tiles share one depth scale. An image that fits one
+tile is one forward pass, exactly as without tiling.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from . import require_torch
+from .data.depth import encode_depth, minmax_stats
+from .errors import ModelFileError
+from ..optics.errors import InputRangeError
+
+torch = require_torch()
+from .arch.dacn import DACN  # noqa: E402
+from .arch.dacn_spec import DACNSpec  # noqa: E402
+from .train.checkpoint import load_checkpoint  # noqa: E402
+
+
+def load_dacn(path, *, weights: str = "ema"):
+    """(model in eval mode, info) from a run folder or its checkpoint.pt."""
+    path = Path(path)
+    ck_path = path / "checkpoint.pt" if path.is_dir() else path
+    ck = load_checkpoint(ck_path)
+    if ck.get("kind") != "dacn":
+        raise ModelFileError(ck_path, "not a DACN checkpoint", field="kind", allowed="dacn")
+    if weights not in ("ema", "model"):
+        raise InputRangeError("weights", weights, "'ema' or 'model'")
+    spec = DACNSpec.from_dict(json.loads(ck["spec"]))
+    model = DACN(spec)
+    model.load_state_dict(ck[weights])
+    model.eval()
+    config = json.loads(ck["config"])
+    da2t = Path(config["data"]) / "da2t.json"
+    info = {"checkpoint": str(ck_path), "step": int(ck["step"]), "spec": spec.as_dict(), "config": config,
+            "weights": weights, "da2t": json.loads(da2t.read_text()) if da2t.exists() else None}
+    return model, info
+
+
+def _ramp(n: int, overlap: int) -> np.ndarray:
+    i = np.arange(n, dtype=np.float64)
+    if overlap <= 0:
+        return np.ones(n)
+    return np.minimum(1.0, np.minimum(i + 0.5, n - i - 0.5) / overlap)
+
+
+def _starts(size: int, tile: int, step: int) -> list[int]:
+    if size <= tile:
+        return [0]
+    s = list(range(0, size - tile, step)) + [size - tile]
+    return sorted(set(s))
+
+
+def correct(model, image, depth_m, *, tile: int = 256, overlap: int = 32, progress=None) -> np.ndarray:
+    """The corrected (H, W, 3) float32 image of ``image`` (H, W, 3) linear
+    with metric ``depth_m`` (H, W). progress(done, total) after each tile."""
+    img = np.asarray(image, dtype=np.float32)
+    if img.ndim != 3 or img.shape[2] != 3:
+        raise InputRangeError("image shape", img.shape, "(H, W, 3)")
+    d = np.asarray(depth_m)
+    if d.shape != img.shape[:2]:
+        raise InputRangeError("depth map shape", d.shape, f"{img.shape[:2]}, the image's")
+    if tile < 8 or not 0 <= overlap < tile // 2 + 1:
+        raise InputRangeError("tile, overlap", (tile, overlap), "tile >= 8, 0 <= overlap <= tile / 2")
+    enc = model.spec.depth_encoding
+    stats = minmax_stats(d) if enc == "minmax" else None
+    dep = encode_depth(d, enc, stats=stats)
+    h, w = d.shape
+    rows, cols = _starts(h, tile, tile - overlap), _starts(w, tile, tile - overlap)
+    total = len(rows) * len(cols)
+
+    def run(r, c, th, tw):
+        x = torch.from_numpy(np.ascontiguousarray(img[r:r + th, c:c + tw].transpose(2, 0, 1)))[None]
+        z = torch.from_numpy(np.ascontiguousarray(dep[r:r + th, c:c + tw]))[None, None]
+        with torch.no_grad():
+            return model(x, z)[0].numpy().transpose(1, 2, 0)
+
+    if total == 1:
+        out = run(0, 0, h, w)
+        if progress:
+            progress(1, 1)
+        return out.astype(np.float32)
+    acc = np.zeros((h, w, 3), np.float64)
+    wsum = np.zeros((h, w, 1), np.float64)
+    done = 0
+    for r in rows:
+        th = min(tile, h)
+        for c in cols:
+            tw = min(tile, w)
+            wt = (_ramp(th, overlap if len(rows) > 1 else 0)[:, None]
+                  * _ramp(tw, overlap if len(cols) > 1 else 0)[None, :])[..., None]
+            acc[r:r + th, c:c + tw] += wt * run(r, c, th, tw)
+            wsum[r:r + th, c:c + tw] += wt
+            done += 1
+            if progress:
+                progress(done, total)
+    return (acc / wsum).astype(np.float32)
