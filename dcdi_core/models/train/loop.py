@@ -49,7 +49,7 @@ class TrainResult:
     ema: object              # its exponential moving average
     data: OLFData
     step: int
-    seconds: float           # training time (this process's steps, data excluded)
+    seconds: float           # training time of the steps to ``step`` (over resumed sessions; data excluded)
     history: list = field(default_factory=list)
     held_out: dict = field(default_factory=dict)   # {"ema": scores, "model": scores}
 
@@ -167,7 +167,7 @@ def train(config: OLFTrainConfig, run_dir, *, cache_dir=None, lenses: dict | Non
     opt = torch.optim.AdamW(model.parameters(), lr=config.lr, betas=config.betas,
                             weight_decay=config.weight_decay)
     rng = np.random.default_rng([config.seed, 7])
-    step, history = 0, []
+    step, history, prior_s = 0, [], 0.0
     if ck is not None:
         model.load_state_dict(ck["model"])
         ema.load_state_dict(ck["ema"])
@@ -176,6 +176,7 @@ def train(config: OLFTrainConfig, run_dir, *, cache_dir=None, lenses: dict | Non
         rng.bit_generator.state = json.loads(ck["numpy_rng"])
         step = int(ck["step"])
         history = json.loads(ck["history"])
+        prior_s = float(ck.get("seconds", 0.0))      # training time of the steps it holds
         say(f"resumed {ckpt_path} at iteration {step} of {config.iters}")
 
     def checkpoint():
@@ -184,7 +185,7 @@ def train(config: OLFTrainConfig, run_dir, *, cache_dir=None, lenses: dict | Non
             "settings": json.dumps(settings, sort_keys=True), "config": config.to_json(), "data_key": key,
             "model": model.state_dict(), "ema": ema.state_dict(), "optim": opt.state_dict(),
             "torch_rng": torch.get_rng_state(), "numpy_rng": json.dumps(rng.bit_generator.state),
-            "history": json.dumps(history)})
+            "history": json.dumps(history), "seconds": prior_s + time.perf_counter() - t0})
 
     t0 = time.perf_counter()
     d = config.ema_decay
@@ -207,7 +208,7 @@ def train(config: OLFTrainConfig, run_dir, *, cache_dir=None, lenses: dict | Non
             step += 1
             loss_v = float(loss.detach())
             if config.validate_every and step % config.validate_every == 0 and step < config.iters:
-                rec = {"step": step, "loss": loss_v, "seconds": time.perf_counter() - t0,
+                rec = {"step": step, "loss": loss_v, "seconds": prior_s + time.perf_counter() - t0,
                        "held_out_ema": evaluate(ema, data)["mean"], "held_out_model": evaluate(model, data)["mean"]}
                 history.append(rec)
                 logf.write(json.dumps(rec) + "\n")
@@ -218,7 +219,7 @@ def train(config: OLFTrainConfig, run_dir, *, cache_dir=None, lenses: dict | Non
                 progress(step, config.iters, loss_v)
             if on_step:
                 on_step(step)
-    seconds = time.perf_counter() - t0
+    seconds = prior_s + time.perf_counter() - t0
     held = {"ema": evaluate(ema, data), "model": evaluate(model, data)}
     rec = {"step": step, "loss": loss_v, "seconds": seconds, "held_out_ema": held["ema"]["mean"],
            "held_out_model": held["model"]["mean"], "final": True}
