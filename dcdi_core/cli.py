@@ -445,9 +445,14 @@ def cmd_olf_train(args) -> int:
     tty = sys.stderr.isatty()
     bar = None
 
+    t_start = time.perf_counter()
+
     def progress(step, total, loss):
         nonlocal bar
-        if not tty:
+        if not tty:           # a log file: one line per checkpoint
+            if step % config.checkpoint_every == 0 or step == total:
+                print(f"olf train: iteration {step}/{total}, loss {loss:.3g}, "
+                      f"{time.perf_counter() - t_start:.0f} s since start", file=sys.stderr, flush=True)
             return
         if bar is None:             # made at the first step, so that its rate is the training's
             try:
@@ -460,8 +465,7 @@ def cmd_olf_train(args) -> int:
         bar.update(step - bar.n)
 
     def log(text):
-        if tty:
-            print(text, file=sys.stderr)
+        print(f"{text} ({time.perf_counter() - t_start:.0f} s since start)", file=sys.stderr, flush=True)
     try:
         result = train(config, run, progress=progress, log=log)
     except KeyboardInterrupt:
