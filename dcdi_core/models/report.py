@@ -97,9 +97,7 @@ def fresh_points(entry: dict, lens, n: int, seed: int):
 
 def lens_figures(olf: OmniLensField, lens, n_points: int, seed: int, log) -> dict:
     """Fresh-point figures of the OLF and of the traced library it learned from."""
-    from .data.psf_samples import crop_normalise
     entry = olf.lens_entry(lens.id)
-    k = int(entry["kernel_size"])
     t = time.perf_counter()
     f, d, ref = fresh_points(entry, lens, n_points, seed)
     t_trace = time.perf_counter() - t
@@ -318,13 +316,13 @@ def plot(result: dict, path) -> None:
                         xytext=(4, -10), textcoords="offset points")
     p = result["paper"]
     ax.scatter(p["megabytes"], p["psnr_8bit"], marker="D", s=50, color="k")
-    ax.annotate(p["label"], (p["megabytes"], p["psnr_8bit"]), fontsize=7, xytext=(-60, 6), textcoords="offset points")
+    ax.annotate(p["label"], (p["megabytes"], p["psnr_8bit"]), fontsize=7, xytext=(-105, 6), textcoords="offset points")
     ax.axvline(24, color="grey", lw=0.8, ls="--")
     ax.text(24, ax.get_ylim()[0], " 24 MB", fontsize=7, color="grey", va="bottom")
     ax.set_xscale("log")
     ax.set_xlabel("storage (MB)")
     ax.set_ylabel("held-out PSF PSNR, 8-bit peak scale (dB)")
-    ax.set_title("Omni-Lens-Field: error against storage\n(sweep: circles float32, squares float16; "
-                 "blue lr 1e-3, orange 3e-4; star: OLF files)", fontsize=8)
+    ax.set_title("Omni-Lens-Field: error against storage\n(sweep, one lens: circles float32, squares float16; "
+                 "blue lr 1e-3, orange 3e-4; stars: OLF files)", fontsize=8)
     ax.grid(True, which="both", alpha=0.3)
     save_figure(fig, path)
