@@ -201,6 +201,38 @@ def _response(args):
     return None
 
 
+def _choose_psf_source(args, lens, *, pixel_pitch_mm, settings, focus_m, extra_reason=None):
+    """The PSF source of a psf / simulate / bokeh request (``--psf-source``,
+    ``--olf``): the OLF where it covers the request, else tracing; says which
+    and why on standard error (one line)."""
+    from .models.errors import ModelError
+    from .models.runtime.library import PSFSource, psf_source
+    if extra_reason is not None and args.psf_source != "trace":
+        if args.psf_source == "olf":
+            raise ModelError(f"--psf-source olf: the Omni-Lens-Field cannot serve this request: {extra_reason}")
+        src = PSFSource("trace", f"PSFs traced: {extra_reason}")
+    else:
+        src = psf_source(lens, source=args.psf_source, olf_file=args.olf, pixel_pitch_mm=pixel_pitch_mm,
+                         settings=settings, kernel_size=args.kernel, focus_m=focus_m,
+                         custom_response=args.response is not None)
+    print(f"dcdi: {src.message}", file=sys.stderr)
+    return src
+
+
+def _psf_from_olf(args, lens, src, settings):
+    """``dcdi psf`` served by the OLF: (kernel (3, k, k), pixel pitch), or
+    None where the request lies outside its ranges (then traced, said why)."""
+    from .models.errors import ModelError, OutsideTrainedRangeError
+    try:
+        kernel = src.library.olf.psf(lens, args.field, args.depth, settings.focus_distance_m)
+    except OutsideTrainedRangeError as e:
+        if args.psf_source == "olf":
+            raise ModelError(f"--psf-source olf: the Omni-Lens-Field cannot serve this request: {e}") from None
+        print(f"dcdi: PSFs traced instead: {e}", file=sys.stderr)
+        return None
+    return kernel.astype("float32"), src.library.pixel_pitch_mm
+
+
 def cmd_psf(args) -> int:
     import numpy as np
     from .atomic import atomic_path
@@ -214,6 +246,27 @@ def cmd_psf(args) -> int:
     settings = _psf_settings(args)
     from .psf.compute import check_psf_memory
     check_psf_memory(settings, 1, 1 if args.wavelength is not None else None)
+    extra = ("a field angle (--angle) was given; the OLF takes a field (--field)" if args.angle is not None else
+             f"a monochromatic kernel (--wavelength {args.wavelength:g}) was asked for; the OLF learned the "
+             "visible band" if args.wavelength is not None else None)
+    src = _choose_psf_source(args, lens, pixel_pitch_mm=pixel_pitch_mm(lens, settings), settings=settings,
+                             focus_m=settings.focus_distance_m, extra_reason=extra)
+    served = _psf_from_olf(args, lens, src, settings) if src.kind == "olf" else None
+    if served is not None:
+        kernel, pitch = served
+        k = kernel.shape[-1]
+        res = {"lens": lens.id, "depth_m": args.depth, "field": args.field, "kernel_size": k,
+               "pixel_pitch_mm": pitch, "psf_source": "olf", "olf_file": src.olf_file,
+               "channel_sums": [float(v) for v in kernel.sum(axis=(-1, -2))]}
+        if args.out:
+            with atomic_path(args.out) as tmp:
+                with open(tmp, "wb") as f:
+                    np.savez(f, psf=kernel, pixel_pitch_mm=np.float64(pitch))
+        if args.png:
+            psf_grid_png(kernel[None, None], [f"field {args.field}"], [depth_label(args.depth)], args.png,
+                         f"{lens.name} (OLF)", pitch)
+        print(_dump(res) if args.json else "\n".join(f"{k_:<22} {v}" for k_, v in res.items()))
+        return 0
     r = psf(lens, depth_m=args.depth, field=args.field, angle_deg=args.angle, settings=settings,
             response=_response(args), wavelength_nm=args.wavelength)
     pitch = pixel_pitch_mm(lens, settings)
@@ -226,7 +279,7 @@ def cmd_psf(args) -> int:
         "wavelength_nm": args.wavelength, "kernel_size": settings.kernel_size, "pixel_pitch_mm": pitch,
         "chief_ray_height_mm": float(r.chief_ray_height_mm),
         "relative_illumination": float(r.relative_illumination),
-        "energy_outside": float(r.energy_outside.max()),
+        "energy_outside": float(r.energy_outside.max()), "psf_source": "trace",
     }
     for c, name in enumerate("RGB"):
         res[name] = {"centroid_mm": [float(v) for v in r.centroid_mm[c]],
@@ -434,8 +487,11 @@ def cmd_simulate(args) -> int:
         from .optics.perturb import perturb_lens
         lens, record = perturb_lens(lens, seed=args.perturb, fraction=args.perturb_fraction)
     noise = {"full_well_electrons": args.full_well, "read_noise_electrons": args.read_noise} if args.noise else None
+    src = _choose_psf_source(args, lens, pixel_pitch_mm=geom.pixel_pitch_mm, settings=settings,
+                             focus_m=settings.focus_distance_m)
     # without --kernel, the kernel grows to hold the PSFs this depth map needs
-    sim = LensSimulator(lens, geom, source_geometry=source, settings=settings,
+    # (an OLF's kernels hold 99 % of the energy over its whole depth range)
+    sim = LensSimulator(lens, geom, source_geometry=source, settings=settings, library=src.library,
                         response=response, patch=args.patch, distortion=not args.no_distortion,
                         interpolation=args.interpolation, fit_depth_m=None if args.kernel else depth,
                         progress=psf_progress("PSFs"))
@@ -447,7 +503,8 @@ def cmd_simulate(args) -> int:
     if args.sharp_out:
         write_image(args.sharp_out, r.sharp)
     steps.done()
-    print(_dump({"output": args.output, **r.info, "perturbation": record}))
+    print(_dump({"output": args.output, **r.info, "perturbation": record, "psf_source": src.kind,
+                 "olf_file": src.olf_file if src.kind == "olf" else None}))
     return 0
 
 
@@ -459,11 +516,13 @@ def cmd_bokeh(args) -> int:
     steps = Steps("dcdi bokeh")
     steps.start("PSF library (built once per lens, focus and setting, then read from the cache), then the blur")
     keep = tuple(args.keep) if args.keep else None
+    focus_m = None if args.focus in (None, "prescribed") else args.focus
+    src = _choose_psf_source(args, lens, pixel_pitch_mm=geom.pixel_pitch_mm, settings=settings, focus_m=focus_m)
     with _quiet_input_warnings():
         r = bokeh(img, depth, lens, keep=keep, focus_m=args.focus, geometry=geom, source_geometry=source,
                   distortion=args.distort, interpolation=args.interpolation, patch=args.patch,
                   occlusion=not args.plain, settings=settings, response=response, fit_kernel=not args.kernel,
-                  progress=psf_progress("PSFs"), layer_progress=bar("depth layers", "layer"))
+                  library=src.library, progress=psf_progress("PSFs"), layer_progress=bar("depth layers", "layer"))
     steps.start("writing")
     write_image(args.output, r.image)
     if args.side_by_side:
@@ -473,7 +532,8 @@ def cmd_bokeh(args) -> int:
         side_by_side(args.side_by_side, img if r.sharp is None else r.sharp,
                      depth if r.depth is None else r.depth, r.image, f"{lens.name}: {what}")
     steps.done()
-    print(_dump({"output": args.output, **r.info}))
+    print(_dump({"output": args.output, **r.info, "psf_source": src.kind,
+                 "olf_file": src.olf_file if src.kind == "olf" else None}))
     return 0
 
 
@@ -487,6 +547,11 @@ def cmd_report_sim(args) -> int:
     return run_report(args.lens, args.out, quick=args.quick)
 
 
+def cmd_report_olf(args) -> int:
+    from .models.report import run_report
+    return run_report(args.olf, args.out, quick=args.quick, sweep=args.sweep)
+
+
 def cmd_bench(args) -> int:
     from . import bench
     return bench.run(args.what, args)
@@ -498,17 +563,22 @@ def cmd_demo(args) -> int:
 
 
 # ------------------------------------------------------- olf (dcdi_core.models)
-def _progress_bar(desc: str):
+def _progress_bar(desc: str, every: int = 0):
     """(progress(step, total, loss), log(text), close()) for a training run:
     a tqdm bar on a terminal, made at the first step so that its rate is the
-    training's (a resumed run starts at its step); nothing without a
-    terminal or without tqdm."""
+    training's (a resumed run starts at its step); off a terminal (a
+    background run's log) one line every ``every`` steps and at the end, and
+    the run's own messages."""
     tty = sys.stderr.isatty()
     bar = None
+    t_start = time.perf_counter()
 
     def progress(step, total, loss):
         nonlocal bar
         if not tty:
+            if every and (step % every == 0 or step == total):
+                print(f"{desc}: iteration {step}/{total}, loss {loss:.3g}, "
+                      f"{time.perf_counter() - t_start:.0f} s since start", file=sys.stderr, flush=True)
             return
         if bar is None:
             try:
@@ -520,8 +590,10 @@ def _progress_bar(desc: str):
         bar.update(step - bar.n)
 
     def log(text):
-        if tty:
-            (bar.write if bar is not None else lambda t: print(t, file=sys.stderr))(text)
+        if bar is not None:
+            bar.write(text)
+        else:
+            print(f"{text} ({time.perf_counter() - t_start:.0f} s since start)", file=sys.stderr, flush=True)
 
     def close():
         if bar is not None:
@@ -529,10 +601,10 @@ def _progress_bar(desc: str):
     return progress, log, close
 
 
-def _run_training(desc: str, run, train_fn):
+def _run_training(desc: str, run, train_fn, every: int = 0):
     """train_fn(progress=..., log=...) under a progress bar; None (after
     saying how to resume) when interrupted."""
-    progress, log, close = _progress_bar(desc)
+    progress, log, close = _progress_bar(desc, every)
     try:
         result = train_fn(progress=progress, log=log)
     except KeyboardInterrupt:
@@ -559,50 +631,70 @@ def cmd_olf_train(args) -> int:
     from .models.export import export_olf               # torch from here on
     from .models.train.loop import train
     run = Path(args.run or (str(args.output) + ".run"))
-    result = _run_training("olf train", run, lambda **kw: train(config, run, **kw))
+    result = _run_training("olf train", run, lambda **kw: train(config, run, **kw), config.checkpoint_every)
     if result is None:
         return 130
-    meta = export_olf(result, args.output, weights=args.weights)
+    meta = export_olf(result, args.output, weights=args.weights, dtype=args.dtype)
     h = meta["held_out"]["mean"]
     rate = result.step / result.seconds if result.seconds > 0 else float("nan")
     print(f"wrote {args.output} ({meta['parameters']} parameters, {os.path.getsize(args.output)} bytes; "
           f"run folder {run})")
     print(f"held-out ({args.weights}): PSNR {h['psnr_8bit']:.2f} dB (8-bit, peak scale), SSIM "
           + (f"{h['ssim_8bit']:.4f}" if h["ssim_8bit"] is not None else "n/a")
-          + f", relative L1 {h['rel_l1']:.4f}; {result.seconds:.1f} s here ({rate:.1f} it/s)")
+          + f", relative L1 {h['rel_l1']:.4f}; {result.seconds:.1f} s of training ({rate:.1f} it/s; PSF data not included)")
     return 0
 
 
 def cmd_olf_info(args) -> int:
+    from .models.runtime.library import WEIGHTS_DIR, shipped_olf_files
     from .models.runtime.olf import OmniLensField
     from .optics.lens import load_lens
-    olf = OmniLensField.load(args.file)
-    info = olf.info()
-    for entry in info["lenses"]:
-        try:
-            entry["prescription"] = "current" if olf.covers(load_lens(entry["id"])) else "differs (not served)"
-        except Exception as e:  # noqa: BLE001 - a lens that no longer loads is reported, not fatal
-            entry["prescription"] = f"not loadable ({e})"
-    if args.json:
-        print(_dump(info))
+    files = args.file or shipped_olf_files()
+    if not files:
+        print(f"no OLF file ships with this engine ({WEIGHTS_DIR} holds none); give one: dcdi olf info FILE.npz")
         return 0
-    print(f"{info['file']}: {info['variant']} Omni-Lens-Field, {info['hidden_layers']} hidden layers x "
-          f"{info['width']}, {info['parameters']} parameters ({info['dtype']}, {info['weights']} weights), "
-          f"{info['bytes']} bytes")
+    infos = []
+    for path in files:
+        olf = OmniLensField.load(path)
+        info = olf.info()
+        info["shipped"] = not args.file
+        for entry in info["lenses"]:
+            try:
+                entry["prescription"] = "current" if olf.covers(load_lens(entry["id"])) else "differs (not served)"
+            except Exception as e:  # noqa: BLE001 - a lens that no longer loads is reported, not fatal
+                entry["prescription"] = f"not loadable ({e})"
+        infos.append(info)
+    if args.json:
+        print(_dump(infos[0] if args.file and len(infos) == 1 else infos))
+        return 0
+    for info in infos:
+        _print_olf_info(info)
+    return 0
+
+
+def _print_olf_info(info) -> None:
+    print(f"{info['file']}{' (shipped)' if info.get('shipped') else ''}: {info['variant']} Omni-Lens-Field, "
+          f"{info['hidden_layers']} hidden layers x {info['width']}, {info['parameters']} parameters "
+          f"({info['dtype']}, {info['weights']} weights), {info['bytes']} bytes")
+    per = ((info["held_out"] or {}).get("lenses")) or {}
     for e in info["lenses"]:
         focus = f", focus {e['focus_range_m']} m" if e["focus_range_m"] else ""
+        h = per.get(e["id"])
+        fig = (f"; held-out {h['psnr_8bit']:.2f} dB, SSIM "
+               + (f"{h['ssim_8bit']:.4f}" if h.get("ssim_8bit") is not None else "n/a")
+               + f", rel. L1 {h['rel_l1']:.4f}") if h else ""
         print(f"  {e['id']:<14} k = {e['kernel_size']}, pitch {e['pixel_pitch_mm'] * 1000:.3g} um, "
-              f"depth {e['depth_range_m'][0]}-{e['depth_range_m'][1]} m{focus}; prescription {e['prescription']}")
+              f"depth {e['depth_range_m'][0]}-{e['depth_range_m'][1]} m{focus}; prescription "
+              f"{e['prescription']}{fig}")
     h = (info["held_out"] or {}).get("mean")
     if h:
         ssim = f"{h['ssim_8bit']:.4f}" if h["ssim_8bit"] is not None else "n/a"
-        print(f"  held-out: PSNR {h['psnr_8bit']:.2f} dB (8-bit, peak scale), SSIM {ssim}, "
-              f"relative L1 {h['rel_l1']:.4f}")
+        print(f"  held-out (mean over lenses): PSNR {h['psnr_8bit']:.2f} dB (8-bit, peak scale), SSIM {ssim}, "
+              f"relative L1 {h['rel_l1']:.4f}, PSNR {h['psnr_sum']:.2f} dB (sum-normalised)")
     t = info["training"] or {}
     if t:
         print(f"  trained {t.get('iterations')} iterations in {t.get('seconds', 0):.0f} s; checksum "
               f"{info['checksum'][:16]}...")
-    return 0
 
 
 def add_olf_commands(sub) -> None:
@@ -628,6 +720,9 @@ def add_olf_commands(sub) -> None:
     t.add_argument("--run", default=None, help="run folder for checkpoints (default OUTPUT.run)")
     t.add_argument("--checkpoint-every", type=_positive_int, default=500, help="iterations between checkpoints")
     t.add_argument("--weights", choices=["ema", "model"], default="ema", help="which weights to export")
+    t.add_argument("--dtype", choices=["float32", "float16"], default="float32",
+                   help="how the exported weights are stored (float16 halves the file; the runtime computes in "
+                        "float32 and the held-out figures printed are the stored file's)")
     t.add_argument("--offgrid", type=int, default=256, help="traced off-grid training points per lens")
     t.add_argument("--held-out", type=_positive_int, default=64, help="traced held-out points per lens")
     t.add_argument("--rays", type=_positive_int, default=64, help="pupil samples per side (PSF settings)")
@@ -639,7 +734,7 @@ def add_olf_commands(sub) -> None:
                    help="focus distances learned (m, default 0.7 10)")
     t.set_defaults(func=cmd_olf_train)
     i = osub.add_parser("info", help="what an exported OLF holds: lenses, sizes, held-out figures")
-    i.add_argument("file", help="an exported OLF (.npz)")
+    i.add_argument("file", nargs="*", help="exported OLF files (.npz); default: the shipped ones")
     i.add_argument("--json", action="store_true", help="machine-readable output")
     i.set_defaults(func=cmd_olf_info)
 
@@ -688,7 +783,7 @@ def cmd_train_dacn(args) -> int:
                              checkpoint_every=args.checkpoint_every, validate_every=args.validate_every)
     from .models.train.dacn_loop import train_dacn       # torch from here on
     run = Path(args.output)
-    result = _run_training("dacn train", run, lambda **kw: train_dacn(config, run, **kw))
+    result = _run_training("dacn train", run, lambda **kw: train_dacn(config, run, **kw), config.checkpoint_every)
     if result is None:
         return 130
     v = result.validation["ema"].get("mean")
@@ -869,6 +964,15 @@ def build_parser() -> argparse.ArgumentParser:
         q.add_argument("--response", default=None, metavar="CSV",
                        help="sensor spectral response CSV (wavelength_nm,r,g,b); default: shipped curves")
 
+    def psf_source_options(q):
+        q.add_argument("--psf-source", choices=["olf", "trace"], default=None,
+                       help="where the PSFs come from: the Omni-Lens-Field (an error if it cannot serve the "
+                            "request) or ray tracing; default: the OLF where it covers the lens (its learned "
+                            "prescription) and the request (depth range, pixel pitch, focus, PSF settings), "
+                            "else tracing; a line on standard error says which and why")
+        q.add_argument("--olf", default=None, metavar="FILE.npz",
+                       help="the OLF file to serve PSFs from (default: the one shipped in dcdi_core/models/weights)")
+
     q = sub.add_parser("psf", help="the RGB PSF of one field and depth",
                        description="RGB PSF on the sensor's pixel grid, centred on the chief ray. " + UNITS)
     q.add_argument("lens", help="lens id or .toml path")
@@ -882,6 +986,7 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--png", default=None, metavar="FILE.png", help="write a picture of the kernel")
     q.add_argument("--json", action="store_true", help="print JSON")
     psf_options(q)
+    psf_source_options(q)
     q.set_defaults(func=cmd_psf)
 
     q = sub.add_parser("psflib", help="PSF libraries (fields x depths): build, show")
@@ -936,6 +1041,7 @@ def build_parser() -> argparse.ArgumentParser:
         q.add_argument("--interpolation", default=DEFAULT_INTERPOLATION, choices=INTERPOLATIONS,
                        help=f"how the distortion warp resamples the image (default {DEFAULT_INTERPOLATION})")
         psf_options(q, focus=q.prog.split()[-1] != "bokeh", render=True)
+        psf_source_options(q)
 
     q = sub.add_parser("simulate", help="depth-aware aberration simulation of an all-in-focus RGB-D image",
                        description="Patch-wise depth-aware PSF convolution, lens distortion, optional noise. " + UNITS)
@@ -979,6 +1085,14 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", default="out/report", help="folder for the table (Markdown)")
     r.add_argument("--quick", action="store_true", help="a small image and sweep (for tests)")
     r.set_defaults(func=cmd_report_sim)
+    r = rsub.add_parser("olf", help="Omni-Lens-Field: PSF error vs storage and time, PSF-map time, downstream images")
+    r.add_argument("--olf", action="append", default=None, metavar="FILE.npz",
+                   help="an OLF file (repeat for several; default: the shipped ones)")
+    r.add_argument("--sweep", default=None, metavar="RESULTS.jsonl",
+                   help="rows of the size x learning-rate sweep (out/sweep/results.jsonl) for the table and plot")
+    r.add_argument("--out", default="out/report", help="folder for the table (Markdown), JSON and plot (PNG)")
+    r.add_argument("--quick", action="store_true", help="few points and small images (for tests)")
+    r.set_defaults(func=cmd_report_olf)
 
     q = sub.add_parser("bench", help="benchmarks (times, not tests)",
                        description="Benchmarks of the engine; the dataset factory's is `python build.py bench "

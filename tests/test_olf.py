@@ -343,3 +343,28 @@ def test_cli_train_and_info(cache, tmp_path, monkeypatch, capsys):
     assert info["training"]["iterations"] == 3
     assert main(argv[:-2] + ["--held-out", "5"]) == 2       # the run folder holds other settings
     assert "held_out" in capsys.readouterr().err
+
+
+def test_float16_file_matches_torch_with_its_rounded_weights(exported, tmp_path):
+    import copy
+    from dcdi_core.models.export import export_olf
+    result, _ = exported["radial"]
+    meta = export_olf(result, tmp_path / "h.npz", dtype="float16")
+    olf = OmniLensField.load(tmp_path / "h.npz")
+    assert meta["dtype"] == "float16" and all(a.dtype == np.float16 for a in olf._trunk[0])
+    assert (tmp_path / "h.npz").stat().st_size < 0.6 * exported["radial"][1].stat().st_size
+    rounded = copy.deepcopy(result.ema)
+    with torch.no_grad():
+        for p in rounded.parameters():
+            p.copy_(p.half().double())
+    rng = np.random.default_rng(1)
+    x = encode_radial(olf.spec, 0, rng.uniform(0, 1, 32), rng.uniform(0, 1 / 0.7, 32))
+    with torch.no_grad():
+        ref = rounded.double()(torch.tensor(x, dtype=torch.float64), 0).numpy()
+        full = result.ema.double()(torch.tensor(x, dtype=torch.float64), 0).numpy()
+        result.ema.float()
+    got = olf.forward(x, 0, np.float64)
+    assert np.abs(got - ref).max() < 1e-5                       # the runtime: torch's forward on the stored weights
+    assert np.abs(got - full).max() < 1e-2 * full.max()          # what float16 storage itself changes
+    # the figures recorded are the stored file's (the runtime's), torch's beside them
+    assert meta["held_out"]["mean"]["psnr_8bit"] == pytest.approx(meta["held_out_torch"]["mean"]["psnr_8bit"], abs=0.5)

@@ -23,6 +23,9 @@ from .runtime.olf import FORMAT, FORMAT_VERSION, checksum
 
 torch = require_torch()
 
+# storage dtypes; the runtime computes in float32 (or float64) whatever the file holds
+DTYPES = ("float32", "float16", "float64")
+
 
 def olf_arrays(module, dtype="float32") -> tuple[dict, dict]:
     """(arrays, network description) of an ``arch.olf.OLF`` module."""
@@ -41,13 +44,30 @@ def olf_arrays(module, dtype="float32") -> tuple[dict, dict]:
     return arrays, {"trunk": trunk, "heads": heads, "activation": "relu", "output": out}
 
 
+def stored_held_out(meta: dict, arrays: dict, data) -> dict:
+    """The held-out figures of the stored arrays (``dtype`` as written), served
+    by the numpy runtime: what a user of the file gets."""
+    from .metrics import psf_scores
+    from .runtime.olf import OmniLensField
+    olf = OmniLensField(meta, arrays)
+    scale = "peak" if olf.variant == "paper" else "sum"
+    per = {ls.lens.id: psf_scores(olf.forward(ls.val_x, li, np.float64), ls.val_y, scale=scale)
+           for li, ls in enumerate(data.lenses)}
+    keys = [k for k in next(iter(per.values())) if k != "n"]
+    mean = {k: (float(np.mean([v[k] for v in per.values()])) if all(v[k] is not None for v in per.values())
+                else None) for k in keys}
+    return {"mean": mean, "lenses": per}
+
+
 def export_olf(result, path, *, weights: str = "ema", dtype: str = "float32") -> dict:
     """Write the trained run ``result`` (``train.loop.TrainResult``) to ``path``
-    (atomically); returns the metadata."""
+    (atomically); returns the metadata. ``dtype``: how the arrays are stored
+    (float16 halves the file; the held-out figures recorded are then those of
+    the stored weights, measured with the numpy runtime)."""
     if weights not in ("ema", "model"):
         raise ValueError(f"weights = {weights!r}; allowed: 'ema' or 'model'")
-    if dtype not in ("float32", "float64"):
-        raise ValueError(f"dtype = {dtype!r}; allowed: 'float32' or 'float64'")
+    if dtype not in DTYPES:
+        raise ValueError(f"dtype = {dtype!r}; allowed: {', '.join(map(repr, DTYPES))}")
     module = result.ema if weights == "ema" else result.model
     arrays, network = olf_arrays(module, dtype)
     cfg = result.config
@@ -58,8 +78,9 @@ def export_olf(result, path, *, weights: str = "ema", dtype: str = "float32") ->
         "lenses": result.data.lens_metadata(),
         "training": {"config": cfg.as_dict(), "iterations": result.step, "seconds": result.seconds,
                      "torch": torch.__version__},
-        "held_out": result.held_out.get(weights),
+        "held_out_torch": result.held_out.get(weights),
     }
+    meta["held_out"] = stored_held_out(meta, arrays, result.data)
     meta["checksum"] = checksum(meta, arrays)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:

@@ -43,7 +43,7 @@ class TrainResult:
     ema: object              # its exponential moving average
     data: OLFData
     step: int
-    seconds: float           # training time (this process's steps, data excluded)
+    seconds: float           # training time of the steps to ``step`` (over resumed sessions; data excluded)
     history: list = field(default_factory=list)
     held_out: dict = field(default_factory=dict)   # {"ema": scores, "model": scores}
 
@@ -132,11 +132,12 @@ def train(config: OLFTrainConfig, run_dir, *, cache_dir=None, lenses: dict | Non
                             weight_decay=config.weight_decay)
     rng = np.random.default_rng([config.seed, 7])
     step, history = restore(ck, model, ema, opt, rng, say=say, path=ckpt_path, iters=config.iters)
+    prior_s = 0.0 if ck is None else float(ck.get("seconds", 0.0))   # training time of the steps it holds
 
     def checkpoint():
         save_checkpoint(ckpt_path, training_state(
             step=step, settings=settings, config_json=config.to_json(), data_key=key, model=model, ema=ema,
-            opt=opt, rng=rng, history=history))
+            opt=opt, rng=rng, history=history, seconds=prior_s + time.perf_counter() - t0))
 
     t0 = time.perf_counter()
     model.train()
@@ -149,7 +150,7 @@ def train(config: OLFTrainConfig, run_dir, *, cache_dir=None, lenses: dict | Non
             step += 1
             loss_v = float(loss.detach())
             if config.validate_every and step % config.validate_every == 0 and step < config.iters:
-                rec = {"step": step, "loss": loss_v, "seconds": time.perf_counter() - t0,
+                rec = {"step": step, "loss": loss_v, "seconds": prior_s + time.perf_counter() - t0,
                        "held_out_ema": evaluate(ema, data)["mean"], "held_out_model": evaluate(model, data)["mean"]}
                 history.append(rec)
                 logf.write(json.dumps(rec) + "\n")
@@ -160,7 +161,7 @@ def train(config: OLFTrainConfig, run_dir, *, cache_dir=None, lenses: dict | Non
                 progress(step, config.iters, loss_v)
             if on_step:
                 on_step(step)
-    seconds = time.perf_counter() - t0
+    seconds = prior_s + time.perf_counter() - t0
     held = {"ema": evaluate(ema, data), "model": evaluate(model, data)}
     rec = {"step": step, "loss": loss_v, "seconds": seconds, "held_out_ema": held["ema"]["mean"],
            "held_out_model": held["model"]["mean"], "final": True}

@@ -1,0 +1,206 @@
+"""An Omni-Lens-Field as a PSF source for the renderer (numpy only).
+
+``render.psfmap.psf_map`` reads a PSF library's interface (``grid``,
+``fields``, ``kernel_size``, ``depth_bins``, ``field_weights``,
+``bins_needed``, ``ensure``, ``psf``, ``computed``; ``pixel_pitch_mm`` and
+``settings`` for the simulator's checks). :class:`OLFLibrary` is a
+``PSFLibrary`` whose bins are filled by the OLF's forward pass instead of
+ray tracing, at the same grid, so the renderer needs no change and never
+imports ``models`` (DESIGN.md: the caller hands it a PSF source).
+
+:func:`psf_source` decides which source serves a request: the OLF where it
+covers it (the lens's optical fingerprint is the learned one; the PSF
+settings, spectral response, pixel pitch and focus are those it learned;
+the grid lies within its ranges), else tracing; either way it says which
+and why in one line.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from ...optics.errors import InputRangeError
+from ...psf.compute import PSFSettings
+from ...psf.library import LibraryGrid, PSFLibrary
+from ..errors import LensMismatchError, ModelError
+from .olf import OmniLensField
+
+WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights"
+SHIPPED = WEIGHTS_DIR / "olf-radial.npz"
+PITCH_RTOL = 1e-6
+SOURCES = ("olf", "trace")
+
+
+def shipped_olf_files() -> list[Path]:
+    """The OLF files that ship with the engine (``dcdi_core/models/weights``)."""
+    return sorted(WEIGHTS_DIR.glob("*.npz")) if WEIGHTS_DIR.is_dir() else []
+
+
+class OLFLibrary(PSFLibrary):
+    """A PSF library of one lens whose bins come from an Omni-Lens-Field.
+
+    Same grid semantics as the traced library (fields along sensor +y,
+    kernel rows along the radial direction, depth bins uniform in diopters
+    plus infinity, linear interpolation between them); ``ensure`` runs the
+    network for the bins asked for (all fields of a bin at once) and never
+    traces. ``last_network_s`` is the time of the forward passes so far."""
+
+    def __init__(self, olf: OmniLensField, lens, grid: LibraryGrid | None = None, *,
+                 pixel_pitch_mm: float | None = None, focus_m: float | None = None):
+        li = olf.check_lens(lens)               # refuses another prescription
+        entry = olf.lens_entry(lens.id)
+        if grid is None:       # the grid of the traced library it learned from
+            grid = LibraryGrid(**entry["library_grid"]) if entry.get("library_grid") else LibraryGrid()
+        near, far = entry["depth_range_m"]
+        if grid.near_m < near - 1e-9 or grid.far_m > far + 1e-9:
+            raise InputRangeError("library grid depths", (grid.near_m, grid.far_m),
+                                  f"within the OLF's trained [{near}, {far}] m ({olf.path})")
+        k = int(entry["kernel_size"])
+        s = dict(entry["psf_settings"])
+        s["band_nm"] = tuple(s["band_nm"])
+        settings = replace(PSFSettings(**s), kernel_size=k, focus_distance_m=focus_m,
+                           pixel_pitch_mm=entry["pixel_pitch_mm"])
+        self.olf, self.lens_index, self.focus_m = olf, li, focus_m
+        self.last_network_s = 0.0
+        meta = {"format": "olf", "algorithm": entry.get("psf_algorithm"), "lens_id": lens.id,
+                "lens_file": str(lens.path), "lens_fingerprint": entry["fingerprint"],
+                "settings": settings.as_dict(), "grid": {"n_fields": grid.n_fields, "n_depths": grid.n_depths,
+                                                         "near_m": grid.near_m, "far_m": grid.far_m},
+                "pixel_pitch_mm": float(entry["pixel_pitch_mm"]), "wavelengths_nm": [],
+                "response": {"sha256": "olf:" + str(olf.meta.get("checksum"))}, "olf_file": olf.path}
+        super().__init__(lens, settings, grid, None, meta=meta)
+        if pixel_pitch_mm is not None and not math.isclose(pixel_pitch_mm, self.pixel_pitch_mm, rel_tol=PITCH_RTOL):
+            raise InputRangeError("pixel pitch", pixel_pitch_mm,
+                                  f"{self.pixel_pitch_mm:.6g} mm, the pitch {olf.path} learned {lens.id} at")
+
+    def ensure(self, depth_m=None, *, bins=None, clamp_near: bool = False, progress=None) -> list[int]:
+        want = np.asarray(bins if bins is not None else self.bins_needed(depth_m, clamp_near=clamp_near), int)
+        todo = [int(b) for b in want if not self.computed[b]]
+        if not todo:
+            return []
+        t = time.perf_counter()
+        depths = self.depths_m[todo]
+        kernels = self.olf.psf(self.lens, self.fields[None, :], depths[:, None], self.focus_m)
+        self.last_network_s += time.perf_counter() - t
+        for j, b in enumerate(todo):
+            self.psf[b] = kernels[j]
+            self.computed[b] = True
+        # what the traced library records beside its kernels: the OLF learned
+        # kernels that hold (at least) its energy fraction, renormalised to 1
+        self.energy_outside[todo] = 0.0
+        self.kernel_size_needed[todo] = self.kernel_size
+        if progress:
+            progress(len(todo) * len(self.fields), len(todo) * len(self.fields))
+        return todo
+
+    def save(self, path) -> None:        # nothing to cache: the network is the store
+        raise ModelError("an OLF-backed library is not saved; it is computed from the OLF file")
+
+
+@dataclass
+class PSFSource:
+    """Which PSF source serves a request: ``kind`` 'olf' (with its library)
+    or 'trace' (library None: the caller opens a traced one), and why."""
+
+    kind: str
+    message: str
+    library: OLFLibrary | None = None
+    olf_file: str | None = None
+
+
+def _settings_differences(entry: dict, settings: PSFSettings | None) -> list[str]:
+    """What in ``settings`` differs from the PSF settings the OLF learned
+    (kernel size, pixel pitch and focus are checked apart)."""
+    if settings is None:
+        return []
+    learned = dict(entry["psf_settings"])
+    asked = settings.as_dict()
+    out = []
+    for key, v in asked.items():
+        if key in ("kernel_size", "pixel_pitch_mm", "focus_distance_m"):
+            continue
+        have = learned.get(key)
+        if isinstance(have, list):
+            have = list(have)
+            v = list(v)
+        if have != v:
+            out.append(f"{key} {v!r} (it learned {have!r})")
+    return out
+
+
+def psf_source(lens, *, source: str | None = None, olf_file=None, pixel_pitch_mm: float | None = None,
+               settings: PSFSettings | None = None, kernel_size: int | None = None, focus_m=None,
+               custom_response: bool = False, grid: LibraryGrid | None = None,
+               need_field: bool = True) -> PSFSource:
+    """The PSF source for ``lens`` and a request: ``source`` 'olf' (the OLF,
+    or an error saying why it cannot serve), 'trace', or None (the OLF where
+    it covers the request, else tracing). ``olf_file``: the OLF (default: the
+    shipped one). The request: the image's pixel pitch (None: the lens's
+    sensor), the PSF settings asked for, an explicit kernel size, a focus
+    distance (None: as prescribed), a custom spectral response."""
+    if source not in (None,) + SOURCES:
+        raise InputRangeError("psf source", source, "olf, trace, or none (the OLF where it covers the request)")
+    if source == "trace":
+        return PSFSource("trace", "PSFs traced (--psf-source trace)")
+    path = Path(olf_file) if olf_file else (SHIPPED if SHIPPED.exists() else None)
+    reason = None
+    lib = None
+    if path is None:
+        reason = "no OLF file ships with this engine and none was given (--olf)"
+    else:
+        try:
+            olf = OmniLensField.load(path)
+            reason = _why_not(olf, lens, pixel_pitch_mm, settings, kernel_size, focus_m, custom_response)
+            if reason is None:
+                lib = OLFLibrary(olf, lens, grid, pixel_pitch_mm=pixel_pitch_mm, focus_m=focus_m)
+        except (LensMismatchError, ModelError, InputRangeError) as e:
+            reason = str(e)
+    if lib is not None:
+        k = lib.kernel_size
+        return PSFSource("olf", f"PSFs from the Omni-Lens-Field {path} ({lens.id}: its learned prescription, "
+                                f"{lib.pixel_pitch_mm * 1000:.4g} um pixels, {k} x {k} px, "
+                                + ("prescribed focus" if focus_m is None else f"focus {focus_m:g} m") + ")",
+                         lib, str(path))
+    if source == "olf":
+        raise ModelError(f"--psf-source olf: the Omni-Lens-Field cannot serve this request: {reason}")
+    return PSFSource("trace", f"PSFs traced: {reason}", None, None if path is None else str(path))
+
+
+def _why_not(olf: OmniLensField, lens, pitch, settings, kernel_size, focus_m, custom_response) -> str | None:
+    """None if ``olf`` covers the request, else the reason (one phrase)."""
+    if olf.variant != "radial":
+        return f"{olf.path} is a {olf.variant!r} OLF (the renderer takes radial ones)"
+    if lens.id not in olf.lens_ids:
+        return f"{olf.path} did not learn lens {lens.id!r} (it learned {', '.join(olf.lens_ids)})"
+    if not olf.covers(lens):
+        return (f"{lens.id} ({lens.path}) differs optically from the prescription {olf.path} learned "
+                "(changed prescription: not served)")
+    entry = olf.lens_entry(lens.id)
+    learned = float(entry["pixel_pitch_mm"])
+    if pitch is not None and not math.isclose(pitch, learned, rel_tol=PITCH_RTOL):
+        return (f"the image's pixel pitch {pitch * 1000:.6g} um is not the {learned * 1000:.6g} um {olf.path} "
+                f"learned {lens.id} at")
+    k = int(entry["kernel_size"])
+    if kernel_size is not None and kernel_size != k:
+        return f"a {kernel_size} px kernel was asked for; {olf.path} serves {lens.id} at {k} px"
+    if custom_response:
+        return "a custom spectral response was given; the OLF learned the shipped one"
+    diff = _settings_differences(entry, settings)
+    if diff:
+        return "PSF settings differ from the learned ones: " + "; ".join(diff)
+    fr = entry.get("focus_range_m")
+    if focus_m is not None:
+        if not fr:
+            return f"focus {focus_m:g} m asked for; {olf.path} learned {lens.id} at its prescribed focus only"
+        if not (fr[0] - 1e-9 <= focus_m <= fr[1] + 1e-9):
+            return f"focus {focus_m:g} m is outside the learned {fr[0]}-{fr[1]} m"
+    elif fr:
+        return f"{olf.path} learned {lens.id} across focus distances; give one"
+    return None
+
+
+__all__ = ["OLFLibrary", "PSFSource", "psf_source", "shipped_olf_files", "SHIPPED", "WEIGHTS_DIR", "SOURCES"]

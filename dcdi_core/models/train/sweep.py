@@ -1,0 +1,91 @@
+"""The sweep that chose the shipped Omni-Lens-Field: size x learning rate on
+one lens (radial variant, MOS-S1), 1 thread, about the same wall time per
+size (iterations from each size's measured speed: tiny 20, small 9.8,
+medium 5.1 it/s), held-out figures of the EMA weights, each run exported in
+float32 and float16 (the figures of the stored files, by the numpy runtime,
+and their largest difference from torch's PSFs).
+
+    python -m dcdi_core.models.train.sweep OUT_DIR
+
+writes OUT_DIR/results.jsonl (one JSON record per run, appended as each
+ends; `dcdi report olf --sweep OUT_DIR/results.jsonl` tabulates and plots
+them) and each run's folder and files. A killed sweep run again resumes.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import sys
+import time
+
+import numpy as np
+
+from .. import require_torch
+
+torch = require_torch()
+
+from ..arch.spec import OLFSpec  # noqa: E402
+from ..data.psf_samples import PSFDataConfig, build_data  # noqa: E402
+from ..export import export_olf  # noqa: E402
+from ..runtime.olf import OmniLensField  # noqa: E402
+from .config import OLFTrainConfig  # noqa: E402
+from .loop import train  # noqa: E402
+
+ITERS = {"tiny": 2400, "small": 1200, "medium": 600}        # ~2 minutes each on one core
+RATES = (1e-3, 3e-4)
+PAPER_LENSES = (("mos-s1", 41), ("mos-s2", 47), ("double-gauss", 129), ("6p", 65))
+
+
+def run_sweep(out: str, lens: str = "mos-s1", seed: int = 0) -> list[dict]:
+    torch.set_num_threads(1)
+    os.makedirs(out, exist_ok=True)
+    data_cfg = PSFDataConfig(lenses=(lens,), variant="radial", seed=seed)
+    points = os.path.join(out, "points.npz")
+    t = time.perf_counter()
+    build_data(data_cfg, points_file=points, log=print)
+    print(f"data {time.perf_counter() - t:.1f} s", flush=True)
+    done = set()
+    results = os.path.join(out, "results.jsonl")
+    if os.path.exists(results):
+        with open(results, encoding="utf-8") as f:
+            done = {json.loads(line)["name"] for line in f if line.strip()}
+    records = []
+    for lr in RATES:
+        for size, iters in ITERS.items():
+            name = f"{size}-lr{lr:g}"
+            if name in done:
+                continue
+            run = os.path.join(out, name + ".run")
+            os.makedirs(run, exist_ok=True)
+            shutil.copy(points, os.path.join(run, "points.npz"))     # the same traced points for every run
+            cfg = OLFTrainConfig(data=data_cfg, size=size, iters=iters, lr=lr, seed=seed, threads=1,
+                                 checkpoint_every=10_000)
+            r = train(cfg, run)
+            rec = {"name": name, "size": size, "lr": lr, "iters": r.step, "seconds": r.seconds,
+                   "params": r.spec.param_count(), "torch": r.held_out["ema"]["mean"]}
+            ls = r.data.lenses[0]
+            with torch.no_grad():
+                ref = r.ema(torch.from_numpy(ls.val_x), 0).double().numpy()
+            for dt in ("float32", "float16"):
+                p = os.path.join(out, f"{name}-{dt}.npz")
+                meta = export_olf(r, p, dtype=dt)
+                got = OmniLensField.load(p).forward(ls.val_x, 0, np.float64)
+                diff = np.abs(got - ref)
+                rec[dt] = {"bytes": os.path.getsize(p), "held_out": meta["held_out"]["mean"],
+                           "max_abs_vs_torch": float(diff.max()),
+                           "max_rel_vs_torch": float((diff.max(axis=(-1, -2)) / ref.max(axis=(-1, -2))).max())}
+            ids, ks = zip(*PAPER_LENSES)
+            rec["four_lens_params"] = OLFSpec.sized("radial", ids, ks, size).param_count()
+            rec["three_lens_params"] = OLFSpec.sized("radial", [i for i in ids if i != "double-gauss"],
+                                                     [k for i, k in PAPER_LENSES if i != "double-gauss"],
+                                                     size).param_count()
+            print(json.dumps(rec), flush=True)
+            with open(results, "a", encoding="utf-8") as f:
+                f.write(json.dumps(rec) + "\n")
+            records.append(rec)
+    return records
+
+
+if __name__ == "__main__":
+    run_sweep(sys.argv[1] if len(sys.argv) > 1 else "out/sweep")
