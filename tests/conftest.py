@@ -34,3 +34,15 @@ def singlet():
 @pytest.fixture(params=PAPER_LENSES)
 def paper_lens(request):
     return load_lens(request.param)
+
+
+def write_rgbd_scene(tmp_path, monkeypatch, height, width, seed=1):
+    """The synthetic RGB-D scene as aif.exr and depth.exr in tmp_path, with a
+    PSF cache of the test's own: (image, depth)."""
+    from dcdi_core.io.images import write_depth, write_image
+    from dcdi_core.render.synthetic import synthetic_rgbd
+    monkeypatch.setenv("DCDI_CACHE_DIR", str(tmp_path / "cache"))
+    img, depth = synthetic_rgbd(height, width, seed=seed)
+    write_image(tmp_path / "aif.exr", img)
+    write_depth(tmp_path / "depth.exr", depth)
+    return img, depth

@@ -4,6 +4,8 @@ import json
 import numpy as np
 import pytest
 
+from conftest import write_rgbd_scene
+
 from dcdi_core.cli import main
 from dcdi_core.io.images import read_image, write_depth, write_image
 from dcdi_core.render.synthetic import synthetic_rgbd
@@ -13,10 +15,7 @@ FAST = ["--rays", "16", "--wavelengths", "3", "--kernel", "15"]
 
 @pytest.fixture
 def scene(tmp_path, monkeypatch):
-    monkeypatch.setenv("DCDI_CACHE_DIR", str(tmp_path / "cache"))
-    img, depth = synthetic_rgbd(48, 72, seed=1)
-    write_image(tmp_path / "aif.exr", img)
-    write_depth(tmp_path / "depth.exr", depth)
+    img, depth = write_rgbd_scene(tmp_path, monkeypatch, 48, 72)
     return tmp_path, img
 
 

@@ -10,6 +10,8 @@ import time
 import numpy as np
 import pytest
 
+from conftest import write_rgbd_scene
+
 from dcdi_core.cli import main
 from dcdi_core.errors import DcdiError, InputRangeError, MemoryLimitError, OutputError
 from dcdi_core.io.images import write_depth, write_image
@@ -20,10 +22,7 @@ FAST = ["--rays", "16", "--wavelengths", "3", "--kernel", "15"]
 
 @pytest.fixture
 def scene(tmp_path, monkeypatch):
-    monkeypatch.setenv("DCDI_CACHE_DIR", str(tmp_path / "cache"))
-    img, depth = synthetic_rgbd(32, 48, seed=1)
-    write_image(tmp_path / "aif.exr", img)
-    write_depth(tmp_path / "depth.exr", depth)
+    img, depth = write_rgbd_scene(tmp_path, monkeypatch, 32, 48)
     return tmp_path, img, depth
 
 

@@ -113,3 +113,15 @@ def check_data(ck: dict | None, ckpt_path, key: str, what: str) -> None:
     """Refuse to resume a checkpoint trained on other data (``what`` names it)."""
     if ck is not None and ck["data_key"] != key:
         raise CheckpointMismatchError(ckpt_path, {what: (ck["data_key"][:12], key[:12])})
+
+
+def after_step(step: int, iters: int, checkpoint_every: int, loss: float, checkpoint, progress, on_step) -> None:
+    """What both trainers do after each step: a checkpoint every
+    ``checkpoint_every`` steps and at the end, then the progress and the
+    step callbacks."""
+    if step % checkpoint_every == 0 or step == iters:
+        checkpoint()
+    if progress:
+        progress(step, iters, loss)
+    if on_step:
+        on_step(step)

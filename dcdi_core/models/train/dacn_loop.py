@@ -33,7 +33,7 @@ from ..data.depth import encode_depth
 from ..data.split import Split, split_by_scene
 from ..errors import ModelError
 from ..metrics import psnr, ssim
-from .checkpoint import check_data, make_ema, open_run, restore, save_checkpoint, training_state, update
+from .checkpoint import after_step, check_data, make_ema, open_run, restore, save_checkpoint, training_state, update
 from .dacn_config import DACNTrainConfig
 
 torch = require_torch()
@@ -173,12 +173,7 @@ def train_dacn(config: DACNTrainConfig, run_dir, *, progress=None, on_step=None,
                 logf.write(json.dumps(rec) + "\n")
                 logf.flush()
                 say(f"iteration {step}: loss {loss_v:.4g}, validation {rec['val_ema']}")
-            if step % config.checkpoint_every == 0 or step == config.iters:
-                checkpoint()
-            if progress:
-                progress(step, config.iters, loss_v)
-            if on_step:
-                on_step(step)
+            after_step(step, config.iters, config.checkpoint_every, loss_v, checkpoint, progress, on_step)
     seconds = time.perf_counter() - t0
     val = {"ema": evaluate(ema, data, config), "model": evaluate(model, data, config)}
     rec = {"step": step, "loss": loss_v, "seconds": seconds, "val_ema": val["ema"].get("mean"),

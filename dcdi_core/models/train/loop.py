@@ -29,7 +29,7 @@ from ...atomic import write_text
 from .. import require_torch
 from ..metrics import psf_scores
 from ..data.psf_samples import OLFData, build_data, data_key
-from .checkpoint import check_data, make_ema, open_run, restore, save_checkpoint, training_state, update
+from .checkpoint import after_step, check_data, make_ema, open_run, restore, save_checkpoint, training_state, update
 from .config import OLFTrainConfig
 
 torch = require_torch()
@@ -155,12 +155,7 @@ def train(config: OLFTrainConfig, run_dir, *, cache_dir=None, lenses: dict | Non
                 history.append(rec)
                 logf.write(json.dumps(rec) + "\n")
                 logf.flush()
-            if step % config.checkpoint_every == 0 or step == config.iters:
-                checkpoint()
-            if progress:
-                progress(step, config.iters, loss_v)
-            if on_step:
-                on_step(step)
+            after_step(step, config.iters, config.checkpoint_every, loss_v, checkpoint, progress, on_step)
     seconds = prior_s + time.perf_counter() - t0
     held = {"ema": evaluate(ema, data), "model": evaluate(model, data)}
     rec = {"step": step, "loss": loss_v, "seconds": seconds, "held_out_ema": held["ema"]["mean"],
