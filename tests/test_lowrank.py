@@ -30,11 +30,13 @@ def case():
     return rng.random((h, w, 3)).astype(np.float32), kern, ident, m
 
 
-@pytest.mark.parametrize("eps,tile", [(0.0, 4), (1e-2, 4), (5e-2, 8), (1e-1, 3)])
-def test_lowrank_within_bound(case, eps, tile):
+@pytest.mark.parametrize("eps,tile,backend", [(0.0, 4, None), (1e-2, 4, None), (5e-2, 8, None), (1e-1, 3, None),
+                                              (1e-2, 4, "numpy")])
+def test_lowrank_within_bound(case, eps, tile, backend):
     img, kern, ident, m = case
     exact = patch_convolve(img, kern, m, identity=ident, support_eps=0.0, fft_backend="numpy")
-    got = patch_convolve(img, kern, m, identity=ident, support_eps=0.0, method="lowrank", rank_eps=eps, tile=tile)
+    got = patch_convolve(img, kern, m, identity=ident, support_eps=0.0, method="lowrank", rank_eps=eps, tile=tile,
+                         fft_backend=backend)
     bound = 2 * eps / (1 - eps) * float(np.abs(img).max()) + 2e-6
     assert got.shape == exact.shape and got.dtype == np.float32
     assert np.abs(got - exact).max() <= bound
@@ -69,3 +71,30 @@ def test_lowrank_refuses_bad_arguments(case):
         patch_convolve(img, kern, m, method="svd")
     with pytest.raises(ValueError):
         patch_convolve(img, kern, m, method="lowrank", tile=0)
+
+
+def test_bokeh_lowrank_matches_windows_within_the_bound():
+    from dcdi_core.optics.lens import load_lens
+    from dcdi_core.psf.compute import PSFSettings
+    from dcdi_core.psf.library import LibraryGrid, PSFLibrary
+    from dcdi_core.render.geometry import ImageGeometry
+    from dcdi_core.render.simulate import bokeh
+
+    lens = load_lens("mos-s1")
+    h, w = 64, 96
+    geom = ImageGeometry.from_pixel_pitch(lens, h, w, 0.0122)
+    lib = PSFLibrary(lens, PSFSettings(pupil_samples=24, n_wavelengths=3, kernel_size=21, band_nm=(400.0, 700.0),
+                                       pixel_pitch_mm=0.0122), LibraryGrid(n_fields=8, n_depths=4), None)
+    img = np.random.default_rng(5).random((h, w, 3)).astype(np.float32)
+    depth = np.full((h, w), 8.0)
+    depth[20:44, 30:60] = 1.0
+    eps = 1e-2
+    plain = [bokeh(img, depth, lens, keep=(0.9, 1.1), geometry=geom, library=lib, occlusion=False,
+                   convolution=c, rank_eps=eps).image for c in ("windows", "lowrank")]
+    assert np.abs(plain[0] - plain[1]).max() <= 2 * eps / (1 - eps) * img.max() + 1e-5
+    layered = [bokeh(img, depth, lens, keep=(0.9, 1.1), geometry=geom, library=lib, convolution=c,
+                     rank_eps=eps).image for c in ("windows", "lowrank")]
+    assert np.abs(layered[1][20:44, 30:60] - img[20:44, 30:60]).max() < 1e-6      # the kept subject untouched
+    assert np.abs(layered[0] - layered[1]).mean() < 2 * eps * img.max()
+    with pytest.raises(Exception):
+        bokeh(img, depth, lens, keep=(0.9, 1.1), geometry=geom, library=lib, convolution="svd")
