@@ -329,7 +329,7 @@ def _lowrank(ext, kernels, ident, live, support, ip, jp, m, b, r, tile, eps, pr,
             sums = np.zeros((nty, ntx), np.float32)
             sums[uu, vv] = a.sum(axis=1)
             want = wy.T @ sums @ wx
-            got = np.tensordot(basis.sum(axis=1), wr, axes=(0, 0))
+            got = wy.T @ (grid @ basis.sum(axis=1)) @ wx                  # sum_r w_r sum E_r, at the patches
             fix = np.where(np.abs(got) > 1e-12, want / np.where(np.abs(got) > 1e-12, got, 1.0), 1.0)
             spec_k = fft.rfft2(basis.reshape(rank, kk, kk), (fy, fx), be)
             for q in np.flatnonzero(k_of == kc):
