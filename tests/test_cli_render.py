@@ -72,6 +72,7 @@ def test_simulation_accuracy_report_quick(tmp_path, monkeypatch, capsys):
     md = (tmp_path / "simulation-accuracy-mos-s1.md").read_text()
     assert "per-pixel reference" in md and "occlusion-aware layers" in md
     assert "Deposit width against rays" in md and "warp, then blur at the real positions" in md
+    assert "Low-rank tiles" in md and "| lowrank | 0.005 |" in md
 
 
 @pytest.mark.slow
@@ -80,7 +81,7 @@ def test_bench_render_quick(tmp_path, monkeypatch, capsys):
     code = main(["bench", "render", "--quick"])
     assert code == 0
     out = capsys.readouterr().out
-    assert "baseline" in out and "peak memory" in out
+    assert "baseline" in out and "peak memory" in out and "low-rank tiles" in out
 
 
 def _run(d, command, *extra, lens="mos-s1", out="o.exr"):

@@ -375,7 +375,8 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
           distortion: bool = False, interpolation: str = DEFAULT_INTERPOLATION, patch: int = 16,
           occlusion: bool = True, n_layers: int = 12, library: PSFLibrary | None = None,
           settings: PSFSettings | None = None, response=None, fit_kernel: bool = True,
-          cancelled=None, fft_backend: str | None = None, progress=None, layer_progress=None) -> RenderResult:
+          cancelled=None, fft_backend: str | None = None, progress=None, layer_progress=None,
+          convolution: str = "windows", rank_eps: float = 2e-2) -> RenderResult:
     """``image`` as ``lens`` would take it, keeping [near, far] metres sharp
     (``keep``), or focused at ``focus_m`` metres, or with ``focus_m =
     "prescribed"`` the lens as its prescription stands (full physical
@@ -388,7 +389,9 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
     called before each layer's convolution; when it returns True,
     :class:`Cancelled` is raised. fft_backend: as :func:`simulate`.
     progress(done, total): called as PSF bins are computed; layer_progress(done,
-    total): after each depth layer of the occlusion-aware renderer."""
+    total): after each depth layer of the occlusion-aware renderer.
+    convolution, rank_eps: ``patch_convolve``'s method and low-rank tolerance
+    ('lowrank': each kernel within rank_eps in L1 of its own, see there)."""
     s = _bokeh_focus(keep, focus_m, library, settings)
     m = check_patch(patch)
     if isinstance(n_layers, bool) or not isinstance(n_layers, (int, np.integer)) or not 1 <= n_layers <= 256:
@@ -414,12 +417,16 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
     far = library.grid.far_m
     inv = np.where(valid & (d < far), 1.0 / np.where(valid, d, 1.0), 0.0)
     kept = np.zeros(d.shape, bool) if keep is None else valid & (d >= keep[0]) & (d <= keep[1])
-    info = {"occlusion": occlusion, "distortion": bool(distortion), "kept_pixels": int(kept.sum()), "invalid_depth_pixels": int((~valid).sum())}
+    from .convolve import METHODS
+    if convolution not in METHODS:
+        raise InputRangeError("convolution", convolution, " or ".join(METHODS))
+    info = {"convolution": convolution, "occlusion": occlusion, "distortion": bool(distortion), "kept_pixels": int(kept.sum()), "invalid_depth_pixels": int((~valid).sum())}
     if not occlusion:
         if cancelled is not None and cancelled():
             raise Cancelled("bokeh cancelled")
         pm = psf_map(library, geometry, d, patch, keep_range_m=keep)
-        out = patch_convolve(img, pm.kernels, patch, identity=pm.identity, fft_backend=fft_backend)
+        out = patch_convolve(img, pm.kernels, patch, identity=pm.identity, fft_backend=fft_backend,
+                             method=convolution, rank_eps=rank_eps)
         return RenderResult(out, dict(info, **pm.info), img if moved else None, pm, depth=d if moved else None)
     # layered, back to front: each layer's colour and coverage blurred alike.
     # ``col`` is the colour seen so far, un-premultiplied, where ``seen``: what
@@ -458,7 +465,7 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
         # normalisation above is then exact for any colour fringe
         blurred = patch_convolve(np.concatenate([img[ys, xs] * af, af], axis=-1), pm.kernels, patch,
                                  identity=pm.identity, pairs=((0, 0), (1, 1), (2, 2), (3, 0), (3, 1), (3, 2)),
-                                 fft_backend=fft_backend)
+                                 fft_backend=fft_backend, method=convolution, rank_eps=rank_eps)
         cover = np.clip(blurred[..., 3:], 0.0, 1.0)
         behind = seen[ys, xs]
         premultiplied = blurred[..., :3] + (1.0 - cover) * np.where(behind, col[ys, xs], 0.0)
