@@ -112,11 +112,13 @@ def deposit(x_px, y_px, valid, channel_weights, k: int, oversample: int, sigma_p
     Each kernel's histogram covers only the fine cells its rays reach (most
     PSFs are far smaller than the window), so the cost follows the blur."""
     b, w, p = x_px.shape
-    g = (k + 2 * MARGIN_PX) * oversample
     half = k / 2.0 + MARGIN_PX
     if not (math.isfinite(sigma_px) and sigma_px >= 0):
         raise ValueError(f"deposit sigma_px = {sigma_px!r}: allowed a finite number >= 0 (pixels)")
     taps = phase_taps(oversample, float(sigma_px)) if sigma_px > 0 else None
+    if taps is None:
+        oversample = 1          # whole pixels: sub-pixel cells would only be summed again
+    g = (k + 2 * MARGIN_PX) * oversample
     out = np.zeros((b, 3, k, k))
     wl_index = np.broadcast_to(np.arange(w)[:, None], (w, p))
     # fine-cell indices for the whole batch at once (truncation is floor for

@@ -73,12 +73,10 @@ def _rotate_flat(src: np.ndarray, outward: np.ndarray, k: int, target_sum: np.nd
     # before). Measured against rotated rays in report simulation-accuracy.
     centre = r * k + r
     src = np.array(src, dtype=np.float32, copy=True)
-    if k >= 3:
+    peak = src[:, :, centre] if keep_peak else np.zeros_like(src[:, :, centre])
+    if keep_peak and k >= 3:
         ring = [centre + dy * k + dx for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
-        peak = np.maximum(src[:, :, centre] - src[:, :, ring].max(axis=-1), 0.0) if keep_peak \
-            else np.zeros_like(src[:, :, centre])
-    else:
-        peak = src[:, :, centre].copy() if keep_peak else np.zeros_like(src[:, :, centre])
+        peak = np.maximum(peak - src[:, :, ring].max(axis=-1), 0.0)
     acc[:, :, centre] = peak
     src[:, :, centre] -= peak
     # one flat gather per tap (1.7x faster than take_along_axis, measured)

@@ -102,8 +102,7 @@ def open_library(lens, geometry: ImageGeometry, settings: PSFSettings | None = N
     library is reopened with the odd kernel size that holds them, at most
     MAX_FITTED_KERNEL px (beyond that the usual KernelTooSmallWarning says
     how much is clipped). Without it the kernel size is the settings'.
-    progress(done, total): called as PSF bins are computed; layer_progress(done,
-    total): after each depth layer of the occlusion-aware renderer."""
+    progress(done, total): called as PSF bins are computed."""
     s = settings or PSFSettings()
     if s.pixel_pitch_mm is not None and not math.isclose(s.pixel_pitch_mm, geometry.pixel_pitch_mm, rel_tol=1e-9):
         raise InputRangeError("pixel pitch", s.pixel_pitch_mm,
@@ -136,6 +135,14 @@ def _check_library(library: PSFLibrary, geometry: ImageGeometry) -> None:
                               f"{geometry.pixel_pitch_mm:.6g} mm, the image's (open it with open_library)")
 
 
+def _sensor_mapping(distortion):
+    """(ideal radius of a real radius, the table's reach in mm, its name) for
+    a RadialDistortion table, or the identity for None."""
+    if distortion is None:
+        return (lambda r: r), math.inf, "identity"
+    return distortion.ideal_from_real, distortion.reach_real_mm, "real-height"
+
+
 def on_sensor(image, depth, lens, geometry: ImageGeometry, *, source_geometry: ImageGeometry | None = None,
               distortion=None, interpolation: str = DEFAULT_INTERPOLATION):
     """An ideal (pinhole) image and its depth map moved to where the lens puts
@@ -154,10 +161,7 @@ def on_sensor(image, depth, lens, geometry: ImageGeometry, *, source_geometry: I
     if distortion is None and src == geometry:
         d = np.asarray(depth, dtype=np.float64)
         return np.asarray(image, np.float32), d, np.ones(d.shape, bool)
-    if distortion is None:
-        radius, reach, table = (lambda r: r), math.inf, "identity"
-    else:
-        radius, reach, table = distortion.ideal_from_real, distortion.reach_real_mm, "real-height"
+    radius, reach, table = _sensor_mapping(distortion)
     img, valid = _warp(image, geometry, src, radius, "the sensor", reach, table, interpolation=interpolation)
     # higher-order interpolation rings below 0 at edges; light is never negative
     np.maximum(img, 0.0, out=img)
@@ -234,8 +238,7 @@ class LensSimulator:
         g = self.geometry
         grown = replace(g, height=g.height + 2 * m, width=g.width + 2 * m,
                         center_px=(g.center_px[0] + m, g.center_px[1] + m))
-        radius = (lambda r: r) if self.table is None else self.table.ideal_from_real
-        reach = math.inf if self.table is None else self.table.reach_real_mm
+        radius, reach, _ = _sensor_mapping(self.table)
         try:
             _, _, valid = _source_positions(grown, self.source_geometry, radius, reach)
         except InputRangeError:
@@ -349,9 +352,7 @@ def _bokeh_focus(keep, focus_m, library: PSFLibrary | None, settings: PSFSetting
                               f"exactly one of a keep range, a focus distance or focus {PRESCRIBED!r}")
     if keep is not None and not (len(keep) == 2 and 0 < keep[0] <= keep[1]):
         raise InputRangeError("keep (--keep)", keep, "(near, far) with 0 < near <= far metres")
-    if isinstance(focus_m, str) and focus_m != PRESCRIBED:
-        raise InputRangeError("focus", focus_m, f"a distance in metres (> 0, or inf) or {PRESCRIBED!r}")
-    if focus_m is not None and not isinstance(focus_m, str) and not (focus_m > 0):
+    if focus_m is not None and (focus_m != PRESCRIBED if isinstance(focus_m, str) else not focus_m > 0):
         raise InputRangeError("focus", focus_m, f"a distance in metres (> 0, or inf) or {PRESCRIBED!r}")
     wanted = None if focus_m in (None, PRESCRIBED) else float(focus_m)
     if library is not None:
@@ -393,7 +394,10 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
     convolution, rank_eps: ``patch_convolve``'s method and low-rank tolerance
     ('lowrank': each kernel within rank_eps in L1 of its own, see there)."""
     s = _bokeh_focus(keep, focus_m, library, settings)
-    m = check_patch(patch)
+    patch = check_patch(patch)
+    from .convolve import METHODS
+    if convolution not in METHODS:
+        raise InputRangeError("convolution", convolution, " or ".join(METHODS))
     if isinstance(n_layers, bool) or not isinstance(n_layers, (int, np.integer)) or not 1 <= n_layers <= 256:
         raise InputRangeError("n_layers", n_layers, "an integer in [1, 256]")
     img, d = _check(image, depth, source_geometry)
@@ -412,15 +416,12 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
         library = open_library(lens, geometry, s, response=response, fit_depth_m=d if fit_kernel else None,
                                progress=progress)
     _check_library(library, geometry)
-    patch = m
     valid = valid_depth_mask(d)
     far = library.grid.far_m
     inv = np.where(valid & (d < far), 1.0 / np.where(valid, d, 1.0), 0.0)
     kept = np.zeros(d.shape, bool) if keep is None else valid & (d >= keep[0]) & (d <= keep[1])
-    from .convolve import METHODS
-    if convolution not in METHODS:
-        raise InputRangeError("convolution", convolution, " or ".join(METHODS))
-    info = {"convolution": convolution, "occlusion": occlusion, "distortion": bool(distortion), "kept_pixels": int(kept.sum()), "invalid_depth_pixels": int((~valid).sum())}
+    info = {"convolution": convolution, "occlusion": occlusion, "distortion": bool(distortion),
+            "kept_pixels": int(kept.sum()), "invalid_depth_pixels": int((~valid).sum())}
     if not occlusion:
         if cancelled is not None and cancelled():
             raise Cancelled("bokeh cancelled")

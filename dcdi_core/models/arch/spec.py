@@ -30,6 +30,14 @@ from ...optics.errors import InputRangeError
 
 VARIANTS = ("paper", "radial")
 
+
+def check_variant_and_lenses(variant: str, lenses: tuple) -> None:
+    """The OLF variant is one of VARIANTS and the lenses are one or more distinct ids."""
+    if variant not in VARIANTS:
+        raise InputRangeError("variant", variant, " or ".join(VARIANTS))
+    if not lenses or len(set(lenses)) != len(lenses):
+        raise InputRangeError("lenses", lenses, "one or more distinct lens ids")
+
 # named sizes: (hidden layers N, width W); the first layer is W // 4 wide
 # (the paper's 512 for W = 2048)
 SIZES = {
@@ -61,10 +69,7 @@ class OLFSpec:
     def __post_init__(self):
         object.__setattr__(self, "lenses", tuple(self.lenses))
         object.__setattr__(self, "kernel_sizes", tuple(int(k) for k in self.kernel_sizes))
-        if self.variant not in VARIANTS:
-            raise InputRangeError("variant", self.variant, " or ".join(VARIANTS))
-        if not self.lenses or len(set(self.lenses)) != len(self.lenses):
-            raise InputRangeError("lenses", self.lenses, "one or more distinct lens ids")
+        check_variant_and_lenses(self.variant, self.lenses)
         if len(self.kernel_sizes) != len(self.lenses):
             raise InputRangeError("kernel_sizes", self.kernel_sizes, f"one per lens ({len(self.lenses)})")
         for k in self.kernel_sizes:

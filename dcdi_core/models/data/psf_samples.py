@@ -48,7 +48,7 @@ from ...psf.compute import (KernelTooSmallWarning, PSFSettings, compute_sources,
 from ...psf.library import ALGORITHM_VERSION, LibraryGrid, PSFLibrary, lens_fingerprint
 from ...render.geometry import ImageGeometry
 from ...render.psfmap import rotate_radial_kernels, support_radius
-from ..arch.spec import PAPER_GRID, VARIANTS, OLFSpec
+from ..arch.spec import PAPER_GRID, OLFSpec, check_variant_and_lenses
 from ..runtime.olf import encode_paper, encode_radial, inverse_depth, patch_centres_px
 
 PAPER_KERNEL = 41
@@ -87,10 +87,7 @@ class PSFDataConfig:
         object.__setattr__(self, "lenses", tuple(self.lenses))
         object.__setattr__(self, "focus_lenses", tuple(self.focus_lenses))
         object.__setattr__(self, "focus_range_m", tuple(float(v) for v in self.focus_range_m))
-        if self.variant not in VARIANTS:
-            raise InputRangeError("variant", self.variant, " or ".join(VARIANTS))
-        if not self.lenses or len(set(self.lenses)) != len(self.lenses):
-            raise InputRangeError("lenses", self.lenses, "one or more distinct lens ids")
+        check_variant_and_lenses(self.variant, self.lenses)
         unknown = set(self.focus_lenses) - set(self.lenses)
         if unknown:
             raise InputRangeError("focus_lenses", sorted(unknown), f"a subset of the lenses {self.lenses}")
