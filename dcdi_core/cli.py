@@ -780,7 +780,8 @@ def cmd_train_dacn(args) -> int:
             arch[k] = getattr(args, k)
     config = DACNTrainConfig(data=args.data, config=args.config, arch=arch, input=args.input, iters=args.iters,
                              batch=args.batch, crop=args.crop, lr=args.lr, seed=args.seed, threads=args.threads,
-                             checkpoint_every=args.checkpoint_every, validate_every=args.validate_every)
+                             checkpoint_every=args.checkpoint_every, validate_every=args.validate_every,
+                             train_scenes=args.train_scenes)
     from .models.train.dacn_loop import train_dacn       # torch from here on
     run = Path(args.output)
     result = _run_training("dacn train", run, lambda **kw: train_dacn(config, run, **kw), config.checkpoint_every)
@@ -826,6 +827,72 @@ def cmd_correct(args) -> int:
     write_image(out, result)
     print(f"wrote {out} ({image.shape[1]} x {image.shape[0]}, {time.perf_counter() - t0:.1f} s, "
           f"lens {trained or 'unknown'})")
+    return 0
+
+
+def _model_splits(runs: dict) -> list:
+    """The recorded splits of the runs among ``runs`` {name: path} (run
+    folders and checkpoints beside one; an exported file names its run's)."""
+    from pathlib import Path
+    from .models.data.split import Split
+    out = []
+    for path in runs.values():
+        p = Path(path)
+        folder = p if p.is_dir() else p.parent
+        if (folder / "split.json").exists():
+            out.append(Split.load(folder / "split.json"))
+    return out
+
+
+def cmd_eval(args) -> int:
+    import json
+    from pathlib import Path
+    runs = {args.name: args.run}
+    for item in args.compare:
+        name, sep, path = item.partition("=")
+        if not sep or not name or not path:
+            print(f"dcdi: error: --compare {item!r}: expected NAME=RUN", file=sys.stderr)
+            return 2
+        if name in runs or name == "capture":
+            print(f"dcdi: error: --compare {item!r}: the name {name!r} is taken", file=sys.stderr)
+            return 2
+        runs[name] = path
+    for name, path in runs.items():
+        if not Path(path).exists():
+            print(f"dcdi: error: model {name}: {path} does not exist", file=sys.stderr)
+            return 2
+    import torch
+    torch.set_num_threads(args.threads)
+    from .models.correct import load_dacn
+    from .models.evaluate import evaluate_models, held_out_pairs, markdown_tables, write_pictures
+    ids, _ = held_out_pairs(args.data, _model_splits(runs))
+    models = {name: load_dacn(path)[0] for name, path in runs.items()}
+    tty = sys.stderr.isatty()
+
+    def progress(done, total):
+        if tty:
+            print(f"\rdcdi eval: pair {done}/{total}", end="" if done < total else "\n", file=sys.stderr)
+    ev, kept = evaluate_models(models, args.data, ids=ids, tile=args.tile, overlap=args.overlap,
+                               progress=progress, keep_outputs=args.pictures_count if args.pictures else 0)
+    print(f"{len(ids)} held-out pairs of {args.data}; PSNR dB / SSIM over the imaged pixels")
+    print(markdown_tables(ev), end="")
+    for name, sec in ev.seconds.items():
+        print(f"{name}: {sec / len(ids):.2f} s per pair")
+    if args.json:
+        from .atomic import write_text
+        write_text(args.json, json.dumps(dict(ev.as_dict(), runs=runs), indent=1) + "\n")
+    if args.pictures:
+        paths = write_pictures(kept, args.pictures, list(models))
+        print(f"wrote {len(paths)} pictures to {args.pictures} (capture | {' | '.join(models)} | target)")
+    return 0
+
+
+def cmd_dacn_export(args) -> int:
+    from pathlib import Path
+    from .models.dacn_export import export_dacn
+    meta = export_dacn(args.run, args.output, weights=args.weights, dtype=args.dtype)
+    print(f"wrote {args.output} ({Path(args.output).stat().st_size / 1e6:.2f} MB, {args.dtype}, lens "
+          f"{meta['lens']}, {meta['step']} iterations)")
     return 0
 
 
@@ -886,14 +953,43 @@ def add_dacn_commands(sub) -> None:
     t.add_argument("--channels", type=_positive_int, default=None, help="override C")
     t.add_argument("--groups", type=_positive_int, default=None, help="override G")
     t.add_argument("--blocks", type=_positive_int, default=None, help="override B")
+    t.add_argument("--train-scenes", type=int, default=0,
+                   help="train on this many of the training scenes (0: all; for a data-size curve)")
     t.set_defaults(func=cmd_train_dacn)
+
+    t = sub.add_parser("eval", help="score trained DACNs on held-out pairs, per scene and depth band",
+                       description="PSNR / SSIM (over the imaged pixels) of each model's correction of the "
+                                   "depth-aware captures, beside the uncorrected capture: mean, per depth band "
+                                   "and per scene. Pairs of scenes a model trained or validated on are skipped.")
+    t.add_argument("run", help="a DACN run folder, checkpoint.pt or exported .npz")
+    t.add_argument("--data", required=True, help="pairs folder with the test pairs (dcdi dacn pairs)")
+    t.add_argument("--compare", action="append", default=[], metavar="NAME=RUN",
+                   help="another model to score beside it, e.g. depth-unaware=out/baseline (repeatable)")
+    t.add_argument("--name", default="dacn", help="the first model's name in the tables (default dacn)")
+    t.add_argument("--pictures", default=None, metavar="DIR",
+                   help="write capture | corrections | target PNGs of the first pairs here")
+    t.add_argument("--pictures-count", type=_positive_int, default=3, help="pairs to picture (default 3)")
+    t.add_argument("--json", default=None, metavar="FILE", help="write all scores as JSON")
+    t.add_argument("--threads", type=_positive_int, default=1, help="torch threads (default 1)")
+    t.add_argument("--tile", type=_positive_int, default=256, help="tile size, px (default 256)")
+    t.add_argument("--overlap", type=int, default=32, help="tile overlap, px (default 32)")
+    t.set_defaults(func=cmd_eval)
+
+    t = dsub.add_parser("export", help="write a trained run's DACN as a shipped .npz (no pickle)",
+                        description="Export the EMA weights of a DACN run to .npz (float16 by default) with "
+                                    "its spec, training config and DA2T settings; `dcdi correct --model` reads it.")
+    t.add_argument("run", help="run folder or checkpoint.pt")
+    t.add_argument("-o", "--output", required=True, help="the .npz to write")
+    t.add_argument("--dtype", choices=["float16", "float32"], default="float16", help="storage dtype")
+    t.add_argument("--weights", choices=["ema", "model"], default="ema", help="which weights")
+    t.set_defaults(func=cmd_dacn_export)
 
     t = sub.add_parser("correct", help="undo a lens's blur with a trained DACN (tiled, any size)",
                        description="Correct a capture with a trained DACN: overlapping tiles cross-faded, "
                                    "memory bounded by one tile. " + UNITS)
     t.add_argument("--image", required=True, help="the capture (EXR linear, or PNG/JPEG sRGB)")
     t.add_argument("--depth", default=None, help="its depth map in metres (EXR, .npy, 16-bit PNG in mm)")
-    t.add_argument("--model", required=True, help="a DACN run folder (or its checkpoint.pt)")
+    t.add_argument("--model", required=True, help="a DACN run folder, its checkpoint.pt or an exported .npz")
     t.add_argument("--lens", default=None, help="refuse a model trained for another lens")
     t.add_argument("-o", "--output", required=True, help="the corrected image (.exr, .png, .jpg)")
     t.add_argument("--tile", type=_positive_int, default=256, help="tile size, px (default 256)")

@@ -29,8 +29,11 @@ from .train.checkpoint import load_checkpoint  # noqa: E402
 
 
 def load_dacn(path, *, weights: str = "ema"):
-    """(model in eval mode, info) from a run folder or its checkpoint.pt."""
+    """(model in eval mode, info) from a run folder, its checkpoint.pt or an
+    exported .npz (``dacn_export``; ``weights`` is then the file's)."""
     path = Path(path)
+    if path.suffix == ".npz":
+        return _load_exported(path)
     ck_path = path / "checkpoint.pt" if path.is_dir() else path
     ck = load_checkpoint(ck_path)
     if ck.get("kind") != "dacn":
@@ -45,6 +48,23 @@ def load_dacn(path, *, weights: str = "ema"):
     da2t = Path(config["data"]) / "da2t.json"
     info = {"checkpoint": str(ck_path), "step": int(ck["step"]), "spec": spec.as_dict(), "config": config,
             "weights": weights, "da2t": json.loads(da2t.read_text()) if da2t.exists() else None}
+    return model, info
+
+
+def _load_exported(path: Path):
+    from .dacn_export import read_dacn_file
+    meta, arrays = read_dacn_file(path)
+    spec = DACNSpec.from_dict(meta["spec"])
+    model = DACN(spec)
+    state = {k: torch.from_numpy(np.asarray(a, np.float32) if a.dtype.kind == "f" else np.asarray(a))
+             for k, a in arrays.items()}
+    try:
+        model.load_state_dict(state)
+    except RuntimeError as e:
+        raise ModelFileError(path, f"weights do not fit the recorded spec ({str(e)[:200]})") from None
+    model.eval()
+    info = {"checkpoint": str(path), "step": int(meta["step"]), "spec": spec.as_dict(), "config": meta["config"],
+            "weights": meta["weights"], "da2t": meta.get("da2t"), "meta": meta}
     return model, info
 
 

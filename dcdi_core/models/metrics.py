@@ -65,9 +65,10 @@ def _filter_valid(x: np.ndarray, g: np.ndarray) -> np.ndarray:
     return sum(g[i] * rows[..., :, i:w - n + 1 + i] for i in range(n))
 
 
-def ssim(a, b, data_range: float, *, window: int = WINDOW, sigma: float = SIGMA) -> np.ndarray | float:
-    """SSIM of images (..., C, H, W) (or (H, W)): the mean over channels of
-    each channel's mean SSIM over the valid region; one value per image."""
+def ssim_map(a, b, data_range: float, *, window: int = WINDOW, sigma: float = SIGMA) -> np.ndarray:
+    """The SSIM map of images (..., H, W) over the valid region: (..., H -
+    window + 1, W - window + 1); entry (i, j) belongs to pixel (i + window //
+    2, j + window // 2), the centre of its window."""
     a, b, L = _check_pair(a, b, data_range)
     if a.shape[-1] < window or a.shape[-2] < window:
         raise InputRangeError("image size", a.shape[-2:], f">= {window} x {window} pixels (the SSIM window)")
@@ -77,9 +78,15 @@ def ssim(a, b, data_range: float, *, window: int = WINDOW, sigma: float = SIGMA)
     var_a = _filter_valid(a * a, g) - mu_a * mu_a
     var_b = _filter_valid(b * b, g) - mu_b * mu_b
     cov = _filter_valid(a * b, g) - mu_a * mu_b
-    s = ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a ** 2 + mu_b ** 2 + c1) * (var_a + var_b + c2))
+    return ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a ** 2 + mu_b ** 2 + c1) * (var_a + var_b + c2))
+
+
+def ssim(a, b, data_range: float, *, window: int = WINDOW, sigma: float = SIGMA) -> np.ndarray | float:
+    """SSIM of images (..., C, H, W) (or (H, W)): the mean over channels of
+    each channel's mean SSIM over the valid region; one value per image."""
+    s = ssim_map(a, b, data_range, window=window, sigma=sigma)
     per_channel = s.mean(axis=(-2, -1))
-    out = per_channel if a.ndim == 2 else per_channel.mean(axis=-1)
+    out = per_channel if s.ndim == 2 else per_channel.mean(axis=-1)
     return float(out) if np.ndim(out) == 0 else out
 
 

@@ -21,7 +21,7 @@ from ..errors import ModelFileError
 PARTS = ("train", "val", "test")
 
 
-def _rank_key(seed: int, scene: str) -> str:
+def rank_key(seed: int, scene: str) -> str:
     return hashlib.sha256(f"{seed}\0{scene}".encode()).hexdigest()
 
 
@@ -65,7 +65,7 @@ def split_by_scene(ids_to_scenes: dict, *, val: float = 0.1, test: float = 0.1, 
     """{id: scene} -> Split with round(test n) test and round(val n) validation scenes."""
     if not (0 <= val and 0 <= test and val + test < 1):
         raise InputRangeError("val, test fractions", (val, test), "each >= 0, together < 1")
-    scenes = sorted(set(ids_to_scenes.values()), key=lambda s: _rank_key(seed, s))
+    scenes = sorted(set(ids_to_scenes.values()), key=lambda s: rank_key(seed, s))
     n = len(scenes)
     n_test, n_val = round(test * n), round(val * n)
     parts = {}

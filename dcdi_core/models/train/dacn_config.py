@@ -36,6 +36,7 @@ class DACNTrainConfig(JSONConfig):
     val_fraction: float = 0.1                  # the split by scene, if the data has none recorded
     test_fraction: float = 0.1
     split_seed: int = 0
+    train_scenes: int = 0                      # > 0: train on this many of the training scenes (a data-size curve)
     val_size: int = 256                        # validation: the centre crop of each validation pair
     seed: int = 0
     threads: int = 1                           # torch threads (the same count gives the same bits)
@@ -51,6 +52,8 @@ class DACNTrainConfig(JSONConfig):
             raise InputRangeError("config", self.config, ", ".join(CONFIGS))
         if self.input not in INPUTS:
             raise InputRangeError("input", self.input, " or ".join(INPUTS))
+        if self.train_scenes < 0:
+            raise InputRangeError("train_scenes", self.train_scenes, ">= 0 (0: all training scenes)")
         for name in ("iters", "batch", "crop", "threads", "checkpoint_every", "val_size"):
             if getattr(self, name) < 1:
                 raise InputRangeError(name, getattr(self, name), ">= 1")

@@ -30,7 +30,8 @@ from ...atomic import write_text
 from .. import require_torch
 from ..data.da2t import PairCrops, finished_pairs, load_pair, pair_path
 from ..data.depth import encode_depth
-from ..data.split import Split, split_by_scene
+from ...optics.errors import InputRangeError
+from ..data.split import Split, rank_key, split_by_scene
 from ..errors import ModelError
 from ..metrics import psnr, ssim
 from .checkpoint import after_step, check_data, make_ema, open_run, restore, save_checkpoint, training_state, update
@@ -81,6 +82,8 @@ def open_data(config: DACNTrainConfig) -> DACNData:
         split.save(sp_path)
     part = {pid: split.part(rec["frame"]) for pid, rec in pairs.items()}
     train = sorted(p for p, q in part.items() if q == "train")
+    if config.train_scenes:
+        train = _fewer_scenes(train, pairs, split, config)
     val = sorted(p for p, q in part.items() if q == "val")
     if not train:
         raise ModelError(f"{root}: no training pairs after the split by scene ({len(split.scenes)} scenes)")
@@ -88,6 +91,17 @@ def open_data(config: DACNTrainConfig) -> DACNData:
     h = hashlib.sha256(json.dumps([json.loads(da2t) if da2t else None, train, val, split.as_dict()["scenes"]],
                                   sort_keys=True).encode()).hexdigest()
     return DACNData(root, split, train, val, h)
+
+
+def _fewer_scenes(train: list, pairs: dict, split: Split, config: DACNTrainConfig) -> list:
+    """The training pairs of ``config.train_scenes`` of the training scenes,
+    ranked by a seeded hash (nested: n scenes are among the first n + 1)."""
+    scenes = sorted({pairs[p]["scene"] for p in train}, key=lambda s: rank_key(config.split_seed + 1, s))
+    if config.train_scenes > len(scenes):
+        raise InputRangeError("train_scenes", config.train_scenes, f"<= {len(scenes)}, the training scenes "
+                              f"of {config.data}")
+    keep = set(scenes[:config.train_scenes])
+    return [p for p in train if pairs[p]["scene"] in keep]
 
 
 def _tensor(a):

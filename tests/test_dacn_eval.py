@@ -1,0 +1,103 @@
+"""DACN evaluation (scores over imaged pixels, per depth band, held-out
+pairs only), the shipped-weights file, and the data-size subset."""
+import json
+import math
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from test_dacn_train import _config, pairs  # noqa: E402,F401  (the module's fixture)
+
+
+def test_band_scores_pool_squared_error_over_the_band_pixels():
+    from dcdi_core.models.evaluate import BandSums, image_scores
+    from dcdi_core.models.metrics import ssim_map
+    rng = np.random.default_rng(0)
+    tgt = rng.uniform(0.2, 0.8, (30, 40, 3))
+    out = tgt + rng.normal(0, 0.05, tgt.shape)
+    depth = np.where(np.arange(40)[None, :] < 15, 0.8, 3.0) * np.ones((30, 1))
+    depth[:, 35:] = np.inf
+    depth[:5, :] = np.nan                                  # not imaged: never scored
+    out[:5] = 0.0
+    sc = image_scores(out, tgt, depth)
+    clipped = np.clip(out, 0, 1)
+    sel = ~np.isnan(depth)
+    assert math.isclose(sc["psnr"], 10 * math.log10(1 / ((clipped - tgt)[sel] ** 2).mean()), rel_tol=1e-12)
+    near = sel & (depth < 1.0)
+    sse, n, ssum, sn = sc["bands"]["0.7-1 m"]
+    assert n == near.sum() * 3 and math.isclose(sse, ((clipped - tgt)[near] ** 2).sum())
+    smap = ssim_map(clipped.transpose(2, 0, 1), tgt.transpose(2, 0, 1), 1.0).mean(0)
+    inner = np.zeros_like(near)
+    inner[5:-5, 5:-5] = True
+    assert sn == (near & inner).sum() and math.isclose(ssum, smap[(near & inner)[5:-5, 5:-5]].sum())
+    assert set(sc["bands"]) == {"0.7-1 m", "2-5 m", "> 10 m"}  # infinity is in the far band
+    assert sc["bands"]["> 10 m"][1] == 25 * 5 * 3
+    b = BandSums()
+    b.add(*sc["bands"]["2-5 m"])
+    assert b.scores()["pixels"] == ((depth >= 2) & (depth < 5)).sum()
+    with pytest.raises(Exception, match="imaged"):
+        image_scores(out, tgt, np.full((30, 40), np.nan))
+
+
+def test_eval_scores_only_held_out_pairs_and_exports_round_trip(pairs, tmp_path, capsys):  # noqa: F811
+    from dcdi_core.cli import main
+    from dcdi_core.models.correct import load_dacn
+    from dcdi_core.models.train.dacn_loop import train_dacn
+    train_dacn(_config(pairs, iters=3, checkpoint_every=3), tmp_path / "run")
+    split = json.loads((tmp_path / "run" / "split.json").read_text())
+    test_ids = sorted(i for i, s in split["ids"].items() if split["scenes"][s] == "test")
+    assert main(["eval", str(tmp_path / "run"), "--data", str(pairs), "--compare", f"same={tmp_path / 'run'}",
+                 "--json", str(tmp_path / "ev.json"), "--pictures", str(tmp_path / "pics")]) == 0
+    out = capsys.readouterr().out
+    assert f"{len(test_ids)} held-out pairs" in out and "| capture |" in out and "| same |" in out
+    ev = json.loads((tmp_path / "ev.json").read_text())
+    assert sorted(r["id"].split("~")[0] for r in ev["pairs"]) == test_ids
+    assert ev["mean"]["dacn"] == ev["mean"]["same"]
+    assert len(list((tmp_path / "pics").glob("*.png"))) == len(test_ids)
+    # the shipped form: float16 npz, read without pickle, the same network to float16 precision
+    assert main(["dacn", "export", str(tmp_path / "run"), "-o", str(tmp_path / "m.npz")]) == 0
+    a, _ = load_dacn(tmp_path / "run")
+    b, info = load_dacn(tmp_path / "m.npz")
+    assert info["da2t"]["lens"] == "mos-s2" and info["step"] == 3
+    x, d = torch.rand(1, 3, 32, 32), torch.rand(1, 1, 32, 32)
+    with torch.no_grad():
+        assert (a(x, d) - b(x, d)).abs().max() < 5e-3
+    raw = dict(np.load(tmp_path / "m.npz", allow_pickle=False))
+    raw[next(k for k in raw if k != "meta")] *= 2
+    np.savez(tmp_path / "bad.npz", **raw)
+    with pytest.raises(Exception, match="checksum"):
+        load_dacn(tmp_path / "bad.npz")
+
+
+def test_train_scenes_takes_a_nested_subset(pairs, tmp_path):  # noqa: F811
+    from dcdi_core.models.train.dacn_loop import open_data
+    full = open_data(_config(pairs))
+    one = open_data(_config(pairs, train_scenes=1))
+    two = open_data(_config(pairs, train_scenes=2))
+    assert len(full.train) == 3 and len(one.train) == 1 and len(two.train) == 2
+    assert set(one.train) <= set(two.train) <= set(full.train) and one.key != two.key
+    with pytest.raises(Exception, match="train_scenes"):
+        open_data(_config(pairs, train_scenes=4))
+
+
+def test_study_trains_every_row_at_equal_budget_and_tabulates(pairs, tmp_path):  # noqa: F811
+    from dcdi_core.models.train import dacn_study
+    assert dacn_study.run_flags("scenes=2") == ["--input", "capture", "--train-scenes", "2"]
+    for bad in ("scenes=0", "nothing"):
+        with pytest.raises(SystemExit, match="unknown run"):
+            dacn_study.run_flags(bad)
+    out = tmp_path / "study"
+    argv = [str(out), "--pairs", f"mos-s2={pairs}", "--runs", "baseline,dacn", "--config", "tiny", "--iters", "2",
+            "--batch", "1", "--crop", "16", "--jobs", "2"]
+    assert dacn_study.main(argv) == 0
+    for row in ("baseline", "dacn"):
+        cfg = json.loads((out / "mos-s2" / row / "config.json").read_text())
+        assert (cfg["iters"], cfg["seed"], cfg["batch"]) == (2, 0, 1)
+    assert json.loads((out / "mos-s2" / "baseline" / "config.json").read_text())["input"] == "baseline"
+    text = (out / "tables.md").read_text()
+    assert "| mos-s2 | baseline |" in text and "| mos-s2 | dacn |" in text
+    mtime = (out / "mos-s2" / "dacn" / "checkpoint.pt").stat().st_mtime
+    assert dacn_study.main(argv) == 0                       # finished runs are not trained again
+    assert (out / "mos-s2" / "dacn" / "checkpoint.pt").stat().st_mtime == mtime
