@@ -257,7 +257,47 @@ def bench_render(quick: bool = False) -> int:
     return 0
 
 
+def bench_dacn(quick: bool = False, threads: int = 1) -> int:
+    """DACN inference per configuration (untrained weights: the time does not
+    depend on them): one 256^2 tile, 480 x 640 and 1280 x 1920 tiled
+    (256 px tiles, 32 px overlap), the process's peak RSS after each size;
+    the baseline is one untiled forward pass of the 480 x 640 image."""
+    import resource
+
+    import torch
+
+    from .models.arch.dacn import DACN
+    from .models.arch.dacn_spec import named
+    from .models.correct import correct
+
+    torch.set_num_threads(threads)
+    configs = ("tiny",) if quick else ("tiny", "tiny-rb", "demo")
+    sizes = ((64, 96),) if quick else ((480, 640), (1280, 1920))
+    rng = np.random.default_rng(0)
+    print(f"DACN inference, {threads} torch thread(s), float32, tiles 256 px overlapping by 32 px")
+    for name in configs:
+        torch.manual_seed(0)
+        model = DACN(named(name)).eval()
+        params = sum(p.numel() for p in model.parameters())
+        tile = rng.uniform(0, 1, (256, 256, 3)).astype(np.float32)
+        t_tile, _ = _best(lambda: correct(model, tile, np.full((256, 256), 2.0)), 1 if quick else 2)
+        print(f"  {name}: {params:,} parameters; one 256^2 tile {t_tile:.3f} s")
+        for h, w in sizes:
+            img = rng.uniform(0, 1, (h, w, 3)).astype(np.float32)
+            dep = rng.uniform(0.7, 10.0, (h, w))
+            t, _ = _best(lambda: correct(model, img, dep), 1)
+            rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+            line = f"    {h} x {w}: {t:.2f} s tiled, peak RSS {rss:.0f} MiB"
+            if (h, w) == sizes[0]:
+                t_whole, _ = _best(lambda: correct(model, img, dep, tile=max(h, w)), 1)
+                line += f"; untiled {t_whole:.2f} s (tiled / untiled {t / t_whole:.2f})"
+            print(line)
+    return 0
+
+
 def run(what: str, args) -> int:
+    if what == "dacn":
+        return bench_dacn(getattr(args, "quick", False), getattr(args, "threads", 1))
     if what == "render":
         return bench_render(getattr(args, "quick", False))
     if what == "trace":

@@ -1193,10 +1193,11 @@ def build_parser() -> argparse.ArgumentParser:
     q = sub.add_parser("bench", help="benchmarks (times, not tests)",
                        description="Benchmarks of the engine; the dataset factory's is `python build.py bench "
                                    "factory` (it starts the Blender layer, which the engine never does).")
-    q.add_argument("what", choices=["trace", "psflib", "render"], help="what to benchmark")
+    q.add_argument("what", choices=["trace", "psflib", "render", "dacn"], help="what to benchmark")
     q.add_argument("--rays", type=_positive_int, default=1 << 20, help="rays per trace (default 2^20)")
     q.add_argument("--repeat", type=_positive_int, default=3, help="timed repetitions (best is kept)")
     q.add_argument("--quick", action="store_true", help="psflib: a small library (for tests)")
+    q.add_argument("--threads", type=_positive_int, default=1, help="dacn: torch threads (default 1)")
     q.set_defaults(func=cmd_bench)
 
     q = sub.add_parser("demo", help="the demo job: lens reports, spot diagrams and PSFs of all lenses, simulation "

@@ -101,3 +101,10 @@ def test_study_trains_every_row_at_equal_budget_and_tabulates(pairs, tmp_path): 
     mtime = (out / "mos-s2" / "dacn" / "checkpoint.pt").stat().st_mtime
     assert dacn_study.main(argv) == 0                       # finished runs are not trained again
     assert (out / "mos-s2" / "dacn" / "checkpoint.pt").stat().st_mtime == mtime
+
+
+def test_bench_dacn_quick(capsys):
+    from dcdi_core.cli import main
+    assert main(["bench", "dacn", "--quick"]) == 0
+    out = capsys.readouterr().out
+    assert "tiny: 285,538 parameters" in out and "tiled / untiled" in out
