@@ -758,7 +758,7 @@ def cmd_dacn_pairs(args) -> int:
     config = DA2TConfig(lens=args.lens, perturb_fraction=args.perturb, noise=noise,
                         baseline_depth_m=args.baseline_depth, sensor_px=args.sensor_px, pupil_samples=args.rays,
                         n_wavelengths=args.wavelengths, n_fields=args.fields, n_depths=args.depths,
-                        lens_pool=args.lens_pool, seed=args.seed)
+                        lens_pool=args.lens_pool, saturate=not args.no_saturate, seed=args.seed)
     t0 = time.perf_counter()
     done = build_pairs(source, args.output, config, variants=args.variants, shard=args.shard,
                        log=lambda t: print(t, file=sys.stderr))
@@ -915,6 +915,9 @@ def add_dacn_commands(sub) -> None:
                    help="K perturbed lenses shared by all frames (0: a new one per frame; each costs a PSF library)")
     t.add_argument("--baseline-depth", type=float, default=2.0, help="the depth-unaware baseline's depth, m")
     t.add_argument("--no-noise", action="store_true", help="no sensor noise")
+    t.add_argument("--no-saturate", action="store_true",
+                   help="keep values above 1 (default: capture, baseline and target clipped to [0, 1] as a sensor "
+                        "records them)")
     t.add_argument("--full-well", type=float, default=10000.0, help="full well, electrons")
     t.add_argument("--read-noise", type=float, default=3.0, help="read noise, electrons RMS")
     t.add_argument("--sensor-px", type=int, nargs=2, default=None, metavar=("ROWS", "COLS"),

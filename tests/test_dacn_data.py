@@ -199,6 +199,20 @@ def test_da2t_degradation_is_seeded_recorded_and_its_baseline_shares_the_frame()
     assert np.abs(near.baseline - near.capture).max() > 1e-3                # the baseline ignores depth
 
 
+def test_da2t_saturates_as_a_sensor_does():
+    from dcdi_core.models.data.da2t import DA2TConfig, degrade
+    f = _frame()
+    f.image[:, 20:30] *= 3.0                                                  # an HDR highlight
+    quiet = dict(noise=None, perturb_fraction=0.0, **FAST)
+    clipped = degrade(f, DA2TConfig(lens="mos-s2", **quiet))
+    raw = degrade(f, DA2TConfig(lens="mos-s2", saturate=False, **quiet))
+    assert raw.target.max() > 2 and raw.capture.max() > 1.2
+    for k in ("capture", "target", "baseline"):
+        a, b = getattr(clipped, k), getattr(raw, k)
+        assert a.min() >= 0 and a.max() <= 1
+        np.testing.assert_array_equal(a, np.clip(b, 0, 1))                    # blurred first, then clipped
+
+
 def test_prebuilt_pairs_resume_and_crops_stay_aligned(tmp_path):
     from dcdi_core.models.data.da2t import (DA2TConfig, PairCrops, build_pairs, crop_position, load_pair,
                                             pair_path)

@@ -14,7 +14,13 @@ The degradation of one frame (:func:`degrade`), in this order:
    (every patch blurred with the PSFs of ``baseline_depth_m``) from the
    same frame and lens;
 3. sensor noise (``render.noise``) on the capture and the baseline, each
-   with its own recorded seed.
+   with its own recorded seed;
+4. saturation (``saturate``): capture, baseline and target clipped to
+   [0, 1], what a sensor of full well 1 records. Rendered frames are linear
+   HDR (the factory's lamps and windows exceed 1): blurred before clipping,
+   a highlight blooms in the capture as in a real camera, and the target is
+   what an ideal lens on the same sensor records, so the network is never
+   asked for values above 1 that no 8-bit or clipped image holds.
 
 The frame's geometry: it spans the sensor's diagonal (``sensor_px`` None),
 or it is the centred crop of a ``sensor_px`` = (rows, cols) sensor at that
@@ -72,6 +78,7 @@ class DA2TConfig:
     n_fields: int = 64
     n_depths: int = 20
     lens_pool: int = 0               # 0: a new perturbed lens per frame and variant; K: one of K lenses
+    saturate: bool = True            # every image of a pair in [0, 1], as a sensor records it
     seed: int = 0
 
     def __post_init__(self):
@@ -180,13 +187,17 @@ def degrade(frame, config: DA2TConfig, variant: int = 0, *, lens=None, simulator
     noise = config.noise
     r = sim(frame.image, frame.depth, noise=noise, seed=s_noise if noise is not None else None)
     baseline = r.baseline if noise is None else add_sensor_noise(r.baseline, seed=s_base, **noise)
+    capture, target = r.image, r.sharp
+    if config.saturate:
+        capture, target, baseline = (np.clip(a, 0.0, 1.0) for a in (capture, target, baseline))
     record = {"id": f"{frame.id}~{variant}", "frame": frame.id, "scene": frame.scene, "variant": variant,
               "source": frame.source, "lens": base.id, "perturbation": prec,
               "noise": None if noise is None else dict(noise, seed=s_noise, baseline_seed=s_base),
               "baseline_depth_m": config.baseline_depth_m, "sensor_px": config.as_dict()["sensor_px"],
               "pixel_pitch_mm": geom.pixel_pitch_mm, "kernel_size": sim.library.kernel_size,
               "not_imaged_pixels": int(np.isnan(r.depth).sum()), "shape": [h, w]}
-    return DA2TPair(record["id"], frame.scene, r.image, r.sharp, baseline.astype(np.float32),
+    return DA2TPair(record["id"], frame.scene, capture.astype(np.float32), target.astype(np.float32),
+                    baseline.astype(np.float32),
                     r.depth.astype(np.float32), record)
 
 
