@@ -96,8 +96,8 @@ def test_study_trains_every_row_at_equal_budget_and_tabulates(pairs, tmp_path): 
         cfg = json.loads((out / "mos-s2" / row / "config.json").read_text())
         assert (cfg["iters"], cfg["seed"], cfg["batch"]) == (2, 0, 1)
     assert json.loads((out / "mos-s2" / "baseline" / "config.json").read_text())["input"] == "baseline"
-    text = (out / "tables.md").read_text()
-    assert "| mos-s2 | baseline |" in text and "| mos-s2 | dacn |" in text
+    text = (out / "mos-s2" / "table.md").read_text()
+    assert "| baseline |" in text and "| dacn |" in text and "| capture (uncorrected) |" in text
     mtime = (out / "mos-s2" / "dacn" / "checkpoint.pt").stat().st_mtime
     assert dacn_study.main(argv) == 0                       # finished runs are not trained again
     assert (out / "mos-s2" / "dacn" / "checkpoint.pt").stat().st_mtime == mtime

@@ -10,7 +10,8 @@ resumable, so the same command again finishes a cut study), then scored
 together by ``dcdi eval`` on the held-out pairs of that lens's data, every
 model on the depth-aware captures. ``OUT/<lens>/<run>/`` are the runs,
 ``OUT/<lens>/eval.json`` the scores, ``OUT/<lens>/pictures/`` capture |
-corrections | target, ``OUT/tables.md`` the tables.
+corrections | target, ``OUT/<lens>/table.md`` its table (a later call with
+more rows adds them: finished runs are not trained again).
 
 The rows (the paper's Tables on NYUv2 with the RB module):
 - ``baseline``: depth-unaware: trained on the one-depth baseline, neither
@@ -19,6 +20,9 @@ The rows (the paper's Tables on NYUv2 with the RB module):
 - ``dacn``: DA2T with RDICAB and D2CB;
 - ``dacn-diopter``: ``dacn`` with metric inverse depth at the input instead
   of the per-crop min-max;
+- ``dacn-rstb``: ``dacn`` with Swin blocks (RSTB) in place of the
+  configuration's; ``dacn-c24`` / ``dacn-c72``: 24 or 72 channels (size
+  against error);
 - ``scenes=N``: ``dacn`` on N of the training scenes (the data-size curve).
 """
 from __future__ import annotations
@@ -38,6 +42,9 @@ RUNS = {
     "da2t": ["--input", "capture", *NO_DEPTH],
     "dacn": ["--input", "capture"],
     "dacn-diopter": ["--input", "capture", "--depth-encoding", "diopter"],
+    "dacn-rstb": ["--input", "capture", "--racm", "rstb"],
+    "dacn-c24": ["--input", "capture", "--channels", "24"],
+    "dacn-c72": ["--input", "capture", "--channels", "72"],
 }
 DEFAULT_RUNS = ("baseline", "da2t", "dacn")
 
@@ -108,17 +115,17 @@ def evaluate_lens(out: Path, lens: str, data: str, names: list) -> dict:
     return json.loads((out / lens / "eval.json").read_text())
 
 
-def tables(results: dict, names: list, args) -> str:
-    lines = [f"DACN `{args.config}`, {args.iters} iterations, batch {args.batch} of {args.crop}^2, seed {args.seed}; "
-             "held-out pairs; PSNR dB / SSIM over the imaged pixels; training minutes on one core.\n",
-             "| lens | row | PSNR | SSIM | vs capture | training min |", "|---|---|---|---|---|---|"]
-    for lens, (ev, secs) in results.items():
-        cap = ev["mean"]["capture"]
-        lines.append(f"| {lens} | capture (uncorrected) | {cap['psnr']:.2f} | {cap['ssim']:.4f} | | |")
-        for n in names:
-            m = ev["mean"][n]
-            lines.append(f"| {lens} | {n} | {m['psnr']:.2f} | {m['ssim']:.4f} | {m['psnr'] - cap['psnr']:+.2f} dB "
-                         f"| {secs[n] / 60:.1f} |")
+def table(lens: str, ev: dict, secs: dict, names: list, args) -> str:
+    """One lens's rows as Markdown."""
+    lines = [f"{lens}: DACN `{args.config}`, {args.iters} iterations, batch {args.batch} of {args.crop}^2, seed "
+             f"{args.seed}; {len(ev['pairs'])} held-out pairs; PSNR dB / SSIM over the imaged pixels.\n",
+             "| row | PSNR | SSIM | vs capture | training min (one core) |", "|---|---|---|---|---|"]
+    cap = ev["mean"]["capture"]
+    lines.append(f"| capture (uncorrected) | {cap['psnr']:.2f} | {cap['ssim']:.4f} | | |")
+    for n in names:
+        m = ev["mean"][n]
+        lines.append(f"| {n} | {m['psnr']:.2f} | {m['ssim']:.4f} | {m['psnr'] - cap['psnr']:+.2f} dB "
+                     f"| {secs[n] / 60:.1f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -146,13 +153,11 @@ def main(argv=None) -> int:
     jobs = [(train_command(d, run_folder(args.out, lens, n), n, args), run_folder(args.out, lens, n))
             for n in names for lens, d in lenses.items()]
     train_all(jobs, args.jobs)
-    results = {}
     for lens, d in lenses.items():
         ev = evaluate_lens(args.out, lens, d, names)
-        results[lens] = (ev, {n: training_seconds(run_folder(args.out, lens, n)) for n in names})
-    text = tables(results, names, args)
-    write_text(args.out / "tables.md", text)
-    print(text)
+        text = table(lens, ev, {n: training_seconds(run_folder(args.out, lens, n)) for n in names}, names, args)
+        write_text(args.out / lens / "table.md", text)
+        print(text)
     return 0
 
 
