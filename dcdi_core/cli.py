@@ -830,6 +830,33 @@ def cmd_correct(args) -> int:
     return 0
 
 
+def cmd_train_depth(args) -> int:
+    from pathlib import Path
+    from .models.train.depth_config import DepthTrainConfig
+    config = DepthTrainConfig(data=args.data, widths=tuple(args.widths), input=args.input, iters=args.iters,
+                              batch=args.batch, crop=args.crop, lr=args.lr, seed=args.seed, threads=args.threads,
+                              checkpoint_every=args.checkpoint_every)
+    from .models.train.depth_loop import train_depth
+    run = Path(args.output)
+    result = _run_training("depth train", run, lambda **kw: train_depth(config, run, **kw), config.checkpoint_every)
+    if result is None:
+        return 130
+    v = result.validation
+    print(f"trained {run} ({result.step} iterations, {result.seconds:.1f} s here)"
+          + (f"; validation (EMA, from the {args.input}): AbsRel {v['abs_rel']:.3f}, RMSE {v['rmse']:.2f} m, "
+             f"delta1 {v['delta1']:.3f}" if v else ""))
+    return 0
+
+
+def cmd_depth_export(args) -> int:
+    from pathlib import Path
+    from .models.depth.depthnet_file import export_depthnet
+    meta = export_depthnet(args.run, args.output, dtype=args.dtype)
+    print(f"wrote {args.output} ({Path(args.output).stat().st_size / 1e6:.2f} MB, {args.dtype}, lens {meta['lens']}, "
+          f"{meta['step']} iterations)")
+    return 0
+
+
 def _model_splits(runs: dict) -> list:
     """The recorded splits of the runs among ``runs`` {name: path} (run
     folders and checkpoints beside one; an exported file names its run's)."""
@@ -930,7 +957,7 @@ def add_dacn_commands(sub) -> None:
     t.add_argument("--shard", type=_shard, default=(0, 1), help="I/N: the frames at positions i %% N == I")
     t.set_defaults(func=cmd_dacn_pairs)
 
-    q = sub.add_parser("train", help="train a network (dacn)")
+    q = sub.add_parser("train", help="train a network (dacn, depth)")
     tsub = q.add_subparsers(dest="train_command", required=True, metavar="NETWORK")
     t = tsub.add_parser("dacn", help="train (or resume) DACN on pre-built DA2T pairs",
                         description="Train DACN (CPU, seeded, Adam, L1, EMA). Checkpoints go to the run folder; "
@@ -959,6 +986,31 @@ def add_dacn_commands(sub) -> None:
     t.add_argument("--train-scenes", type=int, default=0,
                    help="train on this many of the training scenes (0: all; for a data-size curve)")
     t.set_defaults(func=cmd_train_dacn)
+
+    t = tsub.add_parser("depth", help="train (or resume) the small depth network on DA2T pairs",
+                        description="Train the depth network (capture -> metric depth) on pre-built DA2T pairs: "
+                                    "seeded, atomic checkpoints, exact resume, the split by scene of the pairs.")
+    t.add_argument("--data", required=True, help="pairs folder (dcdi dacn pairs)")
+    t.add_argument("--iters", type=_positive_int, default=2000, help="iterations")
+    t.add_argument("-o", "--output", required=True, help="run folder")
+    t.add_argument("--widths", type=_positive_int, nargs="+", default=[16, 32, 64, 96], help="U-Net level widths")
+    t.add_argument("--input", choices=["capture", "target"], default="capture",
+                   help="learn from the aberrated capture (default) or the sharp image")
+    t.add_argument("--batch", type=_positive_int, default=8, help="batch (default 8)")
+    t.add_argument("--crop", type=_positive_int, default=128, help="crop size (default 128)")
+    t.add_argument("--lr", type=float, default=1e-3, help="initial learning rate (cosine to 1 %%)")
+    t.add_argument("--seed", type=int, default=0, help="seed of weights and crops")
+    t.add_argument("--threads", type=_positive_int, default=1, help="torch threads (default 1)")
+    t.add_argument("--checkpoint-every", type=_positive_int, default=500, help="iterations between checkpoints")
+    t.set_defaults(func=cmd_train_depth)
+
+    q = sub.add_parser("depth", help="the depth network's files", description="The depth network's files.")
+    qsub = q.add_subparsers(dest="depth_command", required=True, metavar="SUBCOMMAND")
+    t = qsub.add_parser("export", help="write a depth run as a shipped .npz (no pickle)")
+    t.add_argument("run", help="run folder or checkpoint.pt")
+    t.add_argument("-o", "--output", required=True, help="the .npz to write")
+    t.add_argument("--dtype", choices=["float16", "float32"], default="float16", help="storage dtype")
+    t.set_defaults(func=cmd_depth_export)
 
     t = sub.add_parser("eval", help="score trained DACNs on held-out pairs, per scene and depth band",
                        description="PSNR / SSIM (over the imaged pixels) of each model's correction of the "

@@ -53,16 +53,11 @@ def load_dacn(path, *, weights: str = "ema"):
 
 def _load_exported(path: Path):
     from .dacn_export import read_dacn_file
+    from .npz_file import load_state
     meta, arrays = read_dacn_file(path)
     spec = DACNSpec.from_dict(meta["spec"])
     model = DACN(spec)
-    state = {k: torch.from_numpy(np.asarray(a, np.float32) if a.dtype.kind == "f" else np.asarray(a))
-             for k, a in arrays.items()}
-    try:
-        model.load_state_dict(state)
-    except RuntimeError as e:
-        raise ModelFileError(path, f"weights do not fit the recorded spec ({str(e)[:200]})") from None
-    model.eval()
+    load_state(model, arrays, path)
     info = {"checkpoint": str(path), "step": int(meta["step"]), "spec": spec.as_dict(), "config": meta["config"],
             "weights": meta["weights"], "da2t": meta.get("da2t"), "meta": meta}
     return model, info

@@ -172,3 +172,21 @@ def psf_scores(pred, ref, *, scale: str) -> dict:
     out["rel_l1"] = float(np.mean(relative_l1(p_sum, r_sum)))
     out["n"] = int(len(p))
     return out
+
+
+def depth_scores(pred_m, true_m) -> dict:
+    """Monocular-depth metrics over the pixels whose true depth is finite and
+    positive (NaN, infinity, sky excluded): AbsRel = mean |p - t| / t, RMSE
+    (m), and delta1 = share with max(p / t, t / p) < 1.25; 'pixels' the count.
+    Predictions are floored at 1 mm."""
+    p = np.asarray(pred_m, dtype=np.float64)
+    t = np.asarray(true_m, dtype=np.float64)
+    if p.shape != t.shape:
+        raise InputRangeError("depth shapes", (p.shape, t.shape), "two arrays of the same shape")
+    sel = np.isfinite(t) & (t > 0)
+    if not sel.any():
+        raise InputRangeError("true depth", "no finite positive value", "some pixels with a metric depth")
+    p, t = np.maximum(np.where(np.isfinite(p[sel]), p[sel], 1e6), 1e-3), t[sel]
+    ratio = np.maximum(p / t, t / p)
+    return {"abs_rel": float(np.mean(np.abs(p - t) / t)), "rmse": float(np.sqrt(np.mean((p - t) ** 2))),
+            "delta1": float(np.mean(ratio < 1.25)), "pixels": int(sel.sum())}

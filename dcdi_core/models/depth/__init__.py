@@ -1,0 +1,4 @@
+"""Metric depth from one RGB image, behind one small interface
+(``estimators.DepthEstimator``): the project's small network trained on the
+factory's captures, and the large public estimators loaded from a
+checkpoint on the user's disk (never downloaded here)."""

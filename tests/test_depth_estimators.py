@@ -1,0 +1,172 @@
+"""Depth estimation: the project's network (train, resume, export, serve),
+the public estimators through stand-ins of their packages, and the refusal
+of a checkpoint that cannot be read, by name."""
+import json
+import sys
+import types
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from test_dacn_train import pairs  # noqa: E402,F401  (the module's fixture)
+
+
+def _depth_config(data, **kw):
+    from dcdi_core.models.train.depth_config import DepthTrainConfig
+    base = dict(data=str(data), widths=(4, 8), iters=6, batch=2, crop=16, checkpoint_every=3,
+                val_fraction=1 / 6, test_fraction=2 / 6)
+    base.update(kw)
+    return DepthTrainConfig(**base)
+
+
+def test_depth_network_resumes_exactly_and_is_served_from_its_file(pairs, tmp_path):  # noqa: F811
+    from dcdi_core.models.depth.depthnet_file import export_depthnet
+    from dcdi_core.models.depth.estimators import load_estimator
+    from dcdi_core.models.train.depth_loop import train_depth
+    full = train_depth(_depth_config(pairs), tmp_path / "full")
+
+    class Kill(Exception):
+        pass
+
+    def kill(step):
+        if step == 4:
+            raise Kill
+    with pytest.raises(Kill):
+        train_depth(_depth_config(pairs), tmp_path / "killed", on_step=kill)
+    resumed = train_depth(_depth_config(pairs), tmp_path / "killed")
+    for (k, a), b in zip(full.ema.state_dict().items(), resumed.ema.state_dict().values()):
+        assert torch.equal(a, b), k
+    assert set(full.validation) == {"abs_rel", "rmse", "delta1"}
+    meta = export_depthnet(tmp_path / "full", tmp_path / "d.npz")
+    assert meta["lens"] == "mos-s2" and meta["step"] == 6
+    est = load_estimator("dcdi", tmp_path / "d.npz")
+    img = np.random.default_rng(0).uniform(0, 1, (30, 44, 3)).astype(np.float32)
+    d = est.estimate(img)
+    assert d.shape == (30, 44) and d.dtype == np.float32 and np.isfinite(d).all() and (d > 0).all()
+    with pytest.raises(Exception, match="image"):
+        est.estimate(np.full((30, 44, 3), np.nan, np.float32))
+
+
+def test_depth_network_overfits_one_pair(pairs, tmp_path):  # noqa: F811
+    from dcdi_core.models.train.depth_loop import train_depth
+    cfg = _depth_config(pairs, iters=150, batch=4, crop=32, lr=3e-3, augment=False, checkpoint_every=150,
+                        widths=(8, 16))
+    losses = []
+    train_depth(cfg, tmp_path / "run", progress=lambda s, n, loss: losses.append(loss))
+    assert np.mean(losses[-10:]) < 0.25 * np.mean(losses[:10])
+
+
+def test_depth_scores_against_direct_formulas():
+    from dcdi_core.models.metrics import depth_scores
+    t = np.array([[1.0, 2.0], [4.0, np.inf]])
+    p = np.array([[1.1, 2.0], [6.0, 3.0]])
+    s = depth_scores(p, t)
+    assert s["pixels"] == 3
+    assert np.isclose(s["abs_rel"], (0.1 + 0 + 0.5) / 3)
+    assert np.isclose(s["rmse"], np.sqrt((0.01 + 0 + 4) / 3))
+    assert np.isclose(s["delta1"], 2 / 3)
+
+
+def _stand_in(monkeypatch, name, **attrs):
+    mod = types.ModuleType(name)
+    for k, v in attrs.items():
+        setattr(mod, k, v)
+    monkeypatch.setitem(sys.modules, name, mod)
+    parent, _, child = name.rpartition(".")
+    if parent:
+        if parent not in sys.modules:
+            monkeypatch.setitem(sys.modules, parent, types.ModuleType(parent))
+        monkeypatch.setattr(sys.modules[parent], child, mod, raising=False)
+    return mod
+
+
+class _Net(torch.nn.Module):
+    """A stand-in estimator network: depth = 1 + 4 x mean sRGB value."""
+
+    def __init__(self, **kw):
+        super().__init__()
+        self.kw = kw
+        self.scale = torch.nn.Parameter(torch.tensor(4.0))
+
+    def depth_of(self, rgb_uint8_hwc):
+        return 1.0 + float(self.scale.detach()) * rgb_uint8_hwc.astype(np.float64).mean(axis=2) / 255.0
+
+
+def test_public_estimators_through_stand_ins(tmp_path, monkeypatch):
+    from dcdi_core.models.depth.estimators import load_estimator
+
+    class DA2(_Net):
+        def infer_image(self, bgr, input_size):
+            assert bgr.dtype == np.uint8 and input_size == 518
+            return self.depth_of(bgr[..., ::-1])
+    _stand_in(monkeypatch, "depth_anything_v2.dpt", DepthAnythingV2=DA2)
+    ck = tmp_path / "depth_anything_v2_metric_hypersim_vits.pth"
+    torch.save(DA2().state_dict(), ck)
+    img = np.random.default_rng(1).uniform(0, 1, (20, 24, 3)).astype(np.float32)
+    est = load_estimator("depth-anything-v2", ck)
+    assert est.model.kw == {"encoder": "vits", "features": 64, "out_channels": [48, 96, 192, 384], "max_depth": 20.0}
+    from dcdi_core.models.depth.estimators import srgb_uint8
+    np.testing.assert_allclose(est.estimate(img), 1 + 4 * srgb_uint8(img).mean(axis=2) / 255, rtol=1e-6)
+
+    class UD(_Net):
+        @classmethod
+        def from_pretrained(cls, path):
+            assert path == str(tmp_path / "unidepth")
+            return cls()
+
+        def infer(self, rgb):
+            assert rgb.shape[0] == 3 and rgb.dtype == torch.uint8
+            return {"depth": torch.from_numpy(self.depth_of(rgb.permute(1, 2, 0).numpy()))[None, None]}
+    _stand_in(monkeypatch, "unidepth.models", UniDepthV2=UD, UniDepthV1=UD)
+    folder = tmp_path / "unidepth"
+    folder.mkdir()
+    (folder / "config.json").write_text("{}")
+    header = json.dumps({"__metadata__": {}}).encode()
+    (folder / "model.safetensors").write_bytes(len(header).to_bytes(8, "little") + header)
+    assert load_estimator("unidepth", folder).estimate(img).shape == (20, 24)
+
+    from dataclasses import dataclass
+
+    @dataclass
+    class Cfg:
+        checkpoint_uri: str = ""
+
+    class DP(_Net):
+        def infer(self, x, f_px=None):
+            return {"depth": torch.from_numpy(self.depth_of(x))}
+
+    def create(config):
+        assert config.checkpoint_uri.endswith("depth_pro.pt")
+        return DP(), (lambda u8: u8)
+    dp = _stand_in(monkeypatch, "depth_pro", create_model_and_transforms=create)
+    dp.depth_pro = types.SimpleNamespace(DEFAULT_MONODEPTH_CONFIG_DICT=Cfg())
+    torch.save({"w": torch.zeros(1)}, tmp_path / "depth_pro.pt")
+    assert load_estimator("depth-pro", tmp_path / "depth_pro.pt").estimate(img).shape == (20, 24)
+
+
+def test_an_unreadable_checkpoint_is_refused_by_name(tmp_path, monkeypatch):
+    from dcdi_core.models.depth.estimators import load_estimator
+    from dcdi_core.models.errors import ModelError, ModelFileError
+    bad = tmp_path / "depth_anything_v2_metric_vkitti_vitl.pth"
+    bad.write_bytes(b"not a checkpoint")
+    with pytest.raises(ModelFileError, match=r"depth_anything_v2_metric_vkitti_vitl\.pth.*depth-anything-v2"):
+        load_estimator("depth-anything-v2", bad)
+    (tmp_path / "u").mkdir()
+    (tmp_path / "u" / "config.json").write_text("{}")
+    (tmp_path / "u" / "model.safetensors").write_bytes(b"\xff" * 16)
+    with pytest.raises(ModelFileError, match="unidepth safetensors"):
+        load_estimator("unidepth", tmp_path / "u")
+    with pytest.raises(ModelFileError, match="no such depth-pro checkpoint"):
+        load_estimator("depth-pro", tmp_path / "missing.pt")
+    bad_npz = tmp_path / "d.npz"
+    np.savez(bad_npz, x=np.zeros(2))
+    with pytest.raises(ModelFileError, match="d.npz"):
+        load_estimator("dcdi", bad_npz)
+    with pytest.raises(Exception, match="depth backend"):
+        load_estimator("midas", bad)
+    torch.save({"w": torch.zeros(1)}, tmp_path / "depth_pro.pt")        # readable, but no package here
+    monkeypatch.setitem(sys.modules, "depth_pro", None)
+    with pytest.raises(ModelError, match="install Depth Pro"):
+        load_estimator("depth-pro", tmp_path / "depth_pro.pt")
