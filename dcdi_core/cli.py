@@ -421,9 +421,10 @@ def _geometries(args, lens, shape):
     return sensor, source
 
 
-def _render_inputs(args):
+def _render_inputs(args, rgbd=None):
     """Everything simulate and bokeh check before any work: the lens, the
-    output paths, the response file, the images and the geometry."""
+    output paths, the response file, the images and the geometry.
+    ``rgbd``: (image, depth) already read (else from --image, --depth)."""
     from .optics.lens import load_lens
     from .render.distortion import check_interpolation
     from .render.simulate import MAX_FITTED_KERNEL, check_patch
@@ -452,10 +453,10 @@ def _render_inputs(args):
             raise InputRangeError("--fixed-depth", fixed, f">= {near:g} m, the PSF library's nearest depth bin (or inf)")
     _check_wavelength(lens, args)
     from dataclasses import replace
-    settings = replace(_psf_settings(args, focus=args.command != "bokeh"), pixel_pitch_mm=None,
+    settings = replace(_psf_settings(args, focus=args.command not in ("bokeh", "dof")), pixel_pitch_mm=None,
                        wavelength_nm=args.wavelength)
     response = _response(args)
-    img, depth = _read_rgbd(args)
+    img, depth = _read_rgbd(args) if rgbd is None else rgbd
     geom, source = _geometries(args, lens, img.shape[:2])
     # the largest kernel the run may use: --kernel, or the fitted kernel's ceiling
     biggest = settings if args.kernel else replace(settings, kernel_size=MAX_FITTED_KERNEL)
@@ -534,6 +535,87 @@ def cmd_bokeh(args) -> int:
     steps.done()
     print(_dump({"output": args.output, **r.info, "psf_source": src.kind,
                  "olf_file": src.olf_file if src.kind == "olf" else None}))
+    return 0
+
+
+def _dof_networks(args, camera, h, w):
+    """(estimator or None, DACN or None, its info, notes) for `dcdi dof`, all
+    loaded (and refused, by name) before any work."""
+    from .models.pipeline import shipped_lenses, shipped_model
+    estimator = corrector = info = None
+    if args.depth is None:
+        ck = args.depth_checkpoint
+        if ck is None and args.depth_backend == "dcdi":
+            ck = shipped_model("depth", camera.id) if camera is not None else None
+            if ck is None:
+                from .models.errors import ModelError
+                raise ModelError("no depth map (--depth) and no shipped depth network for "
+                                 f"{'a sharp image (--camera none)' if camera is None else camera.id} (shipped: "
+                                 f"{', '.join(shipped_lenses('depth')) or 'none'}); give --depth, or "
+                                 "--depth-backend with --depth-checkpoint")
+        from .models.depth.estimators import load_estimator
+        opts = {"threads": args.threads} if args.depth_backend == "dcdi" else {}
+        estimator = load_estimator(args.depth_backend, ck, **opts)
+    if camera is not None:
+        path = args.dacn or shipped_model("dacn", camera.id)
+        if path is None:
+            from .models.errors import ModelError
+            raise ModelError(f"no shipped DACN for {camera.id} (shipped: {', '.join(shipped_lenses('dacn')) or 'none'});"
+                             " give --dacn MODEL, or --camera none for a sharp image")
+        from .models.correct import load_dacn
+        corrector, info = load_dacn(path)
+        trained = (info.get("da2t") or {}).get("lens")
+        if trained is not None and trained != camera.id:
+            from .models.errors import ModelError
+            raise ModelError(f"{path} was trained for lens {trained}, not the camera {camera.id}")
+    return estimator, corrector, info
+
+
+def cmd_dof(args) -> int:
+    from pathlib import Path
+
+    import numpy as np
+    from .io.images import read_depth, read_image, write_depth, write_image
+    from .optics.lens import load_lens
+    from .render.geometry import ImageGeometry
+    camera = None if args.camera == "none" else load_lens(args.camera)
+    img = read_image(args.image)
+    depth = None
+    if args.depth is not None:
+        depth = read_depth(args.depth, channel=args.depth_channel)
+        if depth.shape != img.shape[:2]:
+            from .errors import InputRangeError
+            raise InputRangeError(f"depth map {args.depth}", depth.shape, f"{img.shape[:2]} (the image {args.image})")
+    lens, settings, response, _, _, geom, source = _render_inputs(
+        args, rgbd=(img, depth if depth is not None else np.ones(img.shape[:2], np.float32)))
+    if args.save_intermediates:
+        for name in ("corrected.exr", "depth.exr"):
+            _check_output(str(Path(args.save_intermediates) / name), "--save-intermediates", image=True)
+    import torch
+    torch.set_num_threads(args.threads)
+    estimator, corrector, info = _dof_networks(args, camera, *img.shape[:2])
+    from .models.pipeline import dof
+    camera_pitch = ImageGeometry.full_sensor(camera, *img.shape[:2]).pixel_pitch_mm if camera is not None else None
+    focus_m = args.focus
+    with _quiet_input_warnings():
+        r = dof(img, lens, keep=tuple(args.keep) if args.keep else None, focus_m=focus_m, depth_m=depth,
+                estimator=estimator, corrector=corrector, corrector_info=info, camera_pitch_mm=camera_pitch,
+                psf_source=args.psf_source, olf_file=args.olf, settings=settings, geometry=geom,
+                source_geometry=source, response=response, distortion=args.distort, interpolation=args.interpolation,
+                patch=args.patch, occlusion=not args.plain, fit_kernel=not args.kernel)
+    print(f"dcdi: {r.psf_message}", file=sys.stderr)
+    for note in r.notes:
+        print(f"dcdi: note: {note}", file=sys.stderr)
+    write_image(args.output, r.image)
+    if args.save_intermediates:
+        write_image(Path(args.save_intermediates) / "corrected.exr", r.corrected)
+        write_depth(Path(args.save_intermediates) / "depth.exr", r.depth_m)
+    if args.side_by_side:
+        from .models.evaluate import panel_strip
+        from .render.pictures import depth_panel
+        write_image(args.side_by_side, panel_strip([img, r.corrected, depth_panel(r.depth_m), r.image]))
+    times = ", ".join(f"{k} {v:.2f} s" for k, v in r.seconds.items())
+    print(f"wrote {args.output}: camera {args.camera}, depth {r.depth_source}, PSFs {r.psf_source}; {times}")
     return 0
 
 
@@ -1170,9 +1252,11 @@ def build_parser() -> argparse.ArgumentParser:
     from .render.distortion import INTERPOLATIONS
     from .render.simulate import DEFAULT_INTERPOLATION
 
-    def rgbd_options(q):
-        q.add_argument("--image", required=True, help="all-in-focus image (EXR linear, or PNG/JPEG sRGB)")
-        q.add_argument("--depth", required=True, help="metric depth map (EXR, metres from the lens; NaN/0/<0 invalid)")
+    def rgbd_options(q, depth_required=True, image_help="all-in-focus image (EXR linear, or PNG/JPEG sRGB)"):
+        q.add_argument("--image", required=True, help=image_help)
+        q.add_argument("--depth", required=depth_required,
+                       help="metric depth map (EXR, metres from the lens; NaN/0/<0 invalid)"
+                            + ("" if depth_required else "; without it, it is estimated from the image"))
         q.add_argument("--depth-channel", default=None, metavar="NAME",
                        help="the depth map's channel, e.g. Z or ViewLayer.Depth.Z (default: the first of "
                             "Z, depth.Z, Depth.V, V, depth, R, Y found)")
@@ -1191,7 +1275,7 @@ def build_parser() -> argparse.ArgumentParser:
                             "visible band weighted by the sensor's response")
         q.add_argument("--interpolation", default=DEFAULT_INTERPOLATION, choices=INTERPOLATIONS,
                        help=f"how the distortion warp resamples the image (default {DEFAULT_INTERPOLATION})")
-        psf_options(q, focus=q.prog.split()[-1] != "bokeh", render=True)
+        psf_options(q, focus=q.prog.split()[-1] not in ("bokeh", "dof"), render=True)
         psf_source_options(q)
 
     q = sub.add_parser("simulate", help="depth-aware aberration simulation of an all-in-focus RGB-D image",
@@ -1223,6 +1307,31 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--plain", action="store_true", help="plain patch-wise blur instead of occlusion-aware layers")
     q.add_argument("--side-by-side", default=None, metavar="PNG", help="also write input | depth | result")
     q.set_defaults(func=cmd_bokeh)
+
+    q = sub.add_parser("dof", help="DCDI end to end: a minimalist-lens capture -> another lens's depth of field",
+                       description="Depth (given, or estimated from the capture), correction of the camera lens's "
+                                   "aberrations (DACN), then the target lens's occlusion-aware bokeh with PSFs from "
+                                   "the Omni-Lens-Field where it covers the request, else traced. " + UNITS)
+    rgbd_options(q, depth_required=False, image_help="the capture (EXR linear, or PNG/JPEG sRGB)")
+    q.add_argument("--camera", required=True,
+                   help="the lens that took the capture (its shipped DACN corrects it), or 'none' for a sharp image")
+    g = q.add_mutually_exclusive_group(required=True)
+    g.add_argument("--keep", type=float, nargs=2, metavar=("NEAR", "FAR"), help="depth range kept sharp, metres")
+    g.add_argument("--focus", type=_focus, metavar="D", help="focus the target lens at D metres, or 'prescribed'")
+    q.add_argument("--dacn", default=None, metavar="MODEL",
+                   help="the correction network (default: the shipped one of --camera)")
+    q.add_argument("--depth-backend", default="dcdi", choices=["dcdi", "unidepth", "depth-anything-v2", "depth-pro"],
+                   help="the estimator when no --depth is given (default dcdi: the shipped depth network of "
+                        "--camera)")
+    q.add_argument("--depth-checkpoint", default=None, metavar="PATH",
+                   help="the estimator's checkpoint on this disk (never downloaded)")
+    q.add_argument("--save-intermediates", default=None, metavar="DIR",
+                   help="also write corrected.exr and depth.exr there")
+    q.add_argument("--side-by-side", default=None, metavar="PNG", help="also write capture | corrected | depth | result")
+    q.add_argument("--distort", action="store_true", help="also apply the target lens's distortion")
+    q.add_argument("--plain", action="store_true", help="plain patch-wise blur instead of occlusion-aware layers")
+    q.add_argument("--threads", type=_positive_int, default=1, help="torch threads (default 1)")
+    q.set_defaults(func=cmd_dof)
 
     q = sub.add_parser("report", help="accuracy reports (error against run time)")
     rsub = q.add_subparsers(dest="report_command", required=True, metavar="REPORT")

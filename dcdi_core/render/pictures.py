@@ -36,3 +36,18 @@ def side_by_side(path, image, depth, result, title: str) -> None:
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     save_figure(fig, path, dpi=100)
+
+
+def depth_panel(depth_m, near_m: float = 0.5, far_m: float = 20.0) -> np.ndarray:
+    """A depth map as a colour image (H, W, 3) in *linear* light, so that
+    ``io.images.write_image`` shows it as drawn: viridis (reversed, near
+    bright) of log depth over [near_m, far_m], grey where invalid."""
+    import matplotlib
+
+    from ..io.images import srgb_to_linear
+    d = np.asarray(depth_m, dtype=np.float64)
+    valid = np.isfinite(d) & (d > 0)
+    t = (np.log(np.clip(np.where(valid, d, near_m), near_m, far_m)) - np.log(near_m)) / np.log(far_m / near_m)
+    rgb = matplotlib.colormaps["viridis_r"](t)[..., :3]
+    rgb[~valid] = 0.5
+    return srgb_to_linear(rgb).astype(np.float32)

@@ -1,0 +1,100 @@
+"""`dcdi dof`: the pipeline end to end with each depth backend, and with a
+sharp input, --camera none and the true depth, exactly `dcdi bokeh`."""
+import sys
+import types
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from conftest import write_rgbd_scene  # noqa: E402
+from test_dacn_train import _config, pairs  # noqa: E402,F401
+
+from dcdi_core.cli import main  # noqa: E402
+from dcdi_core.io.images import read_image  # noqa: E402
+
+FAST = ["--rays", "16", "--wavelengths", "3", "--kernel", "15", "--psf-source", "trace"]
+
+
+@pytest.fixture
+def scene(tmp_path, monkeypatch):
+    write_rgbd_scene(tmp_path, monkeypatch, 48, 64)
+    return tmp_path
+
+
+@pytest.fixture(scope="module")
+def networks(pairs, tmp_path_factory):  # noqa: F811
+    """A tiny DACN and depth network of mos-s2 (a few steps), exported as shipped."""
+    from dcdi_core.models.dacn_export import export_dacn
+    from dcdi_core.models.depth.depthnet_file import export_depthnet
+    from dcdi_core.models.train.dacn_loop import train_dacn
+    from dcdi_core.models.train.depth_config import DepthTrainConfig
+    from dcdi_core.models.train.depth_loop import train_depth
+    d = tmp_path_factory.mktemp("nets")
+    train_dacn(_config(pairs, iters=2, checkpoint_every=2), d / "dacn")
+    train_depth(DepthTrainConfig(data=str(pairs), widths=(4, 8), iters=2, batch=1, crop=16, val_fraction=1 / 6,
+                                 test_fraction=2 / 6), d / "depth")
+    export_dacn(d / "dacn", d / "dacn.npz")
+    export_depthnet(d / "depth", d / "depth.npz")
+    return d
+
+
+def _args(d, *extra):
+    return ["--image", str(d / "aif.exr"), "--lens", "mos-s1", "--keep", "0.7", "1.5", *FAST, *extra]
+
+
+def test_sharp_input_camera_none_true_depth_equals_bokeh(scene, capsys):
+    d = scene
+    assert main(["bokeh", *_args(d, "--depth", str(d / "depth.exr"), "-o", str(d / "b.exr"))]) == 0
+    assert main(["dof", *_args(d, "--depth", str(d / "depth.exr"), "--camera", "none", "-o", str(d / "p.exr"))]) == 0
+    out = capsys.readouterr().out
+    assert "camera none, depth given, PSFs trace" in out
+    np.testing.assert_array_equal(read_image(d / "p.exr"), read_image(d / "b.exr"))
+
+
+def test_end_to_end_with_the_dcdi_depth_network(scene, networks, capsys):
+    d = scene
+    assert main(["dof", *_args(d, "--camera", "mos-s2", "--dacn", str(networks / "dacn.npz"), "--depth-checkpoint",
+                               str(networks / "depth.npz"), "-o", str(d / "p.exr"), "--save-intermediates",
+                               str(d / "mid"), "--side-by-side", str(d / "s.png"))]) == 0
+    out = capsys.readouterr().out
+    assert "depth dcdi" in out and "correction" in out and "depth " in out
+    res, cor = read_image(d / "p.exr"), read_image(d / "mid" / "corrected.exr")
+    assert res.shape == cor.shape == (48, 64, 3) and np.isfinite(res).all() and (d / "s.png").exists()
+
+
+def test_end_to_end_with_a_public_estimator_stand_in(scene, networks, monkeypatch, capsys):
+    d = scene
+
+    class DA2(torch.nn.Module):
+        def __init__(self, **kw):
+            super().__init__()
+            self.w = torch.nn.Parameter(torch.ones(1))
+
+        def infer_image(self, bgr, input_size):
+            return np.full(bgr.shape[:2], 3.0)
+    mod = types.ModuleType("depth_anything_v2.dpt")
+    mod.DepthAnythingV2 = DA2
+    monkeypatch.setitem(sys.modules, "depth_anything_v2", types.ModuleType("depth_anything_v2"))
+    monkeypatch.setitem(sys.modules, "depth_anything_v2.dpt", mod)
+    ck = d / "depth_anything_v2_metric_hypersim_vits.pth"
+    torch.save(DA2().state_dict(), ck)
+    assert main(["dof", *_args(d, "--camera", "mos-s2", "--dacn", str(networks / "dacn.npz"), "--depth-backend",
+                               "depth-anything-v2", "--depth-checkpoint", str(ck), "-o", str(d / "p.exr"),
+                               "--save-intermediates", str(d / "mid"))]) == 0
+    assert "depth depth-anything-v2" in capsys.readouterr().out
+    from dcdi_core.io.images import read_depth
+    np.testing.assert_array_equal(read_depth(d / "mid" / "depth.exr"), 3.0)
+
+
+def test_what_is_missing_is_said_before_any_work(scene, networks, capsys):
+    d = scene
+    cases = [(["--camera", "6p", "--depth", str(d / "depth.exr")], "no shipped DACN for 6p"),
+             (["--camera", "none"], "no depth map"),
+             (["--camera", "mos-s1", "--dacn", str(networks / "dacn.npz"), "--depth", str(d / "depth.exr")],
+              "trained for lens mos-s2")]
+    for extra, says in cases:
+        assert main(["dof", *_args(d, *extra, "-o", str(d / "p.exr"))]) != 0
+        assert says in capsys.readouterr().err
+    assert not (d / "p.exr").exists()
