@@ -13,6 +13,7 @@ import json
 import math
 import sys
 import time
+from pathlib import Path
 
 UNITS = ("units: lens lengths in mm; depth D in metres from the lens's first vertex "
          "('inf' for infinity); wavelengths in nm; angles in degrees; field F is the "
@@ -616,6 +617,80 @@ def cmd_dof(args) -> int:
         write_image(args.side_by_side, panel_strip([img, r.corrected, depth_panel(r.depth_m), r.image]))
     times = ", ".join(f"{k} {v:.2f} s" for k, v in r.seconds.items())
     print(f"wrote {args.output}: camera {args.camera}, depth {r.depth_source}, PSFs {r.psf_source}; {times}")
+    return 0
+
+
+def _lens_map(items, what: str) -> dict:
+    out = {}
+    for item in items or []:
+        lens, sep, path = item.partition("=")
+        if not sep or not lens or not path:
+            from .errors import InputRangeError
+            raise InputRangeError(what, item, "LENS=PATH, e.g. mos-s1=out/pairs-mos-s1")
+        out[lens] = path
+    return out
+
+
+def _report_models(args, lenses, need_dacn: bool = True):
+    """{lens: {'dacn', 'depth', 'baseline'}} for the pipeline and depth reports:
+    given paths, else the shipped files."""
+    from .models.correct import load_dacn
+    from .models.depth.depthnet_file import load_depthnet
+    from .models.errors import ModelError
+    from .models.pipeline import shipped_model
+    dacn, depth, base = (_lens_map(v, w) for v, w in ((args.dacn, "--dacn"), (args.depth_model, "--depth-model"),
+                                                       (args.baseline, "--baseline")))
+    models = {}
+    for lens in lenses:
+        d = dacn.get(lens) or shipped_model("dacn", lens)
+        if d is None and need_dacn:
+            raise ModelError(f"no DACN for {lens}: give --dacn {lens}=MODEL")
+        z = depth.get(lens) or shipped_model("depth", lens)
+        models[lens] = {"dacn": load_dacn(d)[0] if d else None, "depth": load_depthnet(z)[0] if z else None,
+                        "baseline": load_dacn(base[lens])[0] if lens in base else None}
+    return models
+
+
+def cmd_report_pipeline(args) -> int:
+    import torch
+    from .models import pipeline_report as pr
+    from .optics.lens import load_lens
+    torch.set_num_threads(args.threads)
+    pairs = _lens_map(args.pairs, "--pairs")
+    models = _report_models(args, pairs)
+    target = load_lens(args.target)
+    keep = tuple(args.keep)
+    results, times = {}, {}
+    for lens, d in pairs.items():
+        ids = pr.held_out(d, [], args.count)
+        print(f"{lens}: {len(ids)} held-out pairs of {d}", file=sys.stderr)
+        results[lens] = pr.lens_rows(lens, d, ids, models[lens], target, keep, olf_file=args.olf,
+                                     pictures=Path(args.out) / "pictures",
+                                     log=lambda t: print(t, file=sys.stderr))
+        for size in ([] if args.quick else [(480, 640), (1280, 1920)]):
+            times[f"{lens}, {size[0]} x {size[1]}"] = pr.stage_times(lens, models[lens], target, keep, size,
+                                                                   olf_file=args.olf)
+    print(pr.write_report(args.out, results, times, target.id, keep), end="")
+    return 0
+
+
+def cmd_report_depth(args) -> int:
+    import json
+    import torch
+    from .atomic import write_text
+    from .models import pipeline_report as pr
+    torch.set_num_threads(args.threads)
+    pairs = _lens_map(args.pairs, "--pairs")
+    models = _report_models(args, pairs, need_dacn=False)
+    missing = [lens for lens in pairs if models[lens]["depth"] is None]
+    if missing:
+        from .models.errors import ModelError
+        raise ModelError(f"no depth network for {', '.join(missing)}: give --depth-model LENS=MODEL")
+    res = pr.depth_report(pairs, {k: v["depth"] for k, v in models.items()}, {}, args.count)
+    text = pr.depth_markdown(res)
+    write_text(Path(args.out) / "depth.md", text)
+    write_text(Path(args.out) / "depth.json", json.dumps(res, indent=1) + "\n")
+    print(text, end="")
     return 0
 
 
@@ -1353,6 +1428,30 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", default="out/report", help="folder for the table (Markdown), JSON and plot (PNG)")
     r.add_argument("--quick", action="store_true", help="few points and small images (for tests)")
     r.set_defaults(func=cmd_report_olf)
+
+    for name, helptext in (("pipeline", "DCDI end to end on held-out factory pairs against the ideal; stage times"),
+                           ("depth", "the depth network on held-out factory pairs: AbsRel, RMSE, delta1")):
+        r = rsub.add_parser(name, help=helptext)
+        r.add_argument("--pairs", action="append", required=True, metavar="LENS=DIR",
+                       help="a camera lens's DA2T pairs (their test split is used), e.g. mos-s1=out/pairs-mos-s1")
+        r.add_argument("--dacn", action="append", default=None, metavar="LENS=MODEL",
+                       help="a lens's DACN (default: the shipped one)")
+        r.add_argument("--depth-model", action="append", default=None, metavar="LENS=MODEL",
+                       help="a lens's depth network (default: the shipped one)")
+        r.add_argument("--baseline", action="append", default=None, metavar="LENS=MODEL",
+                       help="a lens's depth-unaware DACN (a row of its own)")
+        r.add_argument("--count", type=_positive_int, default=8, help="held-out pairs per lens (default 8)")
+        r.add_argument("--threads", type=_positive_int, default=1, help="torch threads (default 1)")
+        r.add_argument("--out", default="out/report", help="folder for the table (Markdown), JSON and pictures")
+        if name == "pipeline":
+            r.add_argument("--target", default="6p", help="the target lens (default 6p)")
+            r.add_argument("--keep", type=float, nargs=2, default=[0.7, 1.5], metavar=("NEAR", "FAR"),
+                           help="depth range kept sharp, metres (default 0.7 1.5)")
+            r.add_argument("--olf", default=None, metavar="FILE.npz", help="the OLF (default: the shipped one)")
+            r.add_argument("--quick", action="store_true", help="no stage timing at full sizes (for tests)")
+            r.set_defaults(func=cmd_report_pipeline)
+        else:
+            r.set_defaults(func=cmd_report_depth)
 
     q = sub.add_parser("bench", help="benchmarks (times, not tests)",
                        description="Benchmarks of the engine; the dataset factory's is `python build.py bench "

@@ -98,3 +98,17 @@ def test_what_is_missing_is_said_before_any_work(scene, networks, capsys):
         assert main(["dof", *_args(d, *extra, "-o", str(d / "p.exr"))]) != 0
         assert says in capsys.readouterr().err
     assert not (d / "p.exr").exists()
+
+
+def test_pipeline_and_depth_reports_on_held_out_pairs(pairs, networks, tmp_path, capsys):  # noqa: F811
+    dacn, dep = f"mos-s2={networks / 'dacn.npz'}", f"mos-s2={networks / 'depth.npz'}"
+    assert main(["report", "pipeline", "--pairs", f"mos-s2={pairs}", "--dacn", dacn, "--depth-model", dep,
+                 "--baseline", dacn, "--target", "mos-s1", "--count", "1", "--quick", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    for row in ("no correction", "corrected, true depth", "corrected, estimated depth", "depth-unaware model"):
+        assert f"| {row} |" in out
+    assert list((tmp_path / "pictures").glob("mos-s2-*.png"))
+    assert main(["report", "depth", "--pairs", f"mos-s2={pairs}", "--depth-model", dep, "--count", "2",
+                 "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "| mos-s2 | 2 | capture |" in out and "| mos-s2 | 2 | sharp |" in out

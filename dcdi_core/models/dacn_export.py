@@ -8,7 +8,7 @@ checksum are checked and what is wrong is named.
 """
 from __future__ import annotations
 
-from .npz_file import read_model_npz, state_arrays, write_model_npz
+from .npz_file import read_model_npz, state_arrays, trained_pixel_pitch_mm, write_model_npz
 
 FORMAT, FORMAT_VERSION = "dcdi-dacn", 1
 
@@ -22,7 +22,8 @@ def export_dacn(run, path, *, weights: str = "ema", dtype: str = "float16", extr
     arrays = state_arrays(model, dtype)
     meta = {"format": FORMAT, "version": FORMAT_VERSION, "spec": info["spec"], "config": info["config"],
             "da2t": info["da2t"], "lens": (info["da2t"] or {}).get("lens"), "step": info["step"],
-            "weights": weights, "dtype": dtype, **(extra or {})}
+            "weights": weights, "dtype": dtype,
+            "pixel_pitch_mm": trained_pixel_pitch_mm(info["config"].get("data")), **(extra or {})}
     return write_model_npz(path, meta, arrays)
 
 

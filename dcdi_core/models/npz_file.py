@@ -72,3 +72,11 @@ def load_state(module, arrays: dict, path) -> None:
     except RuntimeError as e:
         raise ModelFileError(path, f"weights do not fit the recorded network ({str(e)[:200]})") from None
     module.eval()
+
+
+def trained_pixel_pitch_mm(data_root) -> float | None:
+    """The image pixel pitch (mm) of a run's DA2T pairs (their first record), or None."""
+    from .data.da2t import finished_pairs
+    recs = finished_pairs(data_root) if data_root and Path(data_root).exists() else {}
+    pitches = {round(r["pixel_pitch_mm"], 9) for r in recs.values() if "pixel_pitch_mm" in r}
+    return next(iter(pitches)) if len(pitches) == 1 else None

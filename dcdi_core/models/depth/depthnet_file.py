@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 from ..errors import ModelFileError
-from ..npz_file import load_state, read_model_npz, state_arrays, write_model_npz
+from ..npz_file import load_state, read_model_npz, state_arrays, trained_pixel_pitch_mm, write_model_npz
 
 FORMAT, FORMAT_VERSION = "dcdi-depthnet", 1
 
@@ -37,5 +37,6 @@ def load_depthnet(path, *, weights: str = "ema"):
 def export_depthnet(run, path, *, dtype: str = "float16", extra: dict | None = None) -> dict:
     model, info = load_depthnet(run)
     meta = {"format": FORMAT, "version": FORMAT_VERSION, "spec": model.spec.as_dict(), "config": info["config"],
-            "lens": info["lens"], "step": info["step"], "dtype": dtype, **(extra or {})}
+            "lens": info["lens"], "step": info["step"], "dtype": dtype,
+            "pixel_pitch_mm": trained_pixel_pitch_mm(info["config"].get("data")), **(extra or {})}
     return write_model_npz(path, meta, state_arrays(model, dtype))
