@@ -1150,10 +1150,10 @@ def add_dacn_commands(sub) -> None:
     t.add_argument("--data", required=True, help="pairs folder (dcdi dacn pairs)")
     t.add_argument("--iters", type=_positive_int, default=2000, help="iterations")
     t.add_argument("-o", "--output", required=True, help="run folder")
-    t.add_argument("--widths", type=_positive_int, nargs="+", default=[16, 32, 64, 96], help="U-Net level widths")
+    t.add_argument("--widths", type=_positive_int, nargs="+", default=[12, 24, 48, 64], help="U-Net level widths")
     t.add_argument("--input", choices=["capture", "target"], default="capture",
                    help="learn from the aberrated capture (default) or the sharp image")
-    t.add_argument("--batch", type=_positive_int, default=8, help="batch (default 8)")
+    t.add_argument("--batch", type=_positive_int, default=4, help="batch (default 4)")
     t.add_argument("--crop", type=_positive_int, default=128, help="crop size (default 128)")
     t.add_argument("--lr", type=float, default=1e-3, help="initial learning rate (cosine to 1 %%)")
     t.add_argument("--seed", type=int, default=0, help="seed of weights and crops")

@@ -25,7 +25,7 @@ MAX_DIOPTER = DIOPTER_SCALE_M / NEAR_M
 
 @dataclass(frozen=True)
 class DepthNetSpec:
-    widths: tuple = (16, 32, 64, 96)
+    widths: tuple = (12, 24, 48, 64)
 
     def __post_init__(self):
         from ...optics.errors import InputRangeError

@@ -67,7 +67,7 @@ def run_folder(out: Path, lens: str, name: str) -> Path:
 def train_command(data: str, folder: Path, name: str, args) -> list:
     return [sys.executable, "-m", "dcdi_core", "train", "dacn", "--data", data, "--config", args.config,
             "--iters", str(args.iters), "-o", str(folder), "--seed", str(args.seed), "--threads", "1",
-            "--batch", str(args.batch), "--crop", str(args.crop), *run_flags(name)]
+            "--batch", str(args.batch), "--crop", str(args.crop), "--lr", str(args.lr), *run_flags(name)]
 
 
 def finished(folder: Path) -> bool:
@@ -117,8 +117,8 @@ def evaluate_lens(out: Path, lens: str, data: str, names: list) -> dict:
 
 def table(lens: str, ev: dict, secs: dict, names: list, args) -> str:
     """One lens's rows as Markdown."""
-    lines = [f"{lens}: DACN `{args.config}`, {args.iters} iterations, batch {args.batch} of {args.crop}^2, seed "
-             f"{args.seed}; {len(ev['pairs'])} held-out pairs; PSNR dB / SSIM over the imaged pixels.\n",
+    lines = [f"{lens}: DACN `{args.config}`, {args.iters} iterations, batch {args.batch} of {args.crop}^2, lr "
+             f"{args.lr:g}, seed {args.seed}; {len(ev['pairs'])} held-out pairs; PSNR dB / SSIM over the imaged pixels.\n",
              "| row | PSNR | SSIM | vs capture | training min (one core) |", "|---|---|---|---|---|"]
     cap = ev["mean"]["capture"]
     lines.append(f"| capture (uncorrected) | {cap['psnr']:.2f} | {cap['ssim']:.4f} | | |")
@@ -138,6 +138,7 @@ def main(argv=None) -> int:
     ap.add_argument("--iters", type=int, default=2000)
     ap.add_argument("--batch", type=int, default=4)
     ap.add_argument("--crop", type=int, default=128)
+    ap.add_argument("--lr", type=float, default=2e-4, help="initial learning rate (the paper's 2e-4)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--jobs", type=int, default=2, help="trainings at a time (one core each)")
     args = ap.parse_args(argv)

@@ -15,10 +15,10 @@ INPUTS = ("capture", "target")
 @dataclass(frozen=True)
 class DepthTrainConfig(JSONConfig):
     data: str                                  # a folder of pre-built DA2T pairs (their captures and depths)
-    widths: tuple = (16, 32, 64, 96)
+    widths: tuple = (12, 24, 48, 64)
     input: str = "capture"                     # the aberrated capture (what a user has) or the sharp target
     iters: int = 2000
-    batch: int = 8
+    batch: int = 4
     crop: int = 128
     lr: float = 1e-3
     betas: tuple = (0.9, 0.99)
