@@ -224,7 +224,7 @@ def _psf_from_olf(args, lens, src, settings):
     None where the request lies outside its ranges (then traced, said why)."""
     from .models.errors import ModelError, OutsideTrainedRangeError
     try:
-        kernel = src.library.olf.psf(lens, args.field, args.depth, settings.focus_distance_m)
+        kernel = src.library.kernels(args.field, args.depth)     # at the request's pitch
     except OutsideTrainedRangeError as e:
         if args.psf_source == "olf":
             raise ModelError(f"--psf-source olf: the Omni-Lens-Field cannot serve this request: {e}") from None
