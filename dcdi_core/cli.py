@@ -549,7 +549,7 @@ def cmd_report_sim(args) -> int:
 
 def cmd_report_olf(args) -> int:
     from .models.report import run_report
-    return run_report(args.olf, args.out, quick=args.quick, sweep=args.sweep)
+    return run_report(args.olf, args.out, quick=args.quick, sweep=args.sweep, pitch_only=args.pitch_only)
 
 
 def cmd_bench(args) -> int:
@@ -1092,6 +1092,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="rows of the size x learning-rate sweep (out/sweep/results.jsonl) for the table and plot")
     r.add_argument("--out", default="out/report", help="folder for the table (Markdown), JSON and plot (PNG)")
     r.add_argument("--quick", action="store_true", help="few points and small images (for tests)")
+    r.add_argument("--pitch-only", action="store_true",
+                   help="only the kernels at coarser pixel pitches (area-resampled) against kernels traced there")
     r.set_defaults(func=cmd_report_olf)
 
     q = sub.add_parser("bench", help="benchmarks (times, not tests)",
