@@ -104,8 +104,7 @@ def finish(op, context, job, out, info, seconds: float, store_inputs: bool):
         bpy_render.put_image(DEPTH_IMAGE, job["depth"][..., None].repeat(3, axis=-1))
     bpy_render.show_in_image_editor(context, img)
     h, w = out.shape[:2]
-    source = "Omni-Lens-Field" if info["psf_source"] == "olf" else "traced"
-    context.window_manager.dcdi_lens_bokeh_status.psf_source = f"PSFs {source}: {info['psf_source_message']}"
+    context.window_manager.dcdi_lens_bokeh_status.psf_source = info["psf_source_message"]
     op.report({"INFO"}, f"Lens Bokeh: {w} x {h} px, kept sharp {job['keep'][0]:.2f}-{job['keep'][1]:.2f} m "
                         f"({info['kept_pixels']} px), render {job['render_s']:.1f} s, bokeh {seconds:.1f} s; "
                         f"{info['psf_source_message']}")

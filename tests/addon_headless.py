@@ -188,7 +188,9 @@ for lens_id in ("6p", "mos-s1"):
     s.lens = lens_id
     st = bpy.context.window_manager.dcdi_lens_bokeh_status
     st.psf_source = ""
-    res["olf_apply"][lens_id] = {"result": sorted(bpy.ops.dcdi.apply_lens_bokeh()), "status": st.psf_source}
+    t = time.perf_counter()
+    res["olf_apply"][lens_id] = {"result": sorted(bpy.ops.dcdi.apply_lens_bokeh()), "status": st.psf_source,
+                                 "seconds": time.perf_counter() - t}
     np.save(OUT / f"olf-{lens_id}.npy", bpy_render.get_image("Lens Bokeh"))
 for m, fn in tracers.items():
     sys.modules[f"{engine}.{m}"].compute_sources = fn
