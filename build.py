@@ -19,7 +19,8 @@ never starts the Blender layer.
 
 `addon` needs no environment: it zips blender_addon/ (without its tools/
 folder of batch jobs and developer tools) as the folder <id>/ with dcdi_core/
-and lenses/ vendored inside it,
+(of its models/, only the numpy runtime and the shipped Omni-Lens-Field
+weights: no torch code) and lenses/ vendored inside it,
 id and version from blender_addon/blender_manifest.toml. The zip installs as
 an extension in Blender 4.2+ (Install from Disk) and as a legacy add-on in
 older Blender (its bl_info). Same sources, same bytes (fixed timestamps).
@@ -130,6 +131,22 @@ def cmd_test(py: Path, marker: str) -> int:
 # batch jobs and developer tools (they need the repository: scenes/, OpenImageIO, a
 # Blender binary): not part of the add-on, left out of the zip as a whole
 ADDON_EXCLUDE_DIRS = ("tools",)
+# of dcdi_core.models, the add-on bundles only the numpy runtime and the shipped
+# weights (the rest, arch/ data/ layers/ train/ export ..., needs torch)
+ADDON_MODELS = ("__init__.py", "errors.py", "runtime/", "weights/")
+
+
+def _engine_file(p: Path) -> bool:
+    """True for a dcdi_core file the add-on bundles (sources and data; of
+    models/, the numpy runtime and the weights)."""
+    rel = p.relative_to(ROOT / "dcdi_core").as_posix()
+    if rel.startswith("models/"):
+        part = rel[len("models/"):]
+        if not any(part == m or (m.endswith("/") and part.startswith(m)) for m in ADDON_MODELS):
+            return False
+        if part.startswith("weights/"):
+            return p.suffix == ".npz"
+    return p.suffix in (".py", ".csv", ".md", ".json")
 
 
 def _addon_files() -> list[tuple[Path, str]]:
@@ -140,7 +157,7 @@ def _addon_files() -> list[tuple[Path, str]]:
     addon = ROOT / "blender_addon"
     files = tree(addon, "", lambda p: p.relative_to(addon).parts[0] not in ADDON_EXCLUDE_DIRS
                  and p.suffix in (".py", ".toml", ".md"))
-    files += tree(ROOT / "dcdi_core", "dcdi_core/", lambda p: p.suffix in (".py", ".csv", ".md", ".json"))
+    files += tree(ROOT / "dcdi_core", "dcdi_core/", _engine_file)
     files += tree(ROOT / "lenses", "lenses/", lambda p: p.suffix in (".toml", ".md"))
     return files
 

@@ -145,14 +145,18 @@ def keep_range(focus_m: float, front_m: float, behind_m: float) -> tuple[float, 
 
 
 def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], patch: int = 16,
-              progress=None, cancelled=None):
+              refocus: bool = True, progress=None, cancelled=None):
     """The lens's depth of field on an all-in-focus (H, W, 3) float32 linear
-    image with depth (H, W) metres: the lens focused at ``focus_m``, depths in
-    ``keep`` exactly sharp. ``progress(stage, fraction)`` is called while the
-    PSF bins the scene needs are built (cached in ~/.cache/dcdi, or
-    $DCDI_CACHE_DIR) and before the convolution; ``cancelled()`` returning
-    True stops the PSF build or the convolution (between its layers) with
-    :class:`Cancelled`. Returns (image, info)."""
+    image with depth (H, W) metres: the lens focused at ``focus_m`` (or, with
+    ``refocus`` False, as its prescription stands), depths in ``keep`` exactly
+    sharp. The PSFs come from the shipped Omni-Lens-Field where it covers the
+    lens and the request, else they are traced (``psf_source``, the CLI's
+    rule): info's ``psf_source`` ('olf' or 'trace') and
+    ``psf_source_message`` (which and why). ``progress(stage, fraction)`` is
+    called while the PSF bins the scene needs are built (traced ones cached in
+    ~/.cache/dcdi, or $DCDI_CACHE_DIR) and before the convolution;
+    ``cancelled()`` returning True stops the PSF build or the convolution
+    (between its layers) with :class:`Cancelled`. Returns (image, info)."""
     sim = core("render.simulate")
     geom = core("render.geometry").ImageGeometry.full_sensor(lens, image.shape[0], image.shape[1])
     finite = depth[np.isfinite(depth) & (depth > 0)]
@@ -161,7 +165,7 @@ def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], 
         seen = (f"{finite.min():.2f}-{finite.max():.2f} m" if finite.size else "only background (infinity)")
         raise BokehInputError(f"nothing in view lies in the kept range {keep[0]:.2f}-{keep[1]:.2f} m "
                               f"(depths in view: {seen}); move the focus or widen the range")
-    settings = replace(core("psf.compute").PSFSettings(), focus_distance_m=float(focus_m))
+    settings = replace(core("psf.compute").PSFSettings(), focus_distance_m=float(focus_m) if refocus else None)
 
     def report(done, total):
         if cancelled is not None and cancelled():
@@ -176,7 +180,10 @@ def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], 
     # single pixel touches: every bin between the nearest and farthest is built.
     blurred = depth[np.isfinite(depth) & (depth > 0) & ~((depth >= keep[0]) & (depth <= keep[1]))]
     blurred = np.concatenate([blurred, depth[np.isinf(depth) & (depth > 0)][:1]])
-    lib = sim.open_library(lens, geom, settings, fit_depth_m=blurred if blurred.size else None, progress=report)
+    src = core("models.runtime.library").psf_source(lens, pixel_pitch_mm=geom.pixel_pitch_mm, settings=settings,
+                                                     focus_m=settings.focus_distance_m)
+    lib = src.library or sim.open_library(lens, geom, settings, fit_depth_m=blurred if blurred.size else None,
+                                          progress=report)
     if blurred.size:
         need = lib.bins_needed(blurred, clamp_near=True)
         lib.ensure(bins=np.arange(need.min(), need.max() + 1), progress=report)
@@ -188,6 +195,6 @@ def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], 
         res = sim.bokeh(image, depth, lens, keep=keep, geometry=geom, library=lib, patch=patch, cancelled=cancelled)
     except sim.Cancelled:
         raise Cancelled() from None
-    info = dict(res.info, focus_m=float(focus_m), keep_m=[float(keep[0]), float(keep[1])],
-                pixel_pitch_mm=float(geom.pixel_pitch_mm))
+    info = dict(res.info, focus_m=float(focus_m), keep_m=[float(keep[0]), float(keep[1])], refocus=bool(refocus),
+                pixel_pitch_mm=float(geom.pixel_pitch_mm), psf_source=src.kind, psf_source_message=src.message)
     return res.image.astype(np.float32), info

@@ -87,8 +87,14 @@ def prepare(context):
     t0 = time.perf_counter()
     rgb, z = bpy_render.render_aif_depth(scene, cam, h, w, s.samples, context.view_layer.name)
     depth = core("render.camera").depth_from_planar_z(z, ep, mpu)
-    return {"rgb": rgb, "depth": depth, "lens": lens, "focus_m": focus, "keep": keep,
+    return {"rgb": rgb, "depth": depth, "lens": lens, "focus_m": focus, "keep": keep, "refocus": bool(s.refocus),
             "render_s": time.perf_counter() - t0}
+
+
+def bokeh_of(job, **kw):
+    """logic.run_bokeh on a prepared job (kw: progress, cancelled)."""
+    return logic.run_bokeh(job["rgb"], job["depth"], job["lens"], focus_m=job["focus_m"], keep=job["keep"],
+                           refocus=job["refocus"], **kw)
 
 
 def finish(op, context, job, out, info, seconds: float, store_inputs: bool):
@@ -98,8 +104,10 @@ def finish(op, context, job, out, info, seconds: float, store_inputs: bool):
         bpy_render.put_image(DEPTH_IMAGE, job["depth"][..., None].repeat(3, axis=-1))
     bpy_render.show_in_image_editor(context, img)
     h, w = out.shape[:2]
+    context.window_manager.dcdi_lens_bokeh_status.psf_source = info["psf_source_message"]
     op.report({"INFO"}, f"Lens Bokeh: {w} x {h} px, kept sharp {job['keep'][0]:.2f}-{job['keep'][1]:.2f} m "
-                        f"({info['kept_pixels']} px), render {job['render_s']:.1f} s, bokeh {seconds:.1f} s")
+                        f"({info['kept_pixels']} px), render {job['render_s']:.1f} s, bokeh {seconds:.1f} s; "
+                        f"{info['psf_source_message']}")
 
 
 class _Worker:
@@ -120,9 +128,7 @@ class _Worker:
 
     def _run(self):
         try:
-            j = self.job
-            self.result = logic.run_bokeh(j["rgb"], j["depth"], j["lens"], focus_m=j["focus_m"], keep=j["keep"],
-                                          progress=self._progress, cancelled=lambda: self.cancel)
+            self.result = bokeh_of(self.job, progress=self._progress, cancelled=lambda: self.cancel)
         except logic.Cancelled:
             pass
         except Exception as e:           # handed to the main thread, which reports it
@@ -152,8 +158,7 @@ class DCDI_OT_apply_lens_bokeh(bpy.types.Operator):
         try:
             job = prepare(context)
             t0 = time.perf_counter()
-            out, info = logic.run_bokeh(job["rgb"], job["depth"], job["lens"], focus_m=job["focus_m"],
-                                        keep=job["keep"])
+            out, info = bokeh_of(job)
         except _user_errors() as e:
             self.report({"ERROR"}, str(e))
             return {"CANCELLED"}

@@ -64,6 +64,7 @@ def draw_lens_bokeh(layout, context):
         col.prop(s, "focus_distance", text="Distance")
     else:
         col.prop(s, "focus_object", text="Object")
+    col.prop(s, "refocus")
     col = layout.column(align=True, heading="Kept Sharp")
     col.prop(s, "keep_front")
     col.prop(s, "keep_behind")
@@ -91,6 +92,8 @@ def draw_lens_bokeh(layout, context):
         layout.prop(st, "progress", text=(st.message or "working").split(" (")[0], slider=True)
     elif st.message:
         layout.label(text=st.message)
+    if not st.running and st.psf_source:
+        layout.label(text=st.psf_source[:72], icon="INFO")
 
 
 class _LensBokehPanel:

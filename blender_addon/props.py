@@ -56,6 +56,11 @@ class DCDI_LensBokehSettings(bpy.types.PropertyGroup):
                                   subtype="DISTANCE", unit="LENGTH")
     focus_object: PointerProperty(name="Focus Object", type=bpy.types.Object,
                                   description="Focus on this object's origin")
+    refocus: BoolProperty(name="Refocus Lens", default=True,
+                          description="Move the lens's sensor so that the focus distance is in focus (PSFs traced "
+                                      "for each focus, then cached). Off: the lens as its prescription stands, the "
+                                      "kept range still sharp; a shipped lens is then served by the bundled "
+                                      "Omni-Lens-Field network, with no tracing")
     keep_front: FloatProperty(name="In Front", description="Depth kept sharp in front of the focus, scene units",
                               default=0.3, min=0.0, soft_max=10.0, subtype="DISTANCE", unit="LENGTH")
     keep_behind: FloatProperty(name="Behind", description="Depth kept sharp behind the focus, scene units",
@@ -73,6 +78,7 @@ class DCDI_LensBokehStatus(bpy.types.PropertyGroup):
     running: BoolProperty(default=False)
     progress: FloatProperty(name="Progress", default=0.0, min=0.0, max=100.0, subtype="PERCENTAGE")
     message: StringProperty(default="")
+    psf_source: StringProperty(default="", description="Where the last bokeh's PSFs came from, and why")
 
 
 CLASSES = (DCDI_LensBokehSettings, DCDI_LensBokehStatus)

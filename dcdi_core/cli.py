@@ -225,7 +225,7 @@ def _psf_from_olf(args, lens, src, settings):
     None where the request lies outside its ranges (then traced, said why)."""
     from .models.errors import ModelError, OutsideTrainedRangeError
     try:
-        kernel = src.library.olf.psf(lens, args.field, args.depth, settings.focus_distance_m)
+        kernel = src.library.kernels(args.field, args.depth)     # at the request's pitch
     except OutsideTrainedRangeError as e:
         if args.psf_source == "olf":
             raise ModelError(f"--psf-source olf: the Omni-Lens-Field cannot serve this request: {e}") from None
@@ -706,7 +706,7 @@ def cmd_report_sim(args) -> int:
 
 def cmd_report_olf(args) -> int:
     from .models.report import run_report
-    return run_report(args.olf, args.out, quick=args.quick, sweep=args.sweep)
+    return run_report(args.olf, args.out, quick=args.quick, sweep=args.sweep, pitch_only=args.pitch_only)
 
 
 def cmd_bench(args) -> int:
@@ -1427,6 +1427,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="rows of the size x learning-rate sweep (out/sweep/results.jsonl) for the table and plot")
     r.add_argument("--out", default="out/report", help="folder for the table (Markdown), JSON and plot (PNG)")
     r.add_argument("--quick", action="store_true", help="few points and small images (for tests)")
+    r.add_argument("--pitch-only", action="store_true",
+                   help="only the kernels at coarser pixel pitches (area-resampled) against kernels traced there")
     r.set_defaults(func=cmd_report_olf)
 
     for name, helptext in (("pipeline", "DCDI end to end on held-out factory pairs against the ideal; stage times"),

@@ -170,6 +170,33 @@ res["keep_m"] = [s.keep_front, s.keep_behind]
 ep = res["readout"]["entrance_pupil_mm"] / 1000.0
 res["focus_m"] = 1.0 - ep
 
+# a shipped lens with the lens as prescribed (Refocus Lens off): served by the
+# bundled Omni-Lens-Field; the tracer raises, so a finished run traced nothing
+engine = f"{MODULE}.dcdi_core"
+tracers = {m: sys.modules[f"{engine}.{m}"].compute_sources for m in ("psf.library", "psf.compute")}
+
+
+def no_tracing(*a, **k):
+    raise RuntimeError("the ray tracer was called")
+
+
+for m in tracers:
+    sys.modules[f"{engine}.{m}"].compute_sources = no_tracing
+s.refocus = False
+res["olf_apply"] = {}
+for lens_id in ("6p", "mos-s1"):
+    s.lens = lens_id
+    st = bpy.context.window_manager.dcdi_lens_bokeh_status
+    st.psf_source = ""
+    t = time.perf_counter()
+    res["olf_apply"][lens_id] = {"result": sorted(bpy.ops.dcdi.apply_lens_bokeh()), "status": st.psf_source,
+                                 "seconds": time.perf_counter() - t}
+    np.save(OUT / f"olf-{lens_id}.npy", bpy_render.get_image("Lens Bokeh"))
+for m, fn in tracers.items():
+    sys.modules[f"{engine}.{m}"].compute_sources = fn
+s.refocus = True
+s.lens = "6p"
+
 # what cannot work gives a clear message
 s.focus_mode = "DISTANCE"
 s.focus_distance = 4.0          # nothing between 3.7 and 4.3 m: the cube is nearer, the wall farther

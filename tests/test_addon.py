@@ -296,3 +296,108 @@ def test_cancel_stops_the_psf_build_and_progress_is_reported(tmp_path, monkeypat
         logic.run_bokeh(img, depth, load_lens("mos-s1"), focus_m=1.0, keep=(0.9, 1.1),
                         cancelled=lambda: asked.append(1) or len(asked) > 1)
     assert len(asked) == 2
+
+
+# ------------------------------------------------------------------ the bundled Omni-Lens-Field
+def test_zip_bundles_the_olf_runtime_and_weights_and_no_torch_code(addon_zip):
+    with zipfile.ZipFile(addon_zip) as z:
+        names = {n[len(EXT_ID) + 1:] for n in z.namelist()}
+    models = sorted(n for n in names if n.startswith("dcdi_core/models/"))
+    weights = sorted(p.name for p in (ROOT / "dcdi_core" / "models" / "weights").glob("*.npz"))
+    assert weights and all(f"dcdi_core/models/weights/{w}" in names for w in weights)
+    assert {"dcdi_core/models/__init__.py", "dcdi_core/models/errors.py", "dcdi_core/models/runtime/olf.py",
+            "dcdi_core/models/runtime/library.py"} <= set(models)
+    # arch/ data/ layers/ train/ export, correct, report, metrics need torch (or are not the add-on's)
+    assert all(n.startswith(("dcdi_core/models/runtime/", "dcdi_core/models/weights/"))
+               or n in ("dcdi_core/models/__init__.py", "dcdi_core/models/errors.py") for n in models), models
+    import re
+    with zipfile.ZipFile(addon_zip) as z:       # no module-level torch import (require_torch's is inside it)
+        for n in (m for m in models if m.endswith(".py")):
+            assert not re.search(r"^(import|from) torch", z.read(f"{EXT_ID}/{n}").decode(), re.M), n
+
+
+_BUNDLED_OLF = """
+import sys, importlib.abc
+sys.path = [p for p in sys.path if p not in ('', {root!r})]
+sys.path.insert(0, {where!r})
+
+
+class NoTorch(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name == "torch" or name.startswith("torch."):
+            raise ImportError("torch is blocked: Blender's Python has none")
+        return None
+
+
+sys.meta_path.insert(0, NoTorch())
+for m in ("OpenImageIO", "OpenEXR", "matplotlib", "bpy", "scipy"):
+    sys.modules[m] = None
+import numpy as np
+from {ext} import core, logic
+eng = core.ROOT
+assert eng == "{ext}.dcdi_core", eng
+
+
+def no_tracing(*a, **k):
+    raise RuntimeError("the ray tracer was called")
+
+
+for m in ("psf.library", "psf.compute"):
+    setattr(core.core(m), "compute_sources", no_tracing)
+lib_mod = core.core("models.runtime.library")
+assert str(lib_mod.SHIPPED).startswith({where!r}) and lib_mod.SHIPPED.exists(), lib_mod.SHIPPED
+lens = logic.load_lens_cached(dict((e.id, e.path) for e in logic.lens_catalogue())["mos-s1"])
+olf = core.core("models.runtime.olf").OmniLensField.load(lib_mod.SHIPPED)
+k = olf.psf(lens, [0.0, 0.7], 2.0)
+assert k.shape == (2, 3, 41, 41) and abs(k.sum(axis=(-1, -2)) - 1).max() < 1e-5 and k.min() >= 0
+rng = np.random.default_rng(0)
+img = rng.random((96, 128, 3), dtype=np.float32)
+depth = np.full((96, 128), 8.0, np.float32)
+depth[16:32, 20:44] = 1.0
+out, info = logic.run_bokeh(img, depth, lens, focus_m=1.0, keep=(0.9, 1.1), refocus=False)
+assert info["psf_source"] == "olf", info["psf_source_message"]
+assert np.abs(out - img)[16:32, 20:44].max() < 1e-6 and np.abs(out - img)[depth > 5].mean() > 1e-3
+try:
+    logic.run_bokeh(img, depth, lens, focus_m=1.0, keep=(0.9, 1.1))
+    raise SystemExit("a refocused lens was served without tracing")
+except RuntimeError as e:
+    assert "ray tracer" in str(e)
+assert "torch" not in sys.modules
+print("ok", info["psf_source_message"])
+"""
+
+
+def test_bundled_engine_serves_the_olf_with_torch_blocked(addon_zip, tmp_path):
+    """The unpacked zip alone, torch blocked by an import hook: the vendored
+    OLF serves kernels, and a bokeh of a shipped lens as prescribed runs
+    through it with the tracer patched to raise (a refocused one traces)."""
+    with zipfile.ZipFile(addon_zip) as z:
+        z.extractall(tmp_path)
+    code = _BUNDLED_OLF.format(root=str(ROOT), where=str(tmp_path), ext=EXT_ID)
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "DCDI_LENS_PATH")}
+    env.update(DCDI_CACHE_DIR=str(tmp_path / "cache"), OMP_NUM_THREADS="1")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=tmp_path,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.startswith("ok") and "area-resampled" in out.stdout, out.stdout
+
+
+def test_first_apply_on_a_shipped_lens_traces_nothing(headless):
+    """Apply Lens Bokeh (the operator, headless) with Refocus Lens off, the
+    tracer patched to raise: 6p and MOS-S1 at the 128 x 96 preview's pitch
+    (14.4 x the learned one: the OLF's kernels area-resampled) finish,
+    the status says the Omni-Lens-Field served them, the cube is kept sharp
+    and the rest is blurred."""
+    aif = np.load(headless["dir"] / "aif.npy")
+    depth = np.load(headless["dir"] / "depth.npy")[..., 0]
+    f = headless["focus_m"]
+    kept = (depth >= f - headless["keep_m"][0]) & (depth <= f + headless["keep_m"][1])
+    for lens_id in ("6p", "mos-s1"):
+        run = headless["olf_apply"][lens_id]
+        assert run["result"] == ["FINISHED"], run
+        assert run["status"].startswith("PSFs from the Omni-Lens-Field"), run
+        assert "area-resampled" in run["status"] and "prescribed focus" in run["status"]
+        out = np.load(headless["dir"] / f"olf-{lens_id}.npy")
+        assert out.shape == aif.shape and np.isfinite(out).all()
+        assert np.abs(out - aif)[kept].max() < 1e-5
+        assert np.abs(out - aif)[depth > 7.0].mean() > 1e-3

@@ -100,7 +100,7 @@ def test_source_is_the_olf_where_it_covers_the_request_else_tracing(olf_file, tm
     # each way of not being covered: traced, saying why
     changed = load_lens(_changed_lens_file(tmp_path))
     cases = [(changed, {}, "differs optically"), (load_lens("mos-s2"), {}, "did not learn lens 'mos-s2'"),
-             (lens, {"pixel_pitch_mm": 0.05}, "pixel pitch 50 um"),
+             (lens, {"pixel_pitch_mm": 0.006}, "pixel pitch 6 um is finer"),
              (lens, {"focus_m": 2.0}, "prescribed focus only"),
              (lens, {"settings": PSFSettings()}, "pupil_samples 64 .it learned 16"),
              (lens, {"kernel_size": 15}, "15 px kernel"),
@@ -111,6 +111,9 @@ def test_source_is_the_olf_where_it_covers_the_request_else_tracing(olf_file, tm
         assert src.kind == "trace" and src.library is None and re.search(why, src.message), (why, src.message)
         with pytest.raises(ModelError, match="--psf-source olf.*" + why):
             psf_source(l_, olf_file=path, source="olf", **kw)
+    # a coarser pitch: served, its kernels area-resampled (tests/test_psf_pitch.py)
+    src = psf_source(lens, olf_file=path, pixel_pitch_mm=0.05, settings=learned)
+    assert src.kind == "olf" and "50 um pixels" in src.message and "area-resampled" in src.message
     assert psf_source(lens, olf_file=path, source="trace").kind == "trace"
     # no OLF at all (none shipped, none given): tracing
     src = psf_source(lens, olf_file=None, pixel_pitch_mm=PITCH, settings=learned)

@@ -17,7 +17,10 @@ For each OLF file (default: the shipped ones) and each of its lenses:
   the OLF-backed library's (network included), the network's part alone,
   and the network run once per patch (the paper's way);
 - downstream: a simulation and a bokeh of the synthetic scene with the OLF's
-  PSFs against the same with the traced library's (image PSNR).
+  PSFs against the same with the traced library's (image PSNR);
+- pixel pitches coarser than the learned one (``pitch_resampling``): the
+  OLF's kernels area-resampled, and traced kernels resampled the same way,
+  against kernels traced at that pitch (``--pitch-only``: this alone).
 
 A sweep file (``--sweep``, JSON lines written by the sweep that chose the
 shipped configuration) adds its rows to the table, and every point goes on
@@ -154,6 +157,74 @@ def map_times(olf: OmniLensField, lens, height: int, width: int, log, repeat: in
     return times
 
 
+# the points of the pixel-pitch measurement: fields x depths (m), a few of each
+PITCH_FIELDS = (0.0, 0.3, 0.6, 0.9)
+PITCH_DEPTHS_M = (0.8, 1.5, 4.0, math.inf)
+
+
+def pitch_targets(lens, learned_mm: float) -> list[tuple[str, float]]:
+    """(label, pixel pitch mm) of the coarser pitches measured: 1.5 and 3 (an
+    odd integer: new pixel edges on old ones) times the learned pitch, and
+    the pitches of a 480 x 640 and a 180 x 320 image spanning the sensor's
+    diagonal (``ImageGeometry.full_sensor``; 180 x 320 is the add-on's
+    default preview of a 16:9 render)."""
+    from ..render.geometry import ImageGeometry
+    return [("1.5 x", 1.5 * learned_mm),
+            ("480 x 640 full sensor", ImageGeometry.full_sensor(lens, 480, 640).pixel_pitch_mm),
+            ("3 x", 3.0 * learned_mm),
+            ("180 x 320 full sensor", ImageGeometry.full_sensor(lens, 180, 320).pixel_pitch_mm)]
+
+
+def pitch_resampling(olf: OmniLensField, lens, log, targets=None) -> list[dict]:
+    """At pitches coarser than the learned one (``pitch_targets``): the OLF's
+    kernels area-resampled (a) and kernels traced at the learned pitch,
+    resampled the same way (b), each against kernels traced directly at the
+    new pitch (c) with the same rays (sum-normalised; relative L1, PSNR).
+    (b) is the resampling's own error, (a) adds the network's. Points:
+    ``PITCH_FIELDS`` x ``PITCH_DEPTHS_M``, the OLF's learned PSF settings."""
+    from dataclasses import replace
+    from ..psf.pitch import area_resample, resampled_size
+    from .data.psf_samples import crop_normalise, trace_points
+    entry = olf.lens_entry(lens.id)
+    p0, k = float(entry["pixel_pitch_mm"]), int(entry["kernel_size"])
+    s = replace(_settings(entry), kernel_size=k)
+    f, d = (a.ravel() for a in np.meshgrid(PITCH_FIELDS, PITCH_DEPTHS_M, indexing="ij"))
+    t = time.perf_counter()
+    traced0, ok0 = trace_points(lens, s, f, d)
+    net = olf.psf(lens, f, d, dtype=np.float64)
+    rows = [{"label": "learned", "pitch_mm": p0, "ratio": 1.0, "kernel_size": k, "points": int(ok0.sum()),
+             "olf": psf_scores(net[ok0], crop_normalise(traced0[ok0], k), scale="sum"), "traced": None}]
+    traced0 = crop_normalise(traced0, k).astype(np.float64)
+    for label, p in (targets or pitch_targets(lens, p0)):
+        k2 = resampled_size(k, p0, p)
+        direct, ok = trace_points(lens, replace(s, pixel_pitch_mm=p, kernel_size=k2), f, d)
+        ok = ok & ok0
+        ref = crop_normalise(direct[ok], k2)
+        rows.append({"label": label, "pitch_mm": p, "ratio": p / p0, "kernel_size": k2, "points": int(ok.sum()),
+                     "olf": psf_scores(area_resample(net[ok], p0, p, k2), ref, scale="sum"),
+                     "traced": psf_scores(area_resample(traced0[ok], p0, p, k2), ref, scale="sum")})
+    log(f"  {lens.id} pixel pitches: {len(rows)} pitches x {len(f)} points traced in "
+        f"{time.perf_counter() - t:.1f} s")
+    return rows
+
+
+def pitch_markdown(lens_id: str, rows: list[dict]) -> list[str]:
+    """The pitch-resampling table (Markdown lines)."""
+    out = [f"{lens_id}, kernels at coarser pixel pitches ({rows[0]['points']} points: fields "
+           f"{', '.join(f'{v:g}' for v in PITCH_FIELDS)} x depths {', '.join(f'{v:g}' for v in PITCH_DEPTHS_M)} m), "
+           "against kernels traced at that pitch:", "",
+           "| pitch | um | x learned | k | OLF resampled rel. L1 | OLF PSNR 8-bit dB | OLF PSNR sum dB "
+           "| traced, resampled rel. L1 | traced, resampled PSNR 8-bit dB | PSNR sum dB |",
+           "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        o, t = r["olf"], r["traced"]
+        tr = ("(the reference itself) | | " if t is None else
+              f"{t['rel_l1']:.4f} | {t['psnr_8bit']:.2f} | {t['psnr_sum']:.2f}")
+        out.append(f"| {r['label']} | {r['pitch_mm'] * 1000:.2f} | {r['ratio']:.3f} | {r['kernel_size']} | "
+                   f"{o['rel_l1']:.4f} | {o['psnr_8bit']:.2f} | {o['psnr_sum']:.2f} | {tr} |")
+    return out + [""]
+
+
 def _psnr_image(a, b) -> float:
     mse = float(np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2))
     return math.inf if mse == 0 else 10.0 * math.log10(1.0 / mse)
@@ -196,7 +267,13 @@ def _fmt(v, spec=".2f"):
     return "n/a" if v is None else format(v, spec)
 
 
-def run_report(olf_files=None, out="out/report", *, quick: bool = False, sweep=None, log=print) -> int:
+def run_report(olf_files=None, out="out/report", *, quick: bool = False, sweep=None, pitch_only: bool = False,
+               log=print) -> int:
+    """The report (module docstring) into ``out`` (olf.md, olf.json, the plot);
+    ``pitch_only``: only the pixel-pitch tables (``pitch_resampling``, every
+    served lens; a minute or two), into olf-pitch.md / olf-pitch.json."""
+    if pitch_only:
+        return _run_pitch_report(olf_files, Path(out), log)
     out = Path(out)
     files = [Path(f) for f in (olf_files or shipped_olf_files())]
     if not files:
@@ -220,6 +297,7 @@ def run_report(olf_files=None, out="out/report", *, quick: bool = False, sweep=N
                "held_out": info["held_out"], "fresh": {}, "not_served": sorted(set(lenses) - set(served))}
         for i, (lid, lens) in enumerate(served.items()):
             rec["fresh"][lid] = lens_figures(olf, lens, n_points, REPORT_SEED + i, log)
+        rec["pitch"] = {lid: pitch_resampling(olf, lens, log) for lid, lens in served.items()}
         first = next(iter(served.values()), None)
         if first is not None:
             rec["map"] = map_times(olf, first, h, w, log, repeat=1 if quick else 2)
@@ -236,6 +314,28 @@ def run_report(olf_files=None, out="out/report", *, quick: bool = False, sweep=N
     plot(result, out / "olf-error-vs-storage.png")
     log(md)
     log(f"wrote {out / 'olf.md'}, {out / 'olf.json'} and {out / 'olf-error-vs-storage.png'}")
+    return 0
+
+
+def _run_pitch_report(olf_files, out: Path, log) -> int:
+    files = [Path(f) for f in (olf_files or shipped_olf_files())]
+    if not files:
+        from .errors import ModelError
+        raise ModelError("no OLF file given and none ships with this engine: dcdi report olf --olf FILE.npz")
+    result, lines = {"files": []}, []
+    for path in files:
+        olf = OmniLensField.load(path)
+        log(f"report olf (pixel pitches): {path}")
+        served = {e["id"]: load_lens(e["id"]) for e in olf.meta["lenses"]}
+        rows = {lid: pitch_resampling(olf, lens, log) for lid, lens in served.items() if olf.covers(lens)}
+        result["files"].append({"file": str(path), "pitch": rows})
+        lines += [f"`{path}`:", ""] + [x for lid, r in rows.items() for x in pitch_markdown(lid, r)]
+    out.mkdir(parents=True, exist_ok=True)
+    write_text(out / "olf-pitch.json", json.dumps(result, indent=1, default=float) + "\n")
+    md = "\n".join(lines) + "\n"
+    write_text(out / "olf-pitch.md", md)
+    log(md)
+    log(f"wrote {out / 'olf-pitch.md'} and {out / 'olf-pitch.json'}")
     return 0
 
 
@@ -279,6 +379,8 @@ def markdown(result: dict) -> str:
         lines += ["", f"The library's own errors (`dcdi report psf-accuracy mos-s1`): interpolation between depth "
                       f"bins {le['interpolation_depth']}, between fields {le['interpolation_field']}, ray sampling "
                       f"{le['sampling']} (relative L1).", ""]
+        for lid, rows in rec.get("pitch", {}).items():
+            lines += pitch_markdown(lid, rows)
         if "map" in rec:
             m = rec["map"]
             lines += [f"PSF map of {m['image'][0]} x {m['image'][1]} ({m['patches']} patches): traced library in "

@@ -10,13 +10,18 @@ imports ``models`` (DESIGN.md: the caller hands it a PSF source).
 
 :func:`psf_source` decides which source serves a request: the OLF where it
 covers it (the lens's optical fingerprint is the learned one; the PSF
-settings, spectral response, pixel pitch and focus are those it learned;
-the grid lies within its ranges), else tracing; either way it says which
-and why in one line.
+settings, spectral response and focus are those it learned; the pixel pitch
+is the learned one or coarser; the grid lies within its ranges), else
+tracing; either way it says which and why in one line. The CLI (``dcdi psf /
+simulate / bokeh``) and the Blender add-on (Apply Lens Bokeh) both choose
+through it.
+
+At a pixel pitch coarser than the learned one, the network's kernels (pixel
+histograms at the learned pitch) are area-resampled exactly
+(``psf.pitch.area_resample``); a finer pitch is traced, never upsampled.
 """
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -26,12 +31,12 @@ import numpy as np
 from ...optics.errors import InputRangeError
 from ...psf.compute import PSFSettings
 from ...psf.library import LibraryGrid, PSFLibrary
+from ...psf.pitch import area_resample, check_downsampling, resampled_size, same_pitch
 from ..errors import LensMismatchError, ModelError
 from .olf import OmniLensField
 
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights"
 SHIPPED = WEIGHTS_DIR / "olf-radial.npz"
-PITCH_RTOL = 1e-6
 SOURCES = ("olf", "trace")
 
 
@@ -59,33 +64,46 @@ class OLFLibrary(PSFLibrary):
         if grid.near_m < near - 1e-9 or grid.far_m > far + 1e-9:
             raise InputRangeError("library grid depths", (grid.near_m, grid.far_m),
                                   f"within the OLF's trained [{near}, {far}] m ({olf.path})")
-        k = int(entry["kernel_size"])
+        learned = float(entry["pixel_pitch_mm"])
+        pitch = learned if pixel_pitch_mm is None else float(pixel_pitch_mm)
+        check_downsampling(learned, pitch, f"pixel pitch (mm; {olf.path} learned {lens.id} at {learned:.6g} mm)")
+        k = resampled_size(int(entry["kernel_size"]), learned, pitch)
         s = dict(entry["psf_settings"])
         s["band_nm"] = tuple(s["band_nm"])
-        settings = replace(PSFSettings(**s), kernel_size=k, focus_distance_m=focus_m,
-                           pixel_pitch_mm=entry["pixel_pitch_mm"])
+        settings = replace(PSFSettings(**s), kernel_size=k, focus_distance_m=focus_m, pixel_pitch_mm=pitch)
         self.olf, self.lens_index, self.focus_m = olf, li, focus_m
+        self.learned_pitch_mm = learned
         self.last_network_s = 0.0
         meta = {"format": "olf", "algorithm": entry.get("psf_algorithm"), "lens_id": lens.id,
                 "lens_file": str(lens.path), "lens_fingerprint": entry["fingerprint"],
                 "settings": settings.as_dict(), "grid": {"n_fields": grid.n_fields, "n_depths": grid.n_depths,
                                                          "near_m": grid.near_m, "far_m": grid.far_m},
-                "pixel_pitch_mm": float(entry["pixel_pitch_mm"]), "wavelengths_nm": [],
+                "pixel_pitch_mm": pitch, "learned_pixel_pitch_mm": learned, "wavelengths_nm": [],
                 "response": {"sha256": "olf:" + str(olf.meta.get("checksum"))}, "olf_file": olf.path}
         super().__init__(lens, settings, grid, None, meta=meta)
-        if pixel_pitch_mm is not None and not math.isclose(pixel_pitch_mm, self.pixel_pitch_mm, rel_tol=PITCH_RTOL):
-            raise InputRangeError("pixel pitch", pixel_pitch_mm,
-                                  f"{self.pixel_pitch_mm:.6g} mm, the pitch {olf.path} learned {lens.id} at")
+
+    @property
+    def resampled(self) -> bool:
+        """True when the kernels are area-resampled from the learned pitch."""
+        return not same_pitch(self.pixel_pitch_mm, self.learned_pitch_mm)
+
+    def kernels(self, field, depth_m, *, dtype=np.float32) -> np.ndarray:
+        """The OLF's PSFs (..., 3, k, k) at fields x depths (broadcast), at the
+        library's pixel pitch: the network's kernels at the learned pitch,
+        area-resampled (``psf.pitch``) when the library's is coarser."""
+        t = time.perf_counter()
+        out = self.olf.psf(self.lens, field, depth_m, self.focus_m, dtype=dtype)
+        self.last_network_s += time.perf_counter() - t
+        if self.resampled:
+            out = area_resample(out, self.learned_pitch_mm, self.pixel_pitch_mm, self.kernel_size)
+        return out
 
     def ensure(self, depth_m=None, *, bins=None, clamp_near: bool = False, progress=None) -> list[int]:
         want = np.asarray(bins if bins is not None else self.bins_needed(depth_m, clamp_near=clamp_near), int)
         todo = [int(b) for b in want if not self.computed[b]]
         if not todo:
             return []
-        t = time.perf_counter()
-        depths = self.depths_m[todo]
-        kernels = self.olf.psf(self.lens, self.fields[None, :], depths[:, None], self.focus_m)
-        self.last_network_s += time.perf_counter() - t
+        kernels = self.kernels(self.fields[None, :], self.depths_m[todo][:, None])
         for j, b in enumerate(todo):
             self.psf[b] = kernels[j]
             self.computed[b] = True
@@ -161,8 +179,10 @@ def psf_source(lens, *, source: str | None = None, olf_file=None, pixel_pitch_mm
             reason = str(e)
     if lib is not None:
         k = lib.kernel_size
+        pixels = (f"{lib.pixel_pitch_mm * 1000:.4g} um pixels, its {lib.learned_pitch_mm * 1000:.4g} um kernels "
+                  "area-resampled" if lib.resampled else f"{lib.pixel_pitch_mm * 1000:.4g} um pixels")
         return PSFSource("olf", f"PSFs from the Omni-Lens-Field {path} ({lens.id}: its learned prescription, "
-                                f"{lib.pixel_pitch_mm * 1000:.4g} um pixels, {k} x {k} px, "
+                                f"{pixels}, {k} x {k} px, "
                                 + ("prescribed focus" if focus_m is None else f"focus {focus_m:g} m") + ")",
                          lib, str(path))
     if source == "olf":
@@ -181,12 +201,13 @@ def _why_not(olf: OmniLensField, lens, pitch, settings, kernel_size, focus_m, cu
                 "(changed prescription: not served)")
     entry = olf.lens_entry(lens.id)
     learned = float(entry["pixel_pitch_mm"])
-    if pitch is not None and not math.isclose(pitch, learned, rel_tol=PITCH_RTOL):
-        return (f"the image's pixel pitch {pitch * 1000:.6g} um is not the {learned * 1000:.6g} um {olf.path} "
-                f"learned {lens.id} at")
-    k = int(entry["kernel_size"])
+    if pitch is not None and not (pitch >= learned or same_pitch(pitch, learned)):
+        return (f"the image's pixel pitch {pitch * 1000:.6g} um is finer than the {learned * 1000:.6g} um "
+                f"{olf.path} learned {lens.id} at (its kernels are area-resampled to coarser pitches only: "
+                "a finer one would invent detail)")
+    k = resampled_size(int(entry["kernel_size"]), learned, learned if pitch is None else pitch)
     if kernel_size is not None and kernel_size != k:
-        return f"a {kernel_size} px kernel was asked for; {olf.path} serves {lens.id} at {k} px"
+        return f"a {kernel_size} px kernel was asked for; {olf.path} serves {lens.id} at {k} px at this pitch"
     if custom_response:
         return "a custom spectral response was given; the OLF learned the shipped one"
     diff = _settings_differences(entry, settings)
