@@ -1056,8 +1056,12 @@ def cmd_eval(args) -> int:
     def progress(done, total):
         if tty:
             print(f"\rdcdi eval: pair {done}/{total}", end="" if done < total else "\n", file=sys.stderr)
+    lp = None
+    if args.lpips:
+        from .models.lpips import load_lpips
+        lp = load_lpips(*args.lpips)
     ev, kept = evaluate_models(models, args.data, ids=ids, tile=args.tile, overlap=args.overlap,
-                               progress=progress, keep_outputs=args.pictures_count if args.pictures else 0)
+                               progress=progress, keep_outputs=args.pictures_count if args.pictures else 0, lpips=lp)
     print(f"{len(ids)} held-out pairs of {args.data}; PSNR dB / SSIM over the imaged pixels")
     print(markdown_tables(ev), end="")
     for name, sec in ev.seconds.items():
@@ -1182,6 +1186,9 @@ def add_dacn_commands(sub) -> None:
                    help="write capture | corrections | target PNGs of the first pairs here")
     t.add_argument("--pictures-count", type=_positive_int, default=3, help="pairs to picture (default 3)")
     t.add_argument("--json", default=None, metavar="FILE", help="write all scores as JSON")
+    t.add_argument("--lpips", nargs=2, default=None, metavar=("ALEXNET.pth", "LIN.pth"),
+                   help="also LPIPS (AlexNet, v0.1) from weights on this disk: torchvision's alexnet-owt-*.pth and "
+                        "the lpips package's weights/v0.1/alex.pth (never downloaded)")
     t.add_argument("--threads", type=_positive_int, default=1, help="torch threads (default 1)")
     t.add_argument("--tile", type=_positive_int, default=256, help="tile size, px (default 256)")
     t.add_argument("--overlap", type=int, default=32, help="tile overlap, px (default 32)")

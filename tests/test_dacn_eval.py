@@ -48,13 +48,18 @@ def test_eval_scores_only_held_out_pairs_and_exports_round_trip(pairs, tmp_path,
     train_dacn(_config(pairs, iters=3, checkpoint_every=3), tmp_path / "run")
     split = json.loads((tmp_path / "run" / "split.json").read_text())
     test_ids = sorted(i for i, s in split["ids"].items() if split["scenes"][s] == "test")
+    from dcdi_core.models.lpips import CHANNELS, LPIPS
+    torch.save({f"features.{k}": v for k, v in LPIPS().features.state_dict().items()}, tmp_path / "alex.pth")
+    torch.save({f"lin{k}.model.1.weight": torch.rand(1, c, 1, 1) for k, c in enumerate(CHANNELS)}, tmp_path / "l.pth")
     assert main(["eval", str(tmp_path / "run"), "--data", str(pairs), "--compare", f"same={tmp_path / 'run'}",
-                 "--json", str(tmp_path / "ev.json"), "--pictures", str(tmp_path / "pics")]) == 0
+                 "--json", str(tmp_path / "ev.json"), "--pictures", str(tmp_path / "pics"),
+                 "--lpips", str(tmp_path / "alex.pth"), str(tmp_path / "l.pth")]) == 0
     out = capsys.readouterr().out
     assert f"{len(test_ids)} held-out pairs" in out and "| capture |" in out and "| same |" in out
     ev = json.loads((tmp_path / "ev.json").read_text())
     assert sorted(r["id"].split("~")[0] for r in ev["pairs"]) == test_ids
-    assert ev["mean"]["dacn"] == ev["mean"]["same"]
+    assert ev["mean"]["dacn"] == ev["mean"]["same"] and ev["mean"]["capture"]["lpips"] > 0
+    assert "/ LPIPS)" in out
     assert len(list((tmp_path / "pics").glob("*.png"))) == len(test_ids)
     # the shipped form: float16 npz, read without pickle, the same network to float16 precision
     assert main(["dacn", "export", str(tmp_path / "run"), "-o", str(tmp_path / "m.npz")]) == 0
@@ -108,3 +113,30 @@ def test_bench_dacn_quick(capsys):
     assert main(["bench", "dacn", "--quick"]) == 0
     out = capsys.readouterr().out
     assert "tiny: 285,538 parameters" in out and "tiled / untiled" in out
+
+
+def test_lpips_from_user_weights_is_zero_on_equal_images_and_refuses_other_files(tmp_path):
+    from dcdi_core.models.lpips import CHANNELS, LPIPS, load_lpips, lpips_score
+    torch.manual_seed(0)
+    ref = LPIPS()
+    torch.save({f"features.{k}": v for k, v in ref.features.state_dict().items()}, tmp_path / "alex.pth")
+    lins = {f"lin{k}.model.1.weight": torch.rand(1, c, 1, 1) for k, c in enumerate(CHANNELS)}
+    torch.save(lins, tmp_path / "lin.pth")
+    m = load_lpips(tmp_path / "alex.pth", tmp_path / "lin.pth")
+    rng = np.random.default_rng(0)
+    a = rng.uniform(0, 1, (64, 64, 3))
+    b = np.clip(a + rng.normal(0, 0.1, a.shape), 0, 1)
+    assert lpips_score(m, a, a) == 0.0
+    d = lpips_score(m, a, b)
+    assert d > 0 and np.isclose(d, lpips_score(m, b, a), rtol=1e-5)
+    assert lpips_score(m, a, np.clip(a + rng.normal(0, 0.3, a.shape), 0, 1)) > d
+    mask = np.zeros((64, 64), bool)
+    mask[:32] = True
+    assert np.isfinite(lpips_score(m, a, b, mask))
+    torch.save({"features.0.weight": torch.zeros(2)}, tmp_path / "bad.pth")
+    with pytest.raises(Exception, match="bad.pth"):
+        load_lpips(tmp_path / "bad.pth", tmp_path / "lin.pth")
+    with pytest.raises(Exception, match="lin.pth: not AlexNet's features"):
+        load_lpips(tmp_path / "lin.pth", tmp_path / "alex.pth")          # the two swapped
+    with pytest.raises(Exception, match="alex.pth: no lin"):
+        load_lpips(tmp_path / "alex.pth", tmp_path / "alex.pth")

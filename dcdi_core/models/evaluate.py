@@ -122,15 +122,18 @@ class Evaluation:
     bands: dict = field(default_factory=dict)   # name -> band -> BandSums
     seconds: dict = field(default_factory=dict)  # name -> inference seconds in all
 
+    def keys(self) -> list:
+        return [k for k in ("psnr", "ssim", "lpips") if self.pairs and k in self.pairs[0][self.names[0]]]
+
     def per_scene(self) -> dict:
         out = {}
         for row in self.pairs:
             out.setdefault(row["scene"], []).append(row)
-        return {s: {n: {k: float(np.mean([r[n][k] for r in rows])) for k in ("psnr", "ssim")} for n in self.names}
+        return {s: {n: {k: float(np.mean([r[n][k] for r in rows])) for k in self.keys()} for n in self.names}
                 for s, rows in sorted(out.items())}
 
     def mean(self) -> dict:
-        return {n: {k: float(np.mean([r[n][k] for r in self.pairs])) for k in ("psnr", "ssim")} for n in self.names}
+        return {n: {k: float(np.mean([r[n][k] for r in self.pairs])) for k in self.keys()} for n in self.names}
 
     def band_scores(self) -> dict:
         return {n: {b: s.scores() for b, s in self.bands[n].items()} for n in self.names}
@@ -141,12 +144,13 @@ class Evaluation:
 
 
 def evaluate_models(models: dict, data_root, *, ids=None, correct_fn=None, tile: int = 256, overlap: int = 32,
-                    progress=None, keep_outputs: int = 0) -> tuple[Evaluation, list]:
+                    progress=None, keep_outputs: int = 0, lpips=None) -> tuple[Evaluation, list]:
     """Score ``models`` {name: model} on the held-out pairs ``ids`` of
     ``data_root`` (default: all finished pairs). Returns (Evaluation,
     outputs) with outputs the first ``keep_outputs`` pairs' (id, capture,
     {name: corrected}, target, depth) for pictures. ``correct_fn``: the
-    tiled inference (default ``models.correct.correct``)."""
+    tiled inference (default ``models.correct.correct``); ``lpips``: an
+    ``models.lpips.LPIPS`` to add that score (over the imaged pixels)."""
     if correct_fn is None:
         from .correct import correct as correct_fn
     if "capture" in models:
@@ -171,6 +175,9 @@ def evaluate_models(models: dict, data_root, *, ids=None, correct_fn=None, tile:
                 outs[name] = out
             sc = image_scores(out, target, depth)
             row[name] = {"psnr": sc["psnr"], "ssim": sc["ssim"]}
+            if lpips is not None:
+                from .lpips import lpips_score
+                row[name]["lpips"] = lpips_score(lpips, out, target, ~np.isnan(depth))
             for b, sums in sc["bands"].items():
                 ev.bands[name].setdefault(b, BandSums()).add(*sums)
         ev.pairs.append(row)
@@ -188,10 +195,11 @@ def markdown_tables(ev: Evaluation) -> str:
     bands = [b for b in (band_name(lo, hi) for lo, hi in DEPTH_BANDS_M) if any(b in ev.bands[n] for n in ev.names)]
     mean = ev.mean()
     sc = ev.band_scores()
-    head = "| | all (PSNR / SSIM) | " + " | ".join(bands) + " |"
+    lp = "lpips" in ev.keys()
+    head = "| | all (PSNR / SSIM" + (" / LPIPS" if lp else "") + ") | " + " | ".join(bands) + " |"
     lines = [head, "|" + "---|" * (len(bands) + 2)]
     for n in ev.names:
-        cells = [f"{mean[n]['psnr']:.2f} / {mean[n]['ssim']:.4f}"]
+        cells = [f"{mean[n]['psnr']:.2f} / {mean[n]['ssim']:.4f}" + (f" / {mean[n]['lpips']:.4f}" if lp else "")]
         for b in bands:
             s = sc[n].get(b, {})
             cells.append(f"{s['psnr']:.2f} / {s.get('ssim', float('nan')):.4f}" if "psnr" in s else "-")
