@@ -213,3 +213,62 @@ def test_shards_of_a_real_factory_run_merge_into_the_unsharded_dataset(tmp_path,
     assert ids == [f"tabletop-{i:06d}" for i in range(3)]
     # the merged folder is a factory folder: the unsharded command resumes it (nothing left to do)
     assert factory.run([*small, "--out", str(merged)]) == 0
+
+
+# ------------------------------------------------------------------ the cluster scripts
+def test_the_slurm_array_script_parses_and_runs_as_two_tasks_then_merges(tmp_path):
+    """bash -n, then the script itself as tasks 0 and 1 of a 2-task array
+    (the variables Slurm sets, a tiny data set), then the merge."""
+    script = CLUSTER / "factory-array.sbatch"
+    assert subprocess.run(["bash", "-n", str(script)]).returncode == 0
+    text = script.read_text()
+    assert re.search(r"^#SBATCH --array=0-7$", text, re.M) and "--shard auto" in text
+    pytest.importorskip("bpy")
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "DCDI_REPO": str(ROOT), "DCDI_PYTHON": sys.executable,
+           "DCDI_SHARDS": str(tmp_path / "shards"), "DCDI_COUNT": "3", "DCDI_RECIPE": "tabletop",
+           "DCDI_CACHE_DIR": str(tmp_path / "cache"),
+           "DCDI_FACTORY_ARGS": "--resolution 24 32 --cycles-samples 2 --psf-rays 12 --psf-wavelengths 3",
+           "SLURM_ARRAY_TASK_MIN": "0", "SLURM_ARRAY_TASK_MAX": "1", "SLURM_ARRAY_TASK_COUNT": "2",
+           "SLURM_CPUS_PER_TASK": "1"}
+    for task in ("0", "1"):
+        p = subprocess.run(["bash", str(script)], env={**env, "SLURM_ARRAY_TASK_ID": task}, capture_output=True,
+                           text=True, timeout=300)
+        assert p.returncode == 0, p.stdout + p.stderr
+        assert f"in shard {task}/2" in p.stdout
+    shards = sorted((tmp_path / "shards").glob("shard-*"))
+    assert merge_shards.main([*map(str, shards), "--count", "3", "--out", str(tmp_path / "merged")]) == 0
+    assert len((tmp_path / "merged" / "manifest.jsonl").read_text().splitlines()) == 3
+
+
+def _yaml_value(text: str, key: str) -> str:
+    values = re.findall(rf"^\s*{key}:\s*(\S.*)$", text, re.M)
+    assert len(values) == 1, (key, values)
+    return values[0].strip().strip('"')
+
+
+def test_the_kubernetes_indexed_job_is_consistent_and_its_command_parses():
+    """Without PyYAML (not a dependency): the layout (spaces, two-space
+    indents), the Job's fields, DCDI_SHARD_COUNT = completions, and its
+    shell command through bash -n."""
+    text = (CLUSTER / "factory-indexed-job.yaml").read_text()
+    body = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    assert "\t" not in text and all((len(ln) - len(ln.lstrip())) % 2 == 0 for ln in body)
+    assert _yaml_value(text, "apiVersion") == "batch/v1" and _yaml_value(text, "kind") == "Job"
+    assert _yaml_value(text, "completionMode") == "Indexed" and _yaml_value(text, "restartPolicy") == "Never"
+    n = _yaml_value(text, "completions")
+    assert n == _yaml_value(text, "parallelism")
+    assert re.search(rf'- name: DCDI_SHARD_COUNT\n\s+value: "{n}"\n', text)
+    block = re.search(r"args:\n(\s+)- \|\n((?:\1  .*\n)+)", text)
+    script = "\n".join(ln[len(block.group(1)) + 2:] for ln in block.group(2).splitlines())
+    assert "--shard auto" in script and "$JOB_COMPLETION_INDEX" in script
+    assert subprocess.run(["bash", "-n"], input=script, text=True).returncode == 0
+
+
+def test_the_kubernetes_indexed_job_parses_as_yaml():
+    yaml = pytest.importorskip("yaml", reason="PyYAML is not a dependency; the test above checks the layout")
+    job = yaml.safe_load((CLUSTER / "factory-indexed-job.yaml").read_text())
+    spec = job["spec"]
+    c = spec["template"]["spec"]["containers"][0]
+    env = {e["name"]: e["value"] for e in c["env"]}
+    assert spec["completionMode"] == "Indexed" and int(env["DCDI_SHARD_COUNT"]) == spec["completions"]
+    assert "--shard auto" in c["args"][0]
