@@ -833,6 +833,8 @@ def cmd_correct(args) -> int:
               file=sys.stderr)
         return 2
     out = check_image_output(args.output)
+    from .models.train.distributed import resolve_device
+    resolve_device(args.device)                         # refused before any image is read
     from .models.data.rgbd import read_any_depth
     image = read_image(args.image)
     depth = read_any_depth(args.depth)

@@ -176,8 +176,9 @@ def _train(config: OLFTrainConfig, run_dir, ctx: Context, *, cache_dir, lenses, 
     rng = np.random.default_rng([config.seed, 7])
     step, history = restore(ck, model, ema, opt, rng, say=say, path=ckpt_path, iters=config.iters)
     prior_s = 0.0 if ck is None else float(ck.get("seconds", 0.0))   # training time of the steps it holds
-    # a rank's share may lack a lens: its head is then unused there
-    step_loss = ctx.wrap(LossModule(model, loss_of), find_unused_parameters=True)
+    # radial, several lenses: a rank's share may lack a lens, whose head is then unused there
+    step_loss = ctx.wrap(LossModule(model, loss_of),
+                         find_unused_parameters=spec.variant == "radial" and len(data.lenses) > 1)
     where = ctx.record()
 
     def checkpoint():
