@@ -168,8 +168,8 @@ def test_a_run_resumes_across_a_changed_world_size(tmp_path):
     from dcdi_core.models.train.loop import train
     torch.set_num_threads(1)
     cache = tmp_path / "cache"
-    data = PSFDataConfig(lenses=("mos-s1", "mos-s2"), pupil_samples=16, n_wavelengths=3, n_fields=3, n_depths=2, offgrid=6,
-                         held_out=4)
+    data = PSFDataConfig(lenses=("mos-s1", "mos-s2"), pupil_samples=16, n_wavelengths=3, n_fields=3, n_depths=2,
+                         offgrid=6, held_out=4)
     config = OLFTrainConfig(data=data, iters=6, batch=16, lr=3e-3, threads=1, checkpoint_every=3)
     straight = train(config, tmp_path / "straight", cache_dir=cache)
 
@@ -181,10 +181,9 @@ def test_a_run_resumes_across_a_changed_world_size(tmp_path):
             raise Killed
     with pytest.raises(Killed):
         train(config, tmp_path / "olf.npz.run", cache_dir=cache, on_step=kill)
-    seconds, out = _torchrun(["olf", "train", "--lens", "mos-s1", "--lens", "mos-s2", "--iters", "6", "--batch", "16", "--lr", "3e-3",
-                              "--threads", "1", "--checkpoint-every", "3", "--rays", "16", "--wavelengths", "3",
-                              "--fields", "3", "--depths", "2", "--offgrid", "6", "--held-out", "4", "--device",
-                              "auto", "-o", str(tmp_path / "olf.npz")], {"DCDI_CACHE_DIR": str(cache)})
+    argv = ("olf train --lens mos-s1 --lens mos-s2 --iters 6 --batch 16 --lr 3e-3 --threads 1 --checkpoint-every 3 "
+            "--rays 16 --wavelengths 3 --fields 3 --depths 2 --offgrid 6 --held-out 4 --device auto").split()
+    seconds, out = _torchrun([*argv, "-o", str(tmp_path / "olf.npz")], {"DCDI_CACHE_DIR": str(cache)})
     assert "resumed" in out and "at iteration 3 of 6" in out
     worst, share = _compare(_weights(tmp_path / "olf.npz.run"), _weights(tmp_path / "straight"), config.lr)
     print(f"\n2-process OLF resume: {seconds:.1f} s, max |w_ddp - w_one| = {worst:.3g}, {share:.2%} within {CLOSE}")

@@ -5,7 +5,6 @@ scripts of the README, checked as far as this machine allows."""
 import json
 import os
 import re
-import shutil
 import subprocess
 import sys
 from pathlib import Path

@@ -50,7 +50,8 @@ def load_dacn(path, *, weights: str = "ema", device: str = "cpu"):
     config = json.loads(ck["config"])
     da2t = Path(config["data"]) / "da2t.json"
     info = {"checkpoint": str(ck_path), "step": int(ck["step"]), "spec": spec.as_dict(), "config": config,
-            "weights": weights, "device": describe(dev), "da2t": json.loads(da2t.read_text()) if da2t.exists() else None}
+            "weights": weights, "device": describe(dev),
+            "da2t": json.loads(da2t.read_text()) if da2t.exists() else None}
     return model, info
 
 
