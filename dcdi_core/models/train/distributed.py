@@ -14,7 +14,9 @@ seeded generator and keeps its slice (``Context.part``: rows
 averages the gradients, so with a mean loss an update equals the one process
 update with the same global batch (to floating-point rounding). Rank 0 alone
 writes checkpoints and logs; the state it writes does not depend on the
-world size, so a run may resume under another one.
+world size, so a run may resume under another one. The others wait for it
+(the PSFs it traces, its checkpoints) up to DCDI_DIST_TIMEOUT_S seconds
+(default 6 hours).
 """
 from __future__ import annotations
 
@@ -28,6 +30,9 @@ from .. import require_torch
 torch = require_torch()
 
 DEVICES = "auto, cpu, cuda or cuda:N"
+# how long a process waits for the others at a barrier, s: rank 0 may trace
+# an OLF's PSF libraries (hours at the paper's settings) while they wait
+DEFAULT_TIMEOUT_S = 6 * 3600
 
 
 def resolve_device(name: str = "auto", *, option: str = "--device"):
@@ -116,7 +121,10 @@ class Context:
         import torch.distributed as dist
         owns = not dist.is_initialized()
         if owns:
-            dist.init_process_group("nccl" if dev.type == "cuda" else "gloo", rank=rank, world_size=world)
+            from datetime import timedelta
+            wait = _env_int("DCDI_DIST_TIMEOUT_S", DEFAULT_TIMEOUT_S)
+            dist.init_process_group("nccl" if dev.type == "cuda" else "gloo", rank=rank, world_size=world,
+                                    timeout=timedelta(seconds=wait))
         return cls(rank, world, local, dev, owns)
 
     def part(self, batch: int, name: str = "batch") -> slice:
