@@ -615,7 +615,7 @@ def _torchrun_worker() -> bool:
     return os.environ.get("RANK", "0") not in ("", "0")
 
 
-def _where(where: dict) -> str:
+def _ran_on(where: dict) -> str:
     n = where.get("world_size", 1)
     return f"ran on {where.get('device', 'cpu')}" + (f", {n} processes (torchrun)" if n > 1 else "")
 
@@ -664,7 +664,7 @@ def cmd_olf_train(args) -> int:
     print(f"held-out ({args.weights}): PSNR {h['psnr_8bit']:.2f} dB (8-bit, peak scale), SSIM "
           + (f"{h['ssim_8bit']:.4f}" if h["ssim_8bit"] is not None else "n/a")
           + f", relative L1 {h['rel_l1']:.4f}; {result.seconds:.1f} s of training ({rate:.1f} it/s; PSF data not included)")
-    print(_where(result.where))
+    print(_ran_on(result.where))
     return 0
 
 
@@ -821,7 +821,7 @@ def cmd_train_dacn(args) -> int:
               + (f", SSIM {v['ssim']:.4f} (input {v['ssim_input']:.4f})" if "ssim" in v else ""))
     else:
         print("no validation pairs (the split gave no 'val' scene)")
-    print(_where(result.where))
+    print(_ran_on(result.where))
     return 0
 
 
