@@ -758,6 +758,25 @@ def _progress_bar(desc: str, every: int = 0):
     return progress, log, close
 
 
+def _add_device_option(parser, torchrun: bool = True) -> None:
+    """--device of a torch command (not a setting: a run resumes on another device)."""
+    parser.add_argument("--device", default="auto", metavar="auto|cpu|cuda[:N]",
+                        help="where torch computes: auto (CUDA when torch sees a device, else the CPU), cpu, "
+                             "cuda or cuda:N" + ("; under torchrun each process takes cuda:LOCAL_RANK"
+                                                 if torchrun else ""))
+
+
+def _torchrun_worker() -> bool:
+    """A torchrun process other than rank 0 (it trains but writes nothing)."""
+    import os
+    return os.environ.get("RANK", "0") not in ("", "0")
+
+
+def _ran_on(where: dict) -> str:
+    n = where.get("world_size", 1)
+    return f"ran on {where.get('device', 'cpu')}" + (f", {n} processes (torchrun)" if n > 1 else "")
+
+
 def _run_training(desc: str, run, train_fn, every: int = 0):
     """train_fn(progress=..., log=...) under a progress bar; None (after
     saying how to resume) when interrupted."""
@@ -788,9 +807,12 @@ def cmd_olf_train(args) -> int:
     from .models.export import export_olf               # torch from here on
     from .models.train.loop import train
     run = Path(args.run or (str(args.output) + ".run"))
-    result = _run_training("olf train", run, lambda **kw: train(config, run, **kw), config.checkpoint_every)
+    result = _run_training("olf train", run, lambda **kw: train(config, run, device=args.device, **kw),
+                           config.checkpoint_every)
     if result is None:
         return 130
+    if _torchrun_worker():
+        return 0                                        # rank 0 exports and reports
     meta = export_olf(result, args.output, weights=args.weights, dtype=args.dtype)
     h = meta["held_out"]["mean"]
     rate = result.step / result.seconds if result.seconds > 0 else float("nan")
@@ -799,6 +821,7 @@ def cmd_olf_train(args) -> int:
     print(f"held-out ({args.weights}): PSNR {h['psnr_8bit']:.2f} dB (8-bit, peak scale), SSIM "
           + (f"{h['ssim_8bit']:.4f}" if h["ssim_8bit"] is not None else "n/a")
           + f", relative L1 {h['rel_l1']:.4f}; {result.seconds:.1f} s of training ({rate:.1f} it/s; PSF data not included)")
+    print(_ran_on(result.where))
     return 0
 
 
@@ -873,6 +896,7 @@ def add_olf_commands(sub) -> None:
     t.add_argument("--lr", type=float, default=1e-4, help="initial learning rate (cosine to 1e-7)")
     t.add_argument("--seed", type=int, default=0, help="seed of weights, sampling and traced points")
     t.add_argument("--threads", type=_positive_int, default=None, help="torch threads (default: all cores)")
+    _add_device_option(t)
     t.add_argument("-o", "--output", required=True, help="the exported OLF (.npz)")
     t.add_argument("--run", default=None, help="run folder for checkpoints (default OUTPUT.run)")
     t.add_argument("--checkpoint-every", type=_positive_int, default=500, help="iterations between checkpoints")
@@ -941,9 +965,12 @@ def cmd_train_dacn(args) -> int:
                              train_scenes=args.train_scenes)
     from .models.train.dacn_loop import train_dacn       # torch from here on
     run = Path(args.output)
-    result = _run_training("dacn train", run, lambda **kw: train_dacn(config, run, **kw), config.checkpoint_every)
+    result = _run_training("dacn train", run, lambda **kw: train_dacn(config, run, device=args.device, **kw),
+                           config.checkpoint_every)
     if result is None:
         return 130
+    if _torchrun_worker():
+        return 0                                        # rank 0 reports
     v = result.validation["ema"].get("mean")
     rate = result.step / result.seconds if result.seconds > 0 else float("nan")
     print(f"trained {run} ({args.config}, {result.step} iterations, {result.seconds:.1f} s here, {rate:.2f} it/s)")
@@ -952,6 +979,7 @@ def cmd_train_dacn(args) -> int:
               + (f", SSIM {v['ssim']:.4f} (input {v['ssim_input']:.4f})" if "ssim" in v else ""))
     else:
         print("no validation pairs (the split gave no 'val' scene)")
+    print(_ran_on(result.where))
     return 0
 
 
@@ -963,13 +991,15 @@ def cmd_correct(args) -> int:
               file=sys.stderr)
         return 2
     out = check_image_output(args.output)
+    from .models.train.distributed import resolve_device
+    resolve_device(args.device)                         # refused before any image is read
     from .models.data.rgbd import read_any_depth
     image = read_image(args.image)
     depth = read_any_depth(args.depth)
     import torch
     torch.set_num_threads(args.threads)
     from .models.correct import correct, load_dacn
-    model, info = load_dacn(args.model, weights=args.weights)
+    model, info = load_dacn(args.model, weights=args.weights, device=args.device)
     trained = (info.get("da2t") or {}).get("lens")
     if args.lens is not None and trained is not None and args.lens != trained:
         print(f"dcdi: error: {args.model} was trained for lens {trained}, not {args.lens}", file=sys.stderr)
@@ -983,7 +1013,7 @@ def cmd_correct(args) -> int:
     result = correct(model, image, depth, tile=args.tile, overlap=args.overlap, progress=progress)
     write_image(out, result)
     print(f"wrote {out} ({image.shape[1]} x {image.shape[0]}, {time.perf_counter() - t0:.1f} s, "
-          f"lens {trained or 'unknown'})")
+          f"lens {trained or 'unknown'}, on {info['device']})")
     return 0
 
 
@@ -1133,6 +1163,7 @@ def add_dacn_commands(sub) -> None:
     t.add_argument("--lr", type=float, default=2e-4, help="initial learning rate (halved at 50/80/90/95 %%)")
     t.add_argument("--seed", type=int, default=0, help="seed of weights and crops")
     t.add_argument("--threads", type=_positive_int, default=1, help="torch threads (default 1)")
+    _add_device_option(t, torchrun=True)
     t.add_argument("--checkpoint-every", type=_positive_int, default=500, help="iterations between checkpoints")
     t.add_argument("--validate-every", type=int, default=0, help="iterations between validations (0: at the end)")
     t.add_argument("--input", choices=["capture", "baseline"], default="capture",
@@ -1215,6 +1246,7 @@ def add_dacn_commands(sub) -> None:
     t.add_argument("--overlap", type=int, default=32, help="tile overlap, px (default 32)")
     t.add_argument("--weights", choices=["ema", "model"], default="ema", help="which weights")
     t.add_argument("--threads", type=_positive_int, default=1, help="torch threads (default 1)")
+    _add_device_option(t, torchrun=False)
     t.set_defaults(func=cmd_correct)
 
 

@@ -4,6 +4,9 @@ repository (``scenes/``, OpenImageIO, a Blender binary).
 
 - ``factory``: the dataset factory (``python -m blender_addon.tools.factory``
   or ``blender --background --python blender_addon/tools/factory.py -- ...``);
+- ``merge_shards``: one data set from the factory's shard folders
+  (``python -m blender_addon.tools.factory merge ...``); ``cluster/``: the
+  Slurm array script and Kubernetes indexed Job that make them;
 - ``render_noise``: the render error-against-time table the factory's
   defaults come from;
 - ``depth_histogram``: how the factory's scenes spread over depth;

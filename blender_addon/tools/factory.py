@@ -22,7 +22,17 @@ killed run restarted with the same arguments finishes the missing samples
 and leaves no partial file (a torn manifest line and stale temporaries are
 repaired and removed on resume); restarted with other settings it is
 refused, naming them. ``--shard I/N`` takes the indices i with
-i % N == I, so any job runner can split the work.
+i % N == I, so any job runner can split the work; ``--shard auto`` takes I
+and N from a job array (``shard_from_environment``: Slurm's
+SLURM_ARRAY_TASK_ID and SLURM_ARRAY_TASK_COUNT, or a Kubernetes indexed
+Job's JOB_COMPLETION_INDEX with N from ``--shard auto/N`` or
+DCDI_SHARD_COUNT). After the array, one folder per shard becomes one data
+set with
+
+    python -m blender_addon.tools.factory merge SHARD_DIR... --count N --out DIR
+
+(``merge_shards``: refuses shards of other settings, an index doubled,
+missing or out of range).
 """
 from __future__ import annotations
 
@@ -62,7 +72,7 @@ def check_blender() -> None:
                          "system python3 (install its numpy package)")
 
 
-if __name__ == "__main__":
+if __name__ == "__main__" and sys.argv[1:2] != ["merge"]:      # the merge needs no Blender
     check_blender()
 
 import numpy as np  # noqa: E402
@@ -87,7 +97,10 @@ def parse(argv):
                    help="resume a folder with more --lens than it holds (listed after its own, which stay in "
                         "their order): the new lenses are simulated on its finished samples too")
     p.add_argument("--seed", type=int, default=0, help="dataset seed")
-    p.add_argument("--shard", default="0/1", help="I/N: this job's share of the indices (i %% N == I)")
+    p.add_argument("--shard", default="0/1",
+                   help="I/N: this job's share of the indices (i %% N == I); auto: I and N from the job array "
+                        "(SLURM_ARRAY_TASK_ID/SLURM_ARRAY_TASK_COUNT, or JOB_COMPLETION_INDEX with auto/N or "
+                        "DCDI_SHARD_COUNT)")
     p.add_argument("--resolution", type=int, nargs=2, default=[480, 640], metavar=("H", "W"),
                    help="image rows and columns (default 480 640)")
     p.add_argument("--samples", dest="samples", type=int, default=argparse.SUPPRESS,
@@ -124,6 +137,8 @@ def check_arguments(a):
 
     if a.recipe not in RECIPES:
         raise InputRangeError("--recipe", a.recipe, ", ".join(RECIPES))
+    if a.shard.strip().lower().startswith("auto"):
+        a.shard = "{}/{}".format(*shard_from_environment(a.shard))      # recorded as resolved
     try:
         i, n = (int(v) for v in a.shard.split("/"))
         if not 0 <= i < n:
@@ -163,6 +178,51 @@ def check_arguments(a):
     patches = -(-h // 16) * -(-w // 16)
     check_psf_memory(a.psf_settings, n_psf, library_psfs=n_psf * len(a.lenses), map_kernels=2 * patches)
     return a
+
+
+def shard_from_environment(text: str = "auto", env=None) -> tuple[int, int]:
+    """(I, N) of ``--shard auto`` (or ``auto/N``) from a job array: Slurm
+    (SLURM_ARRAY_TASK_ID, its MIN, STEP and COUNT: I is the task's position
+    in the array, which must be evenly spaced, N the task count), else a
+    Kubernetes indexed Job (JOB_COMPLETION_INDEX; N from ``auto/N``, else
+    DCDI_SHARD_COUNT, which the Job sets to its ``completions``). Refused
+    (InputRangeError naming --shard) when neither is there or they disagree."""
+    from dcdi_core.errors import InputRangeError
+    env = os.environ if env is None else env
+    head, _, given = text.strip().lower().partition("/")
+    if head != "auto" or (given and not given.isdigit()):
+        raise InputRangeError("--shard", text, "I/N, auto or auto/N")
+    n_given = int(given) if given else None
+
+    def number(name, default=None):
+        v = env.get(name, default)
+        try:
+            return int(v)
+        except (TypeError, ValueError):
+            raise InputRangeError(f"--shard {text}: environment variable {name}", v, "an integer") from None
+
+    if env.get("SLURM_ARRAY_TASK_ID"):
+        i, lo, step = number("SLURM_ARRAY_TASK_ID"), number("SLURM_ARRAY_TASK_MIN", 0), \
+            number("SLURM_ARRAY_TASK_STEP", 1)
+        n, hi = number("SLURM_ARRAY_TASK_COUNT"), number("SLURM_ARRAY_TASK_MAX")
+        if step < 1 or (i - lo) % step or hi != lo + (n - 1) * step:
+            raise InputRangeError("--shard auto", f"Slurm array {lo}-{hi}:{step} of {n} tasks",
+                                  "an evenly spaced array (e.g. --array=0-7): each task's position is its shard")
+        i = (i - lo) // step
+    elif env.get("JOB_COMPLETION_INDEX"):
+        i = number("JOB_COMPLETION_INDEX")
+        n = n_given if n_given is not None else number("DCDI_SHARD_COUNT") if env.get("DCDI_SHARD_COUNT") else None
+        if n is None:
+            raise InputRangeError("--shard auto (JOB_COMPLETION_INDEX set)", None,
+                                  "the shard count: --shard auto/N or DCDI_SHARD_COUNT=N (the Job's completions)")
+    else:
+        raise InputRangeError("--shard auto", None, "a job array's environment (SLURM_ARRAY_TASK_ID and "
+                                                    "SLURM_ARRAY_TASK_COUNT, or JOB_COMPLETION_INDEX), or --shard I/N")
+    if n_given is not None and n_given != n:
+        raise InputRangeError("--shard", text, f"auto or auto/{n}: the job array has {n} tasks")
+    if not 0 <= i < n:
+        raise InputRangeError("--shard auto", f"{i}/{n}", "0 <= I < N (the job array's index and count)")
+    return i, n
 
 
 # ------------------------------------------------------------------ the folder: settings, manifest, temporaries
@@ -491,7 +551,12 @@ def run(argv=None) -> int:
     import shutil
 
     from dcdi_core.errors import DcdiError
-    a = parse(sys.argv[sys.argv.index("--") + 1:] if argv is None and "--" in sys.argv else argv)
+    argv = sys.argv[sys.argv.index("--") + 1:] if argv is None and "--" in sys.argv else argv
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["merge"]:
+        from blender_addon.tools.merge_shards import main as merge_main
+        return merge_main(argv[1:])
+    a = parse(argv)
     out = Path(a.out)
     created = False
     try:

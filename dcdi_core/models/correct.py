@@ -8,7 +8,9 @@ image, depth_m)``: the image is cut into tiles of ``tile`` px overlapping by
 so neighbouring tiles cross-fade and leave no seam; memory is bounded by one
 tile. The depth is encoded once for the whole image (min-max over the whole
 image, not per tile), so tiles share one depth scale. An image that fits one
-tile is one forward pass, exactly as without tiling.
+tile is one forward pass, exactly as without tiling. The tiles run on the
+model's device (``load_dacn(..., device=)``: auto, cpu, cuda[:N]); the
+result comes back to the CPU.
 """
 from __future__ import annotations
 
@@ -28,12 +30,16 @@ from .arch.dacn_spec import DACNSpec  # noqa: E402
 from .train.checkpoint import load_checkpoint  # noqa: E402
 
 
-def load_dacn(path, *, weights: str = "ema"):
-    """(model in eval mode, info) from a run folder, its checkpoint.pt or an
-    exported .npz (``dacn_export``; ``weights`` is then the file's)."""
+def load_dacn(path, *, weights: str = "ema", device: str = "cpu"):
+    """(model in eval mode on ``device``, info) from a run folder, its
+    checkpoint.pt or an exported .npz (``dacn_export``; ``weights`` is then
+    the file's); ``device`` is refused (naming --device) before the file is
+    read when CUDA is asked for and torch sees none."""
+    from .train.distributed import describe, resolve_device
+    dev = resolve_device(device)
     path = Path(path)
     if path.suffix == ".npz":
-        return _load_exported(path)
+        return _load_exported(path, dev, describe(dev))
     ck_path = path / "checkpoint.pt" if path.is_dir() else path
     ck = load_checkpoint(ck_path)
     if ck.get("kind") != "dacn":
@@ -43,23 +49,25 @@ def load_dacn(path, *, weights: str = "ema"):
     spec = DACNSpec.from_dict(json.loads(ck["spec"]))
     model = DACN(spec)
     model.load_state_dict(ck[weights])
-    model.eval()
+    model.to(dev).eval()
     config = json.loads(ck["config"])
     da2t = Path(config["data"]) / "da2t.json"
     info = {"checkpoint": str(ck_path), "step": int(ck["step"]), "spec": spec.as_dict(), "config": config,
-            "weights": weights, "da2t": json.loads(da2t.read_text()) if da2t.exists() else None}
+            "weights": weights, "device": describe(dev),
+            "da2t": json.loads(da2t.read_text()) if da2t.exists() else None}
     return model, info
 
 
-def _load_exported(path: Path):
+def _load_exported(path: Path, dev, device_name: str):
     from .dacn_export import read_dacn_file
     from .npz_file import load_state
     meta, arrays = read_dacn_file(path)
     spec = DACNSpec.from_dict(meta["spec"])
     model = DACN(spec)
     load_state(model, arrays, path)
+    model.to(dev)
     info = {"checkpoint": str(path), "step": int(meta["step"]), "spec": spec.as_dict(), "config": meta["config"],
-            "weights": meta["weights"], "da2t": meta.get("da2t"), "meta": meta}
+            "weights": meta["weights"], "device": device_name, "da2t": meta.get("da2t"), "meta": meta}
     return model, info
 
 
@@ -95,11 +103,13 @@ def correct(model, image, depth_m, *, tile: int = 256, overlap: int = 32, progre
     rows, cols = _starts(h, tile, tile - overlap), _starts(w, tile, tile - overlap)
     total = len(rows) * len(cols)
 
+    device = next(model.parameters()).device
+
     def run(r, c, th, tw):
         x = torch.from_numpy(np.ascontiguousarray(img[r:r + th, c:c + tw].transpose(2, 0, 1)))[None]
         z = torch.from_numpy(np.ascontiguousarray(dep[r:r + th, c:c + tw]))[None, None]
         with torch.no_grad():
-            return model(x, z)[0].numpy().transpose(1, 2, 0)
+            return model(x.to(device), z.to(device))[0].cpu().numpy().transpose(1, 2, 0)
 
     if total == 1:
         out = run(0, 0, h, w)

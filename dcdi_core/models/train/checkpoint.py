@@ -24,7 +24,7 @@ def save_checkpoint(path: Path, state: dict) -> None:
 
 def load_checkpoint(path: Path) -> dict:
     try:
-        ck = torch.load(path, weights_only=True)
+        ck = torch.load(path, weights_only=True, map_location="cpu")
     except Exception as e:  # noqa: BLE001 - any failure: say which file
         raise ModelFileError(path, f"not a readable checkpoint ({e}); delete it to start afresh") from None
     if ck.get("format") != CHECKPOINT_FORMAT:
@@ -72,12 +72,14 @@ def update(opt, loss, lr: float, model, ema, decay: float) -> None:
 def training_state(*, step: int, settings: dict, config_json: str, data_key: str, model, ema, opt, rng,
                    history: list, **extra) -> dict:
     """What a checkpoint holds: weights, EMA, optimiser, iteration, the batch
-    generator's and torch's RNG states, the history and ``extra``."""
+    generator's and torch's RNG states, the history and ``extra``; tensors on
+    the CPU (a GPU run's checkpoint resumes on the CPU and back)."""
     from ... import __version__
+    from .distributed import to_cpu
 
     return {"format": CHECKPOINT_FORMAT, "dcdi_version": __version__, "step": step,
             "settings": json.dumps(settings, sort_keys=True), "config": config_json, "data_key": data_key,
-            "model": model.state_dict(), "ema": ema.state_dict(), "optim": opt.state_dict(),
+            "model": to_cpu(model.state_dict()), "ema": to_cpu(ema.state_dict()), "optim": to_cpu(opt.state_dict()),
             "torch_rng": torch.get_rng_state(), "numpy_rng": json.dumps(rng.bit_generator.state),
             "history": json.dumps(history), **extra}
 

@@ -15,11 +15,19 @@ Each step: ``batch`` random crops of ``crop`` px from the training pairs
 depth encoded per crop as the spec says), the network's correction of the
 input (the depth-aware capture, or the depth-unaware baseline), L1 against
 the sharp target, Adam, the learning rate by its milestones, then the EMA.
+
+``device`` (auto, cpu, cuda[:N]) and the number of processes (``torchrun
+--nproc-per-node N``, ``distributed``) are not settings: a checkpoint resumes
+on another device or world size. Under N processes each draws the same
+global batch of crops and trains on its N-th; rank 0 alone writes the run
+folder (and the split, if the data has none). The log records the device and
+world size.
 """
 from __future__ import annotations
 
 import hashlib
 import json
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,6 +44,7 @@ from ..errors import ModelError
 from ..metrics import psnr, ssim
 from .checkpoint import after_step, check_data, make_ema, open_run, restore, save_checkpoint, training_state, update
 from .dacn_config import DACNTrainConfig
+from .distributed import Context, LossModule
 
 torch = require_torch()
 from ..arch.dacn import DACN  # noqa: E402  (after the torch check)
@@ -59,7 +68,8 @@ class DACNResult:
     step: int
     seconds: float
     history: list = field(default_factory=list)
-    validation: dict = field(default_factory=dict)
+    validation: dict = field(default_factory=dict)     # rank 0 only
+    where: dict = field(default_factory=dict)          # device and world size it ran on
 
 
 def open_data(config: DACNTrainConfig) -> DACNData:
@@ -124,6 +134,7 @@ def evaluate(model, data: DACNData, config: DACNTrainConfig, ids=None) -> dict:
     if not ids:
         return {}
     rows = []
+    device = next(model.parameters()).device
     model.eval()
     with torch.no_grad():
         for pid in ids:
@@ -131,7 +142,8 @@ def evaluate(model, data: DACNData, config: DACNTrainConfig, ids=None) -> dict:
             x = centre_crop(getattr(p, config.input), config.val_size)
             y = centre_crop(p.target, config.val_size).transpose(2, 0, 1)
             d = encode_depth(centre_crop(p.depth, config.val_size), spec.depth_encoding)
-            out = model(_tensor(x.transpose(2, 0, 1))[None], _tensor(d)[None, None])[0].numpy()
+            out = model(_tensor(x.transpose(2, 0, 1))[None].to(device),
+                        _tensor(d)[None, None].to(device))[0].cpu().numpy()
             out = np.clip(out, 0.0, 1.0)
             xin = np.clip(x.transpose(2, 0, 1), 0.0, 1.0)
             row = {"id": pid, "psnr": float(psnr(out, y, 1.0)), "psnr_input": float(psnr(xin, y, 1.0))}
@@ -143,55 +155,85 @@ def evaluate(model, data: DACNData, config: DACNTrainConfig, ids=None) -> dict:
     return {"mean": mean, "pairs": rows}
 
 
-def train_dacn(config: DACNTrainConfig, run_dir, *, progress=None, on_step=None, log=None) -> DACNResult:
+def l1_loss(model, x, y, d):
+    """Mean absolute difference of the network's correction of ``x`` from ``y``."""
+    return (model(x, d) - y).abs().mean()
+
+
+def train_dacn(config: DACNTrainConfig, run_dir, *, progress=None, on_step=None, log=None,
+               device: str = "cpu") -> DACNResult:
     """Train (or resume) the run in ``run_dir``. ``progress(step, iters,
     loss)`` after each step; ``on_step(step)`` too (an exception there stops
-    the run as a kill would, after the step and before any later checkpoint)."""
-    say = log or (lambda s: None)
+    the run as a kill would, after the step and before any later checkpoint).
+    ``device``: auto, cpu, cuda or cuda:N (``distributed.resolve_device``);
+    under torchrun the processes share each global batch (module docstring)."""
+    ctx = Context.from_environment(device)
+    try:
+        result = _train_dacn(config, run_dir, ctx, progress=progress, on_step=on_step, log=log)
+    except BaseException:
+        ctx.close(clean=False)
+        raise
+    ctx.close()
+    return result
+
+
+def _train_dacn(config: DACNTrainConfig, run_dir, ctx: Context, *, progress, on_step, log) -> DACNResult:
+    say = (log or (lambda s: None)) if ctx.main else (lambda s: None)
+    progress = progress if ctx.main else None
+    rows = ctx.part(config.batch)                        # refused before any work
     run_dir, ckpt_path, settings, ck = open_run(run_dir, config)
-    data = open_data(config)
+    with ctx.main_first():                               # rank 0 records the split if there is none
+        data = open_data(config)
     check_data(ck, ckpt_path, data.key, "data (pairs, their DA2T settings or the split)")
-    write_text(run_dir / "config.json", config.to_json() + "\n")
-    data.split.save(run_dir / "split.json")
-    write_text(run_dir / "data.json", json.dumps({"root": str(data.root), "key": data.key, "train": data.train,
-                                                  "val": data.val}, indent=1) + "\n")
+    if ctx.main:
+        write_text(run_dir / "config.json", config.to_json() + "\n")
+        data.split.save(run_dir / "split.json")
+        write_text(run_dir / "data.json", json.dumps({"root": str(data.root), "key": data.key, "train": data.train,
+                                                      "val": data.val}, indent=1) + "\n")
     spec = config.spec()
     torch.manual_seed(config.seed)
-    model = DACN(spec)
+    model = DACN(spec).to(ctx.device)
     ema = make_ema(model)
     opt = torch.optim.Adam(model.parameters(), lr=config.lr, betas=config.betas)
     rng = np.random.default_rng([config.seed, 13])
     crops = PairCrops([pair_path(data.root, p) for p in data.train], spec.depth_encoding, augment=config.augment)
     step, history = restore(ck, model, ema, opt, rng, say=say, path=ckpt_path, iters=config.iters)
+    step_loss = ctx.wrap(LossModule(model, l1_loss))
+    where = ctx.record()
 
     def checkpoint():
-        save_checkpoint(ckpt_path, training_state(
-            step=step, settings=settings, config_json=config.to_json(), data_key=data.key, model=model, ema=ema,
-            opt=opt, rng=rng, history=history, kind="dacn", spec=json.dumps(spec.as_dict())))
+        if ctx.main:
+            save_checkpoint(ckpt_path, training_state(
+                step=step, settings=settings, config_json=config.to_json(), data_key=data.key, model=model,
+                ema=ema, opt=opt, rng=rng, history=history, kind="dacn", spec=json.dumps(spec.as_dict())))
+        ctx.barrier()
 
     t0 = time.perf_counter()
     model.train()
     loss_v = float("nan")
-    with open(run_dir / "log.jsonl", "a", encoding="utf-8") as logf:
+    with open(run_dir / "log.jsonl" if ctx.main else os.devnull, "a", encoding="utf-8") as logf:
         while step < config.iters:
-            x, y, d = (_tensor(a) for a in crops.sample(rng, config.batch, config.crop, input=config.input))
-            loss = (model(x, d) - y).abs().mean()
+            batch = crops.sample(rng, config.batch, config.crop, input=config.input)   # the global batch
+            x, y, d = (_tensor(a[rows]).to(ctx.device) for a in batch)                # this rank's share
+            loss = step_loss(x, y, d)
             update(opt, loss, config.lr_at(step), model, ema, config.ema_decay)
             step += 1
-            loss_v = float(loss.detach())
-            if config.validate_every and step % config.validate_every == 0 and step < config.iters:
+            loss_v = ctx.mean(loss.detach())
+            if ctx.main and config.validate_every and step % config.validate_every == 0 and step < config.iters:
                 rec = {"step": step, "loss": loss_v, "seconds": time.perf_counter() - t0,
                        "it_per_s": step / max(time.perf_counter() - t0, 1e-9),
-                       "val_ema": evaluate(ema, data, config).get("mean")}
+                       "val_ema": evaluate(ema, data, config).get("mean"), **where}
                 history.append(rec)
                 logf.write(json.dumps(rec) + "\n")
                 logf.flush()
                 say(f"iteration {step}: loss {loss_v:.4g}, validation {rec['val_ema']}")
             after_step(step, config.iters, config.checkpoint_every, loss_v, checkpoint, progress, on_step)
     seconds = time.perf_counter() - t0
-    val = {"ema": evaluate(ema, data, config), "model": evaluate(model, data, config)}
-    rec = {"step": step, "loss": loss_v, "seconds": seconds, "val_ema": val["ema"].get("mean"),
-           "val_model": val["model"].get("mean"), "final": True}
-    with open(run_dir / "log.jsonl", "a", encoding="utf-8") as logf:
-        logf.write(json.dumps(rec) + "\n")
-    return DACNResult(config, model, ema, data, step, seconds, history, val)
+    val = {}
+    if ctx.main:
+        val = {"ema": evaluate(ema, data, config), "model": evaluate(model, data, config)}
+        rec = {"step": step, "loss": loss_v, "seconds": seconds, "val_ema": val["ema"].get("mean"),
+               "val_model": val["model"].get("mean"), "final": True, **where}
+        with open(run_dir / "log.jsonl", "a", encoding="utf-8") as logf:
+            logf.write(json.dumps(rec) + "\n")
+    return DACNResult(config, model.cpu(), ema.cpu(), data, step, seconds, history, val, where)
