@@ -94,9 +94,9 @@ class _Net(torch.nn.Module):
         return 1.0 + float(self.scale.detach()) * rgb_uint8_hwc.astype(np.float64).mean(axis=2) / 255.0
 
 
-def test_public_estimators_through_stand_ins(tmp_path, monkeypatch):
-    from dcdi_core.models.depth.estimators import load_estimator
-
+def install_stand_ins(monkeypatch, tmp_path) -> dict:
+    """Stand-ins of the three public estimators' packages (depth = 1 + 4 x
+    mean sRGB value) and a checkpoint for each: {backend: checkpoint}."""
     class DA2(_Net):
         def infer_image(self, bgr, input_size):
             assert bgr.dtype == np.uint8 and input_size == 518
@@ -104,28 +104,22 @@ def test_public_estimators_through_stand_ins(tmp_path, monkeypatch):
     _stand_in(monkeypatch, "depth_anything_v2.dpt", DepthAnythingV2=DA2)
     ck = tmp_path / "depth_anything_v2_metric_hypersim_vits.pth"
     torch.save(DA2().state_dict(), ck)
-    img = np.random.default_rng(1).uniform(0, 1, (20, 24, 3)).astype(np.float32)
-    est = load_estimator("depth-anything-v2", ck)
-    assert est.model.kw == {"encoder": "vits", "features": 64, "out_channels": [48, 96, 192, 384], "max_depth": 20.0}
-    from dcdi_core.models.depth.estimators import srgb_uint8
-    np.testing.assert_allclose(est.estimate(img), 1 + 4 * srgb_uint8(img).mean(axis=2) / 255, rtol=1e-6)
+    folder = tmp_path / "unidepth"
 
     class UD(_Net):
         @classmethod
         def from_pretrained(cls, path):
-            assert path == str(tmp_path / "unidepth")
+            assert path == str(folder)
             return cls()
 
         def infer(self, rgb):
             assert rgb.shape[0] == 3 and rgb.dtype == torch.uint8
             return {"depth": torch.from_numpy(self.depth_of(rgb.permute(1, 2, 0).numpy()))[None, None]}
     _stand_in(monkeypatch, "unidepth.models", UniDepthV2=UD, UniDepthV1=UD)
-    folder = tmp_path / "unidepth"
-    folder.mkdir()
+    folder.mkdir(exist_ok=True)
     (folder / "config.json").write_text("{}")
     header = json.dumps({"__metadata__": {}}).encode()
     (folder / "model.safetensors").write_bytes(len(header).to_bytes(8, "little") + header)
-    assert load_estimator("unidepth", folder).estimate(img).shape == (20, 24)
 
     from dataclasses import dataclass
 
@@ -143,7 +137,18 @@ def test_public_estimators_through_stand_ins(tmp_path, monkeypatch):
     dp = _stand_in(monkeypatch, "depth_pro", create_model_and_transforms=create)
     dp.depth_pro = types.SimpleNamespace(DEFAULT_MONODEPTH_CONFIG_DICT=Cfg())
     torch.save({"w": torch.zeros(1)}, tmp_path / "depth_pro.pt")
-    assert load_estimator("depth-pro", tmp_path / "depth_pro.pt").estimate(img).shape == (20, 24)
+    return {"depth-anything-v2": ck, "unidepth": folder, "depth-pro": tmp_path / "depth_pro.pt"}
+
+
+def test_public_estimators_through_stand_ins(tmp_path, monkeypatch):
+    from dcdi_core.models.depth.estimators import load_estimator, srgb_uint8
+    checkpoints = install_stand_ins(monkeypatch, tmp_path)
+    img = np.random.default_rng(1).uniform(0, 1, (20, 24, 3)).astype(np.float32)
+    est = load_estimator("depth-anything-v2", checkpoints["depth-anything-v2"])
+    assert est.model.kw == {"encoder": "vits", "features": 64, "out_channels": [48, 96, 192, 384], "max_depth": 20.0}
+    expected = 1 + 4 * srgb_uint8(img).mean(axis=2) / 255
+    for backend, ck in checkpoints.items():
+        np.testing.assert_allclose(load_estimator(backend, ck).estimate(img), expected, rtol=1e-6, err_msg=backend)
 
 
 def test_an_unreadable_checkpoint_is_refused_by_name(tmp_path, monkeypatch):

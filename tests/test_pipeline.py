@@ -1,8 +1,5 @@
 """`dcdi dof`: the pipeline end to end with each depth backend, and with a
 sharp input, --camera none and the true depth, exactly `dcdi bokeh`."""
-import sys
-import types
-
 import numpy as np
 import pytest
 
@@ -64,28 +61,21 @@ def test_end_to_end_with_the_dcdi_depth_network(scene, networks, capsys):
     assert res.shape == cor.shape == (48, 64, 3) and np.isfinite(res).all() and (d / "s.png").exists()
 
 
-def test_end_to_end_with_a_public_estimator_stand_in(scene, networks, monkeypatch, capsys):
-    d = scene
+@pytest.mark.parametrize("backend", ["depth-anything-v2", "unidepth", "depth-pro"])
+def test_end_to_end_with_each_public_estimator_through_a_stand_in(scene, networks, monkeypatch, capsys, backend):
+    from test_depth_estimators import install_stand_ins
 
-    class DA2(torch.nn.Module):
-        def __init__(self, **kw):
-            super().__init__()
-            self.w = torch.nn.Parameter(torch.ones(1))
-
-        def infer_image(self, bgr, input_size):
-            return np.full(bgr.shape[:2], 3.0)
-    mod = types.ModuleType("depth_anything_v2.dpt")
-    mod.DepthAnythingV2 = DA2
-    monkeypatch.setitem(sys.modules, "depth_anything_v2", types.ModuleType("depth_anything_v2"))
-    monkeypatch.setitem(sys.modules, "depth_anything_v2.dpt", mod)
-    ck = d / "depth_anything_v2_metric_hypersim_vits.pth"
-    torch.save(DA2().state_dict(), ck)
-    assert main(["dof", *_args(d, "--camera", "mos-s2", "--dacn", str(networks / "dacn.npz"), "--depth-backend",
-                               "depth-anything-v2", "--depth-checkpoint", str(ck), "-o", str(d / "p.exr"),
-                               "--save-intermediates", str(d / "mid"))]) == 0
-    assert "depth depth-anything-v2" in capsys.readouterr().out
     from dcdi_core.io.images import read_depth
-    np.testing.assert_array_equal(read_depth(d / "mid" / "depth.exr"), 3.0)
+    from dcdi_core.models.depth.estimators import srgb_uint8
+    d = scene
+    ck = install_stand_ins(monkeypatch, d)[backend]
+    assert main(["dof", *_args(d, "--camera", "mos-s2", "--dacn", str(networks / "dacn.npz"), "--depth-backend",
+                               backend, "--depth-checkpoint", str(ck), "-o", str(d / "p.exr"),
+                               "--save-intermediates", str(d / "mid"))]) == 0
+    assert f"depth {backend}" in capsys.readouterr().out
+    expected = 1 + 4 * srgb_uint8(read_image(d / "aif.exr")).mean(axis=2) / 255
+    np.testing.assert_allclose(read_depth(d / "mid" / "depth.exr"), expected, rtol=1e-5)
+    assert np.isfinite(read_image(d / "p.exr")).all()
 
 
 def test_what_is_missing_is_said_before_any_work(scene, networks, capsys):
