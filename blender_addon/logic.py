@@ -284,8 +284,10 @@ def load_dacn_cached(path: Path):
     modification time; a missing torch is reported with the install command."""
     try:
         correct = core("models.correct")
-    except (ImportError, core("models").TorchMissingError) as e:
-        raise BokehInputError(_torch_message(f" ({e})")) from None
+    except core("models").TorchMissingError:
+        raise BokehInputError(_torch_message()) from None
+    except ImportError as e:                 # a torch that is there but does not import
+        raise BokehInputError(_torch_message(f" that imports ({e})")) from None
     key = (str(path), os.stat(path).st_mtime_ns)
     if key not in _DACN_CACHE:
         _DACN_CACHE.clear()                  # one network at a time: they are the biggest thing held
