@@ -33,7 +33,7 @@ class NoTorch(importlib.abc.MetaPathFinder):
 
 import bpy  # noqa: E402
 import numpy as np  # noqa: E402
-from addon_scene import MODULE, build_scene, data_counts, diff, error_of, install, snapshot  # noqa: E402
+from addon_scene import MODULE, StubLayout, build_scene, data_counts, diff, error_of, install, snapshot  # noqa: E402
 
 res: dict = {}
 scene, cam, cube = build_scene()
@@ -61,6 +61,13 @@ def save(name, key):
     np.save(OUT / f"{key}.npy", sys.modules[f"{MODULE}.bpy_render"].get_image(name))
 
 
+def draw_panel():
+    """What the panel draws: [(kind, text or id, icon)]."""
+    layout = StubLayout()
+    sys.modules[f"{MODULE}.panel"].draw_lens_bokeh(layout, bpy.context)
+    return layout.log
+
+
 # Correct before any simulation: disabled, and says why
 res["correct_first"] = error_of(lambda: bpy.ops.dcdi.correct_lens_simulation())
 
@@ -81,6 +88,7 @@ try:                                    # the worker's path (execute after poll)
     res["no_torch_run"] = None
 except logic.BokehInputError as e:
     res["no_torch_run"] = str(e)
+res["panel_no_torch"] = draw_panel()
 res["no_torch_changed"] = diff(after_sim, state()) + ([] if images() == imgs_sim else [f"images: {images()}"])
 res["torch_imported_while_blocked"] = "torch" in sys.modules
 res["install_command"] = logic.torch_install_command()
@@ -105,6 +113,7 @@ for run in ("cold", "warm"):
     res[f"correct_{run}"] = sorted(bpy.ops.dcdi.correct_lens_simulation())
     res[f"correct_{run}_s"] = time.perf_counter() - t
 save("Lens Corrected", "rt-corrected")
+res["panel_with_torch"] = draw_panel()
 pipeline.WEIGHTS_DIR = empty
 s.correction_model = str(DACN)           # a user's own file, no shipped one
 res["correct_model_file"] = sorted(bpy.ops.dcdi.correct_lens_simulation())

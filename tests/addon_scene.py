@@ -26,6 +26,28 @@ def error_of(fn):
     return None
 
 
+class StubLayout:
+    """Records what a panel's draw() asks for (pip bpy has no UI to draw into)."""
+
+    def __init__(self, log=None):
+        self.log = [] if log is None else log
+
+    def _child(self, *a, **k):
+        return StubLayout(self.log)
+
+    row = column = box = split = _child
+
+    def label(self, text="", **k):
+        self.log.append(("label", text, k.get("icon")))
+
+    def operator(self, idname, **k):
+        self.log.append(("operator", idname, k.get("icon")))
+        return StubLayout(self.log)
+
+    def prop(self, data, name, **k):
+        self.log.append(("prop", name, None))
+
+
 def snapshot(struct, depth=0, max_depth=4):
     """Every RNA property of ``struct`` (nested structs to max_depth; ID
     pointers by name), as plain Python values, to compare before / after."""

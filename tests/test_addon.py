@@ -527,6 +527,14 @@ def test_correct_without_torch_says_what_to_install_and_changes_nothing(round_tr
     assert "poll()" in r["no_torch_error"] and command in r["no_torch_error"]
     assert command in r["no_torch_run"]                 # the worker's path says the same
     assert r["no_torch_changed"] == [] and not r["torch_imported_while_blocked"]
+    # the panel shows both buttons, and without torch the install command (wrapped over its lines)
+    for drawn in (r["panel_no_torch"], r["panel_with_torch"]):
+        ops = [x[1] for x in drawn if x[0] == "operator"]
+        assert {"dcdi.apply_lens_bokeh", "dcdi.simulate_lens", "dcdi.correct_lens_simulation"} <= set(ops)
+    wrapped = "".join(x[1] for x in r["panel_no_torch"] if x[0] == "label" and x[2] in ("ERROR", "BLANK1"))
+    assert command in wrapped
+    assert not any(command in x[1] for x in r["panel_with_torch"] if x[0] == "label")
+    assert ["label", f"Network: dacn-{ROUND_TRIP_LENS}.npz", "INFO"] in r["panel_with_torch"]
 
 
 def test_correct_says_what_it_needs(round_trip):
