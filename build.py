@@ -131,21 +131,32 @@ def cmd_test(py: Path, marker: str) -> int:
 # batch jobs and developer tools (they need the repository: scenes/, OpenImageIO, a
 # Blender binary): not part of the add-on, left out of the zip as a whole
 ADDON_EXCLUDE_DIRS = ("tools",)
-# of dcdi_core.models, the add-on bundles only the numpy runtime and the shipped
-# weights (the rest, arch/ data/ layers/ train/ export ..., needs torch)
-ADDON_MODELS = ("__init__.py", "errors.py", "runtime/", "weights/")
+# of dcdi_core.models, the add-on bundles the numpy runtime (the bundled
+# Omni-Lens-Field) and what Correct Simulation imports: models.correct and
+# models.pipeline with the modules they import at load time (each imports
+# torch only when it is itself imported: without torch only Correct fails,
+# saying what to install); not the training loops, the OLF's network, the
+# depth networks or the reports
+ADDON_MODELS = ("__init__.py", "errors.py", "runtime/",
+                "correct.py", "pipeline.py", "dacn_export.py", "npz_file.py",
+                "arch/__init__.py", "arch/dacn.py", "arch/dacn_spec.py", "arch/spec.py", "layers/",
+                "data/__init__.py", "data/depth.py", "data/psf_samples.py",
+                "depth/__init__.py", "depth/estimators.py",
+                "train/__init__.py", "train/checkpoint.py", "train/config.py")
+# shipped weights the add-on uses: the Omni-Lens-Field and the DACNs (< 1 MB each)
+ADDON_WEIGHTS = ("olf-", "dacn-")
 
 
 def _engine_file(p: Path) -> bool:
     """True for a dcdi_core file the add-on bundles (sources and data; of
-    models/, the numpy runtime and the weights)."""
+    models/, ADDON_MODELS and the ADDON_WEIGHTS .npz files)."""
     rel = p.relative_to(ROOT / "dcdi_core").as_posix()
     if rel.startswith("models/"):
         part = rel[len("models/"):]
+        if part.startswith("weights/"):
+            return p.suffix == ".npz" and p.name.startswith(ADDON_WEIGHTS)
         if not any(part == m or (m.endswith("/") and part.startswith(m)) for m in ADDON_MODELS):
             return False
-        if part.startswith("weights/"):
-            return p.suffix == ".npz"
     return p.suffix in (".py", ".csv", ".md", ".json")
 
 

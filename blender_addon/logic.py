@@ -8,8 +8,10 @@ said otherwise), lens lengths in mm, angles in degrees.
 """
 from __future__ import annotations
 
+import importlib.util
 import math
 import os
+import sys
 import tomllib
 import zlib
 from dataclasses import dataclass, replace
@@ -144,6 +146,21 @@ def keep_range(focus_m: float, front_m: float, behind_m: float) -> tuple[float, 
     return max(focus_m - front_m, 1e-3), focus_m + behind_m
 
 
+def _psf_progress(progress, cancelled):
+    """The ``progress(done, total)`` a PSF build calls: raises
+    :class:`Cancelled` when ``cancelled()`` says so, else reports stage 'PSFs'."""
+    def report(done, total):
+        _check_cancel(cancelled)
+        if progress is not None:
+            progress("PSFs", done / max(total, 1))
+    return report
+
+
+def _check_cancel(cancelled) -> None:
+    if cancelled is not None and cancelled():
+        raise Cancelled()
+
+
 def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], patch: int = 16,
               refocus: bool = True, progress=None, cancelled=None):
     """The lens's depth of field on an all-in-focus (H, W, 3) float32 linear
@@ -166,12 +183,7 @@ def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], 
         raise BokehInputError(f"nothing in view lies in the kept range {keep[0]:.2f}-{keep[1]:.2f} m "
                               f"(depths in view: {seen}); move the focus or widen the range")
     settings = replace(core("psf.compute").PSFSettings(), focus_distance_m=float(focus_m) if refocus else None)
-
-    def report(done, total):
-        if cancelled is not None and cancelled():
-            raise Cancelled()
-        if progress is not None:
-            progress("PSFs", done / max(total, 1))
+    report = _psf_progress(progress, cancelled)
 
     # The PSFs the scene needs are built first, so that progress and Esc work
     # here (the convolution that follows takes well under the build's time);
@@ -187,8 +199,7 @@ def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], 
     if blurred.size:
         need = lib.bins_needed(blurred, clamp_near=True)
         lib.ensure(bins=np.arange(need.min(), need.max() + 1), progress=report)
-    if cancelled is not None and cancelled():
-        raise Cancelled()
+    _check_cancel(cancelled)
     if progress is not None:
         progress("convolving", 1.0)
     try:
@@ -198,3 +209,111 @@ def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], 
     info = dict(res.info, focus_m=float(focus_m), keep_m=[float(keep[0]), float(keep[1])], refocus=bool(refocus),
                 pixel_pitch_mm=float(geom.pixel_pitch_mm), psf_source=src.kind, psf_source_message=src.message)
     return res.image.astype(np.float32), info
+
+
+# ------------------------------------------------------------------ the DCDI round trip
+def run_simulation(image, depth, lens, *, noise: bool = False, seed: int = 0, progress=None, cancelled=None):
+    """The all-in-focus (H, W, 3) render with depth (H, W) metres as ``lens``
+    (as prescribed, no refocus) would have taken it: dcdi_core's depth-aware
+    simulation (``render.simulate``: distortion, then patch-wise PSFs of
+    field and depth; sensor noise if ``noise``, seeded by ``seed``), with
+    PSFs from the shipped Omni-Lens-Field where it covers the lens, else
+    traced (the bokeh's rule). ``progress`` / ``cancelled`` as
+    :func:`run_bokeh` (cancel works while PSFs are traced). Returns (image,
+    depth on the sensor (NaN where the lens images nothing), info)."""
+    sim = core("render.simulate")
+    geom = core("render.geometry").ImageGeometry.full_sensor(lens, image.shape[0], image.shape[1])
+    src = core("models.runtime.library").psf_source(lens, pixel_pitch_mm=geom.pixel_pitch_mm)
+    simulator = sim.LensSimulator(lens, geom, library=src.library,
+                                  fit_depth_m=depth if src.library is None else None,
+                                  progress=_psf_progress(progress, cancelled))
+    _check_cancel(cancelled)
+    if progress is not None:
+        progress("simulating", 1.0)
+    res = simulator(image, depth, noise={} if noise else None, seed=int(seed) if noise else None)
+    info = dict(res.info, lens=lens.id, pixel_pitch_mm=float(geom.pixel_pitch_mm), psf_source=src.kind,
+                psf_source_message=src.message)
+    return res.image.astype(np.float32), res.depth.astype(np.float32), info
+
+
+def torch_install_command(python: str | None = None) -> str:
+    """The command that installs the PyTorch the engine is tested with into ``python`` (default: this one)."""
+    return f'"{python or sys.executable}" -m pip install torch=={core("models").TORCH_VERSION}'
+
+
+def torch_missing() -> str | None:
+    """Why Correct cannot run here (no importable torch, with the install
+    command), or None. Looks for torch without importing it."""
+    try:
+        found = importlib.util.find_spec("torch") is not None
+    except (ImportError, ValueError):
+        found = False
+    return None if found else _torch_message()
+
+
+def _torch_message(detail: str = "") -> str:
+    return (f"Correct needs PyTorch in Blender's Python, which has none{detail}: install it with "
+            f"{torch_install_command()} and restart Blender")
+
+
+def correction_model_path(lens_id: str, given: str = "") -> Path:
+    """The DACN file for ``lens_id``: ``given`` (an absolute path, an
+    exported .npz or a run folder) if set, else the shipped
+    ``dacn-<lens>.npz``; errors say which lenses have a shipped one."""
+    if given:
+        p = Path(given)
+        if not p.exists():
+            raise BokehInputError(f"correction model {str(p)!r}: no such file (give a DACN exported with "
+                                  "`dcdi dacn export` (.npz), or leave it empty for the lens's shipped one)")
+        return p
+    pipeline = core("models.pipeline")
+    p = pipeline.shipped_model("dacn", lens_id)
+    if p is None:
+        have = pipeline.shipped_lenses("dacn")
+        raise BokehInputError(f"no shipped correction network (DACN) for lens {lens_id!r}: shipped for "
+                              f"{', '.join(have) if have else 'no lens yet'}; choose one of those lenses or give "
+                              "a Correction Model file (`dcdi dacn export`)")
+    return p
+
+
+_DACN_CACHE: dict = {}
+
+
+def load_dacn_cached(path: Path):
+    """(model, info) of ``models.correct.load_dacn``, cached by path and
+    modification time; a missing torch is reported with the install command."""
+    try:
+        correct = core("models.correct")
+    except core("models").TorchMissingError:
+        raise BokehInputError(_torch_message()) from None
+    except ImportError as e:                 # a torch that is there but does not import
+        raise BokehInputError(_torch_message(f" that imports ({e})")) from None
+    key = (str(path), os.stat(path).st_mtime_ns)
+    if key not in _DACN_CACHE:
+        _DACN_CACHE.clear()                  # one network at a time: they are the biggest thing held
+        _DACN_CACHE[key] = correct.load_dacn(path)
+    return _DACN_CACHE[key]
+
+
+def run_correction(image, depth_m, lens_id: str, model_path: Path, *, pixel_pitch_mm: float, progress=None,
+                   cancelled=None):
+    """The DACN of ``model_path`` on a simulated capture of ``lens_id`` with
+    its depth on the sensor: ``models.pipeline.recover`` (the CLI's stage 2,
+    tiled). Returns (image, info: the model, the lens it was trained for,
+    notes (another lens, another pixel pitch), seconds)."""
+    _check_cancel(cancelled)
+    if progress is not None:
+        progress("loading the network", 0.0)
+    model, minfo = load_dacn_cached(model_path)
+    _check_cancel(cancelled)
+    if progress is not None:
+        progress("correcting", 0.5)
+    notes, seconds = [], {}
+    out, _, _ = core("models.pipeline").recover(image, camera_pitch_mm=pixel_pitch_mm, depth_m=depth_m,
+                                                corrector=model, corrector_info=minfo, seconds=seconds,
+                                                notes=notes)
+    trained_for = (minfo.get("meta") or {}).get("lens") or (minfo.get("da2t") or {}).get("lens")
+    if trained_for and trained_for != lens_id:
+        notes.append(f"the network was trained for lens {trained_for!r}, the simulation is of {lens_id!r}")
+    return out.astype(np.float32), {"model": str(model_path), "trained_for": trained_for, "notes": notes,
+                                    "seconds": seconds.get("correction", 0.0)}

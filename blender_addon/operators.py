@@ -1,4 +1,5 @@
-"""Operators: Apply Lens Bokeh, Match Camera to Lens, Import Zemax File.
+"""Operators: Apply Lens Bokeh, Simulate Minimalist Lens, Correct Simulation,
+Match Camera to Lens, Import Zemax File.
 
 Apply Lens Bokeh renders the active camera all-in-focus with depth (Cycles,
 preview resolution, in a temporary scene copy), then applies the lens's
@@ -8,6 +9,13 @@ second at the default preview size); the PSF build and the convolution run on
 a worker thread while a modal timer shows progress, Esc cancels. In
 background mode, and when called from a script with execute(), it all runs
 synchronously.
+
+Simulate Minimalist Lens renders the same way and shows the render as the
+chosen lens (as prescribed) would have taken it ("Lens Simulation",
+dcdi_core's depth-aware simulation); Correct Simulation runs the lens's
+shipped DACN (torch) on that image with the render's depth on the sensor
+("Lens Corrected"). Both run as Apply Lens Bokeh does (worker thread,
+progress, Esc), and one job runs at a time.
 """
 import os
 import threading
@@ -72,23 +80,32 @@ def focus_metres(scene, cam, settings, entrance_pupil_mm: float) -> float:
     return core("render.camera").planar_depth_m(z, entrance_pupil_mm, mpu)
 
 
-def prepare(context):
-    """Check the settings, render AiF + depth; returns the job's inputs."""
+def render_inputs(context, cam, lens_path: str):
+    """The active camera rendered all-in-focus at the preview size: (rgb,
+    depth in metres from the lens's first vertex, seconds)."""
     scene = context.scene
     s = scene.dcdi_lens_bokeh
-    cam = _camera(scene)
-    lens, path = chosen_lens(s)
-    ep = logic.lens_readout(path)["entrance_pupil_mm"]
-    focus = focus_metres(scene, cam, s, ep)
-    mpu = _metres_per_unit(scene)
-    keep = logic.keep_range(focus, s.keep_front * mpu, s.keep_behind * mpu)
+    ep = logic.lens_readout(lens_path)["entrance_pupil_mm"]
     r = scene.render
     h, w = logic.preview_shape(r.resolution_x, r.resolution_y, r.pixel_aspect_x, r.pixel_aspect_y, s.preview_size)
     t0 = time.perf_counter()
     rgb, z = bpy_render.render_aif_depth(scene, cam, h, w, s.samples, context.view_layer.name)
-    depth = core("render.camera").depth_from_planar_z(z, ep, mpu)
+    depth = core("render.camera").depth_from_planar_z(z, ep, _metres_per_unit(scene))
+    return rgb, depth, time.perf_counter() - t0
+
+
+def prepare(context):
+    """Check the settings, render AiF + depth; returns the bokeh job's inputs."""
+    scene = context.scene
+    s = scene.dcdi_lens_bokeh
+    cam = _camera(scene)
+    lens, path = chosen_lens(s)
+    focus = focus_metres(scene, cam, s, logic.lens_readout(path)["entrance_pupil_mm"])
+    mpu = _metres_per_unit(scene)
+    keep = logic.keep_range(focus, s.keep_front * mpu, s.keep_behind * mpu)
+    rgb, depth, seconds = render_inputs(context, cam, path)
     return {"rgb": rgb, "depth": depth, "lens": lens, "focus_m": focus, "keep": keep, "refocus": bool(s.refocus),
-            "render_s": time.perf_counter() - t0}
+            "render_s": seconds}
 
 
 def bokeh_of(job, **kw):
@@ -111,24 +128,25 @@ def finish(op, context, job, out, info, seconds: float, store_inputs: bool):
 
 
 class _Worker:
-    """The bokeh on a thread: numpy releases the GIL in its heavy loops, so the
-    UI stays responsive; bpy is never touched from here."""
+    """A job on a thread: numpy (and torch) release the GIL in their heavy
+    loops, so the UI stays responsive; bpy is never touched from here.
+    ``compute(progress, cancelled)`` returns the result."""
 
-    def __init__(self, job):
-        self.job = job
+    def __init__(self, job, compute):
+        self.job, self.compute = job, compute
         self.stage, self.fraction = "starting", 0.0
         self.cancel = False
         self.result = self.error = None
         self.t0 = time.perf_counter()
         self.seconds = 0.0
-        self.thread = threading.Thread(target=self._run, name="dcdi-lens-bokeh", daemon=True)
+        self.thread = threading.Thread(target=self._run, name="dcdi-lens-job", daemon=True)
 
     def _progress(self, stage, fraction):
         self.stage, self.fraction = stage, fraction
 
     def _run(self):
         try:
-            self.result = bokeh_of(self.job, progress=self._progress, cancelled=lambda: self.cancel)
+            self.result = self.compute(self.job, progress=self._progress, cancelled=lambda: self.cancel)
         except logic.Cancelled:
             pass
         except Exception as e:           # handed to the main thread, which reports it
@@ -138,16 +156,16 @@ class _Worker:
             _JOBS.discard(self)
 
 
-class DCDI_OT_apply_lens_bokeh(bpy.types.Operator):
-    """Render the active camera all-in-focus with depth and apply the chosen lens's depth of field"""
+class _JobOperator:
+    """What Apply Lens Bokeh, Simulate and Correct share: check and render on
+    the main thread (``prepare(context)``), the heavy part
+    (``compute(job, progress=, cancelled=)``) synchronously in background
+    and from execute(), else on a worker thread while a modal timer shows
+    progress and Esc cancels; ``finish(context, job, result, seconds)`` puts
+    the pixels back. One job runs at a time (the status says which)."""
 
-    bl_idname = "dcdi.apply_lens_bokeh"
-    bl_label = "Apply Lens Bokeh"
-    bl_options = {"REGISTER"}
-
-    store_inputs: BoolProperty(name="Keep Inputs", default=False, options={"SKIP_SAVE"},
-                               description=f"Also keep the all-in-focus render ({AIF_IMAGE!r}) and the depth in "
-                                           f"metres ({DEPTH_IMAGE!r}) as images")
+    job_label = "Lens job"
+    first_message = "rendering all-in-focus..."
 
     @classmethod
     def poll(cls, context):
@@ -156,27 +174,27 @@ class DCDI_OT_apply_lens_bokeh(bpy.types.Operator):
 
     def execute(self, context):
         try:
-            job = prepare(context)
+            job = self.prepare(context)
             t0 = time.perf_counter()
-            out, info = bokeh_of(job)
+            result = self.compute(job)
         except _user_errors() as e:
             self.report({"ERROR"}, str(e))
             return {"CANCELLED"}
-        finish(self, context, job, out, info, time.perf_counter() - t0, self.store_inputs)
+        self.finish(context, job, result, time.perf_counter() - t0)
         return {"FINISHED"}
 
     def invoke(self, context, event):
         if bpy.app.background or context.window is None:
             return self.execute(context)
         st = context.window_manager.dcdi_lens_bokeh_status
-        st.message, st.progress = "rendering all-in-focus...", 0.0
+        st.message, st.progress = self.first_message, 0.0
         try:
-            job = prepare(context)
+            job = self.prepare(context)
         except _user_errors() as e:
             st.message = ""
             self.report({"ERROR"}, str(e))
             return {"CANCELLED"}
-        self._worker = _Worker(job)
+        self._worker = _Worker(job, self.compute)
         _JOBS.add(self._worker)
         self._worker.thread.start()
         st.running = True
@@ -203,7 +221,7 @@ class DCDI_OT_apply_lens_bokeh(bpy.types.Operator):
             w.cancel = True
             self._end(context)
             st.message, st.progress = "cancelled", 0.0
-            self.report({"WARNING"}, "Lens Bokeh cancelled")
+            self.report({"WARNING"}, f"{self.job_label} cancelled")
             return {"CANCELLED"}
         if event.type != "TIMER":
             return {"PASS_THROUGH"}
@@ -213,7 +231,7 @@ class DCDI_OT_apply_lens_bokeh(bpy.types.Operator):
             st.message = f"{w.stage} {pct:.0f} %, {time.perf_counter() - w.t0:.0f} s (Esc cancels)"
             context.window_manager.progress_update(int(pct))
             if context.workspace is not None:
-                context.workspace.status_text_set(f"Lens Bokeh: {st.message}")
+                context.workspace.status_text_set(f"{self.job_label}: {st.message}")
             _redraw(context)
             return {"RUNNING_MODAL"}
         self._end(context)
@@ -221,10 +239,127 @@ class DCDI_OT_apply_lens_bokeh(bpy.types.Operator):
             st.message = "failed"
             self.report({"ERROR"}, str(w.error))
             return {"CANCELLED"}
-        out, info = w.result
-        st.progress, st.message = 100.0, f"done in {w.job['render_s'] + w.seconds:.1f} s"
-        finish(self, context, w.job, out, info, w.seconds, self.store_inputs)
+        st.progress, st.message = 100.0, f"done in {w.job.get('render_s', 0.0) + w.seconds:.1f} s"
+        self.finish(context, w.job, w.result, w.seconds)
         return {"FINISHED"}
+
+
+class DCDI_OT_apply_lens_bokeh(_JobOperator, bpy.types.Operator):
+    """Render the active camera all-in-focus with depth and apply the chosen lens's depth of field"""
+
+    bl_idname = "dcdi.apply_lens_bokeh"
+    bl_label = "Apply Lens Bokeh"
+    bl_options = {"REGISTER"}
+    job_label = "Lens Bokeh"
+
+    store_inputs: BoolProperty(name="Keep Inputs", default=False, options={"SKIP_SAVE"},
+                               description=f"Also keep the all-in-focus render ({AIF_IMAGE!r}) and the depth in "
+                                           f"metres ({DEPTH_IMAGE!r}) as images")
+
+    def prepare(self, context):
+        return prepare(context)
+
+    def compute(self, job, **kw):
+        return bokeh_of(job, **kw)
+
+    def finish(self, context, job, result, seconds):
+        out, info = result
+        finish(self, context, job, out, info, seconds, self.store_inputs)
+
+
+# ------------------------------------------------------------------ the DCDI round trip
+SIMULATION_IMAGE = "Lens Simulation"
+CORRECTED_IMAGE = "Lens Corrected"
+# the last simulation (render, simulated image, depth on the sensor, lens),
+# which Correct works on; in memory only, dropped at unregister
+_SIMULATION: dict = {}
+
+
+def prepare_simulation(context):
+    """Check the settings and render AiF + depth for Simulate."""
+    s = context.scene.dcdi_lens_bokeh
+    cam = _camera(context.scene)
+    lens, path = chosen_lens(s)
+    rgb, depth, seconds = render_inputs(context, cam, path)
+    return {"rgb": rgb, "depth": depth, "lens": lens, "noise": bool(s.sensor_noise), "render_s": seconds}
+
+
+class DCDI_OT_simulate_lens(_JobOperator, bpy.types.Operator):
+    """Render the active camera all-in-focus with depth and show it as the chosen lens (as prescribed, with its aberrations and distortion; a minimalist lens such as MOS-S1) would have taken it"""
+
+    bl_idname = "dcdi.simulate_lens"
+    bl_label = "Simulate Minimalist Lens"
+    bl_options = {"REGISTER"}
+    job_label = "Lens Simulation"
+
+    def prepare(self, context):
+        return prepare_simulation(context)
+
+    def compute(self, job, **kw):
+        return logic.run_simulation(job["rgb"], job["depth"], job["lens"], noise=job["noise"], **kw)
+
+    def finish(self, context, job, result, seconds):
+        out, sensor_depth, info = result
+        _SIMULATION.clear()
+        _SIMULATION.update(rgb=job["rgb"], depth=job["depth"], image=out, sensor_depth=sensor_depth,
+                           lens_id=job["lens"].id, pixel_pitch_mm=info["pixel_pitch_mm"])
+        bpy_render.show_in_image_editor(context, bpy_render.put_image(SIMULATION_IMAGE, out))
+        context.window_manager.dcdi_lens_bokeh_status.psf_source = info["psf_source_message"]
+        h, w = out.shape[:2]
+        noise = ", sensor noise" if job["noise"] else ""
+        self.report({"INFO"}, f"Lens Simulation: {job['lens'].id}, {w} x {h} px{noise}, render "
+                              f"{job['render_s']:.1f} s, simulation {seconds:.1f} s; {info['psf_source_message']}")
+
+
+def correction_blocker(context) -> str | None:
+    """Why Correct cannot run now (no simulation yet, no torch), or None."""
+    if not _SIMULATION:
+        return f"run {DCDI_OT_simulate_lens.bl_label} first: Correct works on its image"
+    return logic.torch_missing()
+
+
+def prepare_correction(context):
+    """The last simulation and the DACN file to correct it with."""
+    why = correction_blocker(context)
+    if why:
+        raise logic.BokehInputError(why)
+    given = context.scene.dcdi_lens_bokeh.correction_model
+    path = logic.correction_model_path(_SIMULATION["lens_id"], bpy.path.abspath(given) if given else "")
+    return dict(_SIMULATION, model_path=path, render_s=0.0)
+
+
+class DCDI_OT_correct_simulation(_JobOperator, bpy.types.Operator):
+    """Correct the last Lens Simulation with the lens's shipped DACN (or the Correction Model file), using the render's true depth on the sensor; needs PyTorch in Blender's Python"""
+
+    bl_idname = "dcdi.correct_lens_simulation"
+    bl_label = "Correct Simulation"
+    bl_options = {"REGISTER"}
+    job_label = "Lens Correction"
+    first_message = "loading the network..."
+
+    @classmethod
+    def poll(cls, context):
+        if not super().poll(context):
+            return False
+        why = correction_blocker(context)
+        if why:
+            cls.poll_message_set(why)
+        return why is None
+
+    def prepare(self, context):
+        return prepare_correction(context)
+
+    def compute(self, job, **kw):
+        return logic.run_correction(job["image"], job["sensor_depth"], job["lens_id"], job["model_path"],
+                                    pixel_pitch_mm=job["pixel_pitch_mm"], **kw)
+
+    def finish(self, context, job, result, seconds):
+        out, info = result
+        bpy_render.show_in_image_editor(context, bpy_render.put_image(CORRECTED_IMAGE, out))
+        h, w = out.shape[:2]
+        notes = "".join(f"; {n}" for n in info["notes"])
+        self.report({"INFO"}, f"Lens Corrected: {w} x {h} px with {os.path.basename(info['model'])}, "
+                              f"{seconds:.1f} s{notes}")
 
 
 def _redraw(context):
@@ -289,8 +424,11 @@ class DCDI_OT_import_zemax(bpy.types.Operator):
 
 
 def cancel_running_jobs():
+    """Tell running workers to stop and drop the last simulation (unregister)."""
     for w in list(_JOBS):
         w.cancel = True
+    _SIMULATION.clear()
 
 
-CLASSES = (DCDI_OT_apply_lens_bokeh, DCDI_OT_match_camera, DCDI_OT_import_zemax)
+CLASSES = (DCDI_OT_apply_lens_bokeh, DCDI_OT_simulate_lens, DCDI_OT_correct_simulation, DCDI_OT_match_camera,
+           DCDI_OT_import_zemax)

@@ -94,6 +94,27 @@ def draw_lens_bokeh(layout, context):
         layout.label(text=st.message)
     if not st.running and st.psf_source:
         layout.label(text=st.psf_source[:72], icon="INFO")
+    _draw_round_trip(layout.box(), s)
+
+
+def _draw_round_trip(layout, s):
+    """Simulate Minimalist Lens and Correct Simulation: the DCDI round trip."""
+    from . import operators
+    layout.label(text="DCDI round trip (the chosen lens as prescribed)")
+    layout.prop(s, "sensor_noise")
+    layout.operator("dcdi.simulate_lens", icon="SHADERFX")
+    layout.prop(s, "correction_model")
+    layout.operator("dcdi.correct_lens_simulation", icon="BRUSH_DATA")
+    why = logic.torch_missing()
+    if why:
+        for i in range(0, min(len(why), 288), 48):        # the install command, wrapped
+            layout.label(text=why[i:i + 48], icon="ERROR" if i == 0 else "BLANK1")
+    elif operators._SIMULATION and not s.correction_model:
+        try:
+            path = logic.correction_model_path(operators._SIMULATION["lens_id"])
+            layout.label(text=f"Network: {path.name}", icon="INFO")
+        except logic.BokehInputError as e:
+            layout.label(text=str(e)[:72], icon="ERROR")
 
 
 class _LensBokehPanel:

@@ -70,6 +70,13 @@ class DCDI_LensBokehSettings(bpy.types.PropertyGroup):
                               "time", default=320, min=16, soft_max=1920, max=8192, subtype="PIXEL")
     samples: IntProperty(name="Samples", description="Cycles samples per pixel of the all-in-focus render "
                          "(denoised)", default=16, min=1, soft_max=256, max=16384)
+    sensor_noise: BoolProperty(name="Sensor Noise", default=False,
+                               description="Simulate Minimalist Lens: also add the engine's sensor noise (shot "
+                                           "and read noise, 10000 e- full well, 3 e- read noise, seed 0)")
+    correction_model: StringProperty(name="Correction Model", default="", subtype="FILE_PATH",
+                                     description="Correct Simulation: a DACN exported with `dcdi dacn export` "
+                                                 "(.npz) or a training run folder; empty: the lens's shipped "
+                                                 "network")
 
 
 class DCDI_LensBokehStatus(bpy.types.PropertyGroup):

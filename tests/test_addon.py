@@ -299,17 +299,25 @@ def test_cancel_stops_the_psf_build_and_progress_is_reported(tmp_path, monkeypat
 
 
 # ------------------------------------------------------------------ the bundled Omni-Lens-Field
-def test_zip_bundles_the_olf_runtime_and_weights_and_no_torch_code(addon_zip):
+def test_zip_bundles_the_olf_runtime_the_dacn_modules_and_weights_and_no_module_level_torch(addon_zip):
     with zipfile.ZipFile(addon_zip) as z:
         names = {n[len(EXT_ID) + 1:] for n in z.namelist()}
     models = sorted(n for n in names if n.startswith("dcdi_core/models/"))
-    weights = sorted(p.name for p in (ROOT / "dcdi_core" / "models" / "weights").glob("*.npz"))
+    weights = sorted(p.name for p in (ROOT / "dcdi_core" / "models" / "weights").glob("*.npz")
+                     if p.name.startswith(("olf-", "dacn-")))
     assert weights and all(f"dcdi_core/models/weights/{w}" in names for w in weights)
     assert {"dcdi_core/models/__init__.py", "dcdi_core/models/errors.py", "dcdi_core/models/runtime/olf.py",
             "dcdi_core/models/runtime/library.py"} <= set(models)
-    # arch/ data/ layers/ train/ export, correct, report, metrics need torch (or are not the add-on's)
-    assert all(n.startswith(("dcdi_core/models/runtime/", "dcdi_core/models/weights/"))
-               or n in ("dcdi_core/models/__init__.py", "dcdi_core/models/errors.py") for n in models), models
+    # Correct Simulation's modules: models.correct, models.pipeline and what they import when loaded
+    dacn = {"correct.py", "pipeline.py", "dacn_export.py", "npz_file.py", "arch/dacn.py", "arch/dacn_spec.py",
+            "layers/deform_conv.py", "layers/attention.py", "layers/swin.py", "layers/blocks.py", "data/depth.py",
+            "depth/estimators.py", "train/checkpoint.py"}
+    assert {f"dcdi_core/models/{m}" for m in dacn} <= set(models)
+    # not the training loops, the OLF's network, the depth networks' code and weights, the reports
+    for left_out in ("train/dacn_loop.py", "train/loop.py", "arch/olf.py", "arch/depthnet.py", "depth/depthnet_file.py",
+                     "export.py", "report.py", "evaluate.py", "data/da2t.py", "data/rgbd.py"):
+        assert f"dcdi_core/models/{left_out}" not in names, left_out
+    assert not any(n.startswith("dcdi_core/models/weights/depth-") for n in names)
     import re
     with zipfile.ZipFile(addon_zip) as z:       # no module-level torch import (require_torch's is inside it)
         for n in (m for m in models if m.endswith(".py")):
@@ -401,3 +409,142 @@ def test_first_apply_on_a_shipped_lens_traces_nothing(headless):
         assert out.shape == aif.shape and np.isfinite(out).all()
         assert np.abs(out - aif)[kept].max() < 1e-5
         assert np.abs(out - aif)[depth > 7.0].mean() > 1e-3
+
+
+# ------------------------------------------------------------------ the DCDI round trip in Blender
+ROUND_TRIP_LENS = "mos-s2"          # the lens of test_dacn_train's tiny pairs
+
+
+def test_correction_model_path_names_the_lenses_with_a_network(tmp_path, monkeypatch):
+    import dcdi_core.models.pipeline as pipeline
+    monkeypatch.setattr(pipeline, "WEIGHTS_DIR", tmp_path)
+    with pytest.raises(logic.BokehInputError, match="lens '6p': shipped for no lens yet"):
+        logic.correction_model_path("6p")
+    (tmp_path / "dacn-mos-s1.npz").write_bytes(b"")
+    (tmp_path / "dacn-mos-s2.npz").write_bytes(b"")
+    assert logic.correction_model_path("mos-s1") == tmp_path / "dacn-mos-s1.npz"
+    with pytest.raises(logic.BokehInputError, match="lens '6p': shipped for mos-s1, mos-s2; choose one"):
+        logic.correction_model_path("6p")
+    assert logic.correction_model_path("6p", str(tmp_path / "dacn-mos-s2.npz")) == tmp_path / "dacn-mos-s2.npz"
+    with pytest.raises(logic.BokehInputError, match="no such file"):
+        logic.correction_model_path("6p", str(tmp_path / "mine.npz"))
+
+
+def test_torch_missing_gives_the_install_command_for_this_python(monkeypatch):
+    monkeypatch.setitem(sys.modules, "torch", None)          # as absent as in Blender's own Python
+    msg = logic.torch_missing()
+    assert msg and f'"{sys.executable}" -m pip install torch==2.13.0' in msg and "restart Blender" in msg
+
+
+@pytest.fixture(scope="module")
+def tiny_dacn(tmp_path_factory):
+    """A tiny DACN of mos-s2 (test_dacn_train's pairs, 2 steps), exported as shipped."""
+    pytest.importorskip("torch")
+    from test_dacn_train import FAST, Frames, _config
+
+    from dcdi_core.models.dacn_export import export_dacn
+    from dcdi_core.models.data.da2t import DA2TConfig, build_pairs
+    from dcdi_core.models.train.dacn_loop import train_dacn
+    d = tmp_path_factory.mktemp("tiny-dacn")
+    build_pairs(Frames(), d / "pairs", DA2TConfig(lens=ROUND_TRIP_LENS, **FAST))
+    train_dacn(_config(d / "pairs", iters=2, checkpoint_every=2), d / "run")
+    export_dacn(d / "run", d / "dacn.npz")
+    return d / "dacn.npz"
+
+
+@pytest.fixture(scope="module")
+def round_trip(addon_zip, tiny_dacn, tmp_path_factory):
+    pytest.importorskip("bpy")
+    out = tmp_path_factory.mktemp("addon-round-trip")
+    env = dict(os.environ, DCDI_CACHE_DIR=str(out / "psf-cache"))
+    env.pop("DCDI_LENS_PATH", None)
+    p = subprocess.run([sys.executable, str(ROOT / "tests" / "addon_headless_roundtrip.py"), str(addon_zip), str(out),
+                        str(tiny_dacn), ROUND_TRIP_LENS], capture_output=True, text=True, env=env, timeout=600)
+    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
+    res = json.loads((out / "result.json").read_text())
+    res["dir"] = out
+    return res
+
+
+def test_simulate_and_correct_leave_the_scene_as_it_was(round_trip):
+    r = round_trip
+    assert r["install"] == ["FINISHED"] and r["simulate"] == ["FINISHED"] and r["correct_cold"] == ["FINISHED"]
+    assert r["round_trip_diff"] == []        # scene, render settings, camera, frame, objects
+    assert r["new_data"] == {"images": 2}
+    assert r["images"] == sorted(r["images_before"] + ["Lens Simulation", "Lens Corrected"])
+
+
+def test_simulation_is_dcdi_cores_simulate_of_the_render(round_trip):
+    """The image Simulate shows is dcdi_core's depth-aware simulate() of the
+    operator's own render (the same PSF source: the bundled OLF), blurred."""
+    from dcdi_core.models.runtime.library import psf_source
+    from dcdi_core.optics.lens import load_lens
+    from dcdi_core.render.geometry import ImageGeometry
+    from dcdi_core.render.simulate import simulate
+    d = round_trip["dir"]
+    rgb, depth = np.load(d / "rt-rgb.npy"), np.load(d / "rt-depth.npy")
+    lens = load_lens(ROUND_TRIP_LENS)
+    geom = ImageGeometry.full_sensor(lens, *rgb.shape[:2])
+    src = psf_source(lens, pixel_pitch_mm=geom.pixel_pitch_mm)
+    assert src.kind == "olf" and round_trip["simulate_report_status"].startswith("PSFs from the Omni-Lens-Field")
+    want = simulate(rgb, depth, lens, library=src.library)
+    shown = np.load(d / "rt-sim-image.npy")
+    assert shown.shape == rgb.shape == (96, 128, 3)
+    np.testing.assert_allclose(shown, want.image, atol=1e-5)
+    np.testing.assert_array_equal(np.load(d / "rt-sensor_depth.npy"), want.depth.astype(np.float32))
+    assert round_trip["pixel_pitch_mm"] == pytest.approx(geom.pixel_pitch_mm)
+
+    def edge_energy(im, where):
+        return (np.abs(np.diff(im, axis=0))[:, :-1] + np.abs(np.diff(im, axis=1))[:-1])[where[:-1, :-1]].mean()
+    # blurred where the lens blurs: at this preview's 176 um pixels MOS-S2's kernels are 5 x 5 px;
+    # measured edge energy of the sharp image on the sensor: cube 0.89, wall 0.94
+    cube, wall = want.depth < 2.0, want.depth > 7.0
+    assert cube.sum() > 1000 and wall.sum() > 4000
+    assert edge_energy(shown, cube) < 0.92 * edge_energy(want.sharp, cube)
+    assert edge_energy(shown, wall) < 0.97 * edge_energy(want.sharp, wall)
+    noisy = np.load(d / "rt-sim-noise.npy")
+    assert round_trip["simulate_noise"] == ["FINISHED"] and 1e-3 < np.abs(noisy - shown).mean() < 0.05
+
+
+def test_correct_runs_the_shipped_dacn_on_the_simulation_with_its_depth(round_trip, tiny_dacn):
+    from dcdi_core.models.correct import load_dacn
+    from dcdi_core.models.pipeline import recover
+    d = round_trip["dir"]
+    r = round_trip
+    assert r["correct_warm"] == ["FINISHED"] and r["correct_model_file"] == ["FINISHED"]
+    got = np.load(d / "rt-corrected.npy")
+    model, info = load_dacn(tiny_dacn)
+    want, _, _ = recover(np.load(d / "rt-sim.npy"), depth_m=np.load(d / "rt-sensor_depth.npy"), corrector=model,
+                         corrector_info=info)
+    assert got.shape == (96, 128, 3) and np.isfinite(got).all()
+    np.testing.assert_allclose(got, want, atol=1e-4)
+
+
+def test_correct_without_torch_says_what_to_install_and_changes_nothing(round_trip):
+    r = round_trip
+    command = r["install_command"]
+    assert command.endswith('" -m pip install torch==2.13.0') and command.startswith('"')
+    assert "poll()" in r["no_torch_error"] and command in r["no_torch_error"]
+    assert command in r["no_torch_run"]                 # the worker's path says the same
+    assert r["no_torch_changed"] == [] and not r["torch_imported_while_blocked"]
+    # the panel shows both buttons, and without torch the install command (wrapped over its lines)
+    for drawn in (r["panel_no_torch"], r["panel_with_torch"]):
+        ops = [x[1] for x in drawn if x[0] == "operator"]
+        assert {"dcdi.apply_lens_bokeh", "dcdi.simulate_lens", "dcdi.correct_lens_simulation"} <= set(ops)
+    wrapped = "".join(x[1] for x in r["panel_no_torch"] if x[0] == "label" and x[2] in ("ERROR", "BLANK1"))
+    assert command in wrapped
+    assert not any(command in x[1] for x in r["panel_with_torch"] if x[0] == "label")
+    assert ["label", f"Network: dacn-{ROUND_TRIP_LENS}.npz", "INFO"] in r["panel_with_torch"]
+
+
+def test_correct_says_what_it_needs(round_trip):
+    r = round_trip
+    assert "run Simulate Minimalist Lens first" in r["correct_first"]
+    assert f"no shipped correction network (DACN) for lens '{ROUND_TRIP_LENS}': shipped for no lens yet" \
+        in r["no_shipped_error"]
+    assert "missing.npz': no such file" in r["missing_model_error"]
+
+
+def test_round_trip_disable_leaves_nothing_registered(round_trip):
+    assert round_trip["disable"] == ["FINISHED"] and round_trip["leftovers"] == []
+    assert round_trip["operators_left"] == [] and not round_trip["simulation_kept"]

@@ -1,0 +1,139 @@
+"""Run by tests/test_addon.py in a fresh interpreter, like addon_headless.py:
+installs the built zip, then on the same small scene runs Simulate
+Minimalist Lens and Correct Simulation (the DCDI round trip), first with
+torch blocked by an import hook (Correct refuses, saying what to install),
+then with torch and a tiny exported DACN as the lens's shipped network;
+writes what it saw to a JSON file (pixels as .npy beside it).
+
+    python tests/addon_headless_roundtrip.py ZIP OUT_DIR DACN_NPZ LENS
+"""
+import importlib
+import importlib.abc
+import json
+import os
+import shutil
+import sys
+import time
+from pathlib import Path
+
+ZIP, OUT, DACN, LENS = Path(sys.argv[1]), Path(sys.argv[2]), Path(sys.argv[3]), sys.argv[4]
+os.environ["BLENDER_USER_RESOURCES"] = str(OUT / "blender-user")
+for name in ("OpenImageIO", "OpenEXR", "matplotlib"):
+    sys.modules[name] = None
+
+
+class NoTorch(importlib.abc.MetaPathFinder):
+    """torch as absent as in Blender's own Python, until removed."""
+
+    def find_spec(self, name, path=None, target=None):
+        if name == "torch" or name.startswith("torch."):
+            raise ImportError("torch is blocked: Blender's Python has none")
+        return None
+
+
+import bpy  # noqa: E402
+import numpy as np  # noqa: E402
+from addon_scene import MODULE, StubLayout, build_scene, data_counts, diff, error_of, install, snapshot  # noqa: E402
+
+res: dict = {}
+scene, cam, cube = build_scene()
+res["install"], _ = install(ZIP)
+ops_mod = sys.modules[f"{MODULE}.operators"]
+logic = sys.modules[f"{MODULE}.logic"]
+pipeline = importlib.import_module(f"{MODULE}.dcdi_core.models.pipeline")
+s = scene.dcdi_lens_bokeh
+s.lens = LENS
+s.preview_size = 128
+s.samples = 4
+bpy.ops.dcdi.match_camera_to_lens()
+
+
+def state():
+    return {"scene": snapshot(scene), "camera": snapshot(cam), "camera_data": snapshot(cam.data),
+            "frame": scene.frame_current, "objects": sorted(o.name for o in bpy.data.objects)}
+
+
+def images():
+    return sorted(i.name for i in bpy.data.images)
+
+
+def save(name, key):
+    np.save(OUT / f"{key}.npy", sys.modules[f"{MODULE}.bpy_render"].get_image(name))
+
+
+def draw_panel():
+    """What the panel draws: [(kind, text or id, icon)]."""
+    layout = StubLayout()
+    sys.modules[f"{MODULE}.panel"].draw_lens_bokeh(layout, bpy.context)
+    return layout.log
+
+
+# Correct before any simulation: disabled, and says why
+res["correct_first"] = error_of(lambda: bpy.ops.dcdi.correct_lens_simulation())
+
+# ------------------------------------------------------------ torch blocked
+hook = NoTorch()
+sys.meta_path.insert(0, hook)
+before, counts, imgs = state(), data_counts(), images()
+t = time.perf_counter()
+res["simulate"] = sorted(bpy.ops.dcdi.simulate_lens())
+res["simulate_s"] = time.perf_counter() - t
+res["simulate_report_status"] = bpy.context.window_manager.dcdi_lens_bokeh_status.psf_source
+res["images_after_simulate"] = images()
+after_sim, imgs_sim = state(), images()
+res["no_torch_error"] = error_of(lambda: bpy.ops.dcdi.correct_lens_simulation())
+sim = ops_mod._SIMULATION
+try:                                    # the worker's path (execute after poll) says the same
+    logic.run_correction(sim["image"], sim["sensor_depth"], LENS, DACN, pixel_pitch_mm=sim["pixel_pitch_mm"])
+    res["no_torch_run"] = None
+except logic.BokehInputError as e:
+    res["no_torch_run"] = str(e)
+res["panel_no_torch"] = draw_panel()
+res["no_torch_changed"] = diff(after_sim, state()) + ([] if images() == imgs_sim else [f"images: {images()}"])
+res["torch_imported_while_blocked"] = "torch" in sys.modules
+res["install_command"] = logic.torch_install_command()
+sys.meta_path.remove(hook)
+for k, v in (("rgb", sim["rgb"]), ("depth", sim["depth"]), ("sim", sim["image"]),
+             ("sensor_depth", sim["sensor_depth"])):
+    np.save(OUT / f"rt-{k}.npy", v)
+save("Lens Simulation", "rt-sim-image")
+res["pixel_pitch_mm"] = sim["pixel_pitch_mm"]
+
+# ------------------------------------------------------------ torch, the tiny DACN as the shipped one
+empty, shipped = OUT / "no-weights", OUT / "weights"
+empty.mkdir()
+shipped.mkdir()
+shutil.copy(DACN, shipped / f"dacn-{LENS}.npz")
+real_weights = pipeline.WEIGHTS_DIR
+pipeline.WEIGHTS_DIR = empty
+res["no_shipped_error"] = error_of(lambda: bpy.ops.dcdi.correct_lens_simulation())
+pipeline.WEIGHTS_DIR = shipped
+for run in ("cold", "warm"):
+    t = time.perf_counter()
+    res[f"correct_{run}"] = sorted(bpy.ops.dcdi.correct_lens_simulation())
+    res[f"correct_{run}_s"] = time.perf_counter() - t
+save("Lens Corrected", "rt-corrected")
+res["panel_with_torch"] = draw_panel()
+pipeline.WEIGHTS_DIR = empty
+s.correction_model = str(DACN)           # a user's own file, no shipped one
+res["correct_model_file"] = sorted(bpy.ops.dcdi.correct_lens_simulation())
+s.correction_model = str(OUT / "missing.npz")
+res["missing_model_error"] = error_of(lambda: bpy.ops.dcdi.correct_lens_simulation())
+s.correction_model = ""
+pipeline.WEIGHTS_DIR = real_weights
+res["round_trip_diff"] = diff(before, state())
+res["new_data"] = {k: v - counts[k] for k, v in data_counts().items() if v != counts[k]}
+res["images_before"], res["images"] = imgs, images()
+
+# sensor noise (off by default) changes the simulation; settings again as they were
+s.sensor_noise = True
+res["simulate_noise"] = sorted(bpy.ops.dcdi.simulate_lens())
+save("Lens Simulation", "rt-sim-noise")
+s.sensor_noise = False
+
+# disable: nothing of the add-on stays registered, the last simulation is dropped
+res["disable"] = sorted(bpy.ops.preferences.addon_disable(module=MODULE))
+res["leftovers"] = [n for n in dir(bpy.types) if n.startswith("DCDI_")]
+res["operators_left"] = [n for n in ("simulate_lens", "correct_lens_simulation") if n in dir(bpy.ops.dcdi)]
+res["simulation_kept"] = bool(ops_mod._SIMULATION)
+(OUT / "result.json").write_text(json.dumps(res, indent=1, default=str))
