@@ -2,9 +2,12 @@
 
 The minimalist lens's PSF changes with depth, so its aberrations carry
 depth as well as the picture's content does: the network sees the
-aberrated capture (linear RGB in [0, 1]) and predicts the scene's inverse
-depth on the ``data.depth`` 'diopter' scale (0.7 m / depth: 1 at 0.7 m, 0 at
-infinity), bounded to [0, 7] (0.1 m) by a sigmoid. A U-Net: ``len(widths)``
+aberrated capture (linear RGB in [0, 1]) and predicts the natural log of the
+metric depth, clamped to [log 0.1 m, log 1000 m], starting from 2 m (the
+last layer's bias; its weights start at zero, so that no unit starts
+saturated). A bounded sigmoid head on inverse depth, tried first, collapsed
+to 'everything at infinity' within a few hundred steps: its gradient
+vanishes where the sigmoid saturates. A U-Net: ``len(widths)``
 levels of two 3x3 conv + GELU, stride-2 downsampling, bilinear upsampling
 with skips; inputs of any size are padded (replicate) to a multiple of
 2^(levels - 1) and cropped back.
@@ -13,14 +16,15 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
+import math
+
 from .. import require_torch
-from ..data.depth import DIOPTER_SCALE_M, NEAR_M
 
 torch = require_torch()
 nn = torch.nn
 F = torch.nn.functional
 
-MAX_DIOPTER = DIOPTER_SCALE_M / NEAR_M
+LOG_NEAR, LOG_FAR, LOG_START = math.log(0.1), math.log(1000.0), math.log(2.0)
 
 
 @dataclass(frozen=True)
@@ -53,9 +57,11 @@ class DepthNet(nn.Module):
         self.down = nn.ModuleList([nn.Conv2d(w[i], w[i], 3, stride=2, padding=1) for i in range(len(w) - 1)])
         self.dec = nn.ModuleList([_block(w[i + 1] + w[i], w[i]) for i in range(len(w) - 1)])
         self.head = nn.Conv2d(w[0], 1, 1)
+        nn.init.zeros_(self.head.weight)
+        nn.init.constant_(self.head.bias, LOG_START)
 
     def forward(self, x):
-        """(B, 3, H, W) capture in [0, 1] -> (B, 1, H, W) diopters in [0, 7]."""
+        """(B, 3, H, W) capture in [0, 1] -> (B, 1, H, W) log depth (log metres)."""
         h, w = x.shape[-2:]
         m = 2 ** (len(self.enc) - 1)
         ph, pw = (-h) % m, (-w) % m
@@ -70,15 +76,17 @@ class DepthNet(nn.Module):
         for i in reversed(range(len(self.dec))):
             x = F.interpolate(x, size=skips[i].shape[-2:], mode="bilinear", align_corners=False)
             x = self.dec[i](torch.cat([x, skips[i]], dim=1))
-        out = MAX_DIOPTER * torch.sigmoid(self.head(x))
+        out = self.head(x).clamp(LOG_NEAR, LOG_FAR)
         return out[..., :h, :w]
 
 
-def diopters_to_metres(p, floor: float = 1e-4):
-    """Metric depth (m) of the diopter scale: 0.7 m / p, with p floored
-    (``floor`` = 7 km) so that a prediction of 'infinity' stays finite."""
+def log_target(depth_m, far_m: float = 80.0):
+    """The training target of metric depths (torch or numpy): log of the
+    depth clamped to [0.1 m, ``far_m``] (infinity, the sky, is ``far_m``)."""
+    if isinstance(depth_m, torch.Tensor):
+        return depth_m.clamp(0.1, far_m).log()
     import numpy as np
-    return DIOPTER_SCALE_M / np.maximum(np.asarray(p, dtype=np.float64), floor)
+    return np.log(np.clip(depth_m, 0.1, far_m))
 
 
-__all__ = ["DepthNet", "DepthNetSpec", "diopters_to_metres", "MAX_DIOPTER"]
+__all__ = ["DepthNet", "DepthNetSpec", "log_target"]

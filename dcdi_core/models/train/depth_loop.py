@@ -1,6 +1,7 @@
 """Training the depth network (``arch.depthnet``) on DA2T pairs: the
-capture in, the depth on the sensor out (diopter scale), L1 over the
-imaged pixels, Adam with a cosine schedule, EMA; seeded, atomic
+capture in, the depth on the sensor out, L1 of log depth (a relative error,
+the same weight for every distance; depths clamped to [0.1, 80] m, the sky
+at 80 m), Adam with a cosine schedule, EMA; seeded, atomic
 checkpoints and exact resume, the split by scene of the DACN's
 (``dacn_loop.open_data``: test scenes never read).
 """
@@ -22,7 +23,8 @@ from .dacn_loop import centre_crop, open_data
 from .depth_config import DepthTrainConfig
 
 torch = require_torch()
-from ..arch.depthnet import DepthNet, diopters_to_metres  # noqa: E402
+from ..arch.depthnet import DepthNet, log_target  # noqa: E402
+from ..data.depth import DIOPTER_SCALE_M  # noqa: E402
 
 
 @dataclass
@@ -39,8 +41,8 @@ def predict_depth(model, image) -> np.ndarray:
     """Metric depth (H, W) float32 of an (H, W, 3) image in [0, 1] (linear)."""
     x = torch.from_numpy(np.ascontiguousarray(np.clip(image, 0, 1).transpose(2, 0, 1), dtype=np.float32))[None]
     with torch.no_grad():
-        p = model(x)[0, 0].numpy()
-    return diopters_to_metres(p).astype(np.float32)
+        log_d = model(x)[0, 0].numpy()
+    return np.exp(log_d).astype(np.float32)
 
 
 def evaluate_depth(model, root, ids, *, input: str = "capture", size: int = 0) -> dict:
@@ -84,8 +86,9 @@ def train_depth(config: DepthTrainConfig, run_dir, *, progress=None, on_step=Non
     while step < config.iters:
         x, _, d = crops.sample(rng, config.batch, config.crop, input=config.input)
         x = torch.from_numpy(np.clip(x, 0, 1))
-        d = torch.from_numpy(d)
-        loss = (model(x) - d).abs().mean()
+        # the crops' depth comes diopter-encoded (0.7 m / depth; 0: infinity or not imaged)
+        metres = DIOPTER_SCALE_M / torch.from_numpy(d).clamp(min=1e-6)
+        loss = (model(x) - log_target(metres)).abs().mean()
         update(opt, loss, config.lr_at(step), model, ema, config.ema_decay)
         step += 1
         loss_v = float(loss.detach())
