@@ -1038,7 +1038,7 @@ def cmd_train_depth(args) -> int:
 def cmd_depth_export(args) -> int:
     from pathlib import Path
     from .models.depth.depthnet_file import export_depthnet
-    meta = export_depthnet(args.run, args.output, dtype=args.dtype)
+    meta = export_depthnet(args.run, args.output, weights=args.weights, dtype=args.dtype)
     print(f"wrote {args.output} ({Path(args.output).stat().st_size / 1e6:.2f} MB, {args.dtype}, lens {meta['lens']}, "
           f"{meta['step']} iterations)")
     return 0
@@ -1080,7 +1080,7 @@ def cmd_eval(args) -> int:
     from .models.correct import load_dacn
     from .models.evaluate import evaluate_models, held_out_pairs, markdown_tables, write_pictures
     ids, _ = held_out_pairs(args.data, _model_splits(runs))
-    models = {name: load_dacn(path)[0] for name, path in runs.items()}
+    models = {name: load_dacn(path, weights=args.weights)[0] for name, path in runs.items()}
     tty = sys.stderr.isatty()
 
     def progress(done, total):
@@ -1202,6 +1202,7 @@ def add_dacn_commands(sub) -> None:
     t.add_argument("run", help="run folder or checkpoint.pt")
     t.add_argument("-o", "--output", required=True, help="the .npz to write")
     t.add_argument("--dtype", choices=["float16", "float32"], default="float16", help="storage dtype")
+    t.add_argument("--weights", choices=["ema", "model"], default="ema", help="which weights")
     t.set_defaults(func=cmd_depth_export)
 
     t = sub.add_parser("eval", help="score trained DACNs on held-out pairs, per scene and depth band",
@@ -1217,6 +1218,8 @@ def add_dacn_commands(sub) -> None:
                    help="write capture | corrections | target PNGs of the first pairs here")
     t.add_argument("--pictures-count", type=_positive_int, default=3, help="pairs to picture (default 3)")
     t.add_argument("--json", default=None, metavar="FILE", help="write all scores as JSON")
+    t.add_argument("--weights", choices=["ema", "model"], default="ema",
+                   help="the runs' EMA or raw weights (an exported file has one kind)")
     t.add_argument("--lpips", nargs=2, default=None, metavar=("ALEXNET.pth", "LIN.pth"),
                    help="also LPIPS (AlexNet, v0.1) from weights on this disk: torchvision's alexnet-owt-*.pth and "
                         "the lpips package's weights/v0.1/alex.pth (never downloaded)")

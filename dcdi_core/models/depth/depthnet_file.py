@@ -34,9 +34,9 @@ def load_depthnet(path, *, weights: str = "ema"):
     return model, {"checkpoint": str(ck_path), "step": int(ck["step"]), "config": config, "lens": lens}
 
 
-def export_depthnet(run, path, *, dtype: str = "float16", extra: dict | None = None) -> dict:
-    model, info = load_depthnet(run)
+def export_depthnet(run, path, *, weights: str = "ema", dtype: str = "float16", extra: dict | None = None) -> dict:
+    model, info = load_depthnet(run, weights=weights)
     meta = {"format": FORMAT, "version": FORMAT_VERSION, "spec": model.spec.as_dict(), "config": info["config"],
-            "lens": info["lens"], "step": info["step"], "dtype": dtype,
+            "lens": info["lens"], "step": info["step"], "dtype": dtype, "weights": weights,
             "pixel_pitch_mm": trained_pixel_pitch_mm(info["config"].get("data")), **(extra or {})}
     return write_model_npz(path, meta, state_arrays(model, dtype))

@@ -105,10 +105,11 @@ def training_seconds(folder: Path) -> float:
     return float(sum(r["seconds"] for r in recs if r.get("final")))
 
 
-def evaluate_lens(out: Path, lens: str, data: str, names: list) -> dict:
+def evaluate_lens(out: Path, lens: str, data: str, names: list, weights: str = "model") -> dict:
     first, rest = names[0], names[1:]
     cmd = [sys.executable, "-m", "dcdi_core", "eval", str(run_folder(out, lens, first)), "--data", data,
-           "--name", first, "--json", str(out / lens / "eval.json"), "--pictures", str(out / lens / "pictures")]
+           "--name", first, "--json", str(out / lens / "eval.json"), "--pictures", str(out / lens / "pictures"),
+           "--weights", weights]
     for n in rest:
         cmd += ["--compare", f"{n}={run_folder(out, lens, n)}"]
     subprocess.run(cmd, check=True)
@@ -118,7 +119,8 @@ def evaluate_lens(out: Path, lens: str, data: str, names: list) -> dict:
 def table(lens: str, ev: dict, secs: dict, names: list, args) -> str:
     """One lens's rows as Markdown."""
     lines = [f"{lens}: DACN `{args.config}`, {args.iters} iterations, batch {args.batch} of {args.crop}^2, lr "
-             f"{args.lr:g}, seed {args.seed}; {len(ev['pairs'])} held-out pairs; PSNR dB / SSIM over the imaged pixels.\n",
+             f"{args.lr:g}, seed {args.seed}; {args.weights} weights; {len(ev['pairs'])} held-out pairs; PSNR dB / SSIM "
+             "over the imaged pixels.\n",
              "| row | PSNR | SSIM | vs capture | training min (one core) |", "|---|---|---|---|---|"]
     cap = ev["mean"]["capture"]
     lines.append(f"| capture (uncorrected) | {cap['psnr']:.2f} | {cap['ssim']:.4f} | | |")
@@ -141,6 +143,9 @@ def main(argv=None) -> int:
     ap.add_argument("--lr", type=float, default=2e-4, help="initial learning rate (the paper's 2e-4)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--jobs", type=int, default=2, help="trainings at a time (one core each)")
+    ap.add_argument("--weights", choices=["ema", "model"], default="model",
+                    help="weights scored (default model: at a few thousand iterations the EMA's 0.999 still "
+                         "holds a share of the initial network)")
     args = ap.parse_args(argv)
     lenses = {}
     for item in args.pairs:
@@ -155,7 +160,7 @@ def main(argv=None) -> int:
             for n in names for lens, d in lenses.items()]
     train_all(jobs, args.jobs)
     for lens, d in lenses.items():
-        ev = evaluate_lens(args.out, lens, d, names)
+        ev = evaluate_lens(args.out, lens, d, names, args.weights)
         text = table(lens, ev, {n: training_seconds(run_folder(args.out, lens, n)) for n in names}, names, args)
         write_text(args.out / lens / "table.md", text)
         print(text)
