@@ -25,8 +25,7 @@ for lens in mos-s1 mos-s2; do
   done
 done
 "$PY" -m dcdi_core.models.train.dacn_study "$OUT/study" --pairs "mos-s1=$OUT/pairs-mos-s1" \
-    --pairs "mos-s2=$OUT/pairs-mos-s2" --runs baseline,da2t,dacn,dacn-diopter --config tiny-rb --iters 2000 \
-    --lr 5e-4 --jobs 2
+    --pairs "mos-s2=$OUT/pairs-mos-s2" --runs baseline,da2t,dacn --config tiny-rb --iters 2000 --lr 5e-4 --jobs 2
 "$PY" -m dcdi_core.models.train.dacn_study "$OUT/study" --pairs "mos-s2=$OUT/pairs-mos-s2" \
     --runs baseline,da2t,dacn,dacn-diopter,scenes=34,scenes=68 --config tiny-rb --iters 2000 --lr 5e-4 --jobs 2
 # the study scores the raw weights (--weights model, its default): at 2000 iterations the EMA (0.999) still holds
