@@ -142,7 +142,7 @@ ADDON_MODELS = ("__init__.py", "errors.py", "runtime/",
                 "arch/__init__.py", "arch/dacn.py", "arch/dacn_spec.py", "arch/spec.py", "layers/",
                 "data/__init__.py", "data/depth.py", "data/psf_samples.py",
                 "depth/__init__.py", "depth/estimators.py",
-                "train/__init__.py", "train/checkpoint.py", "train/config.py")
+                "train/__init__.py", "train/checkpoint.py", "train/config.py", "train/distributed.py")
 # shipped weights the add-on uses: the Omni-Lens-Field and the DACNs (< 1 MB each)
 ADDON_WEIGHTS = ("olf-", "dacn-")
 

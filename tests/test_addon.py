@@ -311,7 +311,7 @@ def test_zip_bundles_the_olf_runtime_the_dacn_modules_and_weights_and_no_module_
     # Correct Simulation's modules: models.correct, models.pipeline and what they import when loaded
     dacn = {"correct.py", "pipeline.py", "dacn_export.py", "npz_file.py", "arch/dacn.py", "arch/dacn_spec.py",
             "layers/deform_conv.py", "layers/attention.py", "layers/swin.py", "layers/blocks.py", "data/depth.py",
-            "depth/estimators.py", "train/checkpoint.py"}
+            "depth/estimators.py", "train/checkpoint.py", "train/distributed.py"}
     assert {f"dcdi_core/models/{m}" for m in dacn} <= set(models)
     # not the training loops, the OLF's network, the depth networks' code and weights, the reports
     for left_out in ("train/dacn_loop.py", "train/loop.py", "arch/olf.py", "arch/depthnet.py", "depth/depthnet_file.py",

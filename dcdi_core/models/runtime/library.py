@@ -41,8 +41,9 @@ SOURCES = ("olf", "trace")
 
 
 def shipped_olf_files() -> list[Path]:
-    """The OLF files that ship with the engine (``dcdi_core/models/weights``)."""
-    return sorted(WEIGHTS_DIR.glob("*.npz")) if WEIGHTS_DIR.is_dir() else []
+    """The OLF files that ship with the engine (``dcdi_core/models/weights/olf-*.npz``;
+    the folder also holds the DACN and depth networks)."""
+    return sorted(WEIGHTS_DIR.glob("olf-*.npz")) if WEIGHTS_DIR.is_dir() else []
 
 
 class OLFLibrary(PSFLibrary):
