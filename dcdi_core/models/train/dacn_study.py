@@ -60,8 +60,13 @@ def run_flags(name: str) -> list:
     raise SystemExit(f"dacn_study: unknown run {name!r}: one of {', '.join(RUNS)} or scenes=N (N >= 1)")
 
 
+def label(name: str) -> str:
+    """A row's name in folders and score tables ('scenes=34' -> 'scenes-34')."""
+    return name.replace("=", "-")
+
+
 def run_folder(out: Path, lens: str, name: str) -> Path:
-    return out / lens / name.replace("=", "-")
+    return out / lens / label(name)
 
 
 def train_command(data: str, folder: Path, name: str, args) -> list:
@@ -108,10 +113,10 @@ def training_seconds(folder: Path) -> float:
 def evaluate_lens(out: Path, lens: str, data: str, names: list, weights: str = "model") -> dict:
     first, rest = names[0], names[1:]
     cmd = [sys.executable, "-m", "dcdi_core", "eval", str(run_folder(out, lens, first)), "--data", data,
-           "--name", first, "--json", str(out / lens / "eval.json"), "--pictures", str(out / lens / "pictures"),
+           "--name", label(first), "--json", str(out / lens / "eval.json"), "--pictures", str(out / lens / "pictures"),
            "--weights", weights]
     for n in rest:
-        cmd += ["--compare", f"{n}={run_folder(out, lens, n)}"]
+        cmd += ["--compare", f"{label(n)}={run_folder(out, lens, n)}"]
     subprocess.run(cmd, check=True)
     return json.loads((out / lens / "eval.json").read_text())
 
@@ -121,11 +126,11 @@ def table(lens: str, ev: dict, secs: dict, names: list, args) -> str:
     lines = [f"{lens}: DACN `{args.config}`, {args.iters} iterations, batch {args.batch} of {args.crop}^2, lr "
              f"{args.lr:g}, seed {args.seed}; {args.weights} weights; {len(ev['pairs'])} held-out pairs; PSNR dB / SSIM "
              "over the imaged pixels.\n",
-             "| row | PSNR | SSIM | vs capture | training min (one core) |", "|---|---|---|---|---|"]
+             "| row | PSNR | SSIM | vs capture | training wall min |", "|---|---|---|---|---|"]
     cap = ev["mean"]["capture"]
     lines.append(f"| capture (uncorrected) | {cap['psnr']:.2f} | {cap['ssim']:.4f} | | |")
     for n in names:
-        m = ev["mean"][n]
+        m = ev["mean"][label(n)]
         lines.append(f"| {n} | {m['psnr']:.2f} | {m['ssim']:.4f} | {m['psnr'] - cap['psnr']:+.2f} dB "
                      f"| {secs[n] / 60:.1f} |")
     return "\n".join(lines) + "\n"
