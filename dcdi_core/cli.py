@@ -668,7 +668,7 @@ def cmd_report_pipeline(args) -> int:
                                      pictures=Path(args.out) / "pictures",
                                      log=lambda t: print(t, file=sys.stderr))
         for size in ([] if args.quick else [(480, 640), (1280, 1920)]):
-            times[f"{lens}, {size[0]} x {size[1]}"] = pr.stage_times(lens, models[lens], target, keep, size,
+            times[f"{lens}, {size[0]} x {size[1]}"] = pr.stage_times(models[lens], target, keep, size,
                                                                    olf_file=args.olf)
     print(pr.write_report(args.out, results, times, target.id, keep), end="")
     return 0
@@ -1035,13 +1035,16 @@ def cmd_train_depth(args) -> int:
     return 0
 
 
-def cmd_depth_export(args) -> int:
-    from pathlib import Path
-    from .models.depth.depthnet_file import export_depthnet
-    meta = export_depthnet(args.run, args.output, weights=args.weights, dtype=args.dtype)
-    print(f"wrote {args.output} ({Path(args.output).stat().st_size / 1e6:.2f} MB, {args.dtype}, lens {meta['lens']}, "
-          f"{meta['step']} iterations)")
+def _exported(args, meta: dict) -> int:
+    """The line both export commands print about the file they wrote."""
+    print(f"wrote {args.output} ({Path(args.output).stat().st_size / 1e6:.2f} MB, {args.dtype}, {meta['weights']} "
+          f"weights, lens {meta['lens']}, {meta['step']} iterations)")
     return 0
+
+
+def cmd_depth_export(args) -> int:
+    from .models.depth.depthnet_file import export_depthnet
+    return _exported(args, export_depthnet(args.run, args.output, weights=args.weights, dtype=args.dtype))
 
 
 def _model_splits(runs: dict) -> list:
@@ -1106,12 +1109,8 @@ def cmd_eval(args) -> int:
 
 
 def cmd_dacn_export(args) -> int:
-    from pathlib import Path
     from .models.dacn_export import export_dacn
-    meta = export_dacn(args.run, args.output, weights=args.weights, dtype=args.dtype)
-    print(f"wrote {args.output} ({Path(args.output).stat().st_size / 1e6:.2f} MB, {args.dtype}, lens "
-          f"{meta['lens']}, {meta['step']} iterations)")
-    return 0
+    return _exported(args, export_dacn(args.run, args.output, weights=args.weights, dtype=args.dtype))
 
 
 def add_dacn_commands(sub) -> None:

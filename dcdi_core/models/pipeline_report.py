@@ -99,7 +99,7 @@ def lens_rows(lens_id: str, pairs_dir, ids: list, models: dict, target, keep, *,
             "seconds": {k: float(np.mean(v)) for k, v in seconds.items() if v}, "pairs": len(ids), "olf": olf_msg}
 
 
-def stage_times(camera_id: str, models: dict, target, keep, size, *, olf_file=None) -> dict:
+def stage_times(models: dict, target, keep, size, *, olf_file=None) -> dict:
     """Seconds of each stage on one synthetic frame of ``size`` (rows, cols)."""
     from ..render.geometry import ImageGeometry
     from ..render.synthetic import synthetic_rgbd
