@@ -377,7 +377,8 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
           occlusion: bool = True, n_layers: int = 12, library: PSFLibrary | None = None,
           settings: PSFSettings | None = None, response=None, fit_kernel: bool = True,
           cancelled=None, fft_backend: str | None = None, progress=None, layer_progress=None,
-          convolution: str = "windows", rank_eps: float = 2e-2) -> RenderResult:
+          convolution: str = "windows", rank_eps: float = 2e-2, multires: float | None = None,
+          max_level: int | None = None, coarse_patch: int = 16) -> RenderResult:
     """``image`` as ``lens`` would take it, keeping [near, far] metres sharp
     (``keep``), or focused at ``focus_m`` metres, or with ``focus_m =
     "prescribed"`` the lens as its prescription stands (full physical
@@ -392,7 +393,14 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
     progress(done, total): called as PSF bins are computed; layer_progress(done,
     total): after each depth layer of the occlusion-aware renderer.
     convolution, rank_eps: ``patch_convolve``'s method and low-rank tolerance
-    ('lowrank': each kernel within rank_eps in L1 of its own, see there)."""
+    ('lowrank': each kernel within rank_eps in L1 of its own, see there).
+    multires: the level rule's c (px) of the multi-resolution blur
+    (``render.multires``): a depth layer (plain renderer: a patch) whose
+    narrowest kernel's 90 %-energy radius is >= c 2^s px is blurred at
+    1/2^s of the resolution, s <= ``max_level`` (default
+    ``multires.DEFAULT_MAX_LEVEL``), with ``coarse_patch``-px patches
+    there; None: every layer at full resolution (the exact path). Only with
+    convolution 'windows'."""
     s = _bokeh_focus(keep, focus_m, library, settings)
     patch = check_patch(patch)
     from .convolve import METHODS
@@ -400,6 +408,11 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
         raise InputRangeError("convolution", convolution, " or ".join(METHODS))
     if isinstance(n_layers, bool) or not isinstance(n_layers, (int, np.integer)) or not 1 <= n_layers <= 256:
         raise InputRangeError("n_layers", n_layers, "an integer in [1, 256]")
+    from . import multires as mr
+    max_level = mr.DEFAULT_MAX_LEVEL if max_level is None else max_level
+    mr.check_multires(multires, max_level, coarse_patch)
+    if multires is not None and convolution != "windows":
+        raise InputRangeError("multires with convolution", convolution, "'windows' (or multires None)")
     img, d = _check(image, depth, source_geometry)
     check_rgbd(img, d)
     geometry = geometry or source_geometry or ImageGeometry.full_sensor(lens, img.shape[0], img.shape[1])
@@ -421,10 +434,17 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
     inv = np.where(valid & (d < far), 1.0 / np.where(valid, d, 1.0), 0.0)
     kept = np.zeros(d.shape, bool) if keep is None else valid & (d >= keep[0]) & (d <= keep[1])
     info = {"convolution": convolution, "occlusion": occlusion, "distortion": bool(distortion),
-            "kept_pixels": int(kept.sum()), "invalid_depth_pixels": int((~valid).sum())}
+            "kept_pixels": int(kept.sum()), "invalid_depth_pixels": int((~valid).sum()), "multires": multires}
+    # each layer (plain: each patch group) is blurred on its own patch-aligned
+    # bounding box, grown by the kernel's reach: outside it the blur is zero
+    grow = patch * math.ceil((library.kernel_size // 2 + patch) / patch)
     if not occlusion:
         if cancelled is not None and cancelled():
             raise Cancelled("bokeh cancelled")
+        if multires is not None:
+            out, mi = mr.plain_blur(img, d, library, geometry, patch, keep, multires, max_level, coarse_patch,
+                                    grow, fft_backend=fft_backend)
+            return RenderResult(out, dict(info, **mi), img if moved else None, depth=d if moved else None)
         pm = psf_map(library, geometry, d, patch, keep_range_m=keep)
         out = patch_convolve(img, pm.kernels, patch, identity=pm.identity, fft_backend=fft_backend,
                              method=convolution, rank_eps=rank_eps)
@@ -444,9 +464,12 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
     if sharp_mask.any():
         order += [(float(inv[kept].mean()) if kept.any() else -1.0, sharp_mask, True)]
     order.sort(key=lambda t: t[0])                        # far (small diopters) first
-    # each layer is blurred on its own patch-aligned bounding box, grown by the
-    # kernel's reach: outside it the layer is empty and its blur is zero
-    grow = patch * math.ceil((library.kernel_size // 2 + patch) / patch)
+    table = None
+    if multires is not None and valid.any():
+        library.ensure(bins=library.bins_needed(d[valid], clamp_near=True))
+        table = mr.radius_table(library)
+    info["layer_levels"] = []
+    pairs = ((0, 0), (1, 1), (2, 2), (3, 0), (3, 1), (3, 2))
     for n_done, (mask, is_sharp) in enumerate((m_, s_) for _, m_, s_ in order):
         if layer_progress is not None:
             layer_progress(n_done, len(order))
@@ -460,14 +483,29 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
             continue
         sub = replace(geometry, height=ys.stop - ys.start, width=xs.stop - xs.start,
                       center_px=(geometry.center_px[0] - ys.start, geometry.center_px[1] - xs.start))
-        pm = psf_map(library, sub, np.where(mask[ys, xs], d[ys, xs], np.nan), patch)
         af = a.astype(np.float32)
+        level = 0
+        if table is not None:
+            lv, has = mr.patch_levels(library, table, sub, d[ys, xs], mask[ys, xs], patch, multires, max_level)
+            level = int(lv[has].min())
+        info["layer_levels"].append(level)
         # each colour's coverage blurred with that colour's own PSF: the
         # normalisation above is then exact for any colour fringe
-        blurred = patch_convolve(np.concatenate([img[ys, xs] * af, af], axis=-1), pm.kernels, patch,
-                                 identity=pm.identity, pairs=((0, 0), (1, 1), (2, 2), (3, 0), (3, 1), (3, 2)),
-                                 fft_backend=fft_backend, method=convolution, rank_eps=rank_eps)
+        layer = np.concatenate([img[ys, xs] * af, af], axis=-1)
+        if level > 0:
+            blurred = mr.coarse_blur(layer, d[ys, xs], mask[ys, xs], library, sub, 2 ** level, coarse_patch,
+                                     pairs=pairs, fft_backend=fft_backend)[0]
+        else:
+            pm = psf_map(library, sub, np.where(mask[ys, xs], d[ys, xs], np.nan), patch)
+            blurred = patch_convolve(layer, pm.kernels, patch, identity=pm.identity, pairs=pairs,
+                                     fft_backend=fft_backend, method=convolution, rank_eps=rank_eps)
         cover = np.clip(blurred[..., 3:], 0.0, 1.0)
+        if level > 0:
+            # the interpolation's overshoot: colour scaled with its coverage (a
+            # constant stays constant); its undershoot below 0 is no light
+            raw = blurred[..., 3:]
+            blurred[..., :3] = np.maximum(blurred[..., :3] * np.where(raw > 1.0, 1.0 / np.maximum(raw, 1.0), 1.0),
+                                          0.0)
         behind = seen[ys, xs]
         premultiplied = blurred[..., :3] + (1.0 - cover) * np.where(behind, col[ys, xs], 0.0)
         total = np.where(behind, 1.0, cover)
