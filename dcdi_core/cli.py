@@ -513,7 +513,9 @@ def cmd_simulate(args) -> int:
 def cmd_bokeh(args) -> int:
     from .io.images import write_image
     from .progress import Steps, bar, psf_progress
+    from .render.multires import DEFAULT_MAX_LEVEL, check_multires
     from .render.simulate import bokeh
+    check_multires(args.multires, DEFAULT_MAX_LEVEL if args.max_level is None else args.max_level, 16)
     lens, settings, response, img, depth, geom, source = _render_inputs(args)
     steps = Steps("dcdi bokeh")
     steps.start("PSF library (built once per lens, focus and setting, then read from the cache), then the blur")
@@ -524,7 +526,8 @@ def cmd_bokeh(args) -> int:
         r = bokeh(img, depth, lens, keep=keep, focus_m=args.focus, geometry=geom, source_geometry=source,
                   distortion=args.distort, interpolation=args.interpolation, patch=args.patch,
                   occlusion=not args.plain, settings=settings, response=response, fit_kernel=not args.kernel,
-                  library=src.library, progress=psf_progress("PSFs"), layer_progress=bar("depth layers", "layer"))
+                  library=src.library, progress=psf_progress("PSFs"), layer_progress=bar("depth layers", "layer"),
+                  multires=args.multires, max_level=args.max_level)
     steps.start("writing")
     write_image(args.output, r.image)
     if args.side_by_side:
@@ -1421,6 +1424,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "(full physical defocus everywhere)")
     q.add_argument("--distort", action="store_true", help="also apply the lens's distortion (before the blur)")
     q.add_argument("--plain", action="store_true", help="plain patch-wise blur instead of occlusion-aware layers")
+    q.add_argument("--multires", type=float, default=None, metavar="C",
+                   help="multi-resolution blur: a layer (--plain: a patch) whose kernels' 90 %% energy radius is "
+                        ">= C 2^s px is blurred at 1/2^s of the resolution (faster; error against the exact path in "
+                        "`dcdi report simulation-accuracy`); default: every layer at full resolution")
+    q.add_argument("--max-level", type=int, default=None, metavar="S",
+                   help="with --multires: at most 1/2^S of the resolution (default 2)")
     q.add_argument("--side-by-side", default=None, metavar="PNG", help="also write input | depth | result")
     q.set_defaults(func=cmd_bokeh)
 

@@ -161,3 +161,15 @@ def test_output_extension_is_refused_before_any_work(scene, capsys):
     d, img = scene
     assert _run(d, "simulate", "--sharp-out", str(d / "s.tiff"), out="x.exr") == 2
     assert "s.tiff" in capsys.readouterr().err and not (d / "cache").exists() and not (d / "x.exr").exists()
+
+
+def test_bokeh_multires_flag_runs_and_refuses_a_bad_rule(scene, capsys):
+    d, img = scene
+    code = main(["bokeh", "--image", str(d / "aif.exr"), "--depth", str(d / "depth.exr"), "--lens", "6p",
+                 "--keep", "1.1", "1.3", "-o", str(d / "m.exr"), "--multires", "0.5", "--max-level", "1", *FAST])
+    assert code == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["multires"] == 0.5 and read_image(d / "m.exr").shape == img.shape
+    code = main(["bokeh", "--image", str(d / "aif.exr"), "--depth", str(d / "depth.exr"), "--lens", "6p",
+                 "--keep", "1.1", "1.3", "-o", str(d / "bad.exr"), "--multires", "-2", *FAST])
+    assert code != 0 and "multires" in capsys.readouterr().err and not (d / "bad.exr").exists()
