@@ -52,7 +52,7 @@ def test_narrow_kernels_give_the_exact_path(case):
     lens, geom, lib, img, depth = case
     ex = bokeh(img, depth, lens, keep=(1.1, 1.3), geometry=geom, library=lib)
     mres = bokeh(img, depth, lens, keep=(1.1, 1.3), geometry=geom, library=lib, multires=1000.0)
-    assert mres.info["layer_levels"] == [0] * len(mres.info["layer_levels"])
+    assert all(sum(lv[1:]) == 0 for lv in mres.info["layer_levels"])
     assert np.array_equal(ex.image, mres.image)
 
 
@@ -94,7 +94,7 @@ def test_multires_matches_the_exact_path_within_the_stated_bound(case, occlusion
     res = bokeh(img, depth, lens, keep=(1.1, 1.3), geometry=geom, library=lib, occlusion=occlusion,
                 multires=2.0, max_level=2)
     levels = res.info["layer_levels"] if occlusion else res.info["multires_patches_per_level"]
-    assert max(levels) > 0 if occlusion else sum(levels[1:]) > 0         # some of it coarse
+    assert sum(sum(lv[1:]) for lv in levels) > 0 if occlusion else sum(levels[1:]) > 0     # some of it coarse
     peak = float(img.max())
     # the bound the report states for levels 1-2 on this kind of scene (README: speed section)
     assert psnr(res.image / peak, ex / peak) >= 35.0

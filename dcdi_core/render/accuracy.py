@@ -310,7 +310,8 @@ def multires_rows(*, quick: bool, rules=MULTIRES_RULES) -> tuple[list, str]:
             edge = psnr(res.image / peak, truth / peak, ring) if occ else math.nan
             rows.append((occ, c, max_level, psnr(res.image / peak, exact / peak),
                          float(np.abs(res.image - exact).max()) / peak, edge, dt,
-                         ("layers at levels " if occ else "patches per level ") + " ".join(map(str, lv))))
+                         "patches per level 0/1/..: " + (" ".join("/".join(map(str, q)) for q in lv) if occ
+                                                         else "/".join(map(str, lv)))))
             print(f"  multires {'layered' if occ else 'plain'} c {c:g} max level {max_level}: PSNR vs exact "
                   f"{rows[-1][3]:6.2f} dB, max |diff| {rows[-1][4]:.4f}, around the subject {edge:6.2f} dB, "
                   f"{dt:.2f} s (exact {t_exact:.2f} s)", flush=True)

@@ -250,40 +250,37 @@ def coarse_blur(image: np.ndarray, depth: np.ndarray, valid: np.ndarray, library
     return upsample(out, f, h, w, upsampling, averages=upsampling == "cubic"), pm
 
 
-def plain_blur(img: np.ndarray, depth: np.ndarray, library, geometry, m: int, keep_range_m, c: float,
-               max_level: int, coarse_patch: int, grow: int, *, fft_backend=None):
-    """The plain patch-wise bokeh (``bokeh(occlusion=False)``) with each
-    patch at its level: the exact blend sum_p t_p (I * K_p) split by the
-    patches' levels, out = PC_0 + sum_{s >= 1} W_s (B_s - I), where PC_0 is
-    ``patch_convolve`` with every patch not at level 0 copied (identity),
-    W_s the tent blend of the indicator of the level-s patches (bilinear
-    between patch centres, as patch_convolve's) and B_s the image blurred
-    at 1/2^s (:func:`coarse_blur`) with the depths of the level-s patches
-    (elsewhere in its box those of the rest). A constant image stays
+def grouped_blur(x: np.ndarray, depth: np.ndarray, valid: np.ndarray, ident: np.ndarray, library, geometry,
+                 m: int, c: float, max_level: int, coarse_patch: int, grow: int, *, pairs=None, keep_range_m=None,
+                 table=None, fft_backend=None):
+    """``patch_convolve``'s blend sum_p t_p (x * K_p) over the m x m patches
+    of ``x`` (H, W, C), K_p the kernel psf_map gives patch p for the mean
+    inverse depth of its ``valid`` pixels, with each patch at its level
+    (:func:`patch_levels`): out = PC_0 + sum_{s >= 1} W_s (B_s - x), where
+    PC_0 is ``patch_convolve`` with every patch not at level 0 copied
+    (identity), W_s the tent blend of the indicator of the level-s patches
+    (bilinear between patch centres, as patch_convolve's) and B_s ``x``
+    blurred at 1/2^s (:func:`coarse_blur`) with the depths of the level-s
+    patches (elsewhere in its box those of the rest). ident (nph, npw):
+    patches copied as they are (no depth, kept sharp). pairs: as
+    patch_convolve's (x's channel, kernel channel). A constant stays
     constant. grow: px of the kernels' reach around a group's patches.
-    Returns (image float32 (H, W, 3), info dict)."""
-    from .psfmap import patch_inverse_depth, valid_depth_mask
+    table: the library's :func:`radius_table` (made here if None).
+    Returns (float32 (H, W, len(pairs)), levels (nph, npw), -1 where ident)."""
     from .simulate import _box
 
     h, w = depth.shape
-    valid = valid_depth_mask(depth)
-    inv, has = patch_inverse_depth(depth, m, library.grid.far_m)
-    d_patch = np.where(inv > 0, 1.0 / np.where(inv > 0, inv, 1.0), np.inf)
-    ident = ~has
-    if keep_range_m is not None:
-        ident |= has & (d_patch >= keep_range_m[0]) & (d_patch <= keep_range_m[1])
-    if valid.any():
-        library.ensure(bins=library.bins_needed(depth[valid], clamp_near=True))
-    levels, _ = patch_levels(library, radius_table(library), geometry, depth, valid, m, c, max_level)
+    pr = np.array([(i, i) for i in range(x.shape[-1])] if pairs is None else pairs, int).reshape(-1, 2)
+    table = radius_table(library) if table is None else table
+    levels, _ = patch_levels(library, table, geometry, depth, valid, m, c, max_level)
     levels = np.where(ident, -1, levels)
     per_pixel = np.repeat(np.repeat(levels, m, 0), m, 1)[:h, :w]
-    at0 = (levels == 0).any()
-    if at0:
-        pm0 = psf_map(library, geometry, np.where(per_pixel == 0, depth, np.nan), m, keep_range_m=keep_range_m)
-        out = patch_convolve(img, pm0.kernels, m, identity=pm0.identity, fft_backend=fft_backend)
+    if (levels == 0).any():
+        pm0 = psf_map(library, geometry, np.where(valid & (per_pixel == 0), depth, np.nan), m,
+                      keep_range_m=keep_range_m)
+        out = patch_convolve(x, pm0.kernels, m, identity=pm0.identity, pairs=pairs, fft_backend=fft_backend)
     else:
-        out = np.array(img, np.float32, copy=True)
-    info = {"multires_patches_per_level": [int((levels == s).sum()) for s in range(max_level + 1)]}
+        out = np.array(x[..., pr[:, 0]], np.float32, copy=True)
     for s in range(1, max_level + 1):
         group = levels == s
         if not group.any():
@@ -292,10 +289,32 @@ def plain_blur(img: np.ndarray, depth: np.ndarray, library, geometry, m: int, ke
         sub = replace(geometry, height=ys.stop - ys.start, width=xs.stop - xs.start,
                       center_px=(geometry.center_px[0] - ys.start, geometry.center_px[1] - xs.start))
         own = valid[ys, xs] & (per_pixel[ys, xs] == s)
-        blurred = coarse_blur(img[ys, xs], depth[ys, xs], own, library, sub, 2 ** s, coarse_patch,
+        blurred = coarse_blur(x[ys, xs], depth[ys, xs], own, library, sub, 2 ** s, coarse_patch, pairs=pairs,
                               fallback_valid=valid[ys, xs], fft_backend=fft_backend)[0]
         wgt = upsample(group[ys.start // m:-(-ys.stop // m), xs.start // m:-(-xs.stop // m), None]
                        .astype(np.float32), m, ys.stop - ys.start, xs.stop - xs.start)
-        out[ys, xs] += wgt * (blurred - img[ys, xs])
+        out[ys, xs] += wgt * (blurred - x[ys, xs][..., pr[:, 0]])
+    return out, levels
+
+
+def plain_blur(img: np.ndarray, depth: np.ndarray, library, geometry, m: int, keep_range_m, c: float,
+               max_level: int, coarse_patch: int, grow: int, *, fft_backend=None):
+    """The plain patch-wise bokeh (``bokeh(occlusion=False)``) with each
+    patch at its level (:func:`grouped_blur`); patches without valid depth
+    or whose depth is in ``keep_range_m`` are copied, as the exact path's.
+    Returns (image float32 (H, W, 3), info dict)."""
+    from .psfmap import patch_inverse_depth, valid_depth_mask
+
+    valid = valid_depth_mask(depth)
+    inv, has = patch_inverse_depth(depth, m, library.grid.far_m)
+    d_patch = np.where(inv > 0, 1.0 / np.where(inv > 0, inv, 1.0), np.inf)
+    ident = ~has
+    if keep_range_m is not None:
+        ident |= has & (d_patch >= keep_range_m[0]) & (d_patch <= keep_range_m[1])
+    if valid.any():
+        library.ensure(bins=library.bins_needed(depth[valid], clamp_near=True))
+    out, levels = grouped_blur(img, depth, valid, ident, library, geometry, m, c, max_level, coarse_patch, grow,
+                               keep_range_m=keep_range_m, fft_backend=fft_backend)
+    info = {"multires_patches_per_level": [int((levels == s).sum()) for s in range(max_level + 1)]}
     # light is never negative: the cubic's undershoot next to a hard-edged disc
     return np.maximum(out, 0.0), info

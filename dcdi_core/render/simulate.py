@@ -468,7 +468,7 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
     if multires is not None and valid.any():
         library.ensure(bins=library.bins_needed(d[valid], clamp_near=True))
         table = mr.radius_table(library)
-    info["layer_levels"] = []
+    info["layer_levels"] = []             # multires: per layer, its patches at each level
     pairs = ((0, 0), (1, 1), (2, 2), (3, 0), (3, 1), (3, 2))
     for n_done, (mask, is_sharp) in enumerate((m_, s_) for _, m_, s_ in order):
         if layer_progress is not None:
@@ -484,28 +484,32 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
         sub = replace(geometry, height=ys.stop - ys.start, width=xs.stop - xs.start,
                       center_px=(geometry.center_px[0] - ys.start, geometry.center_px[1] - xs.start))
         af = a.astype(np.float32)
-        level = 0
-        if table is not None:
-            lv, has = mr.patch_levels(library, table, sub, d[ys, xs], mask[ys, xs], patch, multires, max_level)
-            level = int(lv[has].min())
-        info["layer_levels"].append(level)
         # each colour's coverage blurred with that colour's own PSF: the
         # normalisation above is then exact for any colour fringe
         layer = np.concatenate([img[ys, xs] * af, af], axis=-1)
-        if level > 0:
-            blurred = mr.coarse_blur(layer, d[ys, xs], mask[ys, xs], library, sub, 2 ** level, coarse_patch,
-                                     pairs=pairs, fft_backend=fft_backend)[0]
+        level = 0
+        if multires is not None:
+            from .psfmap import patch_inverse_depth
+            has = patch_inverse_depth(np.where(mask[ys, xs], d[ys, xs], np.nan), patch, library.grid.far_m)[1]
+            blurred, lv = mr.grouped_blur(layer, d[ys, xs], mask[ys, xs], ~has, library, sub, patch, multires,
+                                          max_level, coarse_patch, grow, pairs=pairs, table=table,
+                                          fft_backend=fft_backend)
+            level = int(lv.max())
+            info["layer_levels"].append([int((lv == s_).sum()) for s_ in range(max_level + 1)])
         else:
             pm = psf_map(library, sub, np.where(mask[ys, xs], d[ys, xs], np.nan), patch)
             blurred = patch_convolve(layer, pm.kernels, patch, identity=pm.identity, pairs=pairs,
                                      fft_backend=fft_backend, method=convolution, rank_eps=rank_eps)
         cover = np.clip(blurred[..., 3:], 0.0, 1.0)
         if level > 0:
-            # the interpolation's overshoot: colour scaled with its coverage (a
-            # constant stays constant); its undershoot below 0 is no light
+            # the cubic interpolation's over- and undershoot: each colour kept
+            # within [0, its coverage x the layer's brightest value of it], as
+            # the exact blur of a non-negative layer is, and scaled with its
+            # coverage where that is clipped to 1 (a constant stays constant)
             raw = blurred[..., 3:]
-            blurred[..., :3] = np.maximum(blurred[..., :3] * np.where(raw > 1.0, 1.0 / np.maximum(raw, 1.0), 1.0),
-                                          0.0)
+            top = img[ys, xs][mask[ys, xs]].max(axis=0)
+            blurred[..., :3] = np.clip(blurred[..., :3], 0.0, np.maximum(raw, 0.0) * top) \
+                * np.where(raw > 1.0, 1.0 / np.maximum(raw, 1.0), 1.0)
         behind = seen[ys, xs]
         premultiplied = blurred[..., :3] + (1.0 - cover) * np.where(behind, col[ys, xs], 0.0)
         total = np.where(behind, 1.0, cover)
