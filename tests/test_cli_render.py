@@ -73,6 +73,7 @@ def test_simulation_accuracy_report_quick(tmp_path, monkeypatch, capsys):
     assert "per-pixel reference" in md and "occlusion-aware layers" in md
     assert "Deposit width against rays" in md and "warp, then blur at the real positions" in md
     assert "Low-rank tiles" in md and "| lowrank | 0.005 |" in md
+    assert "Multi-resolution bokeh against the exact path" in md and "| layered | exact (None) |" in md
 
 
 @pytest.mark.slow
@@ -82,6 +83,7 @@ def test_bench_render_quick(tmp_path, monkeypatch, capsys):
     assert code == 0
     out = capsys.readouterr().out
     assert "baseline" in out and "peak memory" in out and "low-rank tiles" in out
+    assert "multi-resolution bokeh" in out and "occlusion-aware" in out
 
 
 def _run(d, command, *extra, lens="mos-s1", out="o.exr"):

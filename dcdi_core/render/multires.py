@@ -24,8 +24,8 @@ Every step keeps a constant a constant (block means, kernels that sum to 1,
 tents that sum to 1, interpolation weights that sum to 1).
 
 The level rule: s is the largest level <= ``max_level`` for which the
-narrowest kernel's ``level_radius`` (the radius of the disk about the
-kernel centre that holds all but ``LEVEL_EPS`` of every channel's energy,
+narrowest kernel's radius (of the disk about the kernel centre that holds
+all but ``LEVEL_EPS`` = half of every channel's energy,
 ``psfmap.support_radius``) is >= ``c`` 2^s fine pixels; ``c`` is the
 tolerance (larger: finer levels, closer to the exact path). The radius of
 a patch's kernel is bounded below by the smallest radius among the four
@@ -48,8 +48,12 @@ from ..psf.pitch import area_resample, resampled_size
 from .convolve import patch_convolve
 from .psfmap import psf_map, support_radius
 
-LEVEL_EPS = 0.1            # the level rule reads the disk holding 90 % of the energy: the core's width
-DEFAULT_C = 4.0            # bokeh(): level s where that radius >= 4 * 2^s px (measured: README, report)
+# the level rule reads the disk holding half the energy: the core's width. 6P's
+# defocus kernels are a peaked core in a wide halo (at 6 m: 90 % within 8 px,
+# half within 1-4 px, a third of the energy in the centre pixel), and a rule on
+# the 90 % radius put such kernels at 1/2 (34 dB against the exact path there)
+LEVEL_EPS = 0.5
+DEFAULT_C = 2.0            # bokeh(): level s where that radius >= 2 * 2^s px (measured: README, report)
 DEFAULT_MAX_LEVEL = 2      # at most 1/4 of the resolution
 
 
@@ -275,12 +279,18 @@ def grouped_blur(x: np.ndarray, depth: np.ndarray, valid: np.ndarray, ident: np.
     levels, _ = patch_levels(library, table, geometry, depth, valid, m, c, max_level)
     levels = np.where(ident, -1, levels)
     per_pixel = np.repeat(np.repeat(levels, m, 0), m, 1)[:h, :w]
+    out = np.array(x[..., pr[:, 0]], np.float32, copy=True)
     if (levels == 0).any():
-        pm0 = psf_map(library, geometry, np.where(valid & (per_pixel == 0), depth, np.nan), m,
+        # on the level-0 patches' box grown by the kernels' reach: beyond it
+        # every window is a copy, and inside it no level-0 window reads the
+        # box's reflected border
+        ys, xs = _box(per_pixel == 0, m, grow)
+        sub = replace(geometry, height=ys.stop - ys.start, width=xs.stop - xs.start,
+                      center_px=(geometry.center_px[0] - ys.start, geometry.center_px[1] - xs.start))
+        pm0 = psf_map(library, sub, np.where(valid[ys, xs] & (per_pixel[ys, xs] == 0), depth[ys, xs], np.nan), m,
                       keep_range_m=keep_range_m)
-        out = patch_convolve(x, pm0.kernels, m, identity=pm0.identity, pairs=pairs, fft_backend=fft_backend)
-    else:
-        out = np.array(x[..., pr[:, 0]], np.float32, copy=True)
+        out[ys, xs] = patch_convolve(x[ys, xs], pm0.kernels, m, identity=pm0.identity, pairs=pairs,
+                                     fft_backend=fft_backend)
     for s in range(1, max_level + 1):
         group = levels == s
         if not group.any():
