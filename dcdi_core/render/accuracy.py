@@ -258,7 +258,7 @@ def lowrank_rows(img, pm, library, geom, depth, ref, exact, eps_list=(0.005, 0.0
     return rows
 
 
-MULTIRES_RULES = ((8.0, 2), (4.0, 2), (3.0, 2), (2.0, 2), (2.0, 3))
+MULTIRES_RULES = ((8.0, 2), (4.0, 2), (3.0, 2), (2.0, 2))
 
 
 def multires_rows(*, quick: bool, rules=MULTIRES_RULES) -> tuple[list, str]:

@@ -53,7 +53,10 @@ from .psfmap import psf_map, support_radius
 # half within 1-4 px, a third of the energy in the centre pixel), and a rule on
 # the 90 % radius put such kernels at 1/2 (34 dB against the exact path there)
 LEVEL_EPS = 0.5
-DEFAULT_C = 2.0            # bokeh(): level s where that radius >= 2 * 2^s px (measured: README, report)
+# the rule `dcdi bench render` times: bokeh()'s default stays the exact path
+# (multires None), because at 1280 x 1920 the depth edge loses 8 dB with it
+# (report simulation-accuracy, README)
+BENCH_C = 4.0
 DEFAULT_MAX_LEVEL = 2      # at most 1/4 of the resolution
 
 
