@@ -158,3 +158,23 @@ def test_bad_parameters_are_refused_before_work(case):
         bokeh(img, depth, lens, keep=(1.1, 1.3), geometry=geom, library=lib, multires=-1.0)
     with pytest.raises(InputRangeError):
         bokeh(img, depth, lens, keep=(1.1, 1.3), geometry=geom, library=lib, multires=2.0, convolution="lowrank")
+
+
+def test_narrow_kernels_at_a_coarse_pitch_stay_at_full_resolution():
+    """6P on a 120 x 160 frame spanning its sensor (the report's depth-edge
+    case: 16x the pitch of 1920 px): its kernels' half-energy radius is under
+    4 px, so the bench's rule (c 4) and even c 2 keep every patch at level 0."""
+    lens = load_lens("6p")
+    geom = ImageGeometry.full_sensor(lens, 120, 160)
+    lib = PSFLibrary(lens, PSFSettings(pupil_samples=24, n_wavelengths=3, kernel_size=21, band_nm=(400.0, 700.0),
+                                       pixel_pitch_mm=geom.pixel_pitch_mm), LibraryGrid(n_fields=8, n_depths=4), None)
+    rng = np.random.default_rng(1)
+    img = rng.random((120, 160, 3)).astype(np.float32)
+    depth = np.where(rng.random((120, 160)) < 0.5, 0.8, 1e10)
+    for occ in (True, False):
+        ex = bokeh(img, depth, lens, keep=(1.1, 1.3), geometry=geom, library=lib, occlusion=occ)
+        for c in (mr.BENCH_C, 2.0):
+            res = bokeh(img, depth, lens, keep=(1.1, 1.3), geometry=geom, library=lib, occlusion=occ, multires=c)
+            levels = res.info["layer_levels"] if occ else [res.info["multires_patches_per_level"]]
+            assert all(sum(lv[1:]) == 0 for lv in levels)
+            assert np.array_equal(res.image, ex.image)

@@ -330,4 +330,5 @@ def plain_blur(img: np.ndarray, depth: np.ndarray, library, geometry, m: int, ke
                                keep_range_m=keep_range_m, fft_backend=fft_backend)
     info = {"multires_patches_per_level": [int((levels == s).sum()) for s in range(max_level + 1)]}
     # light is never negative: the cubic's undershoot next to a hard-edged disc
-    return np.maximum(out, 0.0), info
+    # (all at level 0: left as the exact path's, bit for bit)
+    return (np.maximum(out, 0.0) if (levels > 0).any() else out), info
