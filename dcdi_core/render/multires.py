@@ -49,13 +49,12 @@ from .convolve import patch_convolve
 from .psfmap import psf_map, support_radius
 
 # the level rule reads the disk holding half the energy: the core's width. 6P's
-# defocus kernels are a peaked core in a wide halo (at 6 m: 90 % within 8 px,
-# half within 1-4 px, a third of the energy in the centre pixel), and a rule on
-# the 90 % radius put such kernels at 1/2 (34 dB against the exact path there)
+# defocus kernels are a peaked core in a wide halo, and a rule on the 90 %
+# radius sent such kernels to 1/2, where the core was lost
 LEVEL_EPS = 0.5
 # the rule `dcdi bench render` times: bokeh()'s default stays the exact path
-# (multires None), because at 1280 x 1920 the depth edge loses 8 dB with it
-# (report simulation-accuracy, README)
+# (multires None): at 1280 x 1920 no rule was both faster and as close at the
+# depth edge (report simulation-accuracy's multi-resolution table, README)
 BENCH_C = 4.0
 DEFAULT_MAX_LEVEL = 2      # at most 1/4 of the resolution
 
@@ -252,8 +251,8 @@ def coarse_blur(image: np.ndarray, depth: np.ndarray, valid: np.ndarray, library
     k = pm.kernels.shape[-1]
     kern = area_resample(pm.kernels, p, p * f, resampled_size(k, p, p * f))
     out = patch_convolve(img, kern, coarse_patch, identity=pm.identity, pairs=pairs, fft_backend=fft_backend)
-    # block means of a blurred image brought back by Keys' cubic (measured: 7 dB
-    # closer to the exact blur than bilinear at f = 2 and 4 on 6P's kernels)
+    # block means of a blurred image brought back by Keys' cubic: closer to the
+    # exact blur than bilinear on 6P's kernels (upsampling='linear' to compare)
     return upsample(out, f, h, w, upsampling, averages=upsampling == "cubic"), pm
 
 
