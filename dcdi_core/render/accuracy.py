@@ -269,7 +269,8 @@ def multires_rows(*, quick: bool, rules=MULTIRES_RULES) -> tuple[list, str]:
     and for the occlusion-aware renderer the depth edge (PSNR in 8 px around
     the kept subject against the truth: the subject pasted over the
     subject-free background rendered by the exact path); times alternated
-    with the exact path's in one process. quick: a 320 x 480 crop (fields
+    with the exact path's in one process, wall and CPU seconds (the exact
+    path's best of its runs). quick: a 320 x 480 crop (fields
     0.1-0.5) and a cheaper library; else the full 1280 x 1920 frame and the
     bench's library (PSFSettings defaults, 41 px kernels)."""
     from .simulate import open_library
@@ -292,30 +293,35 @@ def multires_rows(*, quick: bool, rules=MULTIRES_RULES) -> tuple[list, str]:
     truth = np.where(subject[..., None], img, behind)
     peak = float(img.max())
     rows = []
+
+    def timed(fn):
+        """(result, wall s, CPU s of this process: what the load of other jobs changes least)"""
+        t, c = time.perf_counter(), time.process_time()
+        out = fn()
+        return out, time.perf_counter() - t, time.process_time() - c
+
     for occ in (True, False):
-        t = time.perf_counter()
-        exact = bokeh(img, depth, p6, keep=keep, geometry=geom, library=lib, occlusion=occ).image
-        t_exact = time.perf_counter() - t
+        exact, t_exact, c_exact = timed(lambda: bokeh(img, depth, p6, keep=keep, geometry=geom, library=lib,
+                                                      occlusion=occ).image)
         edge_exact = psnr(exact / peak, truth / peak, ring) if occ else math.nan
         first = len(rows)
         for c, max_level in rules:
-            t = time.perf_counter()
-            res = bokeh(img, depth, p6, keep=keep, geometry=geom, library=lib, occlusion=occ, multires=c,
-                        max_level=max_level)
-            dt = time.perf_counter() - t
-            t = time.perf_counter()
-            bokeh(img, depth, p6, keep=keep, geometry=geom, library=lib, occlusion=occ)      # alternated
-            t_exact = min(t_exact, time.perf_counter() - t)
+            res, dt, dc = timed(lambda: bokeh(img, depth, p6, keep=keep, geometry=geom, library=lib, occlusion=occ,
+                                              multires=c, max_level=max_level))
+            _, te, ce = timed(lambda: bokeh(img, depth, p6, keep=keep, geometry=geom, library=lib,
+                                            occlusion=occ))                                  # alternated
+            t_exact, c_exact = min(t_exact, te), min(c_exact, ce)
             lv = res.info["layer_levels"] if occ else res.info["multires_patches_per_level"]
             edge = psnr(res.image / peak, truth / peak, ring) if occ else math.nan
             rows.append((occ, c, max_level, psnr(res.image / peak, exact / peak),
-                         float(np.abs(res.image - exact).max()) / peak, edge, dt,
+                         float(np.abs(res.image - exact).max()) / peak, edge, dt, dc, ce,
                          "patches per level 0/1/..: " + (" ".join("/".join(map(str, q)) for q in lv) if occ
                                                          else "/".join(map(str, lv)))))
             print(f"  multires {'layered' if occ else 'plain'} c {c:g} max level {max_level}: PSNR vs exact "
                   f"{rows[-1][3]:6.2f} dB, max |diff| {rows[-1][4]:.4f}, around the subject {edge:6.2f} dB, "
-                  f"{dt:.2f} s (exact {t_exact:.2f} s)", flush=True)
-        rows.insert(first, (occ, "exact (None)", "-", math.inf, 0.0, edge_exact, t_exact, "all at 0"))
+                  f"{dt:.2f} s, {dc:.2f} CPU s (exact alternated: {te:.2f} s, {ce:.2f} CPU s)", flush=True)
+        rows.insert(first, (occ, "exact (None)", "-", math.inf, 0.0, edge_exact, t_exact, c_exact, c_exact,
+                            "all at 0"))
     where = (f"6P, {h} x {w} at {geom.pixel_pitch_mm * 1000:.2f} um (the pitch of 1280 x 1920 on its sensor; fields "
              f"{geom.field(h // 2, w // 2):.2f} at the centre to {geom.max_field:.2f}), kernel {lib.kernel_size} px, "
              f"keep {keep[0]}-{keep[1]} m, load average {__import__('os').getloadavg()[0]:.1f}")
@@ -552,12 +558,13 @@ def run_report(lens_id: str, out: str | Path, *, quick: bool = False) -> int:
            f"radius is >= c 2^s px is blurred at 1/2^s of the resolution (render/multires.py). {mr_where}. PSNR and "
            "max abs difference against the exact path over the whole frame (peak 1); around the subject: 8 px "
            "around the kept subject against the truth (subject over the subject-free background, exact path).", "",
-           "| renderer | c px | max level | PSNR vs exact dB | max abs diff | PSNR around the subject dB | time s | levels |",
-           "|---|---|---|---|---|---|---|---|"]
+           "| renderer | c px | max level | PSNR vs exact dB | max abs diff | PSNR around the subject dB | time s | "
+           "CPU s | CPU s of the exact run after it | levels |",
+           "|---|---|---|---|---|---|---|---|---|---|"]
     for q in mr_rows:
         f = lambda v: "inf" if math.isinf(v) else ("-" if math.isnan(v) else f"{v:.2f}")
         md.append(f"| {'layered' if q[0] else 'plain'} | {q[1]} | {q[2]} | {f(q[3])} | {q[4]:.4f} | {f(q[5])} | "
-                  f"{q[6]:.2f} | {q[7]} |")
+                  f"{q[6]:.2f} | {q[7]:.2f} | {q[8]:.2f} | {q[9]} |")
     path = out / f"simulation-accuracy-{lens.id}.md"
     write_text(path, "\n".join(md) + "\n")
     print(f"wrote {path}")
