@@ -1425,8 +1425,8 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--distort", action="store_true", help="also apply the lens's distortion (before the blur)")
     q.add_argument("--plain", action="store_true", help="plain patch-wise blur instead of occlusion-aware layers")
     q.add_argument("--multires", type=float, default=None, metavar="C",
-                   help="multi-resolution blur: a layer (--plain: a patch) whose kernels' 90 %% energy radius is "
-                        ">= C 2^s px is blurred at 1/2^s of the resolution (faster; error against the exact path in "
+                   help="multi-resolution blur: a patch whose kernel holds half its energy within a radius "
+                        ">= C 2^s px is blurred at 1/2^s of the resolution (error and time against the exact path: "
                         "`dcdi report simulation-accuracy`); default: every layer at full resolution")
     q.add_argument("--max-level", type=int, default=None, metavar="S",
                    help="with --multires: at most 1/2^S of the resolution (default 2)")

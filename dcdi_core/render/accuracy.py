@@ -554,7 +554,7 @@ def run_report(lens_id: str, out: str | Path, *, quick: bool = False) -> int:
     for lr in layer_rows:
         md.append(f"| {lr[0]} | {lr[1]:.2f} | {lr[2]:.2f} | {lr[3]:.2f} |")
     md += ["", "## Multi-resolution bokeh against the exact path", "",
-           f"`bokeh(multires=c, max_level=s_max)`: a layer (plain: a patch) whose narrowest kernel's 90 %-energy "
+           f"`bokeh(multires=c, max_level=s_max)`: a patch whose kernel's half-energy "
            f"radius is >= c 2^s px is blurred at 1/2^s of the resolution (render/multires.py). {mr_where}. PSNR and "
            "max abs difference against the exact path over the whole frame (peak 1); around the subject: 8 px "
            "around the kept subject against the truth (subject over the subject-free background, exact path).", "",

@@ -395,8 +395,8 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
     convolution, rank_eps: ``patch_convolve``'s method and low-rank tolerance
     ('lowrank': each kernel within rank_eps in L1 of its own, see there).
     multires: the level rule's c (px) of the multi-resolution blur
-    (``render.multires``): a depth layer (plain renderer: a patch) whose
-    narrowest kernel's 90 %-energy radius is >= c 2^s px is blurred at
+    (``render.multires``): a patch of a depth layer (or of the plain blur)
+    whose kernel's half-energy radius is >= c 2^s px is blurred at
     1/2^s of the resolution, s <= ``max_level`` (default
     ``multires.DEFAULT_MAX_LEVEL``), with ``coarse_patch``-px patches
     there; None: every layer at full resolution (the exact path). Only with
