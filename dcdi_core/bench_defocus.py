@@ -107,14 +107,15 @@ def engine(out: Path, quick: bool) -> int:
         rows[name] = {"seconds": t_b, "peak_mib": peak, "image": res.image}
     boxes = crop_boxes(depth, 32 if quick else 96)
     t = time.perf_counter()
-    ref = np.stack([crop_reference(img, depth, lib, geom, b) for b in boxes.values()])
+    refs = [crop_reference(img, depth, lib, geom, b, gather=True) for b in boxes.values()]
     t_ref = time.perf_counter() - t
+    ref, ref_gather = np.stack([a for a, _ in refs]), np.stack([b for _, b in refs])
     n_px = sum((y1 - y0) * (x1 - x0) for y0, y1, x0, x1 in boxes.values())
     record = {"height": h, "width": w, "focus_m": FOCUS_M, "kernel": lib.kernel_size, "boxes": boxes,
               "node_args": ["--lens", p6.id, "--focus", repr(FOCUS_M)],
-              "reference": {"form": "scatter", "seconds": t_ref, "pixels": n_px},
+              "reference": {"form": "scatter (and gather)", "seconds": t_ref, "pixels": n_px},
               "load_average": os.getloadavg()[0], "rows": {}}
-    arrays = {"reference": ref.astype(np.float32)}
+    arrays = {"reference": ref.astype(np.float32), "reference_gather": ref_gather.astype(np.float32)}
     for name, r in rows.items():
         arrays[name] = _crops(r["image"], boxes)
         record["rows"][name] = {"seconds": r["seconds"], "peak_mib": r["peak_mib"]}
@@ -122,7 +123,7 @@ def engine(out: Path, quick: bool) -> int:
         with open(tmp, "wb") as f:
             np.savez(f, **arrays)
     write_text(out / "engine.json", json.dumps(record, indent=1) + "\n")
-    print(f"  reference (scatter, every pixel its own PSF) on {len(boxes)} crops of "
+    print(f"  reference (every pixel its own PSF, scattered; and gathered) on {len(boxes)} crops of "
           f"{boxes[next(iter(boxes))][1] - boxes[next(iter(boxes))][0]} px ({', '.join(boxes)}): "
           f"{n_px:,} pixels in {t_ref:.1f} s", flush=True)
     return 0
@@ -134,6 +135,7 @@ def score(out: Path, node_process_s: float | None = None) -> int:
     boxes = {k: tuple(v) for k, v in rec["boxes"].items()}
     with np.load(out / "engine.npz") as z:
         ref = z["reference"].astype(np.float64)
+        ref_g = z["reference_gather"].astype(np.float64)
         crops = {name: z[name] for name in rec["rows"]}
     with np.load(out / "node.npz") as z:
         node_img = z["image"]
@@ -143,14 +145,16 @@ def score(out: Path, node_process_s: float | None = None) -> int:
     s = node["settings"]
     print(f"  against the reference on the crops ({rec['reference']['pixels']:,} px), time at "
           f"{rec['height']} x {rec['width']}:")
-    print(f"  {'renderer':<44} {'time s':>7} {'peak MiB':>9} {'PSNR dB':>8} {'mean abs':>9}")
+    print(f"  {'renderer':<44} {'time s':>7} {'peak MiB':>9} {'PSNR dB':>8} {'mean abs':>9}"
+          f" {'PSNR vs gather':>15}")
+
+    def row(label, seconds, peak, res):
+        p, mae = _distances(res, ref)
+        print(f"  {label:<44} {seconds:>7.2f} {peak:>9.0f} {p:>8.2f} {mae:>9.4f} {_distances(res, ref_g)[0]:>15.2f}")
     for name, r in rec["rows"].items():
-        p, mae = _distances(crops[name], ref)
-        print(f"  {'dcdi bokeh, 6P PSFs, ' + name:<44} {r['seconds']:>7.2f} {r['peak_mib']:>9.0f} "
-              f"{p:>8.2f} {mae:>9.4f}")
-    p, mae = _distances(_crops(node_img, boxes), ref)
-    label = f"Blender {node['blender']} Defocus node (thin lens)"
-    print(f"  {label:<44} {min(node['composite_s']):>7.2f} {node['peak_rss_mib']:>9.0f} {p:>8.2f} {mae:>9.4f}")
+        row("dcdi bokeh, 6P PSFs, " + name, r["seconds"], r["peak_mib"], crops[name])
+    row(f"Blender {node['blender']} Defocus node (thin lens)", min(node["composite_s"]), node["peak_rss_mib"],
+        _crops(node_img, boxes))
     print(f"  Defocus node: f {s['camera']['lens']:.2f} mm, F/{s['node']['f_stop']:.3f}, focus "
           f"{s['camera']['dof_focus_distance']:.4f} m from the front principal plane (= {rec['focus_m']} m from "
           f"the first vertex), sensor {s['camera']['sensor_width']:.2f} mm wide, blur_max "

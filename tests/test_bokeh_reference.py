@@ -69,3 +69,22 @@ def test_a_crop_equals_the_same_crop_of_the_full_frame(case):
     np.testing.assert_allclose(crop_reference(img, depth, lib, geom, (5, 10, 6, 12)), full[5:10, 6:12], atol=1e-6)
     with pytest.raises(InputRangeError, match="crop box"):
         crop_reference(img, depth, lib, geom, (5, 20, 6, 12))
+
+
+def test_gather_form_equals_the_simulation_reports_per_pixel_reference(case):
+    # accuracy.per_pixel_reference is an independent gather (its own loop, reflected border):
+    # the two agree wherever no tap reaches the border
+    from dcdi_core.render.accuracy import per_pixel_reference
+    from dcdi_core.render.bokeh_reference import per_pixel_references
+    lib, geom, img, depth = case
+    depth = np.where(np.isnan(depth), 2.0, depth)
+    scatter, gather = per_pixel_references(img, depth, lib, geom, rows_per_block=3)
+    np.testing.assert_array_equal(scatter, scatter_reference(img, depth, lib, geom, rows_per_block=3))
+    r = lib.kernel_size // 2
+    ref = per_pixel_reference(img, depth, lib, geom)
+    inner = (slice(r, -r), slice(r, -r))
+    assert np.abs(gather[inner] - ref[inner]).max() < 1e-5
+    assert np.abs(gather[inner] - scatter[inner]).max() > 1e-3     # the two forms differ at depth edges
+    s_crop, g_crop = crop_reference(img, depth, lib, geom, (5, 9, 6, 11), gather=True)
+    np.testing.assert_allclose(g_crop, gather[5:9, 6:11], atol=1e-6)
+    np.testing.assert_allclose(s_crop, scatter[5:9, 6:11], atol=1e-6)
