@@ -101,3 +101,19 @@ def test_defocus_node_blurs_a_point_to_the_thin_lens_disc(tmp_path):
     lit = out[..., 0] > 1e-6
     assert math.sqrt(lit.sum() / math.pi) == pytest.approx(radius, abs=1.0)
     assert out[..., 0].sum() == pytest.approx(1.0, rel=0.1)         # the point's light, spread
+
+
+@pytest.mark.slow
+@needs_bpy
+def test_bench_defocus_quick_prints_the_three_rows(capfd):
+    # build.py's orchestration: the engine's rows, then the node's (its own process), then the scores
+    import importlib.util as iu
+    spec = iu.spec_from_file_location("dcdi_build", ROOT / "build.py")
+    build = iu.module_from_spec(spec)
+    spec.loader.exec_module(build)
+    assert build.bench_defocus(Path(sys.executable), quick=True) == 0
+    out = capfd.readouterr().out
+    for row in ("dcdi bokeh, 6P PSFs, occlusion-aware", "dcdi bokeh, 6P PSFs, plain", "Defocus node (thin lens)"):
+        line = next(x for x in out.splitlines() if row in x)
+        assert all(math.isfinite(float(v)) for v in line.split()[-5:]), line
+    assert "whole process" in out and "320 x 480" in out
