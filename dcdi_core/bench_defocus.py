@@ -64,6 +64,37 @@ def _crops(img: np.ndarray, boxes: dict) -> np.ndarray:
     return np.stack([img[y0:y1, x0:x1] for y0, y1, x0, x1 in boxes.values()])
 
 
+def disc_radius_px(psf: np.ndarray) -> float:
+    """The radius (px) of the uniform disc with the same second moment about
+    the kernel's centre as ``psf`` (k, k): sqrt(2 <r^2>)."""
+    r = psf.shape[-1] // 2
+    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+    return float(np.sqrt(2 * (psf * (yy ** 2 + xx ** 2)).sum() / psf.sum()))
+
+
+def _sizes(lib, thin) -> str:
+    """The node's disc radius against the lens's PSF (green) at depths x fields, one line."""
+    parts = []
+    for d in (0.8, 3.0, np.inf):
+        real = [disc_radius_px(lib.at(np.array([f]), np.array([d]))[0, 1]) for f in (0.0, 0.5, 0.9)]
+        parts.append(f"{d:g} m: {float(thin.coc_radius_px(np.array([d]))[0]):.1f} against "
+                     + " / ".join(f"{x:.1f}" for x in real))
+    return ("  blur radius, px: the node's thin-lens disc against the 6P PSF's (the disc of equal second moment, "
+            "green) at fields 0 / 0.5 / 0.9: " + "; ".join(parts))
+
+
+def _timed(fn, repeat: int):
+    """(best wall seconds, CPU seconds of that run (all threads), its result)."""
+    best = (math.inf, math.inf, None)
+    for _ in range(repeat):
+        t, c = time.perf_counter(), time.process_time()
+        out = fn()
+        t, c = time.perf_counter() - t, time.process_time() - c
+        if t < best[0]:
+            best = (t, c, out)
+    return best
+
+
 def _peak_mib(fn) -> float:
     """Peak of numpy's and Python's allocations during fn(), MiB (tracemalloc)."""
     import tracemalloc
@@ -77,7 +108,6 @@ def _peak_mib(fn) -> float:
 
 def engine(out: Path, quick: bool) -> int:
     from .atomic import atomic_path, write_text
-    from .bench import _best
     from .optics.lens import load_lens
     from .psf.compute import PSFSettings
     from .render.bokeh_reference import crop_reference
@@ -99,12 +129,15 @@ def engine(out: Path, quick: bool) -> int:
     print(f"defocus comparison: {h} x {w} synthetic RGB-D (seed 0), 6P refocused at {FOCUS_M} m, "
           f"kernel {lib.kernel_size} px (PSF library built or read in {t_lib:.1f} s, not in the times), "
           f"{os.cpu_count()} CPU(s), load average {os.getloadavg()[0]:.1f}", flush=True)
+    from .render.thin_lens import NodeDefocus
+    print(_sizes(lib, NodeDefocus.for_lens(p6, h, w, FOCUS_M)), flush=True)
     rep = 1 if quick else 2
     rows = {}
     for name, occ in (("occlusion-aware", True), ("plain", False)):
-        t_b, res = _best(lambda occ=occ: bokeh(img, depth, p6, focus_m=FOCUS_M, library=lib, occlusion=occ), rep)
+        t_b, c_b, res = _timed(lambda occ=occ: bokeh(img, depth, p6, focus_m=FOCUS_M, library=lib, occlusion=occ),
+                               rep)
         peak = _peak_mib(lambda occ=occ: bokeh(img, depth, p6, focus_m=FOCUS_M, library=lib, occlusion=occ))
-        rows[name] = {"seconds": t_b, "peak_mib": peak, "image": res.image}
+        rows[name] = {"seconds": t_b, "cpu_seconds": c_b, "peak_mib": peak, "image": res.image}
     boxes = crop_boxes(depth, 32 if quick else 96)
     t = time.perf_counter()
     refs = [crop_reference(img, depth, lib, geom, b, gather=True) for b in boxes.values()]
@@ -118,7 +151,7 @@ def engine(out: Path, quick: bool) -> int:
     arrays = {"reference": ref.astype(np.float32), "reference_gather": ref_gather.astype(np.float32)}
     for name, r in rows.items():
         arrays[name] = _crops(r["image"], boxes)
-        record["rows"][name] = {"seconds": r["seconds"], "peak_mib": r["peak_mib"]}
+        record["rows"][name] = {k: r[k] for k in ("seconds", "cpu_seconds", "peak_mib")}
     with atomic_path(out / "engine.npz") as tmp:
         with open(tmp, "wb") as f:
             np.savez(f, **arrays)
@@ -143,18 +176,21 @@ def score(out: Path, node_process_s: float | None = None) -> int:
         raise SystemExit(f"bench_defocus: {out / 'node.npz'} is {node_img.shape[:2]}; the input was "
                          f"{rec['height']} x {rec['width']}")
     s = node["settings"]
-    print(f"  against the reference on the crops ({rec['reference']['pixels']:,} px), time at "
-          f"{rec['height']} x {rec['width']}:")
-    print(f"  {'renderer':<44} {'time s':>7} {'peak MiB':>9} {'PSNR dB':>8} {'mean abs':>9}"
+    print(f"  against the reference on the crops ({rec['reference']['pixels']:,} px), time (best of the runs, "
+          f"wall and the CPU seconds of all its threads) at {rec['height']} x {rec['width']}, load average "
+          f"{os.getloadavg()[0]:.1f}:")
+    print(f"  {'renderer':<44} {'time s':>7} {'CPU s':>7} {'peak MiB':>9} {'PSNR dB':>8} {'mean abs':>9}"
           f" {'PSNR vs gather':>15}")
 
-    def row(label, seconds, peak, res):
+    def row(label, seconds, cpu, peak, res):
         p, mae = _distances(res, ref)
-        print(f"  {label:<44} {seconds:>7.2f} {peak:>9.0f} {p:>8.2f} {mae:>9.4f} {_distances(res, ref_g)[0]:>15.2f}")
+        print(f"  {label:<44} {seconds:>7.2f} {cpu:>7.2f} {peak:>9.0f} {p:>8.2f} {mae:>9.4f} "
+              f"{_distances(res, ref_g)[0]:>15.2f}")
     for name, r in rec["rows"].items():
-        row("dcdi bokeh, 6P PSFs, " + name, r["seconds"], r["peak_mib"], crops[name])
-    row(f"Blender {node['blender']} Defocus node (thin lens)", min(node["composite_s"]), node["peak_rss_mib"],
-        _crops(node_img, boxes))
+        row("dcdi bokeh, 6P PSFs, " + name, r["seconds"], r["cpu_seconds"], r["peak_mib"], crops[name])
+    best = int(np.argmin(node["composite_s"]))
+    row(f"Blender {node['blender']} Defocus node (thin lens)", node["composite_s"][best],
+        node["composite_cpu_s"][best], node["peak_rss_mib"], _crops(node_img, boxes))
     print(f"  Defocus node: f {s['camera']['lens']:.2f} mm, F/{s['node']['f_stop']:.3f}, focus "
           f"{s['camera']['dof_focus_distance']:.4f} m from the front principal plane (= {rec['focus_m']} m from "
           f"the first vertex), sensor {s['camera']['sensor_width']:.2f} mm wide, blur_max "

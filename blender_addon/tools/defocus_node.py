@@ -21,7 +21,7 @@ metres from the lens's first vertex (DESIGN.md: inf or 1e10 = infinity; NaN,
 (``image``, float32 (H, W, 3)) or ``.exr`` (32-bit float RGBA), written to
 a temporary name and renamed.
 
-Timing (printed and in ``--json``): Blender's start-up (``import bpy``; 0
+Timing (printed and in ``--json``; wall and CPU seconds): Blender's start-up (``import bpy``; 0
 under the blender binary, whose start precedes this script: the caller
 times the whole process), the set-up (pixels into Blender images, the node
 tree), each composite (``bpy.ops.render.render``: the tree has no Render
@@ -243,11 +243,12 @@ def run(argv=None) -> int:
     scene = build_scene(img, thin.node_z(depth), settings, a.threads)
     t_setup = time.perf_counter() - t0
     rss_before = _rss_mib()
-    times = []
+    times, cpu = [], []
     for _ in range(a.repeat):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         bpy.ops.render.render()
         times.append(time.perf_counter() - t)
+        cpu.append(time.process_time() - c)
     t = time.perf_counter()
     result = write_result(scene, Path(a.out))
     t_write = time.perf_counter() - t
@@ -257,12 +258,12 @@ def run(argv=None) -> int:
               "thin_lens": {"focal_length_mm": thin.focal_length_mm, "f_number": thin.f_number,
                             "principal_plane_mm": thin.principal_plane_mm, "pixel_pitch_mm": thin.pixel_pitch_mm},
               "threads": a.threads or os.cpu_count(), "startup_s": T_BPY - T_START, "setup_s": t_setup,
-              "composite_s": times, "write_s": t_write, "peak_rss_mib": rss, "rss_before_composite_mib": rss_before,
+              "composite_s": times, "composite_cpu_s": cpu, "write_s": t_write, "peak_rss_mib": rss, "rss_before_composite_mib": rss_before,
               "finite": bool(np.isfinite(result).all())}
     print(f"defocus_node: Blender {record['blender']}, {img.shape[0]} x {img.shape[1]}, {lens.id} thin lens "
           f"f {thin.focal_length_mm:.2f} mm F/{thin.f_number:.3f} focused at {a.focus:g} m, blur_max "
           f"{settings['node']['blur_max']:.2f} px; start-up {record['startup_s']:.2f} s, set-up {t_setup:.2f} s, "
-          f"composite {min(times):.2f} s (best of {len(times)}), write {t_write:.2f} s, peak RSS {rss:.0f} MiB")
+          f"composite {min(times):.2f} s (best of {len(times)}; {cpu[times.index(min(times))]:.2f} CPU s), write {t_write:.2f} s, peak RSS {rss:.0f} MiB")
     if a.json:
         from dcdi_core.atomic import write_text
         write_text(a.json, json.dumps(record, indent=1) + "\n")
