@@ -54,6 +54,27 @@ def irfft2(spec: np.ndarray, s: tuple[int, int], backend_name: str | None = None
     return np.fft.irfft2(spec, s=s)
 
 
+def rfft2_small(x: np.ndarray, s: tuple[int, int], backend_name: str | None = None) -> np.ndarray:
+    """``rfft2(x, s)`` for an x (..., a, b) smaller than ``s``: the transform
+    along the rows runs on the a rows that hold data, not on the zero rows
+    padding would add (a kernel crop of 25 rows in a 56-px transform)."""
+    if backend(backend_name) == "scipy":
+        return _sfft.fft(_sfft.rfft(np.asarray(x, np.float32), n=s[1], axis=-1, workers=1), n=s[0], axis=-2,
+                         workers=1)
+    return np.fft.fft(np.fft.rfft(x, n=s[1], axis=-1), n=s[0], axis=-2)
+
+
+def irfft2_rows(spec: np.ndarray, s: tuple[int, int], row0: int, n_rows: int,
+                backend_name: str | None = None) -> np.ndarray:
+    """Rows [row0, row0 + n_rows) of ``irfft2(spec, s)``: the last (real)
+    stage runs only on the rows that are kept."""
+    if backend(backend_name) == "scipy":
+        cols = _sfft.ifft(spec, n=s[0], axis=-2, workers=1)[..., row0:row0 + n_rows, :]
+        return _sfft.irfft(cols, n=s[1], axis=-1, workers=1)
+    cols = np.fft.ifft(spec, n=s[0], axis=-2)[..., row0:row0 + n_rows, :]
+    return np.fft.irfft(cols, n=s[1], axis=-1)
+
+
 def fast_size(n: int) -> int:
     """Smallest 2^a 3^b 5^c 7^d >= n: sizes pocketfft (numpy's and scipy's)
     transforms fastest (measured: 58, 62 or 74 cost twice 56, 60 or 72)."""
