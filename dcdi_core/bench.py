@@ -254,7 +254,63 @@ def bench_render(quick: bool = False) -> int:
           f"-> {t_base:.1f} s for the image; simulation is x{t_base / t_sim:.1f} faster")
     print(f"  goals: simulation <= 1.0 s, bokeh <= 2.0 s: {'met' if t_sim <= 1.0 else 'NOT met'}, "
           f"{'met' if t_bk <= 2.0 else 'NOT met'}")
+    _bench_simulation_paths(img, depth, mos, geom, lib, rep)
     return 0
+
+
+def _bench_simulation_paths(img, depth, lens, geom, lib, rep: int) -> dict:
+    """The simulation's paths (issue 15) against the exact one, in this
+    process, runs alternated (best of ``rep``): the exact path
+    (``convolution='windows'``, the former PSF-map layout), the default
+    ('fast', scipy's float32 FFT when installed), the numpy-only path
+    Blender gets (``fft_backend='numpy'``, the exact path beside it), and
+    torch (``accelerator='torch'``) where it imports. Peak memory: numpy's
+    allocations by tracemalloc (one run each); torch's are invisible to it,
+    so for torch the process's peak RSS (resource.getrusage) after its runs
+    is printed instead, which includes everything before it."""
+    import resource
+    import tracemalloc
+
+    from .render import accel_torch
+    from .render.simulate import simulate
+
+    cases = {"exact": dict(convolution="windows"), "default": {},
+             "exact, numpy FFT": dict(convolution="windows", fft_backend="numpy"),
+             "numpy-only": dict(fft_backend="numpy")}
+    if accel_torch.available():
+        cases["torch"] = dict(accelerator="torch")
+
+    def run(kw):
+        return simulate(img, depth, lens, geometry=geom, library=lib, distortion=False, **kw).image
+
+    best = {name: math.inf for name in cases}
+    out = {}
+    for _ in range(max(rep, 1)):
+        for name, kw in cases.items():
+            t, out[name] = _best(lambda: run(kw), 1)
+            best[name] = min(best[name], t)
+    peak = {}
+    for name, kw in cases.items():
+        if name == "torch":
+            continue
+        tracemalloc.start()
+        run(kw)
+        peak[name] = tracemalloc.get_traced_memory()[1] / 2 ** 20
+        tracemalloc.stop()
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(f"  simulation paths (issue 15; MOS-S1, no distortion, best of {max(rep, 1)}, alternated; "
+          f"load average {os.getloadavg()[0]:.1f}):")
+    for name in cases:
+        ref = "exact, numpy FFT" if name == "numpy-only" else "exact"
+        diff = float(np.abs(out[name] - out[ref]).max())
+        mem = (f"peak memory {peak[name]:.0f} MiB (tracemalloc)" if name in peak else
+               f"process peak RSS {rss:.0f} MiB (getrusage, whole run so far)")
+        print(f"    {name:<17} {best[name]:6.2f} s  x{best[ref] / best[name]:.2f} against {ref}, "
+              f"max |diff| {diff:.1e}; {mem}")
+    print(f"  goal: simulation <= 1.0 s (default {best['default']:.2f} s: "
+          f"{'met' if best['default'] <= 1.0 else 'NOT met'}), numpy-only <= 2.0 s "
+          f"({best['numpy-only']:.2f} s: {'met' if best['numpy-only'] <= 2.0 else 'NOT met'})")
+    return best
 
 
 def bench_dacn(quick: bool = False, threads: int = 1) -> int:

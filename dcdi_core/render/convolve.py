@@ -83,29 +83,10 @@ def kernel_support(kernels: np.ndarray, eps: float, channels=None) -> np.ndarray
     return rings_needed(kernels, np.maximum(d[:, None], d[None, :]), eps, channels)
 
 
-def kernel_support_within(kernels: np.ndarray, half: np.ndarray, eps: float, channels=None) -> np.ndarray:
-    """``kernel_support`` of kernels (nph, npw, C, k, k) known to be zero
-    outside the centred square of half-width ``half`` (nph, npw) px: the
-    scan reads only that square (the same answer, a fraction of the work)."""
-    r = kernels.shape[-1] // 2
-    half = np.minimum(np.asarray(half, np.int64), r)
-    if half.shape != kernels.shape[:2] or (half < 0).any():
-        raise ValueError(f"support_half must be ({kernels.shape[0]}, {kernels.shape[1]}) half-widths >= 0, "
-                         f"got shape {half.shape}")
-    out = np.zeros(kernels.shape[:2], np.int64)
-    for h in np.unique(half):
-        ii, jj = np.nonzero(half == h)
-        crop = kernels[ii, jj, :, r - h:r + h + 1, r - h:r + h + 1]
-        d = np.abs(np.arange(-h, h + 1))
-        out[ii, jj] = rings_needed(crop, np.maximum(d[:, None], d[None, :]), eps, channels)
-    return out
-
-
 def patch_convolve(image: np.ndarray, kernels: np.ndarray, m: int, *, identity: np.ndarray | None = None,
                    blend: int | None = None, support_eps: float = 1e-3, pairs=None,
                    chunk: int = 384, fft_backend: str | None = None, method: str = "windows",
-                   rank_eps: float = 2e-3, tile: int = 8, accelerator: str | None = None,
-                   support_half: np.ndarray | None = None) -> np.ndarray:
+                   rank_eps: float = 2e-3, tile: int = 8, accelerator: str | None = None) -> np.ndarray:
     """Convolve ``image`` (H, W, C) with one kernel per m x m patch.
 
     kernels: (nph, npw, C, k, k) with nph = ceil(H / m), npw = ceil(W / m),
@@ -133,9 +114,7 @@ def patch_convolve(image: np.ndarray, kernels: np.ndarray, m: int, *, identity: 
     (the windows method laid out for speed, equal to 'windows' to float32
     rounding: ``convolve_fast.py``). accelerator: None (numpy) or 'torch'
     (the 'fast' method in torch, ``accel_torch.py``; needs torch, not in
-    Blender). support_half: optional (nph, npw) half-widths (px) outside
-    which each kernel is zero (``PSFMap.support_px``): the support scan then
-    reads only that square. Returns float32 (H, W, len(pairs))."""
+    Blender). Returns float32 (H, W, len(pairs))."""
     img = np.asarray(image, dtype=np.float32)
     h, w, c_in = img.shape
     if m < 2 or m % 2:
@@ -233,10 +212,7 @@ def patch_convolve(image: np.ndarray, kernels: np.ndarray, m: int, *, identity: 
             for v in range(nb):
                 out[ii + u, :, jj + v] += grid[:, u, :, v]     # (ii, jj) unique within a chunk
 
-    if support_half is None:
-        support = kernel_support(kernels, support_eps, channels=k_used)
-    else:
-        support = kernel_support_within(kernels, support_half, support_eps, channels=k_used)
+    support = kernel_support(kernels, support_eps, channels=k_used)
     if method == "fast":
         from . import convolve_fast as cf
         plan = cf.make_plan(img, kernels, m, ident, b, support, pr, pp, chunk)

@@ -288,8 +288,7 @@ class LensSimulator:
     def _blur(self, sharp, pm: PSFMap):
         """The patch-wise blur of ``sharp`` with ``pm``'s kernels (>= 0)."""
         out = patch_convolve(sharp, pm.kernels, self.patch, identity=pm.identity, fft_backend=self.fft_backend,
-                             method=self.convolution, accelerator=self.accelerator,
-                             support_half=pm.support_px if self.convolution == "fast" else None)
+                             method=self.convolution, accelerator=self.accelerator)
         # non-negative kernels on a non-negative image: below 0 is FFT round-off (~1e-7)
         return np.maximum(out, 0.0)
 
