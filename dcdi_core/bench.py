@@ -276,7 +276,7 @@ def _bench_simulation_paths(img, depth, lens, geom, lib, rep: int) -> dict:
 
     cases = {"exact": dict(convolution="windows"), "default": {},
              "exact, numpy FFT": dict(convolution="windows", fft_backend="numpy"),
-             "numpy-only": dict(fft_backend="numpy")}
+             "numpy-only": dict(fft_backend="numpy"), "default, blend 6": dict(blend=6)}
     if accel_torch.available():
         cases["torch"] = dict(accelerator="torch")
 

@@ -217,7 +217,9 @@ class LensSimulator:
     same result to float32 rounding) or 'windows' (the exact form it is
     tested against). accelerator: None (numpy: Blender's path) or 'torch'
     (PSF map and convolution in torch, ``accel_torch.py``; the same result
-    to float32 rounding).
+    to float32 rounding). blend: half-width (px) of the ramps between
+    patches (default m / 2, the tent; see ``patch_convolve`` and the report's
+    blend rows).
     """
 
     def __init__(self, lens, geometry: ImageGeometry, *, source_geometry: ImageGeometry | None = None,
@@ -225,12 +227,16 @@ class LensSimulator:
                  grid: LibraryGrid | None = None, response=None, patch: int = 16, distortion: bool = True,
                  interpolation: str = DEFAULT_INTERPOLATION, baseline_depth_m: float | None = None,
                  fit_depth_m=None, cache: bool = True, progress=None, fft_backend: str | None = None,
-                 convolution: str = "fast", accelerator: str | None = None):
+                 convolution: str = "fast", accelerator: str | None = None, blend: int | None = None):
         from . import fft
         from .distortion import check_interpolation, radial_distortion
 
         self.fft_backend = fft.backend(fft_backend)
         self.convolution, self.accelerator = check_convolution(convolution, accelerator)
+        if blend is not None and (isinstance(blend, bool) or not isinstance(blend, (int, np.integer))
+                                  or not 1 <= blend <= patch // 2):
+            raise InputRangeError("blend", blend, f"an integer in [1, {patch // 2}] px (the patch's half), or none")
+        self.blend = None if blend is None else int(blend)
 
         self.patch = check_patch(patch)
         self.interpolation = check_interpolation(interpolation)
@@ -288,7 +294,7 @@ class LensSimulator:
     def _blur(self, sharp, pm: PSFMap):
         """The patch-wise blur of ``sharp`` with ``pm``'s kernels (>= 0)."""
         out = patch_convolve(sharp, pm.kernels, self.patch, identity=pm.identity, fft_backend=self.fft_backend,
-                             method=self.convolution, accelerator=self.accelerator)
+                             method=self.convolution, accelerator=self.accelerator, blend=self.blend)
         # non-negative kernels on a non-negative image: below 0 is FFT round-off (~1e-7)
         return np.maximum(out, 0.0)
 
@@ -341,13 +347,13 @@ def simulate(image, depth, lens, *, geometry: ImageGeometry | None = None,
              fixed_depth_m: float | None = None, distortion: bool = True,
              interpolation: str = DEFAULT_INTERPOLATION, noise: dict | None = None,
              seed: int | None = None, fft_backend: str | None = None, convolution: str = "fast",
-             accelerator: str | None = None) -> RenderResult:
+             accelerator: str | None = None, blend: int | None = None) -> RenderResult:
     """Aberrated image of an all-in-focus ``image`` (H, W, 3) with metric
     ``depth`` (H, W) through ``lens``: :class:`LensSimulator` used once.
     geometry: the output frame on the sensor (default: the image spans the
     sensor's diagonal); source_geometry: the input's, if it differs.
     fft_backend: 'scipy' or 'numpy' (default: the fastest installed).
-    convolution, accelerator: as :class:`LensSimulator`."""
+    convolution, accelerator, blend: as :class:`LensSimulator`."""
     check_convolution(convolution, accelerator)
     img, d = _check(image, depth, source_geometry)
     check_rgbd(img, None if fixed_depth_m is not None else d)
@@ -355,7 +361,7 @@ def simulate(image, depth, lens, *, geometry: ImageGeometry | None = None,
     sim = LensSimulator(lens, geometry, source_geometry=source_geometry, library=library, settings=settings,
                         response=response, patch=patch, distortion=distortion, interpolation=interpolation,
                         fit_depth_m=d if library is None else None, fft_backend=fft_backend,
-                        convolution=convolution, accelerator=accelerator)
+                        convolution=convolution, accelerator=accelerator, blend=blend)
     return sim._run(img, d, fixed_depth_m, noise, seed)
 
 
