@@ -173,7 +173,13 @@ def test_stiff_inputs_no_nan(scene, accelerator):
     dot = np.zeros_like(img)
     dot[24, 36] = 1.0
     assert run(dot, np.full((h, w), 5.0)).max() > 0.0
-    assert np.array_equal(run(img, np.full((h, w), np.nan)), img)        # no valid depth: left sharp
+    from dcdi_core.errors import RenderError
+    with pytest.raises(RenderError, match="no valid depth"):             # refused before any work, as today
+        run(img, np.full((h, w), np.nan))
+    pm = psf_map(lib, geom, np.full((h, w), np.nan), 8, accelerator=accelerator)    # all identity: copied
+    assert pm.identity.all()
+    got = patch_convolve(img, pm.kernels, 8, identity=pm.identity, method="fast", accelerator=accelerator)
+    assert np.abs(got - img).max() <= ROUNDING
     for hh, ww in ((1, 1), (1, 9), (7, 1)):
         g = ImageGeometry.from_pixel_pitch(lens, hh, ww, 0.0122, center_px=(-60.0, -90.0))
         run(np.full((hh, ww, 3), 0.5, np.float32), np.full((hh, ww), 2.0), g)
