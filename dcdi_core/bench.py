@@ -279,9 +279,20 @@ def _bench_simulation_paths(img, depth, lens, geom, lib, rep: int) -> dict:
              "numpy-only": dict(fft_backend="numpy"), "default, blend 6": dict(blend=6)}
     if accel_torch.available():
         cases["torch"] = dict(accelerator="torch")
+        cases["torch, 1 thread"] = dict(accelerator="torch", torch_threads=1)
 
     def run(kw):
-        return simulate(img, depth, lens, geometry=geom, library=lib, distortion=False, **kw).image
+        kw = dict(kw)
+        threads = kw.pop("torch_threads", None)
+        if threads is None:
+            return simulate(img, depth, lens, geometry=geom, library=lib, distortion=False, **kw).image
+        import torch
+        before = torch.get_num_threads()
+        torch.set_num_threads(threads)         # this process's setting, restored at once
+        try:
+            return simulate(img, depth, lens, geometry=geom, library=lib, distortion=False, **kw).image
+        finally:
+            torch.set_num_threads(before)
 
     best = {name: math.inf for name in cases}
     out = {}
@@ -291,15 +302,19 @@ def _bench_simulation_paths(img, depth, lens, geom, lib, rep: int) -> dict:
             best[name] = min(best[name], t)
     peak = {}
     for name, kw in cases.items():
-        if name == "torch":
+        if name.startswith("torch"):
             continue
         tracemalloc.start()
         run(kw)
         peak[name] = tracemalloc.get_traced_memory()[1] / 2 ** 20
         tracemalloc.stop()
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    threads = ""
+    if accel_torch.available():
+        import torch
+        threads = f"; torch {torch.get_num_threads()} intra-op threads by default"
     print(f"  simulation paths (issue 15; MOS-S1, no distortion, best of {max(rep, 1)}, alternated; "
-          f"load average {os.getloadavg()[0]:.1f}):")
+          f"load average {os.getloadavg()[0]:.1f}{threads}):")
     for name in cases:
         ref = "exact, numpy FFT" if name == "numpy-only" else "exact"
         diff = float(np.abs(out[name] - out[ref]).max())

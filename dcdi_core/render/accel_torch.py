@@ -103,7 +103,7 @@ def rotated_patch_kernels(library, field, depth, outward, kernels_flat, where, e
 def run_plan(plan) -> np.ndarray:
     """``convolve_fast.run_numpy`` in torch: the same windows, weights and
     overlap-add; returns float32 (h, w, c) numpy."""
-    from .convolve_fast import crop_kernels
+    from .convolve_fast import crop_kernels, input_size
 
     torch = _torch()
     acc = torch.zeros(plan.acc_shape, dtype=torch.float32)
@@ -113,7 +113,7 @@ def run_plan(plan) -> np.ndarray:
     in_used = torch.from_numpy(plan.in_used)
     for ii, jj, hs in plan.jobs:
         o = plan.r - max(hs, 0)
-        s_in = win + 2 * max(hs, 0)
+        s_in = input_size(plan, hs)
         # windows at rows i m + o: an unfold view with step m, then one gather
         view = ext[o:, o:].unfold(0, s_in, m).unfold(1, s_in, m)              # (rows, cols, C, s, s)
         ii_t, jj_t = torch.from_numpy(ii), torch.from_numpy(jj)

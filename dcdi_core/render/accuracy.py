@@ -275,10 +275,12 @@ def fast_path_rows(img, library, geom, depth, ref, blends=(6, 4)) -> list:
     cases += [(f"fast, blend {b} px", dict(method="fast", blend=b), {}) for b in blends]
     rows, base = [], None
     for name, conv_kw, map_kw in cases:
-        t = time.perf_counter()
-        pm = psf_map(library, geom, depth, 16, **map_kw)
-        res = patch_convolve(img, pm.kernels, 16, identity=pm.identity, **conv_kw)
-        dt = time.perf_counter() - t
+        dt = math.inf
+        for _ in range(2):                     # best of 2: the first torch call also starts torch
+            t = time.perf_counter()
+            pm = psf_map(library, geom, depth, 16, **map_kw)
+            res = patch_convolve(img, pm.kernels, 16, identity=pm.identity, **conv_kw)
+            dt = min(dt, time.perf_counter() - t)
         base = res if base is None else base
         rows.append((name, psnr(res, ref), float(np.abs(res - base).max()), dt))
         print(f"  {name}: PSNR {rows[-1][1]:6.2f} dB, max |diff| vs windows {rows[-1][2]:.2e}, {dt:.2f} s",

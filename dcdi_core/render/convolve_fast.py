@@ -76,7 +76,11 @@ def make_plan(img, kernels, m, ident, b, support, pr, pp, chunk) -> Plan:
     jp = np.clip(np.arange(qw) - pp // m, 0, npw - 1)
     win = m + 2 * b
     lead = b + r
-    ext = np.pad(padded, ((lead, lead + m), (lead, lead + m), (0, 0)))
+    # a window's input is read f x f (its FFT size): past the s = win + 2 hs
+    # it needs, real pixels instead of zeros leave the valid part [2 hs,
+    # 2 hs + win) of the circular convolution unchanged and save the padding
+    extra = max(fft.fast_size(win + 2 * s) - (win + 2 * s) for s in range(r + 1))
+    ext = np.pad(padded, ((lead, lead + m + extra), (lead, lead + m + extra), (0, 0)))
     live = _live_windows(padded, m, b, r)
     # window i covers padded rows [i m - b, i m + m + b); the frame is [pp, pp + h)
     rows_in = (np.arange(qh) * m - b < pp + h) & (np.arange(qh) * m + m + b > pp)
@@ -120,12 +124,19 @@ def crop_kernels(plan: Plan, ii, jj, hs: int) -> np.ndarray:
     return crop
 
 
+def input_size(plan: Plan, hs: int) -> int:
+    """Side of a window's input: win for a copy, else its FFT size (see make_plan)."""
+    return plan.win if hs < 0 else fft.fast_size(plan.win + 2 * hs)
+
+
 def window_inputs(plan: Plan, ii, jj, hs: int, channels) -> np.ndarray:
-    """The windows' inputs (n, C, s, s), s = win + 2 max(hs, 0): a strided view
+    """The windows' inputs (n, C, s, s), s = ``input_size``: a strided view
     gathered (~10x faster than fancy-indexing rows and columns)."""
     o = plan.r - max(hs, 0)
-    s_in = plan.win + 2 * max(hs, 0)
+    s_in = input_size(plan, hs)
     view = sliding_window_view(plan.ext, (s_in, s_in), axis=(0, 1))
+    if len(channels) == plan.ext.shape[-1] and (np.diff(channels) == 1).all() and channels[0] == 0:
+        return view[ii * plan.m + o, jj * plan.m + o]
     return view[ii * plan.m + o, jj * plan.m + o][:, channels]
 
 
@@ -136,7 +147,7 @@ def windows_numpy(plan: Plan, ii, jj, hs: int, be: str) -> np.ndarray:
         res = window_inputs(plan, ii, jj, hs, plan.pr[:, 0]).astype(np.float32)
     else:
         f = fft.fast_size(win + 2 * hs)
-        spec_in = fft.rfft2(window_inputs(plan, ii, jj, hs, plan.in_used), (f, f), be)
+        spec_in = fft.rfft2(window_inputs(plan, ii, jj, hs, plan.in_used), (f, f), be)      # already f x f
         spec_k = fft.rfft2_small(crop_kernels(plan, ii, jj, hs), (f, f), be)
         spec = spec_in * spec_k if plan.plain_pairs else spec_in[:, plan.in_of] * spec_k[:, plan.k_of]
         # circular = linear convolution on the valid part [2 hs, 2 hs + win)
