@@ -143,6 +143,10 @@ def test_torch_blocked_numpy_runs(scene, monkeypatch):
     assert not accel_torch.available()
     with pytest.raises(InputRangeError, match="accelerator"):
         simulate(img, depth, lens, geometry=geom, library=lib, distortion=False, accelerator="torch")
+    with pytest.raises(InputRangeError, match="accelerator"):
+        psf_map(lib, geom, depth, 8, accelerator="torch")
+    with pytest.raises(ValueError, match="torch"):
+        patch_convolve(img, np.zeros((6, 9, 3, 5, 5), np.float32), 8, method="fast", accelerator="torch")
     r = simulate(img, depth, lens, geometry=geom, library=lib, distortion=False)
     assert np.isfinite(r.image).all()
 

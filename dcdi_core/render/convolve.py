@@ -131,6 +131,11 @@ def patch_convolve(image: np.ndarray, kernels: np.ndarray, m: int, *, identity: 
     if accelerator is not None and (accelerator not in ACCELERATORS or method != "fast"):
         raise ValueError(f"accelerator {accelerator!r}: allowed None or {', '.join(ACCELERATORS)}, with method "
                          f"'fast' (got method {method!r})")
+    if accelerator == "torch":
+        from . import accel_torch
+        if not accel_torch.available():
+            raise ValueError("accelerator 'torch' asked for, but torch cannot be imported here (Blender's Python "
+                             "has none): leave it out for numpy")
     be = fft.backend(fft_backend)
     nph, npw = math.ceil(h / m), math.ceil(w / m)
     k = kernels.shape[-1]

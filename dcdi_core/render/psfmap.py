@@ -262,6 +262,10 @@ def psf_map(library, geometry, depth: np.ndarray, m: int = 16, *, fixed_depth_m:
         raise InputRangeError("psf_map method", method, "'fast' or 'exact'")
     if accelerator not in (None, "torch"):
         raise InputRangeError("accelerator", accelerator, "None (numpy) or 'torch'")
+    if accelerator == "torch":
+        from . import accel_torch
+        if not accel_torch.available():
+            raise InputRangeError("accelerator", accelerator, "None here: torch cannot be imported")
     if m < 1:
         raise InputRangeError("patch", m, ">= 1 pixel")
     h, w = geometry.height, geometry.width
