@@ -6,6 +6,8 @@
     python build.py test-slow         # the tests marked slow
     python build.py bench ARGS        # `dcdi bench ARGS` inside the environment
     python build.py bench factory [--quick]   # the dataset factory's samples per hour
+    python build.py bench render [--quick]    # `dcdi bench render`, then the lens bokeh beside
+                                              # Blender's Defocus node (time, memory, distance)
     python build.py addon             # the Blender extension zip dist/<id>-<version>.zip
 
 Works from any Python 3 interpreter: it finds a Python 3.11 (bpy 5.0.1 needs
@@ -13,8 +15,9 @@ it), makes the virtual environment `.venv/` beside this file and installs the
 pinned dependencies once; later runs skip the install while requirements.txt
 and pyproject.toml are unchanged (a stamp file records their hash).
 
-The demo and the factory benchmark start the engine (`dcdi`) and the
-Blender batch jobs (blender_addon/tools/factory.py) from here: the engine
+The demo, the factory benchmark and the render benchmark's Defocus-node
+row start the engine (`dcdi`) and the Blender batch jobs and tools
+(blender_addon/tools/factory.py, defocus_node.py) from here: the engine
 never starts the Blender layer.
 
 `addon` needs no environment: it zips blender_addon/ (without its tools/
@@ -294,6 +297,38 @@ def bench_factory(py: Path, quick: bool = False) -> int:
     return 0
 
 
+def bench_defocus(py: Path, quick: bool = False) -> int:
+    """Below `dcdi bench render`: the 6P lens bokeh (dcdi_core, occlusion-aware
+    and plain) beside Blender's compositor Defocus node on the same RGB-D,
+    each timed and scored against a per-pixel reference of the real lens
+    (dcdi_core.bench_defocus); the node runs in its own process under pip
+    bpy (blender_addon/tools/defocus_node.py), which reports its times and
+    its peak RSS; the process's whole wall time (Blender's start-up
+    included) is measured here."""
+    import json
+    import tempfile
+    import time
+
+    with tempfile.TemporaryDirectory() as d:
+        code = subprocess.call([str(py), "-m", "dcdi_core.bench_defocus", "engine", "--out", d]
+                               + (["--quick"] if quick else []), cwd=ROOT)
+        if code != 0:
+            return code
+        args = json.loads(Path(d, "engine.json").read_text())["node_args"]
+        t = time.perf_counter()
+        node = subprocess.run([str(py), "-m", "blender_addon.tools.defocus_node", "--input", str(Path(d, "rgbd.npz")),
+                               *args, "--out", str(Path(d, "node.npz")), "--json", str(Path(d, "node.json")),
+                               "--repeat", "1" if quick else "2"], cwd=ROOT, capture_output=True, text=True)
+        wall = time.perf_counter() - t
+        if node.returncode != 0:
+            print(node.stdout + node.stderr, end="")
+            print(f"  the Defocus node failed (exit {node.returncode}): run `python -m "
+                  "blender_addon.tools.defocus_node ...` to see why")
+            return node.returncode
+        return subprocess.call([str(py), "-m", "dcdi_core.bench_defocus", "score", "--out", d,
+                                "--node-process-s", f"{wall:.3f}"], cwd=ROOT)
+
+
 def main(argv: list[str]) -> int:
     if not argv or argv[0] in ("-h", "--help", "help"):
         print(__doc__)
@@ -317,7 +352,10 @@ def main(argv: list[str]) -> int:
     if command == "bench":
         if rest[:1] == ["factory"]:
             return bench_factory(py, quick="--quick" in rest)
-        return _run([py, "-m", "dcdi_core", "bench", *rest])
+        code = _run([py, "-m", "dcdi_core", "bench", *rest])
+        if code != 0 or rest[:1] != ["render"]:
+            return code
+        return bench_defocus(py, quick="--quick" in rest)
     code = _run([py, "-m", "dcdi_core", "demo", *rest])
     if code != 0:
         return code

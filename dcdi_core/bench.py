@@ -255,6 +255,105 @@ def bench_render(quick: bool = False) -> int:
           f"-> {t_base:.1f} s for the image; simulation is x{t_base / t_sim:.1f} faster")
     print(f"  goals: simulation <= 1.0 s, bokeh <= 2.0 s: {'met' if t_sim <= 1.0 else 'NOT met'}, "
           f"{'met' if t_bk <= 2.0 else 'NOT met'}")
+    _bench_simulation_paths(img, depth, mos, geom, lib, rep)
+    return 0
+
+
+def _bench_simulation_paths(img, depth, lens, geom, lib, rep: int) -> dict:
+    """The simulation's paths (issue 15) against the exact one, in this
+    process, runs alternated (best of ``rep``): the exact path
+    (``convolution='windows'``, the former PSF-map layout), the default
+    ('fast', scipy's float32 FFT when installed), the numpy-only path
+    Blender gets (``fft_backend='numpy'``, the exact path beside it), and
+    torch (``accelerator='torch'``) where it imports. Peak memory: numpy's
+    allocations by tracemalloc (one run each); torch's are invisible to it,
+    so for torch the process's peak RSS (resource.getrusage) after its runs
+    is printed instead, which includes everything before it. CPU seconds
+    (all threads, time.process_time) beside wall seconds: on shared cores
+    they move less with the load."""
+    import resource
+    import tracemalloc
+
+    from .render import accel_torch
+    from .render.simulate import simulate
+
+    cases = {"exact": dict(convolution="windows"), "default": {},
+             "exact, numpy FFT": dict(convolution="windows", fft_backend="numpy"),
+             "numpy-only": dict(fft_backend="numpy"), "default, blend 6": dict(blend=6)}
+    if accel_torch.available():
+        cases["torch"] = dict(accelerator="torch")
+        cases["torch, 1 thread"] = dict(accelerator="torch", torch_threads=1)
+
+    def run(kw):
+        kw = dict(kw)
+        threads = kw.pop("torch_threads", None)
+        if threads is None:
+            return simulate(img, depth, lens, geometry=geom, library=lib, distortion=False, **kw).image
+        import torch
+        before = torch.get_num_threads()
+        torch.set_num_threads(threads)         # this process's setting, restored at once
+        try:
+            return simulate(img, depth, lens, geometry=geom, library=lib, distortion=False, **kw).image
+        finally:
+            torch.set_num_threads(before)
+
+    best = {name: math.inf for name in cases}
+    cpu = {name: math.inf for name in cases}
+    out = {}
+    for _ in range(max(rep, 1)):
+        for name, kw in cases.items():
+            c = time.process_time()
+            t, out[name] = _best(lambda: run(kw), 1)
+            best[name] = min(best[name], t)
+            cpu[name] = min(cpu[name], time.process_time() - c)
+    peak = {}
+    for name, kw in cases.items():
+        if name.startswith("torch"):
+            continue
+        tracemalloc.start()
+        run(kw)
+        peak[name] = tracemalloc.get_traced_memory()[1] / 2 ** 20
+        tracemalloc.stop()
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    threads = ""
+    if accel_torch.available():
+        import torch
+        threads = f"; torch {torch.get_num_threads()} intra-op threads by default"
+    print(f"  simulation paths (issue 15; MOS-S1, no distortion, best of {max(rep, 1)}, alternated; "
+          f"load average {os.getloadavg()[0]:.1f}{threads}):")
+    for name in cases:
+        ref = "exact, numpy FFT" if name == "numpy-only" else "exact"
+        diff = float(np.abs(out[name] - out[ref]).max())
+        mem = (f"peak memory {peak[name]:.0f} MiB (tracemalloc)" if name in peak else
+               f"process peak RSS {rss:.0f} MiB (getrusage, whole run so far)")
+        print(f"    {name:<17} {best[name]:6.2f} s ({cpu[name]:5.2f} CPU s)  x{best[ref] / best[name]:.2f} "
+              f"(CPU x{cpu[ref] / cpu[name]:.2f}) against {ref}, max |diff| {diff:.1e}; {mem}")
+    if img.shape[:2] != (1280, 1920):
+        return best
+    print(f"  goal: simulation <= 1.0 s (default {best['default']:.2f} s: "
+          f"{'met' if best['default'] <= 1.0 else 'NOT met'}), numpy-only <= 2.0 s "
+          f"({best['numpy-only']:.2f} s: {'met' if best['numpy-only'] <= 2.0 else 'NOT met'})")
+    return best
+
+
+def bench_simulation_paths(quick: bool = False) -> int:
+    """Only the simulation-paths block of ``bench_render`` (same scene, lens
+    and library): ``python -c "from dcdi_core.bench import
+    bench_simulation_paths as b; b()"``."""
+    from .optics.lens import load_lens
+    from .render.geometry import ImageGeometry
+    from .render.simulate import open_library
+    from .render.synthetic import synthetic_rgbd
+
+    h, w = (320, 480) if quick else (1280, 1920)
+    img, depth = synthetic_rgbd(h, w, seed=0)
+    lens = load_lens("mos-s1")
+    geom = ImageGeometry.full_sensor(lens, h, w)
+    lib = open_library(lens, geom)
+    lib.ensure(depth, clamp_near=True)
+    print(f"bench simulation paths: {h} x {w} RGB, 16-px patches, {lib.kernel_size} x {lib.kernel_size} PSFs, "
+          f"{os.cpu_count()} CPU(s)")
+    _bench_simulation_paths(img, depth, lens, geom, lib, 1 if quick else 2)
     return 0
 
 

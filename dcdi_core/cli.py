@@ -496,7 +496,7 @@ def cmd_simulate(args) -> int:
     sim = LensSimulator(lens, geom, source_geometry=source, settings=settings, library=src.library,
                         response=response, patch=args.patch, distortion=not args.no_distortion,
                         interpolation=args.interpolation, fit_depth_m=None if args.kernel else depth,
-                        progress=psf_progress("PSFs"))
+                        progress=psf_progress("PSFs"), accelerator=args.accelerator)
     steps.start(f"distortion, PSF map and convolution of {img.shape[0]} x {img.shape[1]} pixels")
     with _quiet_input_warnings():
         r = sim(img, depth, fixed_depth_m=args.fixed_depth, noise=noise, seed=args.seed)
@@ -1412,6 +1412,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="domain randomisation: perturb radii and thicknesses with this seed (recorded in the output)")
     q.add_argument("--perturb-fraction", type=float, default=0.10, metavar="F",
                    help="largest relative change of each perturbed value (default 0.10)")
+    q.add_argument("--accelerator", choices=("torch",), default=None,
+                   help="run the PSF map and convolution in torch (the same result to float32 rounding; "
+                        "default numpy, as in Blender)")
     q.set_defaults(func=cmd_simulate)
 
     q = sub.add_parser("bokeh", help="the depth of field of a lens on an all-in-focus RGB-D image",

@@ -74,6 +74,7 @@ def test_simulation_accuracy_report_quick(tmp_path, monkeypatch, capsys):
     assert "Deposit width against rays" in md and "warp, then blur at the real positions" in md
     assert "Low-rank tiles" in md and "| lowrank | 0.005 |" in md
     assert "Multi-resolution bokeh against the exact path" in md and "| layered | exact (None) |" in md
+    assert "Fast paths of the simulation" in md and "| fast |" in md
 
 
 @pytest.mark.slow
@@ -84,11 +85,20 @@ def test_bench_render_quick(tmp_path, monkeypatch, capsys):
     out = capsys.readouterr().out
     assert "baseline" in out and "peak memory" in out and "low-rank tiles" in out
     assert "multi-resolution bokeh" in out and "occlusion-aware" in out
+    assert "simulation paths (issue 15" in out and "numpy-only" in out
 
 
 def _run(d, command, *extra, lens="mos-s1", out="o.exr"):
     return main([command, "--image", str(d / "aif.exr"), "--depth", str(d / "depth.exr"), "--lens", lens,
                  "-o", str(d / out), *FAST, *extra])
+
+
+def test_simulate_accelerator_torch_equals_numpy(scene):
+    pytest.importorskip("torch")
+    d, img = scene
+    assert _run(d, "simulate", "--no-distortion", out="np.exr") == 0
+    assert _run(d, "simulate", "--no-distortion", "--accelerator", "torch", out="torch.exr") == 0
+    assert np.abs(read_image(d / "np.exr") - read_image(d / "torch.exr")).max() <= 1e-5
 
 
 def test_response_file_is_honoured_and_a_missing_one_is_refused(scene, capsys):

@@ -10,5 +10,8 @@ repository (``scenes/``, OpenImageIO, a Blender binary).
 - ``render_noise``: the render error-against-time table the factory's
   defaults come from;
 - ``depth_histogram``: how the factory's scenes spread over depth;
-- ``screenshots``: the README's screenshots of the add-on in a real Blender UI.
+- ``screenshots``: the README's screenshots of the add-on in a real Blender UI;
+- ``defocus_node``: the compositor's Defocus node (Z buffer) on an RGB-D image
+  with the thin lens of a prescription, headless and timed (the comparison
+  row of ``python build.py bench render``).
 """

@@ -26,7 +26,8 @@ from ..parallel import thread_pool
 from . import fft
 
 
-METHODS = ("windows", "lowrank")
+METHODS = ("windows", "lowrank", "fast")
+ACCELERATORS = ("torch",)
 
 
 def blend_window(m: int, b: int) -> np.ndarray:
@@ -37,6 +38,19 @@ def blend_window(m: int, b: int) -> np.ndarray:
     rise = np.clip((x + b) / (2 * b), 0.0, 1.0)
     fall = np.clip((m + b - x) / (2 * b), 0.0, 1.0)
     return np.minimum(rise, fall)
+
+
+def _live_windows(padded: np.ndarray, m: int, b: int, r: int) -> np.ndarray:
+    """(qh, qw) bool: windows whose input (padded patches up to ceil((b + r) / m)
+    away) is not all zero (a depth layer's empty part gives zero: skipped)."""
+    qh, qw = padded.shape[0] // m, padded.shape[1] // m
+    reach = math.ceil((b + r) / m)
+    nonzero = np.pad(padded.reshape(qh, m, qw, m, -1).any(axis=(1, 3, 4)), reach)
+    live = np.zeros((qh, qw), bool)
+    for u in range(2 * reach + 1):
+        for v in range(2 * reach + 1):
+            live |= nonzero[u:u + qh, v:v + qw]
+    return live
 
 
 def rings_needed(kernels: np.ndarray, ring: np.ndarray, eps: float, channels=None) -> np.ndarray:
@@ -72,7 +86,7 @@ def kernel_support(kernels: np.ndarray, eps: float, channels=None) -> np.ndarray
 def patch_convolve(image: np.ndarray, kernels: np.ndarray, m: int, *, identity: np.ndarray | None = None,
                    blend: int | None = None, support_eps: float = 1e-3, pairs=None,
                    chunk: int = 384, fft_backend: str | None = None, method: str = "windows",
-                   rank_eps: float = 2e-3, tile: int = 8) -> np.ndarray:
+                   rank_eps: float = 2e-3, tile: int = 8, accelerator: str | None = None) -> np.ndarray:
     """Convolve ``image`` (H, W, C) with one kernel per m x m patch.
 
     kernels: (nph, npw, C, k, k) with nph = ceil(H / m), npw = ceil(W / m),
@@ -96,8 +110,11 @@ def patch_convolve(image: np.ndarray, kernels: np.ndarray, m: int, *, identity: 
     every kernel's L1 error is at most ``rank_eps`` of its L1 norm, so that
     each tile costs one FFT of its input and R of its eigen-PSFs instead of
     one per patch; the result differs from 'windows' by at most
-    2 rank_eps max|image| (tested; see ``lowrank_convolve``). Returns
-    float32 (H, W, len(pairs))."""
+    2 rank_eps max|image| (tested; see ``lowrank_convolve``); or 'fast'
+    (the windows method laid out for speed, equal to 'windows' to float32
+    rounding: ``convolve_fast.py``). accelerator: None (numpy) or 'torch'
+    (the 'fast' method in torch, ``accel_torch.py``; needs torch, not in
+    Blender). Returns float32 (H, W, len(pairs))."""
     img = np.asarray(image, dtype=np.float32)
     h, w, c_in = img.shape
     if m < 2 or m % 2:
@@ -111,6 +128,14 @@ def patch_convolve(image: np.ndarray, kernels: np.ndarray, m: int, *, identity: 
         raise ValueError(f"convolution method {method!r}: allowed {', '.join(METHODS)}")
     if method == "lowrank" and not (0.0 <= rank_eps < 0.5 and isinstance(tile, (int, np.integer)) and tile >= 1):
         raise ValueError(f"lowrank needs rank_eps in [0, 0.5) and tile >= 1 patches, got {rank_eps}, {tile}")
+    if accelerator is not None and (accelerator not in ACCELERATORS or method != "fast"):
+        raise ValueError(f"accelerator {accelerator!r}: allowed None or {', '.join(ACCELERATORS)}, with method "
+                         f"'fast' (got method {method!r})")
+    if accelerator == "torch":
+        from . import accel_torch
+        if not accel_torch.available():
+            raise ValueError("accelerator 'torch' asked for, but torch cannot be imported here (Blender's Python "
+                             "has none): leave it out for numpy")
     be = fft.backend(fft_backend)
     nph, npw = math.ceil(h / m), math.ceil(w / m)
     k = kernels.shape[-1]
@@ -136,12 +161,7 @@ def patch_convolve(image: np.ndarray, kernels: np.ndarray, m: int, *, identity: 
     ident = np.zeros((nph, npw), bool) if identity is None else np.asarray(identity, bool)
     # a window reads padded patches up to ceil((b + r) / m) away: an all-zero
     # neighbourhood (a depth layer's empty part) gives zero and is skipped
-    reach = math.ceil((b + r) / m)
-    nonzero = np.pad(padded.reshape(qh, m, qw, m, c_in).any(axis=(1, 3, 4)), reach)
-    live = np.zeros((qh, qw), bool)
-    for u in range(2 * reach + 1):
-        for v in range(2 * reach + 1):
-            live |= nonzero[u:u + qh, v:v + qw]
+    live = _live_windows(padded, m, b, r)
     # window of patch i: padded rows [i m - b, i m + m + b); its input reaches r further
     win = m + 2 * b
     lead = b + r
@@ -198,6 +218,13 @@ def patch_convolve(image: np.ndarray, kernels: np.ndarray, m: int, *, identity: 
                 out[ii + u, :, jj + v] += grid[:, u, :, v]     # (ii, jj) unique within a chunk
 
     support = kernel_support(kernels, support_eps, channels=k_used)
+    if method == "fast":
+        from . import convolve_fast as cf
+        plan = cf.make_plan(img, kernels, m, ident, b, support, pr, pp, chunk)
+        if accelerator == "torch":
+            from .accel_torch import run_plan
+            return run_plan(plan)
+        return cf.run_numpy(plan, be)
     if method == "lowrank":
         out = _lowrank(ext, kernels, ident[ip][:, jp], live, support[ip][:, jp], ip, jp, m, b, r, tile, rank_eps,
                        pr, in_used, in_of, k_used, k_of, tw, be)

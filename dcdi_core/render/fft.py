@@ -42,6 +42,7 @@ def backend(name: str | None = None) -> str:
 def rfft2(x: np.ndarray, s: tuple[int, int], backend_name: str | None = None) -> np.ndarray:
     """Real FFT over the last two axes, zero-padded to ``s``; complex64 with
     scipy, complex128 with numpy. One thread: callers run chunks on the pool."""
+    s = None if tuple(np.shape(x)[-2:]) == tuple(s) else s           # no padding copy when it fits
     if backend(backend_name) == "scipy":
         return _sfft.rfft2(np.asarray(x, np.float32), s=s, workers=1)
     return np.fft.rfft2(x, s=s)
@@ -52,6 +53,28 @@ def irfft2(spec: np.ndarray, s: tuple[int, int], backend_name: str | None = None
     if backend(backend_name) == "scipy":
         return _sfft.irfft2(spec, s=s, workers=1)
     return np.fft.irfft2(spec, s=s)
+
+
+def rfft2_small(x: np.ndarray, s: tuple[int, int], backend_name: str | None = None) -> np.ndarray:
+    """``rfft2(x, s)`` for an x (..., a, b) smaller than ``s``: the transform
+    along the rows runs on the a rows that hold data, not on the zero rows
+    padding would add (a kernel crop of 25 rows in a 56-px transform)."""
+    if backend(backend_name) == "scipy":
+        return _sfft.fft(_sfft.rfft(np.asarray(x, np.float32), n=s[1], axis=-1, workers=1), n=s[0], axis=-2,
+                         workers=1)
+    return np.fft.fft(np.fft.rfft(x, n=s[1], axis=-1), n=s[0], axis=-2)
+
+
+def irfft2_rows(spec: np.ndarray, s: tuple[int, int], row0: int, n_rows: int,
+                backend_name: str | None = None) -> np.ndarray:
+    """Rows [row0, row0 + n_rows) of ``irfft2(spec, s)``: the last (real)
+    stage runs only on the rows that are kept."""
+    if backend(backend_name) == "scipy":
+        cols = _sfft.ifft(spec, n=None if spec.shape[-2] == s[0] else s[0], axis=-2,
+                          workers=1)[..., row0:row0 + n_rows, :]
+        return _sfft.irfft(cols, n=s[1], axis=-1, workers=1)
+    cols = np.fft.ifft(spec, n=s[0], axis=-2)[..., row0:row0 + n_rows, :]
+    return np.fft.irfft(cols, n=s[1], axis=-1)
 
 
 def fast_size(n: int) -> int:

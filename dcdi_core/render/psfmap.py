@@ -93,6 +93,48 @@ def _rotate_flat(src: np.ndarray, outward: np.ndarray, k: int, target_sum: np.nd
     return acc
 
 
+def _rotate_flat_fast(src: np.ndarray, outward: np.ndarray, k: int, target_sum: np.ndarray) -> np.ndarray:
+    """``_rotate_flat`` (keep_peak), the same maths laid out for speed: the
+    source is zero-padded (1 px before, 2 after) and its out-of-range
+    coordinates clipped onto the padding, so the four taps need no masks and
+    are one flat index each (the first plus a constant offset).
+    Equal to ``_rotate_flat`` to float32 rounding (tested)."""
+    r = k // 2
+    n, c, kk = src.shape
+    p = k + 3
+    dr, dc = np.meshgrid(np.arange(k, dtype=np.float32) - r, np.arange(k, dtype=np.float32) - r, indexing="ij")
+    dr, dc = dr.ravel(), dc.ravel()
+    ur = outward[:, 0, None].astype(np.float32)
+    uc = outward[:, 1, None].astype(np.float32)
+    # rows of the padded source: -1 .. k + 1; a coordinate beyond reads only zeros there
+    a = np.clip(dr * ur + dc * uc + r, -1.0, float(k))
+    b = np.clip(-dr * uc + dc * ur + r, -1.0, float(k))
+    r0, c0 = np.floor(a), np.floor(b)
+    fr, fc = a - r0, b - c0
+    idx = ((r0 + 1) * p + (c0 + 1)).astype(np.intp)                        # (n, kk)
+    pad = np.zeros((n, c, p, p), np.float32)
+    pad[:, :, 1:k + 1, 1:k + 1] = src.reshape(n, c, k, k)
+    centre = r * k + r
+    peak = src[:, :, centre].astype(np.float32)
+    if k >= 3:
+        ring = [centre + dy * k + dx for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
+        peak = np.maximum(peak - src[:, :, ring].max(axis=-1), 0.0)
+    pad[:, :, r + 1, r + 1] -= peak
+    flat = pad.ravel()
+    full = (np.arange(n * c, dtype=np.intp) * (p * p)).reshape(n, c, 1) + idx[:, None, :]
+    gr, gc = 1.0 - fr, 1.0 - fc
+    acc = np.take(flat, full) * (gr * gc)[:, None, :]
+    tmp = np.empty_like(acc)
+    for off, wgt in ((1, gr * fc), (p, fr * gc), (p + 1, fr * fc)):
+        np.take(flat[off:], full, out=tmp)
+        tmp *= wgt[:, None, :]
+        acc += tmp
+    acc[:, :, centre] += peak
+    after = acc.sum(axis=-1, keepdims=True)
+    acc *= np.where(after > 0, target_sum[..., None] / np.where(after > 0, after, 1.0), 0.0).astype(np.float32)
+    return acc
+
+
 def rotate_radial_kernels(kernels: np.ndarray, outward: np.ndarray, chunk: int = 256,
                           keep_peak: bool = True) -> np.ndarray:
     """Rotate kernels (P, C, k, k) whose rows run along the radial direction so
@@ -123,14 +165,12 @@ def support_radius(psf: np.ndarray, eps: float) -> np.ndarray:
     return rings_needed(psf, np.ceil(np.hypot(d[:, None], d[None, :]) - 1e-9), eps)
 
 
-def _rotated_patch_kernels(library, field, depth, outward, kernels_flat, where, eps, chunk=256):
-    """Write into kernels_flat[where] (n, C, k, k) the library's kernels at
-    ``field`` and ``depth`` (n,), interpolated linearly in field and inverse
-    depth and rotated to ``outward``, each computed only over the centred
-    square its energy needs (support_radius + 1): the cost of a small PSF is
-    that of its support, not of the library's kernel size."""
-    from ..parallel import thread_pool
-
+def kernel_plan(library, field, depth, eps):
+    """What each patch's kernel is made of: (entry (n, 4) library entries
+    (bin x field), weight (n, 4) float32 linear in field and inverse depth,
+    target (n, C) the interpolated kernel's channel sums, half (n,) the
+    half-width of the square its energy needs (support_radius + 1), psf
+    (entries, C, k, k) the library's kernels)."""
     i0, i1, t = library.depth_bins(depth, clamp_near=True)
     library.ensure(bins=library.bins_needed(depth, clamp_near=True))
     j0, j1, u = library.field_weights(field)
@@ -143,16 +183,34 @@ def _rotated_patch_kernels(library, field, depth, outward, kernels_flat, where, 
     used = np.unique(entry[weight > 0])
     rho = np.zeros(len(psf), np.int64)
     rho[used] = support_radius(psf[used], eps)
-    full_sum = psf.sum(axis=(-2, -1))                                    # (entries, C)
+    full_sum = psf[used].sum(axis=(-2, -1))                              # (used entries, C)
+    sums = np.zeros((len(psf), 3), full_sum.dtype)
+    sums[used] = full_sum
     half = np.minimum(r, np.where(weight > 0, rho[entry], 0).max(axis=-1) + 1)
-    target = np.einsum("nq,nqc->nc", weight, full_sum[entry])            # the interpolated kernel's sums
+    target = np.einsum("nq,nqc->nc", weight, sums[entry])                # the interpolated kernel's sums
+    return entry, weight, target, half, psf
+
+
+def _rotated_patch_kernels(library, field, depth, outward, kernels_flat, where, eps, chunk=256, fast=True):
+    """Write into kernels_flat[where] (n, C, k, k) the library's kernels at
+    ``field`` and ``depth`` (n,), interpolated linearly in field and inverse
+    depth and rotated to ``outward``, each computed only over the centred
+    square its energy needs (support_radius + 1): the cost of a small PSF is
+    that of its support, not of the library's kernel size. fast: the
+    rotation by ``_rotate_flat_fast`` (equal to float32 rounding), else
+    ``_rotate_flat``. Returns the half-widths (n,) of the squares computed."""
+    from ..parallel import thread_pool
+
+    entry, weight, target, half, psf = kernel_plan(library, field, depth, eps)
+    k = library.kernel_size
+    r = k // 2
 
     def work(sel, h):
         crop = psf[:, :, r - h:r + h + 1, r - h:r + h + 1]
         kc = 2 * h + 1
         g = crop[entry[sel]].reshape(len(sel), 4, 3 * kc * kc)          # (n, 4, C kc^2)
         blend = np.matmul(weight[sel, None, :], g).reshape(len(sel), 3, kc * kc)
-        rot = _rotate_flat(blend, outward[sel], kc, target[sel])
+        rot = (_rotate_flat_fast if fast else _rotate_flat)(blend, outward[sel], kc, target[sel])
         kernels_flat[where[sel], :, r - h:r + h + 1, r - h:r + h + 1] = rot.reshape(len(sel), 3, kc, kc)
 
     jobs = []
@@ -160,6 +218,7 @@ def _rotated_patch_kernels(library, field, depth, outward, kernels_flat, where, 
         sel = np.nonzero(half == h)[0]
         jobs += [(sel[s:s + chunk], int(h)) for s in range(0, len(sel), chunk)]
     list(thread_pool().map(lambda job: work(*job), jobs))
+    return half
 
 
 @dataclass
@@ -172,6 +231,7 @@ class PSFMap:
     depth_m: np.ndarray           # (nph, npw) the depth each kernel is for (inf; nan where identity)
     field: np.ndarray             # (nph, npw) normalised field of the patch centres
     info: dict
+    support_px: np.ndarray | None = None   # (nph, npw) half-width outside which each kernel is zero
 
 
 def identity_kernel(k: int) -> np.ndarray:
@@ -182,7 +242,8 @@ def identity_kernel(k: int) -> np.ndarray:
 
 def psf_map(library, geometry, depth: np.ndarray, m: int = 16, *, fixed_depth_m: float | None = None,
             keep_range_m: tuple[float, float] | None = None, clamp_near: bool = True,
-            support_eps: float = 1e-3, clamp_field: bool = False) -> PSFMap:
+            support_eps: float = 1e-3, clamp_field: bool = False, method: str = "fast",
+            accelerator: str | None = None) -> PSFMap:
     """Kernels for every m x m patch of an image of ``geometry`` with ``depth``.
 
     fixed_depth_m: one depth for every patch (the paper's depth-unaware
@@ -193,7 +254,18 @@ def psf_map(library, geometry, depth: np.ndarray, m: int = 16, *, fixed_depth_m:
     this fraction of its energy (and rescaled to its full sum); 0 keeps every
     nonzero pixel (see ``support_radius``). clamp_field: patches beyond the
     sensor's corner (field > 1) get the corner's PSFs instead of an error
-    (for a margin that only feeds the frame's border)."""
+    (for a margin that only feeds the frame's border). method: 'fast' (the
+    rotation laid out for speed) or 'exact' (the former layout; both give
+    the same kernels to float32 rounding, tested). accelerator: None
+    (numpy) or 'torch' (``accel_torch.py``: the same kernels in torch)."""
+    if method not in ("fast", "exact"):
+        raise InputRangeError("psf_map method", method, "'fast' or 'exact'")
+    if accelerator not in (None, "torch"):
+        raise InputRangeError("accelerator", accelerator, "None (numpy) or 'torch'")
+    if accelerator == "torch":
+        from . import accel_torch
+        if not accel_torch.available():
+            raise InputRangeError("accelerator", accelerator, "None here: torch cannot be imported")
     if m < 1:
         raise InputRangeError("patch", m, ">= 1 pixel")
     h, w = geometry.height, geometry.width
@@ -231,12 +303,18 @@ def psf_map(library, geometry, depth: np.ndarray, m: int = 16, *, fixed_depth_m:
     kernels = np.zeros((nph, npw, 3, k, k), np.float32)
     kernels[ident] = identity_kernel(k)
     todo = ~ident
+    support = np.zeros((nph, npw), np.int64)
     if todo.any():
         vec = np.stack([rr[todo] - geometry.center_px[0], cc[todo] - geometry.center_px[1]], -1)
         norm = np.hypot(vec[:, 0], vec[:, 1])
         outward = np.where(norm[:, None] > 1e-9, vec / np.maximum(norm, 1e-12)[:, None], [1.0, 0.0])
-        _rotated_patch_kernels(library, field[todo], np.where(np.isfinite(d[todo]), d[todo], np.inf), outward,
-                               kernels.reshape(nph * npw, 3, k, k), np.flatnonzero(todo), support_eps)
+        args = (library, field[todo], np.where(np.isfinite(d[todo]), d[todo], np.inf), outward,
+                kernels.reshape(nph * npw, 3, k, k), np.flatnonzero(todo), support_eps)
+        if accelerator == "torch":
+            from .accel_torch import rotated_patch_kernels
+            support[todo] = rotated_patch_kernels(*args)
+        else:
+            support[todo] = _rotated_patch_kernels(*args, fast=method == "fast")
     info = {"patches": int(nph * npw), "no_valid_depth": int((~has).sum()), "kept_sharp": int(keep.sum()),
             "clamped_to_near_limit": clamped, "depth_bins_computed": int(library.computed.sum())}
-    return PSFMap(kernels, ident, m, np.where(has, d, np.nan), field, info)
+    return PSFMap(kernels, ident, m, np.where(has, d, np.nan), field, info, support)

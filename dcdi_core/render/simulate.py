@@ -77,6 +77,26 @@ def check_patch(patch) -> int:
     return int(patch)
 
 
+SIM_CONVOLUTIONS = ("fast", "windows")
+ACCELERATORS = ("torch",)
+
+
+def check_convolution(convolution, accelerator) -> tuple[str, str | None]:
+    """The simulation's convolution method and accelerator, checked before any work."""
+    if convolution not in SIM_CONVOLUTIONS:
+        raise InputRangeError("convolution", convolution, " or ".join(SIM_CONVOLUTIONS))
+    if accelerator is not None:
+        from . import accel_torch
+        if accelerator not in ACCELERATORS:
+            raise InputRangeError("accelerator", accelerator, "none (numpy) or " + ", ".join(ACCELERATORS))
+        if convolution != "fast":
+            raise InputRangeError("accelerator", accelerator, "none with convolution 'windows' (torch runs 'fast')")
+        if not accel_torch.available():
+            raise InputRangeError("accelerator", accelerator, "none here: torch cannot be imported (Blender's "
+                                  "Python has none)")
+    return convolution, accelerator
+
+
 def check_within_sensor(geometry: ImageGeometry, what: str = "the image") -> None:
     """Refuse a frame whose corners lie beyond the sensor (field > 1), before any work."""
     f = geometry.max_field
@@ -193,17 +213,30 @@ class LensSimulator:
     geometry: the output frame on the sensor (must lie within it).
     source_geometry: the input's frame if it differs (an over-scan render:
     larger, same pitch, axis at its own pixel position).
+    convolution: 'fast' (default: the windows method laid out for speed, the
+    same result to float32 rounding) or 'windows' (the exact form it is
+    tested against). accelerator: None (numpy: Blender's path) or 'torch'
+    (PSF map and convolution in torch, ``accel_torch.py``; the same result
+    to float32 rounding). blend: half-width (px) of the ramps between
+    patches (default m / 2, the tent; see ``patch_convolve`` and the report's
+    blend rows).
     """
 
     def __init__(self, lens, geometry: ImageGeometry, *, source_geometry: ImageGeometry | None = None,
                  library: PSFLibrary | None = None, settings: PSFSettings | None = None,
                  grid: LibraryGrid | None = None, response=None, patch: int = 16, distortion: bool = True,
                  interpolation: str = DEFAULT_INTERPOLATION, baseline_depth_m: float | None = None,
-                 fit_depth_m=None, cache: bool = True, progress=None, fft_backend: str | None = None):
+                 fit_depth_m=None, cache: bool = True, progress=None, fft_backend: str | None = None,
+                 convolution: str = "fast", accelerator: str | None = None, blend: int | None = None):
         from . import fft
         from .distortion import check_interpolation, radial_distortion
 
         self.fft_backend = fft.backend(fft_backend)
+        self.convolution, self.accelerator = check_convolution(convolution, accelerator)
+        if blend is not None and (isinstance(blend, bool) or not isinstance(blend, (int, np.integer))
+                                  or not 1 <= blend <= patch // 2):
+            raise InputRangeError("blend", blend, f"an integer in [1, {patch // 2}] px (the patch's half), or none")
+        self.blend = None if blend is None else int(blend)
 
         self.patch = check_patch(patch)
         self.interpolation = check_interpolation(interpolation)
@@ -252,7 +285,18 @@ class LensSimulator:
     def _fixed_map(self, depth_m: float) -> PSFMap:
         g = self.work_geometry
         return psf_map(self.library, g, np.ones((g.height, g.width)), self.patch, fixed_depth_m=depth_m,
-                       clamp_field=self.margin > 0)
+                       clamp_field=self.margin > 0, method=self._map_method, accelerator=self.accelerator)
+
+    @property
+    def _map_method(self) -> str:
+        return "exact" if self.convolution == "windows" else "fast"
+
+    def _blur(self, sharp, pm: PSFMap):
+        """The patch-wise blur of ``sharp`` with ``pm``'s kernels (>= 0)."""
+        out = patch_convolve(sharp, pm.kernels, self.patch, identity=pm.identity, fft_backend=self.fft_backend,
+                             method=self.convolution, accelerator=self.accelerator, blend=self.blend)
+        # non-negative kernels on a non-negative image: below 0 is FFT round-off (~1e-7)
+        return np.maximum(out, 0.0)
 
     def on_sensor(self, image, depth):
         """(image, depth, valid) on the sensor, with the scene margin if any:
@@ -278,17 +322,14 @@ class LensSimulator:
         if fixed_depth_m is not None:
             pm = self._fixed_map(fixed_depth_m)
         else:
-            pm = psf_map(self.library, self.work_geometry, d_s, self.patch, clamp_field=self.margin > 0)
-        # non-negative kernels on a non-negative image: below 0 is FFT round-off (~1e-7)
-        out = np.maximum(patch_convolve(sharp, pm.kernels, self.patch, identity=pm.identity,
-                                        fft_backend=self.fft_backend), 0.0)
+            pm = psf_map(self.library, self.work_geometry, d_s, self.patch, clamp_field=self.margin > 0,
+                         method=self._map_method, accelerator=self.accelerator)
+        out = self._blur(sharp, pm)
         info = dict(pm.info, depth_aware=fixed_depth_m is None, distortion=self.table is not None,
                     interpolation=self.interpolation, not_imaged_pixels=int((~self._crop(valid)).sum()))
         baseline = None
         if self.baseline is not None:
-            baseline = np.maximum(patch_convolve(sharp, self.baseline.kernels, self.patch,
-                                                 identity=self.baseline.identity, fft_backend=self.fft_backend),
-                                  0.0)
+            baseline = self._blur(sharp, self.baseline)
             info["baseline_depth_m"] = self.baseline_depth_m
         if noise is not None:
             from .noise import add_sensor_noise
@@ -305,18 +346,22 @@ def simulate(image, depth, lens, *, geometry: ImageGeometry | None = None,
              library: PSFLibrary | None = None, settings: PSFSettings | None = None, response=None,
              fixed_depth_m: float | None = None, distortion: bool = True,
              interpolation: str = DEFAULT_INTERPOLATION, noise: dict | None = None,
-             seed: int | None = None, fft_backend: str | None = None) -> RenderResult:
+             seed: int | None = None, fft_backend: str | None = None, convolution: str = "fast",
+             accelerator: str | None = None, blend: int | None = None) -> RenderResult:
     """Aberrated image of an all-in-focus ``image`` (H, W, 3) with metric
     ``depth`` (H, W) through ``lens``: :class:`LensSimulator` used once.
     geometry: the output frame on the sensor (default: the image spans the
     sensor's diagonal); source_geometry: the input's, if it differs.
-    fft_backend: 'scipy' or 'numpy' (default: the fastest installed)."""
+    fft_backend: 'scipy' or 'numpy' (default: the fastest installed).
+    convolution, accelerator, blend: as :class:`LensSimulator`."""
+    check_convolution(convolution, accelerator)
     img, d = _check(image, depth, source_geometry)
     check_rgbd(img, None if fixed_depth_m is not None else d)
     geometry = geometry or source_geometry or ImageGeometry.full_sensor(lens, img.shape[0], img.shape[1])
     sim = LensSimulator(lens, geometry, source_geometry=source_geometry, library=library, settings=settings,
                         response=response, patch=patch, distortion=distortion, interpolation=interpolation,
-                        fit_depth_m=d if library is None else None, fft_backend=fft_backend)
+                        fit_depth_m=d if library is None else None, fft_backend=fft_backend,
+                        convolution=convolution, accelerator=accelerator, blend=blend)
     return sim._run(img, d, fixed_depth_m, noise, seed)
 
 
