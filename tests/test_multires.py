@@ -50,7 +50,7 @@ def test_level_rule_keeps_narrow_kernels_at_full_resolution():
 
 def test_narrow_kernels_give_the_exact_path(case):
     lens, geom, lib, img, depth = case
-    ex = bokeh(img, depth, lens, keep=(1.1, 1.3), geometry=geom, library=lib)
+    ex = bokeh(img, depth, lens, keep=(1.1, 1.3), geometry=geom, library=lib, convolution="windows")
     mres = bokeh(img, depth, lens, keep=(1.1, 1.3), geometry=geom, library=lib, multires=1000.0)
     assert all(sum(lv[1:]) == 0 for lv in mres.info["layer_levels"])
     assert np.array_equal(ex.image, mres.image)
@@ -172,7 +172,8 @@ def test_narrow_kernels_at_a_coarse_pitch_stay_at_full_resolution():
     img = rng.random((120, 160, 3)).astype(np.float32)
     depth = np.where(rng.random((120, 160)) < 0.5, 0.8, 1e10)
     for occ in (True, False):
-        ex = bokeh(img, depth, lens, keep=(1.1, 1.3), geometry=geom, library=lib, occlusion=occ)
+        ex = bokeh(img, depth, lens, keep=(1.1, 1.3), geometry=geom, library=lib, occlusion=occ,
+                   convolution="windows")
         for c in (mr.BENCH_C, 2.0):
             res = bokeh(img, depth, lens, keep=(1.1, 1.3), geometry=geom, library=lib, occlusion=occ, multires=c)
             levels = res.info["layer_levels"] if occ else [res.info["multires_patches_per_level"]]

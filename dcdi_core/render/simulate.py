@@ -422,7 +422,7 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
           occlusion: bool = True, n_layers: int = 12, library: PSFLibrary | None = None,
           settings: PSFSettings | None = None, response=None, fit_kernel: bool = True,
           cancelled=None, fft_backend: str | None = None, progress=None, layer_progress=None,
-          convolution: str = "windows", rank_eps: float = 2e-2, multires: float | None = None,
+          convolution: str = "fast", rank_eps: float = 2e-2, multires: float | None = None,
           max_level: int | None = None, coarse_patch: int = 16) -> RenderResult:
     """``image`` as ``lens`` would take it, keeping [near, far] metres sharp
     (``keep``), or focused at ``focus_m`` metres, or with ``focus_m =
@@ -456,8 +456,9 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
     from . import multires as mr
     max_level = mr.DEFAULT_MAX_LEVEL if max_level is None else max_level
     mr.check_multires(multires, max_level, coarse_patch)
-    if multires is not None and convolution != "windows":
-        raise InputRangeError("multires with convolution", convolution, "'windows' (or multires None)")
+    if multires is not None and convolution == "lowrank":
+        # the multi-resolution blur convolves its groups by windows ('fast' equals them to rounding)
+        raise InputRangeError("multires with convolution", convolution, "'fast' or 'windows' (or multires None)")
     img, d = _check(image, depth, source_geometry)
     check_rgbd(img, d)
     geometry = geometry or source_geometry or ImageGeometry.full_sensor(lens, img.shape[0], img.shape[1])
@@ -532,17 +533,24 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
         # each colour's coverage blurred with that colour's own PSF: the
         # normalisation above is then exact for any colour fringe
         layer = np.concatenate([img[ys, xs] * af, af], axis=-1)
+        # every patch of the box gets the layer's kernel, also those holding
+        # none of its pixels: a gather takes each output pixel's kernel from
+        # its own patch, so an identity there would cut the blur spilling out
+        # of the layer's patches (a bright light's halo ended after the tent)
+        fill_inv = float(inv[ys, xs][mask[ys, xs]].mean())
+        d_layer = np.where(mask[ys, xs], d[ys, xs], np.inf if fill_inv <= 0 else 1.0 / fill_inv)
         level = 0
         if multires is not None:
             from .psfmap import patch_inverse_depth
-            has = patch_inverse_depth(np.where(mask[ys, xs], d[ys, xs], np.nan), patch, library.grid.far_m)[1]
-            blurred, lv = mr.grouped_blur(layer, d[ys, xs], mask[ys, xs], ~has, library, sub, patch, multires,
+            has = patch_inverse_depth(d_layer, patch, library.grid.far_m)[1]
+            blurred, lv = mr.grouped_blur(layer, d_layer, np.ones_like(mask[ys, xs]), ~has, library, sub, patch,
+                                          multires,
                                           max_level, coarse_patch, grow, pairs=pairs, table=table,
                                           fft_backend=fft_backend)
             level = int(lv.max())
             info["layer_levels"].append([int((lv == s_).sum()) for s_ in range(max_level + 1)])
         else:
-            pm = psf_map(library, sub, np.where(mask[ys, xs], d[ys, xs], np.nan), patch)
+            pm = psf_map(library, sub, d_layer, patch)
             blurred = patch_convolve(layer, pm.kernels, patch, identity=pm.identity, pairs=pairs,
                                      fft_backend=fft_backend, method=convolution, rank_eps=rank_eps)
         cover = np.clip(blurred[..., 3:], 0.0, 1.0)

@@ -1,0 +1,48 @@
+"""The layered bokeh spreads a layer's blur as far as its kernels reach, not
+only as far as the tent blend of the patches that hold the layer's pixels."""
+
+import numpy as np
+import pytest
+
+from dcdi_core.optics.lens import load_lens
+from dcdi_core.psf.compute import PSFSettings
+from dcdi_core.psf.library import LibraryGrid, PSFLibrary
+from dcdi_core.render.geometry import ImageGeometry
+from dcdi_core.render.simulate import bokeh
+
+pytestmark = pytest.mark.filterwarnings("ignore::dcdi_core.psf.compute.KernelTooSmallWarning")
+
+
+@pytest.fixture(scope="module")
+def lens_lib():
+    lens = load_lens("6p")
+    full = ImageGeometry.full_sensor(lens, 1280, 1920)
+    geom = ImageGeometry.from_pixel_pitch(lens, 96, 96, full.pixel_pitch_mm, center_px=(300.0, 400.0))
+    lib = PSFLibrary(lens, PSFSettings(pupil_samples=24, n_wavelengths=3, kernel_size=41, band_nm=(400.0, 700.0),
+                                       pixel_pitch_mm=full.pixel_pitch_mm), LibraryGrid(n_fields=8, n_depths=4), None)
+    return lens, geom, lib
+
+
+def test_a_lone_light_blurs_out_to_its_kernels_reach(lens_lib):
+    """One bright pixel near the lens over a black far background, a kept
+    subject elsewhere: nothing occludes the light, so its halo is the one it
+    has when the whole frame lies at its depth (every patch then holds the
+    light's layer). The identity kernel on the patches holding none of the
+    light's layer used to cut the halo ~8 px beyond the light's own patch."""
+    lens, geom, lib = lens_lib
+    img = np.zeros((96, 96, 3), np.float32)
+    img[40, 40] = 50.0
+    img[80:, 80:] = 0.2
+    keep = (1.1, 1.3)
+    alone = np.full((96, 96), 10.0)           # the background far behind
+    alone[40, 40] = 0.4                       # the light near: wide kernels
+    alone[80:, 80:] = 1.2                     # the kept subject, away from the light
+    whole = np.where(alone == 10.0, 0.4, alone)
+    got = bokeh(img, alone, lens, keep=keep, geometry=geom, library=lib).image
+    want = bokeh(img, whole, lens, keep=keep, geometry=geom, library=lib).image
+    halo = np.zeros((96, 96), bool)
+    halo[20:61, 20:61] = True
+    halo[32:49, 32:49] = False                # beyond the light's own 16-px patch and its tents
+    assert want[halo].sum() > 0.05 * want[20:61, 20:61].sum()      # a halo worth testing
+    np.testing.assert_allclose(got[halo].sum(), want[halo].sum(), rtol=0.02)
+    assert np.isfinite(got).all()
