@@ -800,6 +800,7 @@ def cmd_olf_train(args) -> int:
     data = PSFDataConfig(lenses=tuple(args.lens), variant=args.variant, pupil_samples=args.rays,
                          n_wavelengths=args.wavelengths, n_fields=args.fields, n_depths=args.depths,
                          focus_lenses=tuple(args.focus_lens or ()), focus_range_m=tuple(args.focus_range),
+                         focus_bins=args.focus_bins,
                          offgrid=args.offgrid, held_out=args.held_out, seed=args.seed)
     config = OLFTrainConfig(data=data, size=args.size, iters=args.iters, batch=args.batch, lr=args.lr,
                             seed=args.seed, threads=args.threads or (os.cpu_count() or 1),
@@ -911,8 +912,12 @@ def add_olf_commands(sub) -> None:
     t.add_argument("--fields", type=_positive_int, default=64, help="library fields")
     t.add_argument("--depths", type=_positive_int, default=20, help="library depth bins (plus infinity)")
     t.add_argument("--focus-lens", action="append", help="radial: learn this lens across focus distances")
-    t.add_argument("--focus-range", type=float, nargs=2, default=(0.7, 10.0), metavar=("NEAR", "FAR"),
-                   help="focus distances learned (m, default 0.7 10)")
+    t.add_argument("--focus-range", type=float, nargs=2, default=(0.7, math.inf), metavar=("NEAR", "FAR"),
+                   help="focus distances learned (m, FAR may be inf; default 0.7 inf); the prescribed focus "
+                        "is learned besides")
+    t.add_argument("--focus-bins", type=_positive_int, default=3,
+                   help="PSF libraries per focus lens, uniform in diopters over the focus range (default 3; "
+                        "each is one library build), plus the prescribed one")
     t.set_defaults(func=cmd_olf_train)
     i = osub.add_parser("info", help="what an exported OLF holds: lenses, sizes, held-out figures")
     i.add_argument("file", nargs="*", help="exported OLF files (.npz); default: the shipped ones")
