@@ -279,6 +279,21 @@ def test_focus_is_an_input_of_the_radial_olf(cache, tmp_path):
         olf.psf(lens, 0.3, 2.0, focus_m=0.5)
     with pytest.raises(InputRangeError, match="focus_m"):
         olf.psf(lens, 0.3, 2.0, focus_m=-1.0)
+    # the held-out figures per focus band, prescribed included
+    bands = olf.meta["held_out"]["focus"]["mos-s1"]
+    assert "prescribed" in bands and sum(b["n"] for b in bands.values()) == len(ls.val_x)
+    # as a PSF source: focus None (the prescribed focus) and inf served, 0.5 m traced with the reason
+    from dcdi_core.models.runtime.library import psf_source
+    assert psf_source(lens, olf_file=tmp_path / "f.npz").kind == "olf"
+    assert psf_source(lens, olf_file=tmp_path / "f.npz", focus_m=math.inf).kind == "olf"
+    src = psf_source(lens, olf_file=tmp_path / "f.npz", focus_m=0.5)
+    assert src.kind == "trace" and "outside the learned 0.8 m to inf m" in src.message
+
+
+def test_focus_bands_cut_the_diopter_range_in_thirds():
+    from dcdi_core.models.export import focus_bands
+    got = focus_bands([np.nan, math.inf, 3.0, 1.5, 1.0, 0.7], (0.0, 1 / 0.7))
+    assert got.tolist() == ["prescribed", "far", "far", "mid", "near", "near"]
 
 
 def test_prescribed_focus_is_equivalent_to_a_paraxial_focus():

@@ -376,6 +376,15 @@ def markdown(result: dict) -> str:
         if mean:
             lines.append(f"| mean | {mean['psnr_8bit']:.2f} | {mean['psnr_sum']:.2f} | {_fmt(mean['ssim_8bit'], '.4f')} "
                          f"| {mean['rel_l1']:.4f} | | | | |")
+        focus = (rec["held_out"] or {}).get("focus") or {}
+        if focus:
+            lines += ["", "Held-out per focus (the learned diopter range in thirds; prescribed: the lens as "
+                          "prescribed):", "", "| lens | focus | points | PSNR 8-bit dB | SSIM | rel. L1 |",
+                      "|---|---|---|---|---|---|"]
+            for lid, bands in focus.items():
+                for band, hb in bands.items():
+                    lines.append(f"| {lid} | {band} | {hb['n']} | {hb['psnr_8bit']:.2f} | "
+                                 f"{_fmt(hb['ssim_8bit'], '.4f')} | {hb['rel_l1']:.4f} |")
         lines += ["", f"The library's own errors (`dcdi report psf-accuracy mos-s1`): interpolation between depth "
                       f"bins {le['interpolation_depth']}, between fields {le['interpolation_field']}, ray sampling "
                       f"{le['sampling']} (relative L1).", ""]

@@ -323,7 +323,8 @@ class OmniLensField:
                 "parameters": int(n_params), "dtype": self.meta.get("dtype"),
                 "weights": self.meta.get("weights"),
                 "lenses": [{k: e.get(k) for k in ("id", "fingerprint", "kernel_size", "pixel_pitch_mm",
-                                                  "field_range", "depth_range_m", "focus_range_m")}
+                                                  "field_range", "depth_range_m", "focus_range_m",
+                                                  "prescribed_focus_diopters")}
                            for e in self.meta["lenses"]],
                 "held_out": self.meta.get("held_out"), "training": self.meta.get("training"),
                 "version": self.meta.get("version"), "dcdi_version": self.meta.get("dcdi_version"),
