@@ -706,7 +706,8 @@ def cmd_report_sim(args) -> int:
 
 def cmd_report_olf(args) -> int:
     from .models.report import run_report
-    return run_report(args.olf, args.out, quick=args.quick, sweep=args.sweep, pitch_only=args.pitch_only)
+    return run_report(args.olf, args.out, quick=args.quick, sweep=args.sweep, pitch_only=args.pitch_only,
+                      held_out_points=args.held_out_points)
 
 
 def cmd_bench(args) -> int:
@@ -1479,6 +1480,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--quick", action="store_true", help="few points and small images (for tests)")
     r.add_argument("--pitch-only", action="store_true",
                    help="only the kernels at coarser pixel pitches (area-resampled) against kernels traced there")
+    r.add_argument("--held-out-points", default=None, metavar="RUN/points.npz",
+                   help="only: every file scored on one training run's held-out points, per lens and focus "
+                        "(compares an old and a new OLF on the same traced points)")
     r.set_defaults(func=cmd_report_olf)
 
     for name, helptext in (("pipeline", "DCDI end to end on held-out factory pairs against the ideal; stage times"),

@@ -288,6 +288,13 @@ def test_focus_is_an_input_of_the_radial_olf(cache, tmp_path):
     assert psf_source(lens, olf_file=tmp_path / "f.npz", focus_m=math.inf).kind == "olf"
     src = psf_source(lens, olf_file=tmp_path / "f.npz", focus_m=0.5)
     assert src.kind == "trace" and "outside the learned 0.8 m to inf m" in src.message
+    # the report's comparison re-encodes the held-out coordinates through psf(): the same figures as
+    # the file's own (the encoded inputs), per band, so the trainer's and the runtime's encodings agree
+    from dcdi_core.models.report import held_out_comparison
+    rows = {r["band"]: r for r in held_out_comparison([tmp_path / "f.npz"], tmp_path / "run" / "points.npz")}
+    assert set(rows) == set(bands)
+    for band, hb in bands.items():
+        assert rows[band]["n"] == hb["n"] and rows[band]["rel_l1"] == pytest.approx(hb["rel_l1"], rel=1e-4)
 
 
 def test_focus_bands_cut_the_diopter_range_in_thirds():
