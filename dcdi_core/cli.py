@@ -881,7 +881,8 @@ def _print_olf_info(info) -> None:
         print(f"  {e['id']:<14} k = {e['kernel_size']}, pitch {e['pixel_pitch_mm'] * 1000:.3g} um, "
               f"depth {e['depth_range_m'][0]}-{e['depth_range_m'][1]} m{focus}; prescription "
               f"{e['prescription']}{fig}")
-        for band, hb in (((info["held_out"] or {}).get("focus") or {}).get(e["id"]) or {}).items():
+        bands = (((info["held_out"] or {}).get("focus") or {}).get(e["id"]) or {})
+        for band, hb in sorted(bands.items(), key=lambda b: ("prescribed", "far", "mid", "near").index(b[0])):
             print(f"  {'':<14}   held-out at {band} focus ({hb['n']} points): {hb['psnr_8bit']:.2f} dB, SSIM "
                   + (f"{hb['ssim_8bit']:.4f}" if hb.get("ssim_8bit") is not None else "n/a")
                   + f", rel. L1 {hb['rel_l1']:.4f}")

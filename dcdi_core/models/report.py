@@ -454,7 +454,7 @@ def markdown(result: dict) -> str:
                           "prescribed):", "", "| lens | focus | points | PSNR 8-bit dB | SSIM | rel. L1 |",
                       "|---|---|---|---|---|---|"]
             for lid, bands in focus.items():
-                for band, hb in bands.items():
+                for band, hb in sorted(bands.items(), key=lambda b: ("prescribed", "far", "mid", "near").index(b[0])):
                     lines.append(f"| {lid} | {band} | {hb['n']} | {hb['psnr_8bit']:.2f} | "
                                  f"{_fmt(hb['ssim_8bit'], '.4f')} | {hb['rel_l1']:.4f} |")
         lines += ["", f"The library's own errors (`dcdi report psf-accuracy mos-s1`): interpolation between depth "
