@@ -709,7 +709,8 @@ def cmd_report_sim(args) -> int:
 
 def cmd_report_olf(args) -> int:
     from .models.report import run_report
-    return run_report(args.olf, args.out, quick=args.quick, sweep=args.sweep, pitch_only=args.pitch_only)
+    return run_report(args.olf, args.out, quick=args.quick, sweep=args.sweep, pitch_only=args.pitch_only,
+                      held_out_points=args.held_out_points)
 
 
 def cmd_bench(args) -> int:
@@ -803,6 +804,7 @@ def cmd_olf_train(args) -> int:
     data = PSFDataConfig(lenses=tuple(args.lens), variant=args.variant, pupil_samples=args.rays,
                          n_wavelengths=args.wavelengths, n_fields=args.fields, n_depths=args.depths,
                          focus_lenses=tuple(args.focus_lens or ()), focus_range_m=tuple(args.focus_range),
+                         focus_bins=args.focus_bins,
                          offgrid=args.offgrid, held_out=args.held_out, seed=args.seed)
     config = OLFTrainConfig(data=data, size=args.size, iters=args.iters, batch=args.batch, lr=args.lr,
                             seed=args.seed, threads=args.threads or (os.cpu_count() or 1),
@@ -825,6 +827,19 @@ def cmd_olf_train(args) -> int:
           + (f"{h['ssim_8bit']:.4f}" if h["ssim_8bit"] is not None else "n/a")
           + f", relative L1 {h['rel_l1']:.4f}; {result.seconds:.1f} s of training ({rate:.1f} it/s; PSF data not included)")
     print(_ran_on(result.where))
+    return 0
+
+
+def cmd_olf_points(args) -> int:
+    from .models.data.psf_samples import PSFDataConfig, build_data
+    data = PSFDataConfig(lenses=tuple(args.lens), pupil_samples=args.rays, n_wavelengths=args.wavelengths,
+                         n_fields=args.fields, n_depths=args.depths, focus_lenses=tuple(args.focus_lens or ()),
+                         focus_range_m=tuple(args.focus_range), focus_bins=args.focus_bins, offgrid=args.offgrid,
+                         held_out=args.held_out, seed=args.seed)
+    t0 = time.perf_counter()
+    d = build_data(data, points_file=args.output, log=lambda t: print(t, file=sys.stderr))
+    print(f"wrote {args.output}: " + ", ".join(f"{ls.lens.id} {len(ls.val_x)} held-out" for ls in d.lenses)
+          + f" ({time.perf_counter() - t0:.0f} s)")
     return 0
 
 
@@ -869,6 +884,11 @@ def _print_olf_info(info) -> None:
         print(f"  {e['id']:<14} k = {e['kernel_size']}, pitch {e['pixel_pitch_mm'] * 1000:.3g} um, "
               f"depth {e['depth_range_m'][0]}-{e['depth_range_m'][1]} m{focus}; prescription "
               f"{e['prescription']}{fig}")
+        bands = (((info["held_out"] or {}).get("focus") or {}).get(e["id"]) or {})
+        for band, hb in sorted(bands.items(), key=lambda b: ("prescribed", "far", "mid", "near").index(b[0])):
+            print(f"  {'':<14}   held-out at {band} focus ({hb['n']} points): {hb['psnr_8bit']:.2f} dB, SSIM "
+                  + (f"{hb['ssim_8bit']:.4f}" if hb.get("ssim_8bit") is not None else "n/a")
+                  + f", rel. L1 {hb['rel_l1']:.4f}")
     h = (info["held_out"] or {}).get("mean")
     if h:
         ssim = f"{h['ssim_8bit']:.4f}" if h["ssim_8bit"] is not None else "n/a"
@@ -878,6 +898,24 @@ def _print_olf_info(info) -> None:
     if t:
         print(f"  trained {t.get('iterations')} iterations in {t.get('seconds', 0):.0f} s; checksum "
               f"{info['checksum'][:16]}...")
+
+
+def _add_olf_data_options(t) -> None:
+    """The options of `olf train` and `olf points` that decide the traced samples."""
+    t.add_argument("--offgrid", type=int, default=256, help="traced off-grid training points per lens")
+    t.add_argument("--held-out", type=_positive_int, default=64, help="traced held-out points per lens")
+    t.add_argument("--rays", type=_positive_int, default=64, help="pupil samples per side (PSF settings)")
+    t.add_argument("--wavelengths", type=_positive_int, default=31, help="wavelengths per PSF")
+    t.add_argument("--fields", type=_positive_int, default=64, help="library fields")
+    t.add_argument("--depths", type=_positive_int, default=20, help="library depth bins (plus infinity)")
+    t.add_argument("--focus-lens", action="append", help="radial: learn this lens across focus distances")
+    t.add_argument("--focus-range", type=float, nargs=2, default=(0.7, math.inf), metavar=("NEAR", "FAR"),
+                   help="focus distances learned (m, FAR may be inf; default 0.7 inf); the prescribed focus "
+                        "is learned besides")
+    t.add_argument("--focus-bins", type=_positive_int, default=3,
+                   help="PSF libraries per focus lens, uniform in diopters over the focus range (default 3; "
+                        "each is one library build), plus the prescribed one")
+    t.add_argument("--seed", type=int, default=0, help="seed of weights, sampling and traced points")
 
 
 def add_olf_commands(sub) -> None:
@@ -897,7 +935,6 @@ def add_olf_commands(sub) -> None:
     t.add_argument("--iters", type=_positive_int, default=1000, help="iterations (the paper: 600000)")
     t.add_argument("--batch", type=_positive_int, default=256, help="batch size (default 256)")
     t.add_argument("--lr", type=float, default=1e-4, help="initial learning rate (cosine to 1e-7)")
-    t.add_argument("--seed", type=int, default=0, help="seed of weights, sampling and traced points")
     t.add_argument("--threads", type=_positive_int, default=None, help="torch threads (default: all cores)")
     _add_device_option(t)
     t.add_argument("-o", "--output", required=True, help="the exported OLF (.npz)")
@@ -907,16 +944,16 @@ def add_olf_commands(sub) -> None:
     t.add_argument("--dtype", choices=["float32", "float16"], default="float32",
                    help="how the exported weights are stored (float16 halves the file; the runtime computes in "
                         "float32 and the held-out figures printed are the stored file's)")
-    t.add_argument("--offgrid", type=int, default=256, help="traced off-grid training points per lens")
-    t.add_argument("--held-out", type=_positive_int, default=64, help="traced held-out points per lens")
-    t.add_argument("--rays", type=_positive_int, default=64, help="pupil samples per side (PSF settings)")
-    t.add_argument("--wavelengths", type=_positive_int, default=31, help="wavelengths per PSF")
-    t.add_argument("--fields", type=_positive_int, default=64, help="library fields")
-    t.add_argument("--depths", type=_positive_int, default=20, help="library depth bins (plus infinity)")
-    t.add_argument("--focus-lens", action="append", help="radial: learn this lens across focus distances")
-    t.add_argument("--focus-range", type=float, nargs=2, default=(0.7, 10.0), metavar=("NEAR", "FAR"),
-                   help="focus distances learned (m, default 0.7 10)")
+    _add_olf_data_options(t)
     t.set_defaults(func=cmd_olf_train)
+    pt = osub.add_parser("points", help="the traced off-grid and held-out points of a training config (no training)",
+                         description="Trace (or read from the PSF cache) what `olf train` with the same data "
+                                     "options would train and validate on, into a points file: e.g. the held-out "
+                                     "points of an older OLF, for `dcdi report olf --held-out-points`.")
+    pt.add_argument("--lens", action="append", required=True, help="lens id (repeat; the order decides the seeds)")
+    pt.add_argument("-o", "--output", required=True, help="the points file (.npz)")
+    _add_olf_data_options(pt)
+    pt.set_defaults(func=cmd_olf_points)
     i = osub.add_parser("info", help="what an exported OLF holds: lenses, sizes, held-out figures")
     i.add_argument("file", nargs="*", help="exported OLF files (.npz); default: the shipped ones")
     i.add_argument("--json", action="store_true", help="machine-readable output")
@@ -1482,6 +1519,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--quick", action="store_true", help="few points and small images (for tests)")
     r.add_argument("--pitch-only", action="store_true",
                    help="only the kernels at coarser pixel pitches (area-resampled) against kernels traced there")
+    r.add_argument("--held-out-points", default=None, metavar="RUN/points.npz",
+                   help="only: every file scored on one training run's held-out points, per lens and focus "
+                        "(compares an old and a new OLF on the same traced points)")
     r.set_defaults(func=cmd_report_olf)
 
     for name, helptext in (("pipeline", "DCDI end to end on held-out factory pairs against the ideal; stage times"),

@@ -367,7 +367,19 @@ assert info["psf_source"] == "olf", info["psf_source_message"]
 assert np.abs(out - img)[16:32, 20:44].max() < 1e-6 and np.abs(out - img)[depth > 5].mean() > 1e-3
 try:
     logic.run_bokeh(img, depth, lens, focus_m=1.0, keep=(0.9, 1.1))
-    raise SystemExit("a refocused lens was served without tracing")
+    raise SystemExit("a refocused lens the OLF learned at its prescribed focus only was served without tracing")
+except RuntimeError as e:
+    assert "ray tracer" in str(e)
+# the 6P, learned across focus: refocused (Refocus Lens on, the default) inside the range, served
+lens6 = logic.load_lens_cached(dict((e.id, e.path) for e in logic.lens_catalogue())["6p"])
+out6, info6 = logic.run_bokeh(img, depth, lens6, focus_m=1.0, keep=(0.9, 1.1))
+assert info6["psf_source"] == "olf" and "focus 1 m" in info6["psf_source_message"], info6["psf_source_message"]
+assert np.abs(out6 - img)[16:32, 20:44].max() < 1e-6 and np.abs(out6 - img)[depth > 5].mean() > 1e-3
+near = depth.copy()
+near[16:32, 20:44] = 0.5
+try:                        # a focus nearer than the learned 0.7 m: traced
+    logic.run_bokeh(img, near, lens6, focus_m=0.5, keep=(0.45, 0.55))
+    raise SystemExit("a focus outside the learned range was served without tracing")
 except RuntimeError as e:
     assert "ray tracer" in str(e)
 assert "torch" not in sys.modules
@@ -378,7 +390,9 @@ print("ok", info["psf_source_message"])
 def test_bundled_engine_serves_the_olf_with_torch_blocked(addon_zip, tmp_path):
     """The unpacked zip alone, torch blocked by an import hook: the vendored
     OLF serves kernels, and a bokeh of a shipped lens as prescribed runs
-    through it with the tracer patched to raise (a refocused one traces)."""
+    through it with the tracer patched to raise (refocused: MOS-S1, learned
+    at its prescribed focus only, traces; the 6P, learned across focus, is
+    served inside the learned range and traced outside it)."""
     with zipfile.ZipFile(addon_zip) as z:
         z.extractall(tmp_path)
     code = _BUNDLED_OLF.format(root=str(ROOT), where=str(tmp_path), ext=EXT_ID)
@@ -409,6 +423,23 @@ def test_first_apply_on_a_shipped_lens_traces_nothing(headless):
         assert out.shape == aif.shape and np.isfinite(out).all()
         assert np.abs(out - aif)[kept].max() < 1e-5
         assert np.abs(out - aif)[depth > 7.0].mean() > 1e-3
+
+
+def test_first_apply_with_refocus_on_a_focus_lens_traces_nothing(headless):
+    """Refocus Lens on (the default), the 6P focused inside the range the
+    shipped OLF learned it across, the tracer patched to raise: finished,
+    served by the OLF at that focus, the cube sharp, the rest blurred."""
+    aif = np.load(headless["dir"] / "aif.npy")
+    depth = np.load(headless["dir"] / "depth.npy")[..., 0]
+    f = headless["focus_m"]
+    kept = (depth >= f - headless["keep_m"][0]) & (depth <= f + headless["keep_m"][1])
+    run = headless["olf_apply_refocus"]
+    assert run["result"] == ["FINISHED"], run
+    assert run["status"].startswith("PSFs from the Omni-Lens-Field") and "focus " in run["status"], run
+    assert "prescribed focus" not in run["status"], run
+    out = np.load(headless["dir"] / "olf-6p-refocus.npy")
+    assert np.abs(out - aif)[kept].max() < 1e-5
+    assert np.abs(out - aif)[depth > 7.0].mean() > 1e-3
 
 
 # ------------------------------------------------------------------ the DCDI round trip in Blender

@@ -245,26 +245,83 @@ print("ok")
 def test_focus_is_an_input_of_the_radial_olf(cache, tmp_path):
     from dcdi_core.models.export import export_olf
     from dcdi_core.models.train.loop import train
+    from dcdi_core.optics.paraxial import prescribed_focus_diopters
     config = _config(iters=2)
-    config = replace(config, data=replace(config.data, focus_lenses=("mos-s1",), focus_range_m=(0.8, 5.0),
-                                          focus_bins=2))
+    config = replace(config, data=replace(config.data, focus_lenses=("mos-s1",), focus_range_m=(0.8, math.inf),
+                                          focus_bins=2, held_out=16))
+    # inf survives the config's JSON round trip
+    assert type(config).from_json(config.to_json()) == config
     result = train(config, tmp_path / "run", cache_dir=cache)
     ls = result.data.lenses[0]
-    assert result.spec.focus and result.spec.n_inputs == 4 and [l.settings.focus_distance_m for l in ls.libraries] \
-        == pytest.approx([0.8, 5.0])
-    # the same field and depth, refocused: another PSF
-    n = len(ls.grid_x) // 2
-    assert np.allclose(ls.grid_x[:n, :2], ls.grid_x[n:, :2]) and not np.allclose(ls.grid_x[:n, 2], ls.grid_x[n:, 2])
-    assert np.abs(ls.grid_y[:n] - ls.grid_y[n:]).max() > 0.01
-    assert (ls.val_coords["focus_m"] >= 0.8).all() and (ls.val_coords["focus_m"] <= 5.0).all()
-    export_olf(result, tmp_path / "f.npz")
-    olf = OmniLensField.load(tmp_path / "f.npz")
     lens = load_lens("mos-s1")
-    assert olf.psf(lens, 0.3, 2.0, focus_m=[1.0, 4.0]).shape[:1] == (2,)
+    dp = prescribed_focus_diopters(lens)
+    assert result.spec.focus and result.spec.n_inputs == 4
+    assert [l.settings.focus_distance_m for l in ls.libraries] == [None, 0.8, math.inf]
+    # the prescribed library is encoded at its equivalent diopters, the bins at 1 / focus
+    n = len(ls.grid_x) // 3
+    scale = result.spec.diopter_scale
+    assert np.allclose(ls.grid_x[:n, 2] * scale, dp) and np.allclose(ls.grid_x[n:2 * n, 2] * scale, 1 / 0.8)
+    assert np.allclose(ls.grid_x[2 * n:, 2], 0.0)
+    assert np.allclose(ls.grid_x[:n, :2], ls.grid_x[n:2 * n, :2])
+    assert np.abs(ls.grid_y[n:2 * n] - ls.grid_y[2 * n:]).max() > 0.01      # refocused: another PSF
+    fm = ls.val_coords["focus_m"]
+    assert np.isnan(fm).any() and ((fm[~np.isnan(fm)] >= 0.8)).all()          # prescribed and random focus
+    export_olf(result, tmp_path / "f.npz")
+    olf = OmniLensField.load(tmp_path / "f.npz")                              # inf survives the metadata
+    entry = olf.lens_entry("mos-s1")
+    assert entry["focus_range_m"] == [0.8, math.inf] and entry["prescribed_focus_diopters"] == pytest.approx(dp)
+    assert olf.psf(lens, 0.3, 2.0, focus_m=[1.0, 4.0, math.inf]).shape[:1] == (3,)
+    # focus None: served at the prescribed focus's equivalent diopters, not at any other focus
+    x = encode_radial(olf.spec, 0, 0.3, 0.5, dp)
+    assert np.allclose(olf.psf(lens, 0.3, 2.0), olf.forward(x, 0)[0], atol=1e-7)
+    assert np.abs(olf.psf(lens, 0.3, 2.0) - olf.psf(lens, 0.3, 2.0, focus_m=math.inf)).max() > 0
+    with pytest.raises(OutsideTrainedRangeError, match=r"focus_m = 0.5.*\[0.8, inf\] m"):
+        olf.psf(lens, 0.3, 2.0, focus_m=0.5)
     with pytest.raises(InputRangeError, match="focus_m"):
-        olf.psf(lens, 0.3, 2.0)
-    with pytest.raises(OutsideTrainedRangeError, match=r"focus_m = 6.0.*\[0.8, 5.0\] m"):
-        olf.psf(lens, 0.3, 2.0, focus_m=6.0)
+        olf.psf(lens, 0.3, 2.0, focus_m=-1.0)
+    # the held-out figures per focus band, prescribed included
+    bands = olf.meta["held_out"]["focus"]["mos-s1"]
+    assert "prescribed" in bands and sum(b["n"] for b in bands.values()) == len(ls.val_x)
+    # as a PSF source: focus None (the prescribed focus) and inf served, 0.5 m traced with the reason
+    from dcdi_core.models.runtime.library import psf_source
+    assert psf_source(lens, olf_file=tmp_path / "f.npz").kind == "olf"
+    assert psf_source(lens, olf_file=tmp_path / "f.npz", focus_m=math.inf).kind == "olf"
+    src = psf_source(lens, olf_file=tmp_path / "f.npz", focus_m=0.5)
+    assert src.kind == "trace" and "outside the learned 0.8 m to inf m" in src.message
+    # the report's comparison re-encodes the held-out coordinates through psf(): the same figures as
+    # the file's own (the encoded inputs), per band, so the trainer's and the runtime's encodings agree
+    from dcdi_core.models.report import held_out_comparison
+    rows = {r["band"]: r for r in held_out_comparison([tmp_path / "f.npz"], tmp_path / "run" / "points.npz")}
+    assert set(rows) == set(bands)
+    for band, hb in bands.items():
+        assert rows[band]["n"] == hb["n"] and rows[band]["rel_l1"] == pytest.approx(hb["rel_l1"], rel=1e-4)
+
+
+def test_focus_bands_cut_the_diopter_range_in_thirds():
+    from dcdi_core.models.export import focus_bands
+    got = focus_bands([np.nan, math.inf, 3.0, 1.5, 1.0, 0.7], (0.0, 1 / 0.7))
+    assert got.tolist() == ["prescribed", "far", "far", "mid", "near", "near"]
+
+
+def test_prescribed_focus_is_equivalent_to_a_paraxial_focus():
+    """Refocusing at the prescribed sensor's equivalent diopters gives back the
+    prescribed last thickness; the 6P is focused near 6 m, the double Gauss
+    just inside infinity (negative diopters)."""
+    from dcdi_core.optics.paraxial import image_distance_mm, prescribed_focus_diopters, refocused, \
+        refocused_at_diopters
+    for lid in ("mos-s1", "mos-s2", "double-gauss", "6p"):
+        lens = load_lens(lid)
+        d = prescribed_focus_diopters(lens)
+        q = lens.surfaces[-1].thickness_mm
+        assert abs(refocused_at_diopters(lens, d).surfaces[-1].thickness_mm - q) < 1e-9, lid
+        if d > 0:      # the same through the distance form
+            assert abs(float(image_distance_mm(lens, 1.0 / d)) - q) < 1e-9
+        assert refocused_at_diopters(lens, d + 0.5).surfaces[-1].thickness_mm != pytest.approx(q, abs=1e-6)
+    assert 0.1 < prescribed_focus_diopters(load_lens("6p")) < 0.3
+    assert -0.5 < prescribed_focus_diopters(load_lens("double-gauss")) < 0
+    lens = load_lens("6p")
+    assert refocused(lens, math.inf).surfaces[-1].thickness_mm == pytest.approx(
+        refocused_at_diopters(lens, 0.0).surfaces[-1].thickness_mm, abs=1e-12)
 
 
 # -------------------------------------------------------------- training

@@ -178,6 +178,39 @@ def test_cli_simulate_and_bokeh_served_by_the_olf(cache_env, tmp_path, capsys):
     assert json.loads(out.out)["psf_source"] == "trace" and "prescribed focus only" in out.err
 
 
+@pytest.fixture(scope="module")
+def focus_olf_file(olf_file):
+    """The olf_file's lenses with the 6P learned across focus (0.7 m to inf, 3 bins, and its prescribed focus)."""
+    from dcdi_core.models.data.psf_samples import PSFDataConfig
+    from dcdi_core.models.export import export_olf
+    from dcdi_core.models.train.config import OLFTrainConfig
+    from dcdi_core.models.train.loop import train
+    path, cache = olf_file
+    config = OLFTrainConfig(data=PSFDataConfig(lenses=("mos-s1", "6p"), focus_lenses=("6p",), **FAST), size="tiny",
+                            iters=4, batch=16, lr=3e-3, seed=0, threads=1)
+    result = train(config, path.parent / "focus-run", cache_dir=cache)
+    export_olf(result, path.parent / "focus.npz", dtype="float16")
+    return path.parent / "focus.npz"
+
+
+def test_cli_bokeh_refocused_is_served_by_an_olf_that_learned_focus(focus_olf_file, olf_file, monkeypatch, tmp_path,
+                                                                     capsys):
+    monkeypatch.setenv("DCDI_CACHE_DIR", str(olf_file[1]))
+    img, _ = synthetic_rgbd(48, 64, seed=2)
+    depth = np.where(np.arange(64)[None, :] < 32, 1.2, 1e10) * np.ones((48, 1))
+    write_image(tmp_path / "aif.exr", img)
+    write_depth(tmp_path / "depth.exr", depth)
+    common = ["--image", str(tmp_path / "aif.exr"), "--depth", str(tmp_path / "depth.exr"),
+              "--image-pixel-pitch", str(PITCH), *LEARNED, "--olf", str(focus_olf_file)]
+    for focus, kind, said in (("2", "olf", "focus 2 m"), ("prescribed", "olf", "prescribed focus"),
+                              ("0.5", "trace", "outside the learned 0.7 m to inf m")):
+        assert main(["bokeh", "--lens", "6p", "--focus", focus, "-o", str(tmp_path / f"b{focus}.exr"), *common]) == 0
+        out = capsys.readouterr()
+        assert json.loads(out.out)["psf_source"] == kind and said in out.err, out.err
+    assert main(["bokeh", "--lens", "6p", "--keep", "1.1", "1.3", "-o", str(tmp_path / "k.exr"), *common]) == 0
+    assert json.loads(capsys.readouterr().out)["psf_source"] == "olf"
+
+
 def test_olf_info_lists_shipped_files(capsys):
     assert main(["olf", "info"]) == 0
     text = capsys.readouterr().out

@@ -56,7 +56,34 @@ def stored_held_out(meta: dict, arrays: dict, data) -> dict:
     keys = [k for k in next(iter(per.values())) if k != "n"]
     mean = {k: (float(np.mean([v[k] for v in per.values()])) if all(v[k] is not None for v in per.values())
                 else None) for k in keys}
-    return {"mean": mean, "lenses": per}
+    out = {"mean": mean, "lenses": per}
+    focus = {}
+    for li, ls in enumerate(data.lenses):
+        fm = ls.val_coords.get("focus_m")
+        entry = olf.lens_entry(ls.lens.id)
+        if fm is None or entry.get("focus_diopters_range") is None:
+            continue
+        bands = focus_bands(fm, entry["focus_diopters_range"])
+        pred = olf.forward(ls.val_x, li, np.float64)
+        focus[ls.lens.id] = {b: psf_scores(pred[bands == b], ls.val_y[bands == b], scale=scale)
+                             for b in FOCUS_BANDS if (bands == b).any()}
+    if focus:
+        out["focus"] = focus
+    return out
+
+
+FOCUS_BANDS = ("prescribed", "far", "mid", "near")
+
+
+def focus_bands(focus_m, diopters_range) -> np.ndarray:
+    """The band of each held-out focus (m; NaN = the prescribed focus): the
+    learned diopter range cut in thirds, far (towards infinity) to near."""
+    f = np.asarray(focus_m, dtype=np.float64)
+    lo, hi = diopters_range
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (1.0 / f - lo) / (hi - lo)
+    third = np.clip(np.floor(np.nan_to_num(t) * 3), 0, 2).astype(int)
+    return np.where(np.isnan(f), "prescribed", np.array(FOCUS_BANDS[1:])[third])
 
 
 def export_olf(result, path, *, weights: str = "ema", dtype: str = "float32") -> dict:

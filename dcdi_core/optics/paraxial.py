@@ -112,6 +112,44 @@ def paraxial_image_height_mm(lens: Lens, field_angle_deg, wavelength_nm: float |
     return y_last + fo.sensor_distance_mm * u_last
 
 
+def image_distance_at_diopters_mm(lens: Lens, diopters, wavelength_nm: float | None = None) -> np.ndarray:
+    """Paraxial image distance from the last vertex (mm) of an axial object at
+    ``diopters`` (1/m, from the first vertex): 0 is infinity, a negative value
+    a virtual object (q = -(1000 a + b D) / (1000 c + d D))."""
+    wl = lens.wavelength_nm if wavelength_nm is None else float(wavelength_nm)
+    (a, b), (c, d) = matrix(lens, wl, 0, len(lens.surfaces) - 1)
+    D = np.asarray(diopters, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return -(1000.0 * a + b * D) / (1000.0 * c + d * D)
+
+
+def prescribed_focus_diopters(lens: Lens, wavelength_nm: float | None = None) -> float:
+    """The paraxial focus (1/m from the first vertex) that the prescribed sensor
+    position q (the last thickness, mm) is equivalent to: D = 1000 * -(a + q c)
+    / (q d + b). 0 is infinity; negative: the sensor sits inside the infinity
+    focus (a virtual object would be in focus)."""
+    wl = lens.wavelength_nm if wavelength_nm is None else float(wavelength_nm)
+    (a, b), (c, d) = matrix(lens, wl, 0, len(lens.surfaces) - 1)
+    q = lens.surfaces[-1].thickness_mm
+    return float(1000.0 * -(a + q * c) / (q * d + b))
+
+
+def refocused_at_diopters(lens: Lens, diopters: float, wavelength_nm: float | None = None) -> Lens:
+    """``refocused`` by the focus in diopters (0: infinity; negative allowed,
+    the sensor inside the infinity focus, as some prescriptions put it)."""
+    from dataclasses import replace
+
+    from .errors import InputRangeError
+
+    q = float(image_distance_at_diopters_mm(lens, diopters, wavelength_nm))
+    if not (math.isfinite(diopters) and math.isfinite(q) and q > 0):
+        raise InputRangeError("focus diopters", diopters,
+                              f"a finite focus whose image is real and behind the lens (image distance {q:.4g} mm)")
+    surfaces = list(lens.surfaces)
+    surfaces[-1] = replace(surfaces[-1], thickness_mm=q)
+    return lens.with_surfaces(surfaces)
+
+
 def refocused(lens: Lens, focus_distance_m: float, wavelength_nm: float | None = None) -> Lens:
     """The lens with its sensor moved (last thickness changed) so that an axial
     object at ``focus_distance_m`` metres (``inf`` allowed) is in paraxial focus."""

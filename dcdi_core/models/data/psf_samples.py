@@ -4,7 +4,11 @@ ray-traced PSFs.
 Three sets per lens:
 
 - the grid: the PSF library's own samples (fields x depth bins [x focus
-  bins]), read from its disk cache or traced once;
+  bins]), read from its disk cache or traced once;  a lens learned across
+  focus has one library per focus bin (uniform in diopters over
+  ``focus_range_m``, infinity allowed) plus its prescribed one, whose focus
+  is encoded at the paraxial focus its sensor position is equivalent to
+  (``optics.paraxial.prescribed_focus_diopters``);
 - off-grid training points: (field, depth[, focus]) drawn at random and
   traced freshly with the library's settings, so the network learns the
   field and not the grid;
@@ -43,6 +47,7 @@ from ...atomic import atomic_path
 from ...optics.aiming import solve_field
 from ...optics.errors import InputRangeError
 from ...optics.lens import Lens, load_lens
+from ...optics.paraxial import prescribed_focus_diopters
 from ...psf.compute import (KernelTooSmallWarning, PSFSettings, compute_sources, focused_lens,
                             spectral_samples)
 from ...psf.library import ALGORITHM_VERSION, LibraryGrid, PSFLibrary, lens_fingerprint
@@ -69,10 +74,11 @@ class PSFDataConfig:
     n_depths: int = 20
     near_m: float = 0.7
     far_m: float = 10.0
-    # radial only: lenses learned across focus, focus range and library focus bins
+    # radial only: lenses learned across focus, focus range (m; far may be inf)
+    # and library focus bins (uniform in diopters; the prescribed focus besides)
     focus_lenses: tuple[str, ...] = ()
-    focus_range_m: tuple[float, float] = (0.7, 10.0)
-    focus_bins: int = 5
+    focus_range_m: tuple[float, float] = (0.7, math.inf)
+    focus_bins: int = 3
     # traced points per lens
     offgrid: int = 256
     held_out: int = 64
@@ -94,8 +100,8 @@ class PSFDataConfig:
         if self.focus_lenses and self.variant != "radial":
             raise InputRangeError("focus_lenses", self.focus_lenses, "empty for the paper variant")
         lo, hi = self.focus_range_m
-        if not (0 < lo < hi):
-            raise InputRangeError("focus_range_m", self.focus_range_m, "0 < near < far metres")
+        if not (0 < lo < hi and math.isfinite(lo)):
+            raise InputRangeError("focus_range_m", self.focus_range_m, "0 < near < far metres (far may be inf)")
         if self.focus_lenses and self.focus_bins < 2:
             raise InputRangeError("focus_bins", self.focus_bins, ">= 2")
         if self.offgrid < 0 or self.held_out < 1:
@@ -116,12 +122,20 @@ class PSFDataConfig:
     def grid(self) -> LibraryGrid:
         return LibraryGrid(self.n_fields, self.n_depths, self.near_m, self.far_m)
 
+    @property
+    def focus_diopters_range(self) -> tuple[float, float]:
+        """The learned focus range in diopters (1/m): (1/far, 1/near); 0 is infinity."""
+        lo, hi = self.focus_range_m
+        return 1.0 / hi, 1.0 / lo
+
     def focus_values_m(self, lens_id: str) -> list[float | None]:
-        """The library focus bins of a lens (uniform in diopters), or [None]."""
+        """The library focus values of a lens: [None] (the prescribed focus),
+        then, for a focus lens, its bins uniform in diopters (inf where 0 D)."""
         if lens_id not in self.focus_lenses:
             return [None]
-        lo, hi = self.focus_range_m
-        return [float(1.0 / v) for v in np.linspace(1.0 / lo, 1.0 / hi, self.focus_bins)]
+        d_lo, d_hi = self.focus_diopters_range
+        return [None] + [math.inf if v == 0 else float(1.0 / v)
+                         for v in np.linspace(d_hi, d_lo, self.focus_bins)]
 
     def as_dict(self) -> dict:
         d = asdict(self)
@@ -207,6 +221,8 @@ class OLFData:
                 "pixel_pitch_mm": ls.pixel_pitch_mm, "field_range": [0.0, 1.0],
                 "depth_range_m": [c.near_m, c.far_m], "infinity": c.variant == "radial",
                 "focus_range_m": list(c.focus_range_m) if focus else None,
+                "focus_diopters_range": list(c.focus_diopters_range) if focus else None,
+                "prescribed_focus_diopters": prescribed_focus_diopters(ls.lens) if focus else None,
                 "energy_held": ls.energy_held,
                 "psf_settings": lib.settings.as_dict() | {"focus_distance_m": None},
                 "library_grid": asdict(lib.grid), "psf_algorithm": ALGORITHM_VERSION,
@@ -305,12 +321,24 @@ def _draw_radial_points(rng, n, config: PSFDataConfig, focus: bool):
     depth = np.where(rng.uniform(size=n) < INFINITY_FRACTION, math.inf, 1.0 / dio)
     focus_m = None
     if focus:
-        lo, hi = config.focus_range_m
-        # a few focus values per set (one refocused lens each), uniform in diopters
-        groups = max(1, min(8, n // 16))
-        values = 1.0 / rng.uniform(1.0 / hi, 1.0 / lo, groups)
+        d_lo, d_hi = config.focus_diopters_range
+        # a few focus values per set (one refocused lens each), uniform in
+        # diopters; the first group at the prescribed focus (NaN)
+        groups = max(1, min(8, n // 8))
+        dio_f = rng.uniform(d_lo, d_hi, groups)
+        values = np.where(dio_f > 0, 1.0 / np.where(dio_f > 0, dio_f, 1.0), math.inf)
+        if groups > 1:
+            values[0] = np.nan
         focus_m = values[rng.integers(0, groups, n)]
     return field, depth, focus_m
+
+
+def focus_diopters(lens: Lens, focus_m) -> np.ndarray:
+    """The focus input in diopters: 1 / focus (0 at inf); NaN (the prescribed
+    focus) at the lens's equivalent paraxial focus."""
+    f = np.asarray(focus_m, dtype=np.float64)
+    with np.errstate(divide="ignore"):
+        return np.where(np.isnan(f), prescribed_focus_diopters(lens), 1.0 / f)
 
 
 def _draw_paper_points(rng, n, config: PSFDataConfig):
@@ -357,20 +385,40 @@ def energy_kernel_size(psf: np.ndarray, outside: np.ndarray, energy: float) -> t
 def data_key(config: PSFDataConfig, lenses: list[Lens]) -> str:
     """What decides the samples: the config, each lens's optics, the PSF algorithm."""
     d = {"config": config.as_dict(), "fingerprints": [lens_fingerprint(l) for l in lenses],
-         "psf_algorithm": ALGORITHM_VERSION, "format": 1}
+         "psf_algorithm": ALGORITHM_VERSION, "format": 2}
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()
 
 
-def _open_libraries(lens, config, k, cache_dir, progress):
-    libs = []
-    for f in config.focus_values_m(lens.id):
-        lib = PSFLibrary.open(lens, config.psf_settings(k, f), config.grid, cache_dir=cache_dir,
-                              cache=cache_dir is not False)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", KernelTooSmallWarning)
-            lib.build(progress=progress)
+def _open_library(lens, config, k, focus_m, cache_dir, progress):
+    lib = PSFLibrary.open(lens, config.psf_settings(k, focus_m), config.grid, cache_dir=cache_dir,
+                          cache=cache_dir is not False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", KernelTooSmallWarning)
+        lib.build(progress=progress)
+    return lib
+
+
+def _open_libraries(lens, config, k0, cache_dir, progress, say):
+    """The lens's libraries (one per focus value, the prescribed first) at one
+    kernel size, and that size: k0, or (radial, per-lens k) the size the rays
+    of any of them need, at most ``max_kernel``. A library that needs more
+    than the current size restarts the set at the larger one, so focus bins
+    are built once at the size the prescribed library already showed."""
+    auto = config.variant == "radial" and config.kernel_size is None
+    values = config.focus_values_m(lens.id)
+    k, libs = k0, []
+    while len(libs) < len(values):
+        f = values[len(libs)]
+        lib = _open_library(lens, config, k, f, cache_dir, progress)
+        need = int(lib.kernel_size_needed.max())
+        if auto and need > k and k < (config.max_kernel | 1):
+            k = min(need | 1, config.max_kernel | 1)
+            say(f"{lens.id}: the rays need {need} px" + ("" if f is None else f" (focus {f:g} m)")
+                + f"; libraries (re)built at {k} px")
+            libs = []
+            continue
         libs.append(lib)
-    return libs
+    return libs, k
 
 
 def build_data(config: PSFDataConfig, *, cache_dir=None, points_file=None, lenses: dict | None = None,
@@ -395,14 +443,7 @@ def build_data(config: PSFDataConfig, *, cache_dir=None, points_file=None, lense
         k0 = config.kernel_size or PAPER_KERNEL
         say(f"{lens.id}: PSF library ({config.n_fields} fields x {config.n_depths + 1} depth bins"
             + (f" x {config.focus_bins} focus bins" if lens.id in config.focus_lenses else "") + f", {k0} px)")
-        libs = _open_libraries(lens, config, k0, cache_dir, progress)
-        k_lib = k0
-        if config.variant == "radial" and config.kernel_size is None:
-            need = max(int(l.kernel_size_needed.max()) for l in libs)
-            if need > k0:
-                k_lib = min(need | 1, config.max_kernel | 1)
-                say(f"{lens.id}: the rays need {need} px; library rebuilt at {k_lib} px")
-                libs = _open_libraries(lens, config, k_lib, cache_dir, progress)
+        libs, k_lib = _open_libraries(lens, config, k0, cache_dir, progress, say)
         psf_all = np.concatenate([l.psf.reshape(-1, 3, k_lib, k_lib) for l in libs])
         outside = np.concatenate([l.energy_outside.reshape(-1, 3) for l in libs])
         zero = np.concatenate([l.zero_energy.ravel() for l in libs])
@@ -420,7 +461,7 @@ def build_data(config: PSFDataConfig, *, cache_dir=None, points_file=None, lense
             nf, nd = config.n_fields, config.n_depths + 1
             fields = np.broadcast_to(libs[0].fields[None, None, :], (len(libs), nd, nf))
             dio = np.broadcast_to(libs[0].diopters[None, :, None], (len(libs), nd, nf))
-            fv = np.array([np.nan if f is None else 1.0 / f for f in ls.focus_values_m])
+            fv = focus_diopters(lens, [np.nan if f is None else f for f in ls.focus_values_m])
             fdio = np.broadcast_to(fv[:, None, None], (len(libs), nd, nf))
             x = encode_radial(spec_d, li, fields, dio, fdio if focus and lens.id in config.focus_lenses else None)
             ls.grid_x = x[~zero].astype(np.float32)
@@ -447,7 +488,7 @@ def build_data(config: PSFDataConfig, *, cache_dir=None, points_file=None, lense
                 f, d, fm = _draw_radial_points(rng, n, config, lens.id in config.focus_lenses)
                 psf, ok = trace_points(lens, settings, f, d, fm)
                 x = encode_radial(spec_d, li, f, inverse_depth(d, config.far_m),
-                                  None if fm is None else 1.0 / fm)
+                                  None if fm is None else focus_diopters(lens, fm))
                 y = crop_normalise(psf, k)
                 coords = {"field": f, "depth_m": d, "focus_m": fm}
             else:

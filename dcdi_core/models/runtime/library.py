@@ -215,13 +215,15 @@ def _why_not(olf: OmniLensField, lens, pitch, settings, kernel_size, focus_m, cu
     if diff:
         return "PSF settings differ from the learned ones: " + "; ".join(diff)
     fr = entry.get("focus_range_m")
-    if focus_m is not None:
-        if not fr:
-            return f"focus {focus_m:g} m asked for; {olf.path} learned {lens.id} at its prescribed focus only"
-        if not (fr[0] - 1e-9 <= focus_m <= fr[1] + 1e-9):
-            return f"focus {focus_m:g} m is outside the learned {fr[0]}-{fr[1]} m"
-    elif fr:
-        return f"{olf.path} learned {lens.id} across focus distances; give one"
+    if focus_m is not None and not fr:
+        return f"focus {focus_m:g} m asked for; {olf.path} learned {lens.id} at its prescribed focus only"
+    if fr:
+        try:
+            olf.focus_diopters(lens.id, focus_m)
+        except InputRangeError:
+            if focus_m is None:
+                return f"{olf.path} learned {lens.id} across focus distances but not its prescribed focus; give one"
+            return f"focus {focus_m:g} m is outside the learned {fr[0]:g} m to {fr[1]:g} m"
     return None
 
 

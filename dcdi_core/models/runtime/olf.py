@@ -232,12 +232,46 @@ class OmniLensField:
                                            f">= {near} m (the near limit; beyond {far} m counts as infinity)")
         return inverse_depth(d, far)
 
+    def focus_diopters(self, lens_id: str, focus_m=None) -> np.ndarray | None:
+        """The focus input (diopters) of a lens learned across focus: None
+        gives its prescribed focus (the paraxial focus its sensor position is
+        equivalent to); a distance (m, inf allowed) must lie in the learned
+        range. None for a lens learned at its prescribed focus only (a
+        distance is refused then)."""
+        entry = self.lens_entry(lens_id)
+        f = np.asarray(np.nan if focus_m is None else focus_m, float)
+        return self._focus_diopters(lens_id, entry, focus_m, f)
+
+    def _focus_diopters(self, lens_id, entry, focus_m, f):
+        fr = entry.get("focus_range_m")
+        if fr is None:
+            if focus_m is not None:
+                raise OutsideTrainedRangeError(self.path, "focus_m", focus_m,
+                                               f"none: this OLF learned {lens_id} at its prescribed focus only")
+            return None
+        if focus_m is None:
+            dp = entry.get("prescribed_focus_diopters")
+            if dp is None:         # written before the prescribed focus was learned
+                raise InputRangeError("focus_m", None, f"a focus distance in {fr} m "
+                                                       f"(this OLF learned {lens_id} across focus)")
+            return np.full(f.shape, float(dp))
+        if not (f > 0).all():
+            raise InputRangeError("focus_m", float(f[~(f > 0)].ravel()[0]), "> 0 metres, or inf")
+        d = 1.0 / f
+        d_lo, d_hi = entry.get("focus_diopters_range") or (1.0 / fr[1], 1.0 / fr[0])
+        if d.min() < d_lo - 1e-9 or d.max() > d_hi + 1e-9:
+            bad = float(f.ravel()[np.argmax((d < d_lo - 1e-9) | (d > d_hi + 1e-9))])
+            raise OutsideTrainedRangeError(self.path, "focus_m", bad,
+                                           f"[{fr[0]}, {fr[1]}] m (or None: the prescribed focus)")
+        return d
+
     # ---------------------------------------------------------- PSFs
     def psf(self, lens, field, depth_m, focus_m=None, *, dtype=np.float32) -> np.ndarray:
         """Radial OLF: PSFs (..., 3, k, k) at field radii x depths [x focus
         distances] (broadcast together), kernel rows along the radial direction, as the library's;
-        each channel sums to 1. ``focus_m``: the focus distance, for a lens
-        trained with one (required then, refused otherwise)."""
+        each channel sums to 1. ``focus_m``: the focus distance (m, inf
+        allowed) for a lens trained across focus (None: its prescribed focus;
+        refused for a lens learned at its prescribed focus only)."""
         if self.variant != "radial":
             raise InputRangeError("variant", self.variant, "'radial' for psf(); use patch_psf() for 'paper'")
         li = self.check_lens(lens)
@@ -247,17 +281,7 @@ class OmniLensField:
         shape = field.shape
         self._check_range("field", field, *entry["field_range"])
         dio = self._diopters(entry, depth_m)
-        fdio = None
-        if entry.get("focus_range_m") is not None:
-            if focus_m is None:
-                raise InputRangeError("focus_m", None, f"a focus distance in {entry['focus_range_m']} m "
-                                                       f"(this OLF learned {lens.id} across focus)")
-            lo, hi = entry["focus_range_m"]
-            self._check_range("focus_m", f, lo, hi, " m")
-            fdio = 1.0 / f
-        elif focus_m is not None:
-            raise OutsideTrainedRangeError(self.path, "focus_m", focus_m,
-                                           f"none: this OLF learned {lens.id} at its prescribed focus only")
+        fdio = self._focus_diopters(lens.id, entry, focus_m, f)
         x = encode_radial(self.spec, li, field, dio, fdio)
         k = self.spec["kernel_sizes"][li]
         return self.forward(x, li, dtype).reshape(shape + (3, k, k))
@@ -299,7 +323,8 @@ class OmniLensField:
                 "parameters": int(n_params), "dtype": self.meta.get("dtype"),
                 "weights": self.meta.get("weights"),
                 "lenses": [{k: e.get(k) for k in ("id", "fingerprint", "kernel_size", "pixel_pitch_mm",
-                                                  "field_range", "depth_range_m", "focus_range_m")}
+                                                  "field_range", "depth_range_m", "focus_range_m",
+                                                  "prescribed_focus_diopters")}
                            for e in self.meta["lenses"]],
                 "held_out": self.meta.get("held_out"), "training": self.meta.get("training"),
                 "version": self.meta.get("version"), "dcdi_version": self.meta.get("dcdi_version"),
