@@ -138,18 +138,15 @@ def run_plan(plan) -> np.ndarray:
 
 def _overlap_add(torch, acc, plan, ii, jj, res) -> None:
     """``convolve_fast.overlap_add`` on a torch accumulator."""
+    from .convolve_fast import parity_classes
+
     m, win = plan.m, plan.win
     sc, sr, sx = acc.stride()
-    for pi in (0, 1):
-        for pj in (0, 1):
-            sel = np.flatnonzero((ii % 2 == pi) & (jj % 2 == pj))
-            if not len(sel):
-                continue
-            nu, nv = (plan.grid[0] - pi + 1) // 2, (plan.grid[1] - pj + 1) // 2
-            view = acc.as_strided((acc.shape[0], nu, win, nv, win), (sc, 2 * m * sr, sr, 2 * m * sx, sx),
-                                  pi * m * sr + pj * m * sx)
-            uu, vv = torch.from_numpy(ii[sel] // 2), torch.from_numpy(jj[sel] // 2)
-            view[:, uu, :, vv, :] += res[torch.from_numpy(sel)]
+    for pi, pj, sel, (nu, nv) in parity_classes(plan, ii, jj):
+        view = acc.as_strided((acc.shape[0], nu, win, nv, win), (sc, 2 * m * sr, sr, 2 * m * sx, sx),
+                              pi * m * sr + pj * m * sx)
+        uu, vv = torch.from_numpy(ii[sel] // 2), torch.from_numpy(jj[sel] // 2)
+        view[:, uu, :, vv, :] += res[torch.from_numpy(sel)]
 
 
 def _fast_size(n: int) -> int:

@@ -161,20 +161,28 @@ def new_accumulator(plan: Plan) -> np.ndarray:
     return np.zeros(plan.acc_shape, np.float32)
 
 
-def overlap_add(acc: np.ndarray, plan: Plan, ii, jj, res) -> None:
-    """acc[:, i m:i m + win, j m:j m + win] += res[n] for every window: one
-    indexed add per parity class (windows two patches apart are disjoint)."""
-    m, win = plan.m, plan.win
-    sc, sr, sx = acc.strides
+def parity_classes(plan: Plan, ii, jj):
+    """The windows (ii, jj) split by the parity of their patch row and column:
+    yields (pi, pj, sel, (nu, nv)), sel their indices and (nu, nv) the
+    class's grid. Windows two patches apart are disjoint, so each class is
+    added in one indexed add through a strided view of shape (C, nu, win,
+    nv, win) whose patch steps are 2 m (the numpy and torch overlap-adds)."""
     for pi in (0, 1):
         for pj in (0, 1):
             sel = np.flatnonzero((ii % 2 == pi) & (jj % 2 == pj))
-            if not len(sel):
-                continue
-            nu, nv = (plan.grid[0] - pi + 1) // 2, (plan.grid[1] - pj + 1) // 2
-            view = as_strided(acc[:, pi * m:, pj * m:], shape=(acc.shape[0], nu, win, nv, win),
-                              strides=(sc, 2 * m * sr, sr, 2 * m * sx, sx), writeable=True)
-            view[:, ii[sel] // 2, :, jj[sel] // 2, :] += res[sel]
+            if len(sel):
+                yield pi, pj, sel, ((plan.grid[0] - pi + 1) // 2, (plan.grid[1] - pj + 1) // 2)
+
+
+def overlap_add(acc: np.ndarray, plan: Plan, ii, jj, res) -> None:
+    """acc[:, i m:i m + win, j m:j m + win] += res[n] for every window: one
+    indexed add per parity class (``parity_classes``)."""
+    m, win = plan.m, plan.win
+    sc, sr, sx = acc.strides
+    for pi, pj, sel, (nu, nv) in parity_classes(plan, ii, jj):
+        view = as_strided(acc[:, pi * m:, pj * m:], shape=(acc.shape[0], nu, win, nv, win),
+                          strides=(sc, 2 * m * sr, sr, 2 * m * sx, sx), writeable=True)
+        view[:, ii[sel] // 2, :, jj[sel] // 2, :] += res[sel]
 
 
 def result(acc: np.ndarray, plan: Plan) -> np.ndarray:

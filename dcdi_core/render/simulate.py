@@ -444,8 +444,8 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
     whose kernel's half-energy radius is >= c 2^s px is blurred at
     1/2^s of the resolution, s <= ``max_level`` (default
     ``multires.DEFAULT_MAX_LEVEL``), with ``coarse_patch``-px patches
-    there; None: every layer at full resolution (the exact path). Only with
-    convolution 'windows'."""
+    there; None: every layer at full resolution (the exact path). Not with
+    convolution 'lowrank' (its groups are convolved by windows)."""
     s = _bokeh_focus(keep, focus_m, library, settings)
     patch = check_patch(patch)
     from .convolve import METHODS
@@ -541,10 +541,9 @@ def bokeh(image, depth, lens, *, keep: tuple[float, float] | None = None, focus_
         d_layer = np.where(mask[ys, xs], d[ys, xs], np.inf if fill_inv <= 0 else 1.0 / fill_inv)
         level = 0
         if multires is not None:
-            from .psfmap import patch_inverse_depth
-            has = patch_inverse_depth(d_layer, patch, library.grid.far_m)[1]
-            blurred, lv = mr.grouped_blur(layer, d_layer, np.ones_like(mask[ys, xs]), ~has, library, sub, patch,
-                                          multires,
+            every = np.ones(d_layer.shape, bool)         # every pixel has the layer's depth now
+            no_copy = np.zeros((math.ceil(every.shape[0] / patch), math.ceil(every.shape[1] / patch)), bool)
+            blurred, lv = mr.grouped_blur(layer, d_layer, every, no_copy, library, sub, patch, multires,
                                           max_level, coarse_patch, grow, pairs=pairs, table=table,
                                           fft_backend=fft_backend)
             level = int(lv.max())
