@@ -17,7 +17,7 @@ and pyproject.toml are unchanged (a stamp file records their hash).
 
 The demo, the factory benchmark and the render benchmark's Defocus-node
 row start the engine (`dcdi`) and the Blender batch jobs and tools
-(blender_addon/tools/factory.py, defocus_node.py) from here: the engine
+(blender_addon/factory/batch.py, defocus_node.py) from here: the engine
 never starts the Blender layer.
 
 `addon` needs no environment: it zips blender_addon/ (without its tools/
@@ -131,34 +131,37 @@ def cmd_test(py: Path, marker: str) -> int:
     return code
 
 
-# batch jobs and developer tools (they need the repository: scenes/, OpenImageIO, a
-# Blender binary): not part of the add-on, left out of the zip as a whole
-ADDON_EXCLUDE_DIRS = ("tools",)
-# of dcdi_core.models, the add-on bundles the numpy runtime (the bundled
-# Omni-Lens-Field) and what Correct Simulation imports: models.correct and
-# models.pipeline with the modules they import at load time (each imports
-# torch only when it is itself imported: without torch only Correct fails,
-# saying what to install); not the training loops, the OLF's network, the
-# depth networks or the reports
-ADDON_MODELS = ("__init__.py", "errors.py", "runtime/",
-                "correct.py", "pipeline.py", "dacn_export.py", "npz_file.py",
-                "arch/__init__.py", "arch/dacn.py", "arch/dacn_spec.py", "arch/spec.py", "layers/",
-                "data/__init__.py", "data/depth.py", "data/psf_samples.py",
-                "depth/__init__.py", "depth/estimators.py",
-                "train/__init__.py", "train/checkpoint.py", "train/config.py", "train/distributed.py")
-# shipped weights the add-on uses: the Omni-Lens-Field and the DACNs (< 1 MB each)
-ADDON_WEIGHTS = ("olf-", "dacn-")
+# folders of blender_addon/ left out of the zip: the dataset factory (a batch
+# job that needs the repository's scenes/ and runs under `blender --background`)
+# and the developer tools (screenshots, studies)
+ADDON_EXCLUDE_DIRS = ("factory", "tools")
+# folders of dcdi_core/ left out: reports and benches (`dcdi report`, `dcdi bench`)
+ENGINE_EXCLUDE_DIRS = ("experiments",)
 
 
-def _engine_file(p: Path) -> bool:
-    """True for a dcdi_core file the add-on bundles (sources and data; of
-    models/, ADDON_MODELS and the ADDON_WEIGHTS .npz files)."""
-    rel = p.relative_to(ROOT / "dcdi_core").as_posix()
-    if rel.startswith("models/"):
-        part = rel[len("models/"):]
-        if part.startswith("weights/"):
-            return p.suffix == ".npz" and p.name.startswith(ADDON_WEIGHTS)
-        if not any(part == m or (m.endswith("/") and part.startswith(m)) for m in ADDON_MODELS):
+def _registry():
+    """dcdi_core/models/registry.py, loaded by path (standard library only:
+    `addon` runs without the environment)."""
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("_dcdi_registry", ROOT / "dcdi_core/models/registry.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod                # dataclasses looks the module up by name
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _engine_file(p: Path, registry) -> bool:
+    """True for a dcdi_core file the add-on bundles: sources and data outside
+    ENGINE_EXCLUDE_DIRS; of models/, its own modules, the folders the network
+    registry names (the numpy runtime always; a network's package where the
+    add-on runs it) and the shipped weights it marks for the add-on."""
+    rel = p.relative_to(ROOT / "dcdi_core").parts
+    if rel[0] in ENGINE_EXCLUDE_DIRS:
+        return False
+    if rel[0] == "models" and len(rel) > 2:
+        if rel[1] == "weights":
+            return p.suffix == ".npz" and p.name.startswith(registry.addon_weight_prefixes())
+        if rel[1] not in registry.addon_model_folders():
             return False
     return p.suffix in (".py", ".csv", ".md", ".json")
 
@@ -169,9 +172,10 @@ def _addon_files() -> list[tuple[Path, str]]:
         return [(p, prefix + p.relative_to(folder).as_posix()) for p in sorted(folder.rglob("*"))
                 if p.is_file() and "__pycache__" not in p.parts and keep(p)]
     addon = ROOT / "blender_addon"
+    registry = _registry()
     files = tree(addon, "", lambda p: p.relative_to(addon).parts[0] not in ADDON_EXCLUDE_DIRS
                  and p.suffix in (".py", ".toml", ".md"))
-    files += tree(ROOT / "dcdi_core", "dcdi_core/", _engine_file)
+    files += tree(ROOT / "dcdi_core", "dcdi_core/", lambda p: _engine_file(p, registry))
     files += tree(ROOT / "lenses", "lenses/", lambda p: p.suffix in (".toml", ".md"))
     return files
 
@@ -211,11 +215,11 @@ def factory_demo(py: Path, out: Path) -> int:
 
     folder = out / "factory"
     t0 = time.perf_counter()
-    code = subprocess.call([str(py), "-m", "blender_addon.tools.factory", "--recipe", "room", "--count", "1",
+    code = subprocess.call([str(py), "-m", "blender_addon.factory", "--recipe", "room", "--count", "1",
                             "--lens", "mos-s1", "--out", str(folder), "--seed", "0", "--resolution", "240", "320"],
                            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     if code != 0:
-        print(f"  factory sample failed (exit {code}); run `python -m blender_addon.tools.factory ...` to see why")
+        print(f"  factory sample failed (exit {code}); run `python -m blender_addon.factory ...` to see why")
         lines = ["", "## Dataset factory", "", f"the factory sample failed (exit {code})"]
     else:
         preview = f"""
@@ -258,7 +262,7 @@ def bench_factory(py: Path, quick: bool = False) -> int:
 
     h, w, n = (120, 160, 2) if quick else (480, 640, 6)
     with tempfile.TemporaryDirectory() as d:
-        args = [str(py), "-m", "blender_addon.tools.factory", "--recipe", "room", "--lens", "mos-s1",
+        args = [str(py), "-m", "blender_addon.factory", "--recipe", "room", "--lens", "mos-s1",
                 "--out", d, "--seed", "0", "--resolution", str(h), str(w)]
         # one warm-up sample builds (or reads) the PSF library for this pixel pitch
         subprocess.run(args + ["--count", "1"], check=True, capture_output=True, cwd=ROOT)
@@ -301,7 +305,7 @@ def bench_defocus(py: Path, quick: bool = False) -> int:
     """Below `dcdi bench render`: the 6P lens bokeh (dcdi_core, occlusion-aware
     and plain) beside Blender's compositor Defocus node on the same RGB-D,
     each timed and scored against a per-pixel reference of the real lens
-    (dcdi_core.bench_defocus); the node runs in its own process under pip
+    (dcdi_core.experiments.bench_defocus); the node runs in its own process under pip
     bpy (blender_addon/tools/defocus_node.py), which reports its times and
     its peak RSS; the process's whole wall time (Blender's start-up
     included) is measured here."""
@@ -310,7 +314,7 @@ def bench_defocus(py: Path, quick: bool = False) -> int:
     import time
 
     with tempfile.TemporaryDirectory() as d:
-        code = subprocess.call([str(py), "-m", "dcdi_core.bench_defocus", "engine", "--out", d]
+        code = subprocess.call([str(py), "-m", "dcdi_core.experiments.bench_defocus", "engine", "--out", d]
                                + (["--quick"] if quick else []), cwd=ROOT)
         if code != 0:
             return code
@@ -325,7 +329,7 @@ def bench_defocus(py: Path, quick: bool = False) -> int:
             print(f"  the Defocus node failed (exit {node.returncode}): run `python -m "
                   "blender_addon.tools.defocus_node ...` to see why")
             return node.returncode
-        return subprocess.call([str(py), "-m", "dcdi_core.bench_defocus", "score", "--out", d,
+        return subprocess.call([str(py), "-m", "dcdi_core.experiments.bench_defocus", "score", "--out", d,
                                 "--node-process-s", f"{wall:.3f}"], cwd=ROOT)
 
 

@@ -1,6 +1,6 @@
 """Blender side of dcdi: the Lens Bokeh add-on (panel and Apply Lens Bokeh).
 Beside it, in ``tools/`` and not in its zip: the batch jobs and developer
-tools (the dataset factory, ``python -m blender_addon.tools.factory``).
+tools (the dataset factory, ``python -m blender_addon.factory``).
 
 bpy only: it gathers pixels and settings from Blender, calls dcdi_core, and
 puts pixels back; no optics here. Importing this package imports no bpy, so

@@ -266,7 +266,7 @@ def correction_model_path(lens_id: str, given: str = "") -> Path:
             raise BokehInputError(f"correction model {str(p)!r}: no such file (give a DACN exported with "
                                   "`dcdi dacn export` (.npz), or leave it empty for the lens's shipped one)")
         return p
-    pipeline = core("models.pipeline")
+    pipeline = core("pipeline")
     p = pipeline.shipped_model("dacn", lens_id)
     if p is None:
         have = pipeline.shipped_lenses("dacn")
@@ -283,7 +283,7 @@ def load_dacn_cached(path: Path):
     """(model, info) of ``models.correct.load_dacn``, cached by path and
     modification time; a missing torch is reported with the install command."""
     try:
-        correct = core("models.correct")
+        correct = core("models.dacn.correct")
     except core("models").TorchMissingError:
         raise BokehInputError(_torch_message()) from None
     except ImportError as e:                 # a torch that is there but does not import
@@ -309,7 +309,7 @@ def run_correction(image, depth_m, lens_id: str, model_path: Path, *, pixel_pitc
     if progress is not None:
         progress("correcting", 0.5)
     notes, seconds = [], {}
-    out, _, _ = core("models.pipeline").recover(image, camera_pitch_mm=pixel_pitch_mm, depth_m=depth_m,
+    out, _, _ = core("pipeline").recover(image, camera_pitch_mm=pixel_pitch_mm, depth_m=depth_m,
                                                 corrector=model, corrector_info=minfo, seconds=seconds,
                                                 notes=notes)
     trained_for = (minfo.get("meta") or {}).get("lens") or (minfo.get("da2t") or {}).get("lens")

@@ -379,7 +379,7 @@ def _read_rgbd(args):
 def _image_pitch(args):
     """The image's pixel pitch (mm) from --image-pixel-pitch or --pixel-pitch
     (the same thing here: PSFs are sampled at the image's pitch)."""
-    from .optics.errors import InputRangeError
+    from .errors import InputRangeError
     a, b = args.image_pixel_pitch, args.pixel_pitch
     if a is not None and b is not None and a != b:
         raise InputRangeError("--pixel-pitch", b, f"--image-pixel-pitch's {a} mm, or leave one out (the PSFs of "
@@ -393,7 +393,7 @@ def _image_pitch(args):
 def _geometries(args, lens, shape):
     """(sensor geometry, source geometry or None) from --image-pixel-pitch,
     --sensor-size and --axis; checked before any work."""
-    from .optics.errors import InputRangeError
+    from .errors import InputRangeError
     from .render.geometry import ImageGeometry
     from .render.simulate import check_within_sensor
     h, w = shape
@@ -545,7 +545,7 @@ def cmd_bokeh(args) -> int:
 def _dof_networks(args, camera, h, w):
     """(estimator or None, DACN or None, its info, notes) for `dcdi dof`, all
     loaded (and refused, by name) before any work."""
-    from .models.pipeline import shipped_lenses, shipped_model
+    from .pipeline import shipped_lenses, shipped_model
     estimator = corrector = info = None
     if args.depth is None:
         ck = args.depth_checkpoint
@@ -566,7 +566,7 @@ def _dof_networks(args, camera, h, w):
             from .models.errors import ModelError
             raise ModelError(f"no shipped DACN for {camera.id} (shipped: {', '.join(shipped_lenses('dacn')) or 'none'});"
                              " give --dacn MODEL, or --camera none for a sharp image")
-        from .models.correct import load_dacn
+        from .models.dacn.correct import load_dacn
         corrector, info = load_dacn(path)
         trained = (info.get("da2t") or {}).get("lens")
         if trained is not None and trained != camera.id:
@@ -598,7 +598,7 @@ def cmd_dof(args) -> int:
     import torch
     torch.set_num_threads(args.threads)
     estimator, corrector, info = _dof_networks(args, camera, *img.shape[:2])
-    from .models.pipeline import dof
+    from .pipeline import dof
     camera_pitch = ImageGeometry.full_sensor(camera, *img.shape[:2]).pixel_pitch_mm if camera is not None else None
     focus_m = args.focus
     with _quiet_input_warnings():
@@ -615,7 +615,7 @@ def cmd_dof(args) -> int:
         write_image(Path(args.save_intermediates) / "corrected.exr", r.corrected)
         write_depth(Path(args.save_intermediates) / "depth.exr", r.depth_m)
     if args.side_by_side:
-        from .models.evaluate import panel_strip
+        from .models.dacn.evaluate import panel_strip
         from .render.pictures import depth_panel
         write_image(args.side_by_side, panel_strip([img, r.corrected, depth_panel(r.depth_m), r.image]))
     times = ", ".join(f"{k} {v:.2f} s" for k, v in r.seconds.items())
@@ -637,10 +637,10 @@ def _lens_map(items, what: str) -> dict:
 def _report_models(args, lenses, need_dacn: bool = True):
     """{lens: {'dacn', 'depth', 'baseline'}} for the pipeline and depth reports:
     given paths, else the shipped files."""
-    from .models.correct import load_dacn
-    from .models.depth.depthnet_file import load_depthnet
+    from .models.dacn.correct import load_dacn
+    from .models.depth.export import load_depthnet
     from .models.errors import ModelError
-    from .models.pipeline import shipped_model
+    from .pipeline import shipped_model
     dacn, depth, base = (_lens_map(v, w) for v, w in ((args.dacn, "--dacn"), (args.depth_model, "--depth-model"),
                                                        (args.baseline, "--baseline")))
     models = {}
@@ -656,7 +656,7 @@ def _report_models(args, lenses, need_dacn: bool = True):
 
 def cmd_report_pipeline(args) -> int:
     import torch
-    from .models import pipeline_report as pr
+    from .experiments import pipeline_report as pr
     from .optics.lens import load_lens
     torch.set_num_threads(args.threads)
     pairs = _lens_map(args.pairs, "--pairs")
@@ -681,7 +681,7 @@ def cmd_report_depth(args) -> int:
     import json
     import torch
     from .atomic import write_text
-    from .models import pipeline_report as pr
+    from .experiments import pipeline_report as pr
     torch.set_num_threads(args.threads)
     pairs = _lens_map(args.pairs, "--pairs")
     models = _report_models(args, pairs, need_dacn=False)
@@ -698,23 +698,23 @@ def cmd_report_depth(args) -> int:
 
 
 def cmd_report(args) -> int:
-    from .psf.accuracy import run_report
+    from .experiments.psf_accuracy import run_report
     return run_report(args.lens, args.out, quick=args.quick)
 
 
 def cmd_report_sim(args) -> int:
-    from .render.accuracy import run_report
+    from .experiments.simulation_accuracy import run_report
     return run_report(args.lens, args.out, quick=args.quick)
 
 
 def cmd_report_olf(args) -> int:
-    from .models.report import run_report
+    from .experiments.olf_report import run_report
     return run_report(args.olf, args.out, quick=args.quick, sweep=args.sweep, pitch_only=args.pitch_only,
                       held_out_points=args.held_out_points)
 
 
 def cmd_bench(args) -> int:
-    from . import bench
+    from .experiments import bench
     return bench.run(args.what, args)
 
 
@@ -799,8 +799,8 @@ def _run_training(desc: str, run, train_fn, every: int = 0):
 def cmd_olf_train(args) -> int:
     import os
     from pathlib import Path
-    from .models.data.psf_samples import PSFDataConfig
-    from .models.train.config import OLFTrainConfig
+    from .models.olf.data import PSFDataConfig
+    from .models.olf.config import OLFTrainConfig
     data = PSFDataConfig(lenses=tuple(args.lens), variant=args.variant, pupil_samples=args.rays,
                          n_wavelengths=args.wavelengths, n_fields=args.fields, n_depths=args.depths,
                          focus_lenses=tuple(args.focus_lens or ()), focus_range_m=tuple(args.focus_range),
@@ -809,8 +809,8 @@ def cmd_olf_train(args) -> int:
     config = OLFTrainConfig(data=data, size=args.size, iters=args.iters, batch=args.batch, lr=args.lr,
                             seed=args.seed, threads=args.threads or (os.cpu_count() or 1),
                             checkpoint_every=args.checkpoint_every)
-    from .models.export import export_olf               # torch from here on
-    from .models.train.loop import train
+    from .models.olf.export import export_olf               # torch from here on
+    from .models.olf.train import train
     run = Path(args.run or (str(args.output) + ".run"))
     result = _run_training("olf train", run, lambda **kw: train(config, run, device=args.device, **kw),
                            config.checkpoint_every)
@@ -831,7 +831,7 @@ def cmd_olf_train(args) -> int:
 
 
 def cmd_olf_points(args) -> int:
-    from .models.data.psf_samples import PSFDataConfig, build_data
+    from .models.olf.data import PSFDataConfig, build_data
     data = PSFDataConfig(lenses=tuple(args.lens), pupil_samples=args.rays, n_wavelengths=args.wavelengths,
                          n_fields=args.fields, n_depths=args.depths, focus_lenses=tuple(args.focus_lens or ()),
                          focus_range_m=tuple(args.focus_range), focus_bins=args.focus_bins, offgrid=args.offgrid,
@@ -972,8 +972,8 @@ def _shard(text: str):
 
 
 def cmd_dacn_pairs(args) -> int:
-    from .models.data.da2t import DA2TConfig, build_pairs
-    from .models.data.rgbd import open_source
+    from .models.dacn.data import DA2TConfig, build_pairs
+    from .dataset.rgbd import open_source
     source = open_source(args.source, args.kind)
     noise = None if args.no_noise else {"full_well_electrons": args.full_well, "read_noise_electrons": args.read_noise}
     config = DA2TConfig(lens=args.lens, perturb_fraction=args.perturb, noise=noise,
@@ -990,7 +990,7 @@ def cmd_dacn_pairs(args) -> int:
 
 def cmd_train_dacn(args) -> int:
     from pathlib import Path
-    from .models.train.dacn_config import DACNTrainConfig
+    from .models.dacn.config import DACNTrainConfig
     arch = {}
     if args.no_rdicab:
         arch["rdicab"] = False
@@ -1003,7 +1003,7 @@ def cmd_train_dacn(args) -> int:
                              batch=args.batch, crop=args.crop, lr=args.lr, seed=args.seed, threads=args.threads,
                              checkpoint_every=args.checkpoint_every, validate_every=args.validate_every,
                              train_scenes=args.train_scenes)
-    from .models.train.dacn_loop import train_dacn       # torch from here on
+    from .models.dacn.train import train_dacn       # torch from here on
     run = Path(args.output)
     result = _run_training("dacn train", run, lambda **kw: train_dacn(config, run, device=args.device, **kw),
                            config.checkpoint_every)
@@ -1031,14 +1031,14 @@ def cmd_correct(args) -> int:
               file=sys.stderr)
         return 2
     out = check_image_output(args.output)
-    from .models.train.distributed import resolve_device
+    from .models.common.distributed import resolve_device
     resolve_device(args.device)                         # refused before any image is read
-    from .models.data.rgbd import read_any_depth
+    from .dataset.rgbd import read_any_depth
     image = read_image(args.image)
     depth = read_any_depth(args.depth)
     import torch
     torch.set_num_threads(args.threads)
-    from .models.correct import correct, load_dacn
+    from .models.dacn.correct import correct, load_dacn
     model, info = load_dacn(args.model, weights=args.weights, device=args.device)
     trained = (info.get("da2t") or {}).get("lens")
     if args.lens is not None and trained is not None and args.lens != trained:
@@ -1059,11 +1059,11 @@ def cmd_correct(args) -> int:
 
 def cmd_train_depth(args) -> int:
     from pathlib import Path
-    from .models.train.depth_config import DepthTrainConfig
+    from .models.depth.config import DepthTrainConfig
     config = DepthTrainConfig(data=args.data, widths=tuple(args.widths), input=args.input, iters=args.iters,
                               batch=args.batch, crop=args.crop, lr=args.lr, seed=args.seed, threads=args.threads,
                               checkpoint_every=args.checkpoint_every)
-    from .models.train.depth_loop import train_depth
+    from .models.depth.train import train_depth
     run = Path(args.output)
     result = _run_training("depth train", run, lambda **kw: train_depth(config, run, **kw), config.checkpoint_every)
     if result is None:
@@ -1083,7 +1083,7 @@ def _exported(args, meta: dict) -> int:
 
 
 def cmd_depth_export(args) -> int:
-    from .models.depth.depthnet_file import export_depthnet
+    from .models.depth.export import export_depthnet
     return _exported(args, export_depthnet(args.run, args.output, weights=args.weights, dtype=args.dtype))
 
 
@@ -1091,7 +1091,7 @@ def _model_splits(runs: dict) -> list:
     """The recorded splits of the runs among ``runs`` {name: path} (run
     folders and checkpoints beside one; an exported file names its run's)."""
     from pathlib import Path
-    from .models.data.split import Split
+    from .models.common.split import Split
     out = []
     for path in runs.values():
         p = Path(path)
@@ -1120,8 +1120,8 @@ def cmd_eval(args) -> int:
             return 2
     import torch
     torch.set_num_threads(args.threads)
-    from .models.correct import load_dacn
-    from .models.evaluate import evaluate_models, held_out_pairs, markdown_tables, write_pictures
+    from .models.dacn.correct import load_dacn
+    from .models.dacn.evaluate import evaluate_models, held_out_pairs, markdown_tables, write_pictures
     ids, _ = held_out_pairs(args.data, _model_splits(runs))
     models = {name: load_dacn(path, weights=args.weights)[0] for name, path in runs.items()}
     tty = sys.stderr.isatty()
@@ -1131,7 +1131,7 @@ def cmd_eval(args) -> int:
             print(f"\rdcdi eval: pair {done}/{total}", end="" if done < total else "\n", file=sys.stderr)
     lp = None
     if args.lpips:
-        from .models.lpips import load_lpips
+        from .models.common.lpips import load_lpips
         lp = load_lpips(*args.lpips)
     ev, kept = evaluate_models(models, args.data, ids=ids, tile=args.tile, overlap=args.overlap,
                                progress=progress, keep_outputs=args.pictures_count if args.pictures else 0, lpips=lp)
@@ -1149,7 +1149,7 @@ def cmd_eval(args) -> int:
 
 
 def cmd_dacn_export(args) -> int:
-    from .models.dacn_export import export_dacn
+    from .models.dacn.export import export_dacn
     return _exported(args, export_dacn(args.run, args.output, weights=args.weights, dtype=args.dtype))
 
 

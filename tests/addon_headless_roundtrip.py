@@ -40,7 +40,7 @@ scene, cam, cube = build_scene()
 res["install"], _ = install(ZIP)
 ops_mod = sys.modules[f"{MODULE}.operators"]
 logic = sys.modules[f"{MODULE}.logic"]
-pipeline = importlib.import_module(f"{MODULE}.dcdi_core.models.pipeline")
+registry = importlib.import_module(f"{MODULE}.dcdi_core.models.registry")
 s = scene.dcdi_lens_bokeh
 s.lens = LENS
 s.preview_size = 128
@@ -104,23 +104,23 @@ empty, shipped = OUT / "no-weights", OUT / "weights"
 empty.mkdir()
 shipped.mkdir()
 shutil.copy(DACN, shipped / f"dacn-{LENS}.npz")
-real_weights = pipeline.WEIGHTS_DIR
-pipeline.WEIGHTS_DIR = empty
+real_weights = registry.WEIGHTS_DIR
+registry.WEIGHTS_DIR = empty
 res["no_shipped_error"] = error_of(lambda: bpy.ops.dcdi.correct_lens_simulation())
-pipeline.WEIGHTS_DIR = shipped
+registry.WEIGHTS_DIR = shipped
 for run in ("cold", "warm"):
     t = time.perf_counter()
     res[f"correct_{run}"] = sorted(bpy.ops.dcdi.correct_lens_simulation())
     res[f"correct_{run}_s"] = time.perf_counter() - t
 save("Lens Corrected", "rt-corrected")
 res["panel_with_torch"] = draw_panel()
-pipeline.WEIGHTS_DIR = empty
+registry.WEIGHTS_DIR = empty
 s.correction_model = str(DACN)           # a user's own file, no shipped one
 res["correct_model_file"] = sorted(bpy.ops.dcdi.correct_lens_simulation())
 s.correction_model = str(OUT / "missing.npz")
 res["missing_model_error"] = error_of(lambda: bpy.ops.dcdi.correct_lens_simulation())
 s.correction_model = ""
-pipeline.WEIGHTS_DIR = real_weights
+registry.WEIGHTS_DIR = real_weights
 res["round_trip_diff"] = diff(before, state())
 res["new_data"] = {k: v - counts[k] for k, v in data_counts().items() if v != counts[k]}
 res["images_before"], res["images"] = imgs, images()

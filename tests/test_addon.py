@@ -308,15 +308,17 @@ def test_zip_bundles_the_olf_runtime_the_dacn_modules_and_weights_and_no_module_
     assert weights and all(f"dcdi_core/models/weights/{w}" in names for w in weights)
     assert {"dcdi_core/models/__init__.py", "dcdi_core/models/errors.py", "dcdi_core/models/runtime/olf.py",
             "dcdi_core/models/runtime/library.py"} <= set(models)
-    # Correct Simulation's modules: models.correct, models.pipeline and what they import when loaded
-    dacn = {"correct.py", "pipeline.py", "dacn_export.py", "npz_file.py", "arch/dacn.py", "arch/dacn_spec.py",
-            "layers/deform_conv.py", "layers/attention.py", "layers/swin.py", "layers/blocks.py", "data/depth.py",
-            "depth/estimators.py", "train/checkpoint.py", "train/distributed.py"}
-    assert {f"dcdi_core/models/{m}" for m in dacn} <= set(models)
-    # not the training loops, the OLF's network, the depth networks' code and weights, the reports
-    for left_out in ("train/dacn_loop.py", "train/loop.py", "arch/olf.py", "arch/depthnet.py", "depth/depthnet_file.py",
-                     "export.py", "report.py", "evaluate.py", "data/da2t.py", "data/rgbd.py"):
-        assert f"dcdi_core/models/{left_out}" not in names, left_out
+    # whole folders, as the network registry says: the numpy runtime, the DACN's package (Correct
+    # Simulation runs it where torch exists) and the shared machinery it uses; the pipeline
+    from dcdi_core.models.registry import addon_model_folders
+    assert addon_model_folders() == ["runtime", "common", "dacn"]
+    for folder in addon_model_folders():
+        src = {p.relative_to(ROOT).as_posix() for p in (ROOT / "dcdi_core/models" / folder).rglob("*.py")}
+        assert src and src <= names, folder
+    assert "dcdi_core/pipeline.py" in names
+    # not the OLF's training package, the depth network, the reports and benches
+    for left_out in ("dcdi_core/models/olf/", "dcdi_core/models/depth/", "dcdi_core/experiments/"):
+        assert not any(n.startswith(left_out) for n in names), left_out
     assert not any(n.startswith("dcdi_core/models/weights/depth-") for n in names)
     import re
     with zipfile.ZipFile(addon_zip) as z:       # no module-level torch import (require_torch's is inside it)
@@ -447,8 +449,8 @@ ROUND_TRIP_LENS = "mos-s2"          # the lens of test_dacn_train's tiny pairs
 
 
 def test_correction_model_path_names_the_lenses_with_a_network(tmp_path, monkeypatch):
-    import dcdi_core.models.pipeline as pipeline
-    monkeypatch.setattr(pipeline, "WEIGHTS_DIR", tmp_path)
+    import dcdi_core.models.registry as registry
+    monkeypatch.setattr(registry, "WEIGHTS_DIR", tmp_path)
     with pytest.raises(logic.BokehInputError, match="lens '6p': shipped for no lens yet"):
         logic.correction_model_path("6p")
     (tmp_path / "dacn-mos-s1.npz").write_bytes(b"")
@@ -473,9 +475,9 @@ def tiny_dacn(tmp_path_factory):
     pytest.importorskip("torch")
     from test_dacn_train import FAST, Frames, _config
 
-    from dcdi_core.models.dacn_export import export_dacn
-    from dcdi_core.models.data.da2t import DA2TConfig, build_pairs
-    from dcdi_core.models.train.dacn_loop import train_dacn
+    from dcdi_core.models.dacn.export import export_dacn
+    from dcdi_core.models.dacn.data import DA2TConfig, build_pairs
+    from dcdi_core.models.dacn.train import train_dacn
     d = tmp_path_factory.mktemp("tiny-dacn")
     build_pairs(Frames(), d / "pairs", DA2TConfig(lens=ROUND_TRIP_LENS, **FAST))
     train_dacn(_config(d / "pairs", iters=2, checkpoint_every=2), d / "run")
@@ -538,8 +540,8 @@ def test_simulation_is_dcdi_cores_simulate_of_the_render(round_trip):
 
 
 def test_correct_runs_the_shipped_dacn_on_the_simulation_with_its_depth(round_trip, tiny_dacn):
-    from dcdi_core.models.correct import load_dacn
-    from dcdi_core.models.pipeline import recover
+    from dcdi_core.models.dacn.correct import load_dacn
+    from dcdi_core.pipeline import recover
     d = round_trip["dir"]
     r = round_trip
     assert r["correct_warm"] == ["FINISHED"] and r["correct_model_file"] == ["FINISHED"]

@@ -4,11 +4,11 @@ own PSF, and a crop against the same crop of the full frame."""
 import numpy as np
 import pytest
 
-from dcdi_core.optics.errors import InputRangeError
+from dcdi_core.errors import InputRangeError
 from dcdi_core.optics.lens import load_lens
 from dcdi_core.psf.compute import PSFSettings
 from dcdi_core.psf.library import LibraryGrid, PSFLibrary
-from dcdi_core.render.bokeh_reference import crop_reference, pixel_kernels, scatter_reference
+from dcdi_core.experiments.bokeh_reference import crop_reference, pixel_kernels, scatter_reference
 from dcdi_core.render.geometry import ImageGeometry
 
 # the 9-px kernel clips the far blur (each channel renormalised): the identities hold for any kernel
@@ -74,8 +74,8 @@ def test_a_crop_equals_the_same_crop_of_the_full_frame(case):
 def test_gather_form_equals_the_simulation_reports_per_pixel_reference(case):
     # accuracy.per_pixel_reference is an independent gather (its own loop, reflected border):
     # the two agree wherever no tap reaches the border
-    from dcdi_core.render.accuracy import per_pixel_reference
-    from dcdi_core.render.bokeh_reference import per_pixel_references
+    from dcdi_core.experiments.simulation_accuracy import per_pixel_reference
+    from dcdi_core.experiments.bokeh_reference import per_pixel_references
     lib, geom, img, depth = case
     depth = np.where(np.isnan(depth), 2.0, depth)
     scatter, gather = per_pixel_references(img, depth, lib, geom, rows_per_block=3)

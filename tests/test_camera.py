@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from conftest import singlet_dict
-from dcdi_core.optics.errors import InputRangeError
+from dcdi_core.errors import InputRangeError
 from dcdi_core.optics.lens import Lens, load_lens
 from dcdi_core.optics.paraxial import first_order
 from dcdi_core.render.camera import (BLENDER_MIN_SENSOR_MM, PinholeCamera, depth_from_planar_z,
@@ -99,7 +99,7 @@ def test_background_is_infinity_and_invalid_z_stays_invalid():
 
 def test_factory_camera_frames_like_the_double_gauss():
     bpy = pytest.importorskip("bpy")
-    from blender_addon.tools.factory import RenderSettings, setup_render
+    from blender_addon.factory.batch import RenderSettings, setup_render
 
     lens = load_lens("double-gauss")
     bpy.ops.wm.read_factory_settings(use_empty=True)

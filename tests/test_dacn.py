@@ -5,8 +5,8 @@ import pytest
 torch = pytest.importorskip("torch")
 F = torch.nn.functional
 
-from dcdi_core.models.arch.dacn_spec import CONFIGS, DACNSpec, named  # noqa: E402
-from dcdi_core.optics.errors import InputRangeError  # noqa: E402
+from dcdi_core.models.dacn.spec import CONFIGS, DACNSpec, named  # noqa: E402
+from dcdi_core.errors import InputRangeError  # noqa: E402
 
 
 @pytest.fixture(autouse=True)
@@ -15,13 +15,13 @@ def _one_thread():
 
 
 def _model(spec, seed=0):
-    from dcdi_core.models.arch.dacn import DACN
+    from dcdi_core.models.dacn.arch import DACN
     torch.manual_seed(seed)
     return DACN(spec)
 
 
 def _count(spec):
-    from dcdi_core.models.arch.dacn import count_parameters
+    from dcdi_core.models.dacn.arch import count_parameters
     return count_parameters(_model(spec))
 
 

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from dcdi_core.io.images import linear_to_srgb, write_depth, write_image
-from dcdi_core.models.data.depth import encode_depth
-from dcdi_core.models.data.rgbd import (FactoryFolder, Middlebury2014, NYUv2Labeled, RGBDFolder,
+from dcdi_core.models.runtime.depth_encoding import encode_depth
+from dcdi_core.dataset.rgbd import (FactoryFolder, Middlebury2014, NYUv2Labeled, RGBDFolder,
                                         middlebury_depth_m, open_source, read_pfm)
-from dcdi_core.models.data.split import Split, split_by_scene, split_source
+from dcdi_core.models.common.split import Split, split_by_scene, split_source
 from dcdi_core.models.errors import ModelError
 
 
@@ -169,7 +169,7 @@ FAST = dict(pupil_samples=8, n_wavelengths=3, n_fields=6, n_depths=3)
 
 
 def _frame(h=48, w=64, depth=None, fid="f0", scene="s0"):
-    from dcdi_core.models.data.rgbd import RGBDFrame
+    from dcdi_core.dataset.rgbd import RGBDFrame
     rng = np.random.default_rng(7)
     img = np.clip(np.kron(rng.uniform(0.1, 0.9, (h // 4, w // 4, 3)), np.ones((4, 4, 1))), 0, 1).astype(np.float32)
     if depth is None:
@@ -178,7 +178,7 @@ def _frame(h=48, w=64, depth=None, fid="f0", scene="s0"):
 
 
 def test_da2t_degradation_is_seeded_recorded_and_its_baseline_shares_the_frame():
-    from dcdi_core.models.data.da2t import DA2TConfig, degrade
+    from dcdi_core.models.dacn.data import DA2TConfig, degrade
     cfg = DA2TConfig(lens="mos-s2", **FAST)
     a, b = degrade(_frame(), cfg, 0), degrade(_frame(), cfg, 0)
     for k in ("capture", "target", "baseline", "depth"):
@@ -200,7 +200,7 @@ def test_da2t_degradation_is_seeded_recorded_and_its_baseline_shares_the_frame()
 
 
 def test_da2t_saturates_as_a_sensor_does():
-    from dcdi_core.models.data.da2t import DA2TConfig, degrade
+    from dcdi_core.models.dacn.data import DA2TConfig, degrade
     f = _frame()
     f.image[:, 20:30] *= 3.0                                                  # an HDR highlight
     quiet = dict(noise=None, perturb_fraction=0.0, **FAST)
@@ -214,9 +214,9 @@ def test_da2t_saturates_as_a_sensor_does():
 
 
 def test_prebuilt_pairs_resume_and_crops_stay_aligned(tmp_path):
-    from dcdi_core.models.data.da2t import (DA2TConfig, PairCrops, build_pairs, crop_position, load_pair,
+    from dcdi_core.models.dacn.data import (DA2TConfig, PairCrops, build_pairs, crop_position, load_pair,
                                             pair_path)
-    from dcdi_core.models.data.rgbd import RGBDSource
+    from dcdi_core.dataset.rgbd import RGBDSource
 
     class Frames(RGBDSource):
         def __init__(self):
@@ -257,7 +257,7 @@ def test_prebuilt_pairs_resume_and_crops_stay_aligned(tmp_path):
 
 
 def test_a_lens_pool_reuses_a_few_perturbed_lenses():
-    from dcdi_core.models.data.da2t import DA2TConfig, degrade
+    from dcdi_core.models.dacn.data import DA2TConfig, degrade
     cfg = DA2TConfig(lens="mos-s2", lens_pool=2, **FAST)
     sims = {}
     recs = [degrade(_frame(fid=f"f{k}"), cfg, 0, simulators=sims).record for k in range(5)]

@@ -12,8 +12,8 @@ from test_dacn_train import _config, pairs  # noqa: E402,F401  (the module's fix
 
 
 def test_band_scores_pool_squared_error_over_the_band_pixels():
-    from dcdi_core.models.evaluate import BandSums, image_scores
-    from dcdi_core.models.metrics import ssim_map
+    from dcdi_core.models.dacn.evaluate import BandSums, image_scores
+    from dcdi_core.models.common.metrics import ssim_map
     rng = np.random.default_rng(0)
     tgt = rng.uniform(0.2, 0.8, (30, 40, 3))
     out = tgt + rng.normal(0, 0.05, tgt.shape)
@@ -43,12 +43,12 @@ def test_band_scores_pool_squared_error_over_the_band_pixels():
 
 def test_eval_scores_only_held_out_pairs_and_exports_round_trip(pairs, tmp_path, capsys):  # noqa: F811
     from dcdi_core.cli import main
-    from dcdi_core.models.correct import load_dacn
-    from dcdi_core.models.train.dacn_loop import train_dacn
+    from dcdi_core.models.dacn.correct import load_dacn
+    from dcdi_core.models.dacn.train import train_dacn
     train_dacn(_config(pairs, iters=3, checkpoint_every=3), tmp_path / "run")
     split = json.loads((tmp_path / "run" / "split.json").read_text())
     test_ids = sorted(i for i, s in split["ids"].items() if split["scenes"][s] == "test")
-    from dcdi_core.models.lpips import CHANNELS, LPIPS
+    from dcdi_core.models.common.lpips import CHANNELS, LPIPS
     torch.save({f"features.{k}": v for k, v in LPIPS().features.state_dict().items()}, tmp_path / "alex.pth")
     torch.save({f"lin{k}.model.1.weight": torch.rand(1, c, 1, 1) for k, c in enumerate(CHANNELS)}, tmp_path / "l.pth")
     assert main(["eval", str(tmp_path / "run"), "--data", str(pairs), "--compare", f"same={tmp_path / 'run'}",
@@ -77,7 +77,7 @@ def test_eval_scores_only_held_out_pairs_and_exports_round_trip(pairs, tmp_path,
 
 
 def test_train_scenes_takes_a_nested_subset(pairs, tmp_path):  # noqa: F811
-    from dcdi_core.models.train.dacn_loop import open_data
+    from dcdi_core.models.dacn.train import open_data
     full = open_data(_config(pairs))
     one = open_data(_config(pairs, train_scenes=1))
     two = open_data(_config(pairs, train_scenes=2))
@@ -88,7 +88,7 @@ def test_train_scenes_takes_a_nested_subset(pairs, tmp_path):  # noqa: F811
 
 
 def test_study_trains_every_row_at_equal_budget_and_tabulates(pairs, tmp_path):  # noqa: F811
-    from dcdi_core.models.train import dacn_study
+    from dcdi_core.experiments import dacn_study
     assert dacn_study.run_flags("scenes=2") == ["--input", "capture", "--train-scenes", "2"]
     for bad in ("scenes=0", "nothing"):
         with pytest.raises(SystemExit, match="unknown run"):
@@ -116,7 +116,7 @@ def test_bench_dacn_quick(capsys):
 
 
 def test_lpips_from_user_weights_is_zero_on_equal_images_and_refuses_other_files(tmp_path):
-    from dcdi_core.models.lpips import CHANNELS, LPIPS, load_lpips, lpips_score
+    from dcdi_core.models.common.lpips import CHANNELS, LPIPS, load_lpips, lpips_score
     torch.manual_seed(0)
     ref = LPIPS()
     torch.save({f"features.{k}": v for k, v in ref.features.state_dict().items()}, tmp_path / "alex.pth")

@@ -9,7 +9,7 @@ import pytest
 torch = pytest.importorskip("torch")
 F = torch.nn.functional
 
-from dcdi_core.models.layers.deform_conv import (D2CB, ModulatedDeformConv3x3,  # noqa: E402
+from dcdi_core.models.dacn.layers.deform_conv import (D2CB, ModulatedDeformConv3x3,  # noqa: E402
                                                  modulated_deform_conv3x3)
 
 
@@ -99,7 +99,7 @@ def test_deform_conv_module_starts_as_half_a_conv_and_learns_offsets():
 
 # --------------------------------------------------------------- attention
 def test_rdicab_is_image_twice_at_zero_projections_and_depth_steers_it():
-    from dcdi_core.models.layers.attention import RDICAB, heads_dividing
+    from dcdi_core.models.dacn.layers.attention import RDICAB, heads_dividing
     assert [heads_dividing(c, 6) for c in (32, 48, 60, 180, 7)] == [4, 6, 6, 6, 1]
     torch.manual_seed(0)
     m = RDICAB(16, heads=4)
@@ -116,7 +116,7 @@ def test_rdicab_is_image_twice_at_zero_projections_and_depth_steers_it():
 
 
 def test_channel_attention_is_linear_in_pixels_and_normalised():
-    from dcdi_core.models.layers.attention import ChannelCrossAttention
+    from dcdi_core.models.dacn.layers.attention import ChannelCrossAttention
     torch.manual_seed(1)
     a = ChannelCrossAttention(8, heads=2)
     x, y = torch.randn(1, 8, 4, 4), torch.randn(1, 8, 4, 4)
@@ -127,7 +127,7 @@ def test_channel_attention_is_linear_in_pixels_and_normalised():
 # -------------------------------------------------------------------- swin
 def _swinir_mask(h, w, ws, s):
     """The shifted-window mask as SwinIR builds it (three slices per axis)."""
-    from dcdi_core.models.layers.swin import window_partition
+    from dcdi_core.models.dacn.layers.swin import window_partition
     img = torch.zeros(1, h, w, 1)
     cnt = 0
     for hs in (slice(0, -ws), slice(-ws, -s), slice(-s, None)):
@@ -140,7 +140,7 @@ def _swinir_mask(h, w, ws, s):
 
 
 def test_swin_mask_is_swinirs_and_never_lets_a_pixel_attend_to_padding():
-    from dcdi_core.models.layers.swin import attention_mask
+    from dcdi_core.models.dacn.layers.swin import attention_mask
     torch.testing.assert_close(attention_mask(16, 24, 8, 4), _swinir_mask(16, 24, 8, 4))
     assert attention_mask(16, 24, 8, 0) is None
     h, w, ws, s = 6, 11, 4, 2
@@ -149,14 +149,14 @@ def test_swin_mask_is_swinirs_and_never_lets_a_pixel_attend_to_padding():
     src_r = (torch.arange(hp) + s) % hp
     src_c = (torch.arange(wp) + s) % wp
     pad = (src_r[:, None] >= h) | (src_c[None, :] >= w)                  # rolled grid position holds padding
-    from dcdi_core.models.layers.swin import window_partition
+    from dcdi_core.models.dacn.layers.swin import window_partition
     pw = window_partition(pad.view(1, hp, wp, 1).float(), ws).squeeze(-1).bool()     # (windows, n)
     real_to_pad = (~pw)[:, :, None] & pw[:, None, :]
     assert real_to_pad.any() and (m[real_to_pad] == -100.0).all()
 
 
 def test_swin_block_on_a_partial_window_sees_only_its_real_pixels():
-    from dcdi_core.models.layers.swin import SwinBlock
+    from dcdi_core.models.dacn.layers.swin import SwinBlock
     torch.manual_seed(0)
     blk = SwinBlock(12, heads=3, window=4, shift=0)
     x = torch.randn(1, 6, 7, 12)

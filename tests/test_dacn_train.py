@@ -7,7 +7,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from dcdi_core.models.data.rgbd import RGBDFrame, RGBDSource  # noqa: E402
+from dcdi_core.dataset.rgbd import RGBDFrame, RGBDSource  # noqa: E402
 
 FAST = dict(pupil_samples=8, n_wavelengths=3, n_fields=6, n_depths=3)
 ARCH = dict(channels=8, groups=1, blocks=2, window=4)
@@ -33,14 +33,14 @@ class Frames(RGBDSource):
 
 @pytest.fixture(scope="module")
 def pairs(tmp_path_factory):
-    from dcdi_core.models.data.da2t import DA2TConfig, build_pairs
+    from dcdi_core.models.dacn.data import DA2TConfig, build_pairs
     root = tmp_path_factory.mktemp("pairs")
     build_pairs(Frames(), root, DA2TConfig(lens="mos-s2", **FAST))
     return root
 
 
 def _config(data, **kw):
-    from dcdi_core.models.train.dacn_config import DACNTrainConfig
+    from dcdi_core.models.dacn.config import DACNTrainConfig
     base = dict(data=str(data), config="tiny", arch=ARCH, iters=6, batch=2, crop=16, lr=1e-3, val_size=32,
                 checkpoint_every=3, val_fraction=1 / 6, test_fraction=2 / 6, threads=1)
     base.update(kw)
@@ -48,7 +48,7 @@ def _config(data, **kw):
 
 
 def test_kill_and_resume_gives_the_uninterrupted_weights(pairs, tmp_path):
-    from dcdi_core.models.train.dacn_loop import train_dacn
+    from dcdi_core.models.dacn.train import train_dacn
     full = train_dacn(_config(pairs), tmp_path / "full")
 
     class Kill(Exception):
@@ -70,14 +70,14 @@ def test_kill_and_resume_gives_the_uninterrupted_weights(pairs, tmp_path):
     from dcdi_core.models import CheckpointMismatchError
     with pytest.raises(CheckpointMismatchError, match="lr"):
         train_dacn(_config(pairs, lr=5e-4), tmp_path / "full")
-    from dcdi_core.models.train.dacn_config import DACNTrainConfig
+    from dcdi_core.models.dacn.config import DACNTrainConfig
     assert DACNTrainConfig.from_json(_config(pairs).to_json()) == _config(pairs)
     assert [_config(pairs, iters=100).lr_at(s) for s in (0, 49, 50, 80, 95)] == [1e-3, 1e-3, 5e-4, 2.5e-4, 6.25e-5]
 
 
 def test_the_test_split_never_meets_training(pairs, tmp_path, monkeypatch):
-    import dcdi_core.models.data.da2t as da2t
-    from dcdi_core.models.train import dacn_loop
+    import dcdi_core.models.dacn.data as da2t
+    from dcdi_core.models.dacn import train as dacn_loop
     read = []
     real = da2t.load_pair
 
@@ -96,9 +96,9 @@ def test_the_test_split_never_meets_training(pairs, tmp_path, monkeypatch):
 
 
 def test_tiled_correction_equals_the_whole_image_and_leaves_no_seams(pairs, tmp_path):
-    from dcdi_core.models.correct import correct, load_dacn
-    from dcdi_core.models.data.depth import encode_depth
-    from dcdi_core.models.train.dacn_loop import train_dacn
+    from dcdi_core.models.dacn.correct import correct, load_dacn
+    from dcdi_core.models.runtime.depth_encoding import encode_depth
+    from dcdi_core.models.dacn.train import train_dacn
     train_dacn(_config(pairs, iters=3, checkpoint_every=3), tmp_path / "run")
     model, info = load_dacn(tmp_path / "run")
     assert info["step"] == 3 and info["da2t"]["lens"] == "mos-s2"
@@ -117,7 +117,7 @@ def test_tiled_correction_equals_the_whole_image_and_leaves_no_seams(pairs, tmp_
     out = correct(model, img, dep, tile=24, overlap=8, progress=lambda d, t: tiles.append((d, t)))
     assert tiles[-1] == (6, 6) and out.shape == img.shape and np.isfinite(out).all()
     # the cross-fade weights sum to one everywhere: an identity network comes back exactly
-    from dcdi_core.models.arch.dacn import DACN
+    from dcdi_core.models.dacn.arch import DACN
     ident = DACN(model.spec).eval()
     np.testing.assert_allclose(correct(ident, img, dep, tile=24, overlap=8), img, atol=1e-6)
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dcdi_core.optics.errors import InputRangeError
+from dcdi_core.errors import InputRangeError
 from dcdi_core.optics.lens import load_lens
 from dcdi_core.optics.paraxial import first_order, image_distance_mm
 from dcdi_core.render.geometry import ImageGeometry

@@ -14,7 +14,7 @@ from test_dacn_train import pairs  # noqa: E402,F401  (the module's fixture)
 
 
 def _depth_config(data, **kw):
-    from dcdi_core.models.train.depth_config import DepthTrainConfig
+    from dcdi_core.models.depth.config import DepthTrainConfig
     base = dict(data=str(data), widths=(4, 8), iters=6, batch=2, crop=16, checkpoint_every=3,
                 val_fraction=1 / 6, test_fraction=2 / 6)
     base.update(kw)
@@ -22,9 +22,9 @@ def _depth_config(data, **kw):
 
 
 def test_depth_network_resumes_exactly_and_is_served_from_its_file(pairs, tmp_path):  # noqa: F811
-    from dcdi_core.models.depth.depthnet_file import export_depthnet
+    from dcdi_core.models.depth.export import export_depthnet
     from dcdi_core.models.depth.estimators import load_estimator
-    from dcdi_core.models.train.depth_loop import train_depth
+    from dcdi_core.models.depth.train import train_depth
     full = train_depth(_depth_config(pairs), tmp_path / "full")
 
     class Kill(Exception):
@@ -55,10 +55,10 @@ def test_depth_network_overfits_one_pair(tmp_path):
     depth ends within 15 % (AbsRel) of the truth."""
     from test_dacn_train import FAST
 
-    from dcdi_core.models.data.da2t import DA2TConfig, build_pairs, finished_pairs, load_pair, pair_path
-    from dcdi_core.models.data.rgbd import RGBDFrame, RGBDSource
-    from dcdi_core.models.metrics import depth_scores
-    from dcdi_core.models.train.depth_loop import predict_depth, train_depth
+    from dcdi_core.models.dacn.data import DA2TConfig, build_pairs, finished_pairs, load_pair, pair_path
+    from dcdi_core.dataset.rgbd import RGBDFrame, RGBDSource
+    from dcdi_core.models.common.metrics import depth_scores
+    from dcdi_core.models.depth.train import predict_depth, train_depth
 
     class Coloured(RGBDSource):
         def ids(self):
@@ -83,7 +83,7 @@ def test_depth_network_overfits_one_pair(tmp_path):
 
 
 def test_depth_scores_against_direct_formulas():
-    from dcdi_core.models.metrics import depth_scores
+    from dcdi_core.models.common.metrics import depth_scores
     t = np.array([[1.0, 2.0], [4.0, np.inf]])
     p = np.array([[1.1, 2.0], [6.0, 3.0]])
     s = depth_scores(p, t)

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from dcdi_core.optics.analysis import distortion as relative_distortion
-from dcdi_core.optics.errors import InputRangeError, OpticsError
+from dcdi_core.errors import InputRangeError
+from dcdi_core.optics.errors import OpticsError
 from dcdi_core.optics.lens import Lens, load_lens
 from dcdi_core.optics.paraxial import first_order
 from dcdi_core.optics.perturb import perturb_lens

@@ -15,8 +15,8 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from dcdi_core.errors import InputRangeError  # noqa: E402
-from dcdi_core.models.train import distributed  # noqa: E402
-from dcdi_core.models.train.distributed import Context, resolve_device  # noqa: E402
+from dcdi_core.models.common import distributed  # noqa: E402
+from dcdi_core.models.common.distributed import Context, resolve_device  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 # 2 processes against 1: the gradients differ by float rounding (sums in
@@ -70,7 +70,7 @@ def test_commands_refuse_cuda_without_a_gpu_before_any_work(no_cuda, tmp_path, c
     assert main(["correct", "--image", str(tmp_path / "none.exr"), "--depth", str(tmp_path / "none.exr"),
                  "--model", str(run), "-o", str(tmp_path / "out.exr"), "--device", "cuda"]) == 2
     assert "--device = 'cuda'" in capsys.readouterr().err
-    from dcdi_core.models.correct import load_dacn
+    from dcdi_core.models.dacn.correct import load_dacn
     with pytest.raises(InputRangeError, match="--device"):
         load_dacn(tmp_path / "no-such-run", device="cuda")
 
@@ -84,7 +84,7 @@ def test_a_batch_the_processes_cannot_share_equally_is_refused():
 
 
 def test_the_ranks_shares_of_a_batch_partition_it():
-    from dcdi_core.models.train.loop import local_groups
+    from dcdi_core.models.olf.train import local_groups
     rng = np.random.default_rng(0)
     groups = [(li, rng.normal(size=(n, 2)), rng.normal(size=(n, 3)), rng.normal(size=(n, 1)))
               for li, n in ((0, 5), (1, 0), (2, 3))]
@@ -132,7 +132,7 @@ def _final_records(run: Path) -> list:
 
 @pytest.fixture(scope="module")
 def pairs(tmp_path_factory):
-    from dcdi_core.models.data.da2t import DA2TConfig, build_pairs
+    from dcdi_core.models.dacn.data import DA2TConfig, build_pairs
     from test_dacn_train import FAST, Frames
     root = tmp_path_factory.mktemp("pairs")
     build_pairs(Frames(), root, DA2TConfig(lens="mos-s2", **FAST))
@@ -140,8 +140,8 @@ def pairs(tmp_path_factory):
 
 
 def test_two_gloo_processes_train_dacn_as_one_process_with_the_same_global_batch(pairs, tmp_path):
-    from dcdi_core.models.train.dacn_config import DACNTrainConfig
-    from dcdi_core.models.train.dacn_loop import train_dacn
+    from dcdi_core.models.dacn.config import DACNTrainConfig
+    from dcdi_core.models.dacn.train import train_dacn
     ddp = tmp_path / "ddp"
     seconds, out = _torchrun(["train", "dacn", "--data", str(pairs), "--config", "tiny", "--iters", "4",
                               "--batch", "4", "--crop", "16", "--lr", "1e-3", "--channels", "8", "--groups", "1",
@@ -163,9 +163,9 @@ def test_a_run_resumes_across_a_changed_world_size(tmp_path):
     """One process killed after step 4 (checkpoint at 3), resumed by 2
     torchrun processes: it ends where one uninterrupted process does. Two
     lenses: a rank's share of a batch may lack one (its head unused there)."""
-    from dcdi_core.models.data.psf_samples import PSFDataConfig
-    from dcdi_core.models.train.config import OLFTrainConfig
-    from dcdi_core.models.train.loop import train
+    from dcdi_core.models.olf.data import PSFDataConfig
+    from dcdi_core.models.olf.config import OLFTrainConfig
+    from dcdi_core.models.olf.train import train
     torch.set_num_threads(1)
     cache = tmp_path / "cache"
     data = PSFDataConfig(lenses=("mos-s1", "mos-s2"), pupil_samples=16, n_wavelengths=3, n_fields=3, n_depths=2,

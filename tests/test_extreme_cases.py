@@ -7,7 +7,8 @@ from conftest import singlet_dict
 
 from dcdi_core.optics import surfaces as S
 from dcdi_core.optics.analysis import spot_diagram
-from dcdi_core.optics.errors import InputRangeError, LensFileError
+from dcdi_core.errors import InputRangeError
+from dcdi_core.optics.errors import LensFileError
 from dcdi_core.optics.lens import Lens, load_lens
 from dcdi_core.optics.trace import trace
 

@@ -6,7 +6,7 @@ import pytest
 
 bpy = pytest.importorskip("bpy")
 
-from blender_addon.tools import factory  # noqa: E402
+from blender_addon.factory import batch as factory  # noqa: E402
 from dcdi_core.io.images import read_depth, read_image  # noqa: E402
 
 SMALL = ["--resolution", "24", "32", "--cycles-samples", "2", "--psf-rays", "12", "--psf-wavelengths", "3"]

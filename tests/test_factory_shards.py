@@ -11,12 +11,12 @@ from pathlib import Path
 
 import pytest
 
-from blender_addon.tools import merge_shards
-from blender_addon.tools.factory import shard_from_environment
+from blender_addon.factory import merge_shards
+from blender_addon.factory.batch import shard_from_environment
 from dcdi_core.errors import DatasetError, InputRangeError
 
 ROOT = Path(__file__).resolve().parents[1]
-CLUSTER = ROOT / "blender_addon" / "tools" / "cluster"
+CLUSTER = ROOT / "blender_addon" / "factory" / "cluster"
 LENSES = ["mos-s1", "mos-s2"]
 
 
@@ -54,7 +54,7 @@ def test_shard_auto_without_a_usable_array_is_refused_by_name(env, text, says):
 
 def test_the_factory_records_the_resolved_shard(monkeypatch):
     pytest.importorskip("bpy")
-    from blender_addon.tools import factory
+    from blender_addon.factory import batch as factory
     monkeypatch.setenv("JOB_COMPLETION_INDEX", "1")
     monkeypatch.setenv("DCDI_SHARD_COUNT", "3")
     a = factory.check_arguments(factory.parse(["--recipe", "room", "--count", "4", "--out", "x", "--shard", "auto",
@@ -115,7 +115,7 @@ def test_a_complete_set_of_shards_merges_into_one_dataset(tmp_path):
 def test_the_factory_command_runs_the_merge(tmp_path):
     shards = [_shard(tmp_path, i, 2, 3) for i in range(2)]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    p = subprocess.run([sys.executable, "-m", "blender_addon.tools.factory", "merge", *map(str, shards),
+    p = subprocess.run([sys.executable, "-m", "blender_addon.factory", "merge", *map(str, shards),
                         "--count", "3", "--out", str(tmp_path / "m")], cwd=ROOT, env=env, capture_output=True,
                        text=True, timeout=120)
     assert p.returncode == 0, p.stderr
@@ -192,7 +192,7 @@ def test_shards_of_a_real_factory_run_merge_into_the_unsharded_dataset(tmp_path,
     environment), merged: the same files, byte for byte, and the same
     samples as one unsharded run."""
     pytest.importorskip("bpy")
-    from blender_addon.tools import factory
+    from blender_addon.factory import batch as factory
     monkeypatch.setenv("DCDI_CACHE_DIR", str(tmp_path / "psf-cache"))
     small = ["--recipe", "tabletop", "--count", "3", "--lens", "mos-s1", "--seed", "5", "--resolution", "24", "32",
              "--cycles-samples", "2", "--psf-rays", "12", "--psf-wavelengths", "3"]

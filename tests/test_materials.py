@@ -4,7 +4,9 @@ import math
 import numpy as np
 import pytest
 
-from dcdi_core.optics.errors import InputRangeError, UnknownGlassError
+from dcdi_core.errors import InputRangeError
+
+from dcdi_core.optics.errors import UnknownGlassError
 from dcdi_core.optics.materials import (
     AIR,
     LAMBDA_C_NM,

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from dcdi_core.models import metrics as M
-from dcdi_core.optics.errors import InputRangeError
+from dcdi_core.models.common import metrics as M
+from dcdi_core.errors import InputRangeError
 
 skm = pytest.importorskip("skimage.metrics")
 

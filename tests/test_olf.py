@@ -13,8 +13,8 @@ import pytest
 
 from dcdi_core.models import (CheckpointMismatchError, LensMismatchError, ModelFileError,
                               OutsideTrainedRangeError)
-from dcdi_core.models.arch.spec import SIZES, OLFSpec
-from dcdi_core.models.data.psf_samples import PSFDataConfig, energy_kernel_size
+from dcdi_core.models.olf.spec import SIZES, OLFSpec
+from dcdi_core.models.olf.data import PSFDataConfig, energy_kernel_size
 from dcdi_core.models.runtime.olf import OmniLensField, encode_paper, encode_radial
 from dcdi_core.errors import DcdiError, InputRangeError
 from dcdi_core.optics.lens import load_lens
@@ -27,7 +27,7 @@ FAST = dict(pupil_samples=16, n_wavelengths=3, n_fields=3, n_depths=2, offgrid=6
 
 
 def _config(variant="radial", lenses=("mos-s1",), iters=6, **kw):
-    from dcdi_core.models.train.config import OLFTrainConfig
+    from dcdi_core.models.olf.config import OLFTrainConfig
     data = PSFDataConfig(lenses=lenses, variant=variant, **FAST)
     return OLFTrainConfig(data=data, size="tiny", iters=iters, batch=16, lr=3e-3, seed=0, threads=1, **kw)
 
@@ -41,8 +41,8 @@ def cache(tmp_path_factory):
 @pytest.fixture(scope="module")
 def exported(cache, tmp_path_factory):
     """A radial OLF of two lenses (different k) and a paper OLF, briefly trained and exported."""
-    from dcdi_core.models.export import export_olf
-    from dcdi_core.models.train.loop import train
+    from dcdi_core.models.olf.export import export_olf
+    from dcdi_core.models.olf.train import train
     out = {}
     d = tmp_path_factory.mktemp("olf")
     for variant in ("radial", "paper"):
@@ -54,7 +54,7 @@ def exported(cache, tmp_path_factory):
 
 # ------------------------------------------------------------------- spec
 def test_paper_config_has_the_papers_parameter_count():
-    from dcdi_core.models.arch.olf import OLF, count_parameters
+    from dcdi_core.models.olf.arch import OLF, count_parameters
     spec = OLFSpec.sized("paper", ["mos-s1", "mos-s2", "double-gauss", "6p"], [41] * 4, "paper")
     assert spec.trunk_shapes()[:3] == [(4, 512), (512, 2048), (2048, 2048)]
     assert spec.param_count() == 32_368_051                   # 32.4 M, 123.5 MiB in float32
@@ -80,7 +80,7 @@ def test_kernel_size_holds_the_energy():
 
 
 def test_paper_targets_are_the_library_kernels_rotated_to_the_patch(cache):
-    from dcdi_core.models.data.psf_samples import build_data, paper_targets_from_library
+    from dcdi_core.models.olf.data import build_data, paper_targets_from_library
     data = build_data(PSFDataConfig(lenses=("mos-s2",), variant="paper", **FAST), cache_dir=cache)
     ls = data.lenses[0]
     lib = ls.libraries[0]
@@ -215,7 +215,7 @@ def test_runtime_runs_with_torch_blocked(exported):
 import sys
 sys.modules["torch"] = None          # as in Blender's Python: no torch
 import numpy as np
-import dcdi_core.models, dcdi_core.models.metrics, dcdi_core.models.arch.spec
+import dcdi_core.models, dcdi_core.models.common.metrics, dcdi_core.models.olf.spec
 from dcdi_core.models.runtime.olf import OmniLensField
 from dcdi_core.optics.lens import load_lens
 p = OmniLensField.load({str(path)!r}).psf(load_lens("mos-s1"), [0.0, 0.7], 3.0)
@@ -223,7 +223,7 @@ assert p.shape[:2] == (2, 3) and abs(p.sum(axis=(-1, -2)) - 1).max() < 1e-5
 from dcdi_core.cli import main
 assert main(["olf", "info", {str(path)!r}]) == 0
 try:
-    import dcdi_core.models.arch.olf
+    import dcdi_core.models.olf.arch
 except dcdi_core.models.TorchMissingError as e:
     assert "pip install torch==2.13.0" in str(e), e
 else:
@@ -236,15 +236,15 @@ print("ok")
     assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr
     assert "pip install torch==2.13.0" in out.stderr
     # and a plain import of the runtime does not load torch either
-    code = "import sys, dcdi_core.models.runtime.olf, dcdi_core.models.metrics; print('torch' in sys.modules)"
+    code = "import sys, dcdi_core.models.runtime.olf, dcdi_core.models.common.metrics; print('torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
                          env=dict(os.environ, PYTHONPATH=str(ROOT)))
     assert out.stdout.strip() == "False", out.stderr
 
 
 def test_focus_is_an_input_of_the_radial_olf(cache, tmp_path):
-    from dcdi_core.models.export import export_olf
-    from dcdi_core.models.train.loop import train
+    from dcdi_core.models.olf.export import export_olf
+    from dcdi_core.models.olf.train import train
     from dcdi_core.optics.paraxial import prescribed_focus_diopters
     config = _config(iters=2)
     config = replace(config, data=replace(config.data, focus_lenses=("mos-s1",), focus_range_m=(0.8, math.inf),
@@ -290,7 +290,7 @@ def test_focus_is_an_input_of_the_radial_olf(cache, tmp_path):
     assert src.kind == "trace" and "outside the learned 0.8 m to inf m" in src.message
     # the report's comparison re-encodes the held-out coordinates through psf(): the same figures as
     # the file's own (the encoded inputs), per band, so the trainer's and the runtime's encodings agree
-    from dcdi_core.models.report import held_out_comparison
+    from dcdi_core.experiments.olf_report import held_out_comparison
     rows = {r["band"]: r for r in held_out_comparison([tmp_path / "f.npz"], tmp_path / "run" / "points.npz")}
     assert set(rows) == set(bands)
     for band, hb in bands.items():
@@ -298,7 +298,7 @@ def test_focus_is_an_input_of_the_radial_olf(cache, tmp_path):
 
 
 def test_focus_bands_cut_the_diopter_range_in_thirds():
-    from dcdi_core.models.export import focus_bands
+    from dcdi_core.models.olf.export import focus_bands
     got = focus_bands([np.nan, math.inf, 3.0, 1.5, 1.0, 0.7], (0.0, 1 / 0.7))
     assert got.tolist() == ["prescribed", "far", "far", "mid", "near", "near"]
 
@@ -331,7 +331,7 @@ def _state(result):
 
 
 def test_kill_and_resume_ends_where_an_uninterrupted_run_does(cache, tmp_path):
-    from dcdi_core.models.train.loop import train
+    from dcdi_core.models.olf.train import train
     config = _config(iters=6, checkpoint_every=3)
     straight = train(config, tmp_path / "a", cache_dir=cache)
 
@@ -360,7 +360,7 @@ def test_kill_and_resume_ends_where_an_uninterrupted_run_does(cache, tmp_path):
 
 
 def test_resume_with_other_settings_is_refused(cache, tmp_path):
-    from dcdi_core.models.train.loop import train
+    from dcdi_core.models.olf.train import train
     config = _config(iters=2)
     train(config, tmp_path / "run", cache_dir=cache)
     other = replace(config, lr=1e-4, batch=8)
@@ -374,7 +374,7 @@ def test_resume_with_other_settings_is_refused(cache, tmp_path):
 
 
 def test_tiny_olf_overfits_a_handful_of_psfs(cache, tmp_path):
-    from dcdi_core.models.train.loop import train
+    from dcdi_core.models.olf.train import train
     config = _config(iters=300, lr_min=3e-5)
     config = replace(config, data=replace(config.data, offgrid=0))     # the library's 9 PSFs alone
     losses = []
@@ -404,7 +404,7 @@ def test_cli_train_and_info(cache, tmp_path, monkeypatch, capsys):
 
 def test_float16_file_matches_torch_with_its_rounded_weights(exported, tmp_path):
     import copy
-    from dcdi_core.models.export import export_olf
+    from dcdi_core.models.olf.export import export_olf
     result, _ = exported["radial"]
     meta = export_olf(result, tmp_path / "h.npz", dtype="float16")
     olf = OmniLensField.load(tmp_path / "h.npz")

@@ -33,10 +33,10 @@ PITCH = 0.0122          # mm: the pixel pitch of mos-s1 and 6p
 
 @pytest.fixture(scope="module")
 def olf_file(tmp_path_factory):
-    from dcdi_core.models.data.psf_samples import PSFDataConfig
-    from dcdi_core.models.export import export_olf
-    from dcdi_core.models.train.config import OLFTrainConfig
-    from dcdi_core.models.train.loop import train
+    from dcdi_core.models.olf.data import PSFDataConfig
+    from dcdi_core.models.olf.export import export_olf
+    from dcdi_core.models.olf.config import OLFTrainConfig
+    from dcdi_core.models.olf.train import train
     torch.set_num_threads(1)
     d = tmp_path_factory.mktemp("olf-source")
     config = OLFTrainConfig(data=PSFDataConfig(lenses=("mos-s1", "6p"), **FAST), size="tiny", iters=8, batch=16,
@@ -181,10 +181,10 @@ def test_cli_simulate_and_bokeh_served_by_the_olf(cache_env, tmp_path, capsys):
 @pytest.fixture(scope="module")
 def focus_olf_file(olf_file):
     """The olf_file's lenses with the 6P learned across focus (0.7 m to inf, 3 bins, and its prescribed focus)."""
-    from dcdi_core.models.data.psf_samples import PSFDataConfig
-    from dcdi_core.models.export import export_olf
-    from dcdi_core.models.train.config import OLFTrainConfig
-    from dcdi_core.models.train.loop import train
+    from dcdi_core.models.olf.data import PSFDataConfig
+    from dcdi_core.models.olf.export import export_olf
+    from dcdi_core.models.olf.config import OLFTrainConfig
+    from dcdi_core.models.olf.train import train
     path, cache = olf_file
     config = OLFTrainConfig(data=PSFDataConfig(lenses=("mos-s1", "6p"), focus_lenses=("6p",), **FAST), size="tiny",
                             iters=4, batch=16, lr=3e-3, seed=0, threads=1)

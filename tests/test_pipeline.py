@@ -23,11 +23,11 @@ def scene(tmp_path, monkeypatch):
 @pytest.fixture(scope="module")
 def networks(pairs, tmp_path_factory):  # noqa: F811
     """A tiny DACN and depth network of mos-s2 (a few steps), exported as shipped."""
-    from dcdi_core.models.dacn_export import export_dacn
-    from dcdi_core.models.depth.depthnet_file import export_depthnet
-    from dcdi_core.models.train.dacn_loop import train_dacn
-    from dcdi_core.models.train.depth_config import DepthTrainConfig
-    from dcdi_core.models.train.depth_loop import train_depth
+    from dcdi_core.models.dacn.export import export_dacn
+    from dcdi_core.models.depth.export import export_depthnet
+    from dcdi_core.models.dacn.train import train_dacn
+    from dcdi_core.models.depth.config import DepthTrainConfig
+    from dcdi_core.models.depth.train import train_depth
     d = tmp_path_factory.mktemp("nets")
     train_dacn(_config(pairs, iters=2, checkpoint_every=2), d / "dacn")
     train_depth(DepthTrainConfig(data=str(pairs), widths=(4, 8), iters=2, batch=1, crop=16, val_fraction=1 / 6,

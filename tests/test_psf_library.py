@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from dcdi_core.optics.errors import InputRangeError
+from dcdi_core.errors import InputRangeError
 from dcdi_core.optics.lens import load_lens
 from dcdi_core.psf import library as L
 from dcdi_core.psf.compute import PSFSettings, psf

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from dcdi_core.optics.errors import InputRangeError
+from dcdi_core.errors import InputRangeError
 from dcdi_core.optics.lens import load_lens
 from dcdi_core.psf.compute import PSFSettings
 from dcdi_core.psf.library import LibraryGrid, PSFLibrary

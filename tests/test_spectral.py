@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from dcdi_core.optics.errors import InputRangeError
+from dcdi_core.errors import InputRangeError
 from dcdi_core.psf.spectral import (SpectralFileError, SpectralResponse, default_response, load_response,
                                     visible_wavelengths)
 

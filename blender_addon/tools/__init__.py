@@ -2,10 +2,10 @@
 out of the extension zip as a whole by ``build.py``): they need the
 repository (``scenes/``, OpenImageIO, a Blender binary).
 
-- ``factory``: the dataset factory (``python -m blender_addon.tools.factory``
-  or ``blender --background --python blender_addon/tools/factory.py -- ...``);
+- ``factory``: the dataset factory (``python -m blender_addon.factory``
+  or ``blender --background --python blender_addon/factory/batch.py -- ...``);
 - ``merge_shards``: one data set from the factory's shard folders
-  (``python -m blender_addon.tools.factory merge ...``); ``cluster/``: the
+  (``python -m blender_addon.factory merge ...``); ``cluster/``: the
   Slurm array script and Kubernetes indexed Job that make them;
 - ``render_noise``: the render error-against-time table the factory's
   defaults come from;

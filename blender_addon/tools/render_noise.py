@@ -10,7 +10,7 @@ PSNR in dB on linear values clipped to [0, 1]; with several recipes the mean
 of their PSNRs. Times per render: wall seconds and CPU seconds (user +
 system of this process, all render threads: unlike wall time it does not
 grow when other jobs share the machine). Prints a Markdown table; the
-factory's defaults (blender_addon.tools.factory.RenderSettings) are chosen from it.
+factory's defaults (blender_addon.factory.batch.RenderSettings) are chosen from it.
 """
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ import numpy as np
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from blender_addon.tools.factory import RenderSettings, render_rgbd  # noqa: E402
+from blender_addon.factory.batch import RenderSettings, render_rgbd  # noqa: E402
 
 # rows of the full table: (samples, denoise, quality, prefilter, diffuse bounces); None = the default's
 FULL = ([(n, True, "HIGH", "ACCURATE", 2) for n in (4, 8, 16)]

@@ -17,16 +17,16 @@ PY=${PYTHON:-.venv/bin/python}
 mkdir -p "$OUT"
 for spec in "room 100" "tabletop 40" "street 30"; do
   set -- $spec
-  "$PY" -m blender_addon.tools.factory --recipe "$1" --count "$2" --lens mos-s1 --out "$OUT/factory-$1" --seed 0
+  "$PY" -m blender_addon.factory.batch --recipe "$1" --count "$2" --lens mos-s1 --out "$OUT/factory-$1" --seed 0
 done
 for lens in mos-s1 mos-s2; do
   for recipe in room tabletop street; do
     "$PY" -m dcdi_core dacn pairs "$OUT/factory-$recipe" --lens "$lens" -o "$OUT/pairs-$lens" --lens-pool 8 --seed 0
   done
 done
-"$PY" -m dcdi_core.models.train.dacn_study "$OUT/study" --pairs "mos-s1=$OUT/pairs-mos-s1" \
+"$PY" -m dcdi_core.experiments.dacn_study "$OUT/study" --pairs "mos-s1=$OUT/pairs-mos-s1" \
     --pairs "mos-s2=$OUT/pairs-mos-s2" --runs baseline,da2t,dacn --config tiny-rb --iters 2000 --lr 5e-4 --jobs 2
-"$PY" -m dcdi_core.models.train.dacn_study "$OUT/study" --pairs "mos-s2=$OUT/pairs-mos-s2" \
+"$PY" -m dcdi_core.experiments.dacn_study "$OUT/study" --pairs "mos-s2=$OUT/pairs-mos-s2" \
     --runs baseline,da2t,dacn,dacn-diopter,scenes=34,scenes=68 --config tiny-rb --iters 2000 --lr 5e-4 --jobs 2
 # the study scores the raw weights (--weights model, its default): at 2000 iterations the EMA (0.999) still holds
 # 13.5 % of the initial network; the shipped files are the raw weights too

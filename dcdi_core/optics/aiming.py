@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import surfaces as S
-from .errors import InputRangeError
+from ..errors import InputRangeError
 from .lens import Lens
 from .paraxial import first_order
 from .trace import trace

@@ -16,7 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputRangeError, LensFileError, OpticsError, UnknownGlassError
+from ..errors import InputRangeError
+
+from .errors import LensFileError, OpticsError, UnknownGlassError
 from .materials import AIR, get_material
 from .surfaces import Surface
 

@@ -32,7 +32,9 @@ from functools import cached_property
 
 import numpy as np
 
-from .errors import InputRangeError, UnknownGlassError
+from ..errors import InputRangeError
+
+from .errors import UnknownGlassError
 
 __all__ = [
     "Material",

@@ -139,7 +139,7 @@ def refocused_at_diopters(lens: Lens, diopters: float, wavelength_nm: float | No
     the sensor inside the infinity focus, as some prescriptions put it)."""
     from dataclasses import replace
 
-    from .errors import InputRangeError
+    from ..errors import InputRangeError
 
     q = float(image_distance_at_diopters_mm(lens, diopters, wavelength_nm))
     if not (math.isfinite(diopters) and math.isfinite(q) and q > 0):
@@ -155,7 +155,7 @@ def refocused(lens: Lens, focus_distance_m: float, wavelength_nm: float | None =
     object at ``focus_distance_m`` metres (``inf`` allowed) is in paraxial focus."""
     from dataclasses import replace
 
-    from .errors import InputRangeError
+    from ..errors import InputRangeError
 
     if not (focus_distance_m > 0):
         raise InputRangeError("focus_distance_m (--focus)", focus_distance_m, "> 0 metres, or inf")

@@ -18,7 +18,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from .errors import InputRangeError, OpticsError
+from ..errors import InputRangeError
+
+from .errors import OpticsError
 from .lens import Lens
 from .materials import ModelGlass
 

@@ -19,7 +19,8 @@ import numpy as np
 
 from ..optics.aiming import (Aimed, aim_chief, chief_jacobian, chief_ray_sensor_y, launch, pupil_rays,
                              sources, stop_grid)
-from ..optics.errors import InputRangeError, OpticsError
+from ..errors import InputRangeError
+from ..optics.errors import OpticsError
 from ..optics.lens import Lens
 from ..optics.paraxial import refocused
 from ..optics.trace import trace

@@ -28,7 +28,8 @@ import numpy as np
 
 from ..atomic import atomic_path
 from ..optics.aiming import sources
-from ..optics.errors import InputRangeError, OpticsError
+from ..errors import InputRangeError
+from ..optics.errors import OpticsError
 from ..optics.lens import Lens
 from .compute import PSFSettings, compute_sources, focused_lens, pixel_pitch_mm, spectral_samples, warn_if_clipped
 from .spectral import SpectralResponse, default_response

@@ -26,7 +26,7 @@ import math
 
 import numpy as np
 
-from ..optics.errors import InputRangeError
+from ..errors import InputRangeError
 
 # pitches within this relative tolerance are the same (no resampling): the
 # edge of a 129 px kernel moves by less than 0.007 px; a 1280 x 1920 image

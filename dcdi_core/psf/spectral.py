@@ -61,7 +61,9 @@ from importlib import resources
 
 import numpy as np
 
-from ..optics.errors import InputRangeError, OpticsError
+from ..errors import InputRangeError
+
+from ..optics.errors import OpticsError
 
 CHANNELS = ("R", "G", "B")
 COLUMNS = ("wavelength_nm", "r", "g", "b")

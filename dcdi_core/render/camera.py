@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..optics.errors import InputRangeError
+from ..errors import InputRangeError
 from ..optics.paraxial import first_order
 from .geometry import ImageGeometry
 

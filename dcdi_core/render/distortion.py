@@ -26,7 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..optics.aiming import aim_chief, chief_ray_sensor_y, solve_field
-from ..optics.errors import InputRangeError, OpticsError
+from ..errors import InputRangeError
+from ..optics.errors import OpticsError
 from ..optics.paraxial import paraxial_image_height_mm
 from .geometry import ImageGeometry
 from .resample import METHODS, sample

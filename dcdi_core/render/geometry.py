@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..optics.errors import InputRangeError
+from ..errors import InputRangeError
 
 
 def _size(name, v) -> int:

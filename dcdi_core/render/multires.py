@@ -43,7 +43,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..optics.errors import InputRangeError
+from ..errors import InputRangeError
 from ..psf.pitch import area_resample, resampled_size
 from .convolve import patch_convolve
 from .psfmap import psf_map, support_radius

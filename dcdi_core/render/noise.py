@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from ..optics.errors import InputRangeError
+from ..errors import InputRangeError
 
 
 def _number(name, v, *, lo, lo_open, unit):

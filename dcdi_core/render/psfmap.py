@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..optics.errors import InputRangeError
+from ..errors import InputRangeError
 from .convolve import rings_needed
 
 

@@ -41,7 +41,7 @@ import math
 
 import numpy as np
 
-from ..optics.errors import InputRangeError
+from ..errors import InputRangeError
 
 METHODS = ("nearest", "linear", "keys", "lanczos3", "bspline")
 

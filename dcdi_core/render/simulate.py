@@ -25,7 +25,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..optics.errors import InputRangeError
+from ..errors import InputRangeError
 from ..psf.compute import KernelTooSmallWarning, PSFSettings
 from ..psf.library import LibraryGrid, PSFLibrary
 from .convolve import patch_convolve

@@ -41,7 +41,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..optics.errors import InputRangeError
+from ..errors import InputRangeError
 from ..optics.paraxial import first_order
 from .camera import BLENDER_BACKGROUND_Z, BLENDER_MIN_FOCAL_LENGTH_MM, BLENDER_MIN_SENSOR_MM
 from .geometry import ImageGeometry

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ...optics.errors import InputRangeError
+from ...errors import InputRangeError
 from ..errors import ModelError, ModelFileError
 
 BACKENDS = ("dcdi", "unidepth", "depth-anything-v2", "depth-pro")
@@ -121,11 +121,11 @@ class DCDIDepth(DepthEstimator):
         from .. import require_torch
         torch = require_torch()
         torch.set_num_threads(threads)
-        from .depthnet_file import load_depthnet
+        from .export import load_depthnet
         self.model, self.info = load_depthnet(_existing(path, self.name))
 
     def _estimate(self, img):
-        from ..train.depth_loop import predict_depth
+        from .train import predict_depth
         return predict_depth(self.model, img)
 
 

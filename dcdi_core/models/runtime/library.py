@@ -28,14 +28,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ...optics.errors import InputRangeError
+from ...errors import InputRangeError
 from ...psf.compute import PSFSettings
 from ...psf.library import LibraryGrid, PSFLibrary
 from ...psf.pitch import area_resample, check_downsampling, resampled_size, same_pitch
 from ..errors import LensMismatchError, ModelError
+from ..registry import NETWORKS, WEIGHTS_DIR
 from .olf import OmniLensField
 
-WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights"
 SHIPPED = WEIGHTS_DIR / "olf-radial.npz"
 SOURCES = ("olf", "trace")
 
@@ -43,7 +43,7 @@ SOURCES = ("olf", "trace")
 def shipped_olf_files() -> list[Path]:
     """The OLF files that ship with the engine (``dcdi_core/models/weights/olf-*.npz``;
     the folder also holds the DACN and depth networks)."""
-    return sorted(WEIGHTS_DIR.glob("olf-*.npz")) if WEIGHTS_DIR.is_dir() else []
+    return NETWORKS["olf"].shipped_files()
 
 
 class OLFLibrary(PSFLibrary):

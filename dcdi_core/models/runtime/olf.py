@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import LensMismatchError, ModelFileError, OutsideTrainedRangeError
-from ...optics.errors import InputRangeError
+from ...errors import InputRangeError
 
 FORMAT = "dcdi-olf"
 FORMAT_VERSION = 1

@@ -1,0 +1,743 @@
+"""The dataset factory: seeded scenes rendered all-in-focus with metric depth,
+then passed through the depth-aware simulation of each requested lens.
+
+    blender --background --python blender_addon/factory/batch.py -- --recipe room --count 10 \\
+        --lens mos-s1 --out DIR --seed 0 [--shard I/N]
+    python -m blender_addon.factory --recipe room --count 10 --lens mos-s1 --out DIR --seed 0
+
+Layout of DIR (paired folders share file names, so paired-folder loaders
+read them directly):
+
+    dataset.json                  the run's settings (compared on every resume: a mismatch is refused)
+    manifest.jsonl                one JSON line per finished sample
+    aif/<id>.exr                  all-in-focus render, linear RGB float32
+    depth/<id>.exr                planar depth in metres from the lens's first vertex ("Z"; background = inf)
+    <lens>/aberrated/<id>.exr     depth-aware simulation (with the lens's distortion)
+    <lens>/baseline/<id>.exr      depth-unaware baseline (one depth for the whole image)
+    <lens>/sharp/<id>.exr         the all-in-focus image distorted like the others (the aligned target)
+
+<id> is <recipe>-<index, 6 digits>. A sample counts only once its manifest
+line is written; every file is written to a temporary name and renamed, so a
+killed run restarted with the same arguments finishes the missing samples
+and leaves no partial file (a torn manifest line and stale temporaries are
+repaired and removed on resume); restarted with other settings it is
+refused, naming them. ``--shard I/N`` takes the indices i with
+i % N == I, so any job runner can split the work; ``--shard auto`` takes I
+and N from a job array (``shard_from_environment``: Slurm's
+SLURM_ARRAY_TASK_ID and SLURM_ARRAY_TASK_COUNT, or a Kubernetes indexed
+Job's JOB_COMPLETION_INDEX with N from ``--shard auto/N`` or
+DCDI_SHARD_COUNT). After the array, one folder per shard becomes one data
+set with
+
+    python -m blender_addon.factory merge SHARD_DIR... --count N --out DIR
+
+(``merge_shards``: refuses shards of other settings, an index doubled,
+missing or out of range).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+# Checked before anything else so that an unsuitable Blender fails with a
+# message, not with a traceback from deep inside the scene code.
+MIN_BLENDER = (5, 0, 0)
+
+
+def check_blender() -> None:
+    """Refuse a Blender older than MIN_BLENDER (its scene API differs: materials
+    without node trees, no image_settings.media_type, no OIDN quality) or one
+    whose Python lacks numpy."""
+    try:
+        import bpy
+    except ImportError:
+        raise SystemExit("factory: no bpy module: run it with Blender (blender --background --python "
+                         "blender_addon/factory/batch.py -- ...) or install the pip bpy module (see requirements.txt)")
+    v = tuple(bpy.app.version)
+    if v < MIN_BLENDER:
+        raise SystemExit(f"factory: Blender {bpy.app.version_string} is too old: the factory needs Blender "
+                         f">= {'.'.join(map(str, MIN_BLENDER))} (Blender 5 from blender.org, or the pip bpy module "
+                         "of requirements.txt)")
+    try:
+        import numpy  # noqa: F401
+    except ImportError:
+        raise SystemExit(f"factory: this Blender's Python ({sys.executable}, {sys.version.split()[0]}) has no "
+                         "numpy; Blender from blender.org bundles it, a distribution's blender uses the "
+                         "system python3 (install its numpy package)")
+
+
+if __name__ == "__main__" and sys.argv[1:2] != ["merge"]:      # the merge needs no Blender
+    check_blender()
+
+import numpy as np  # noqa: E402
+
+if __package__ in (None, ""):          # run as a file by `blender --python`
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+def sample_seed(seed: int, index: int) -> int:
+    """A well-mixed 31-bit seed per sample (same seed, same scene)."""
+    return int(np.random.SeedSequence([seed, index]).generate_state(1)[0] & 0x7FFFFFFF)
+
+
+def parse(argv):
+    p = argparse.ArgumentParser(prog="factory", description=__doc__.split("\n\n")[0])
+    p.add_argument("--recipe", required=True, help="scene recipe: room, tabletop, street (or plane)")
+    p.add_argument("--count", type=int, required=True, metavar="N",
+                   help="images in the whole dataset: indices 0 .. N-1 over all shards (a resume may raise it)")
+    p.add_argument("--lens", action="append", default=[], help="lens id or .toml path (repeat for several; "
+                                                               "default mos-s1); the first one's camera renders")
+    p.add_argument("--out", required=True, help="output folder (created; a resume must use the same settings)")
+    p.add_argument("--add-lens", action="store_true",
+                   help="resume a folder with more --lens than it holds (listed after its own, which stay in "
+                        "their order): the new lenses are simulated on its finished samples too")
+    p.add_argument("--seed", type=int, default=0, help="dataset seed")
+    p.add_argument("--shard", default="0/1",
+                   help="I/N: this job's share of the indices (i %% N == I); auto: I and N from the job array "
+                        "(SLURM_ARRAY_TASK_ID/SLURM_ARRAY_TASK_COUNT, or JOB_COMPLETION_INDEX with auto/N or "
+                        "DCDI_SHARD_COUNT)")
+    p.add_argument("--resolution", type=int, nargs=2, default=[480, 640], metavar=("H", "W"),
+                   help="image rows and columns (default 480 640)")
+    p.add_argument("--samples", dest="samples", type=int, default=argparse.SUPPRESS,
+                   help=argparse.SUPPRESS)              # the former name of --cycles-samples
+    p.add_argument("--cycles-samples", dest="samples", type=int, default=8, metavar="SPP",
+                   help="Cycles render samples per pixel, denoised (not images: see --count; default 8: 45.5 dB "
+                        "against 256 samples; 12: 46.7 dB for 30 %% more time; see python -m "
+                        "blender_addon.tools.render_noise)")
+    p.add_argument("--no-denoise", action="store_true", help="switch the denoiser off")
+    p.add_argument("--denoise-quality", default=RenderSettings.denoising_quality, choices=["HIGH", "BALANCED", "FAST"],
+                   help="Open Image Denoise quality (see python -m blender_addon.tools.render_noise)")
+    p.add_argument("--denoise-prefilter", default=RenderSettings.denoising_prefilter,
+                   choices=["NONE", "FAST", "ACCURATE"], help="prefilter of the denoiser's albedo and normal guides")
+    p.add_argument("--diffuse-bounces", type=int, default=RenderSettings.diffuse_bounces,
+                   help="diffuse light-path bounces (>= 0)")
+    p.add_argument("--baseline-depth", type=float, default=2.0, help="depth of the depth-unaware baseline, m")
+    p.add_argument("--psf-rays", type=int, default=None, help="PSF pupil grid (default: the library default)")
+    p.add_argument("--psf-wavelengths", type=int, default=None, help="PSF wavelengths (default: the library default)")
+    return p.parse_args(argv)
+
+
+MAX_RESOLUTION = 65536          # Blender's own limits: 4 .. 65536 pixels a side
+MIN_RESOLUTION = 4
+
+
+def check_arguments(a):
+    """Everything checked before the output folder is touched; raises a
+    DcdiError naming the option and what is allowed. Sets a.shard_index,
+    a.shard_count, a.render, a.lenses, a.psf_settings."""
+    from dcdi_core.errors import InputRangeError
+    from dcdi_core.optics.lens import load_lens
+    from dcdi_core.psf.compute import PSFSettings, check_psf_memory
+    from scenes.recipes import RECIPES
+
+    if a.recipe not in RECIPES:
+        raise InputRangeError("--recipe", a.recipe, ", ".join(RECIPES))
+    if a.shard.strip().lower().startswith("auto"):
+        a.shard = "{}/{}".format(*shard_from_environment(a.shard))      # recorded as resolved
+    try:
+        i, n = (int(v) for v in a.shard.split("/"))
+        if not 0 <= i < n:
+            raise ValueError
+    except ValueError:
+        raise InputRangeError("--shard", a.shard, "I/N with 0 <= I < N (integers)") from None
+    a.shard_index, a.shard_count = i, n
+    if a.count < 0:
+        raise InputRangeError("--count", a.count, "an integer >= 0 (images in the dataset)")
+    h, w = a.resolution
+    if not (MIN_RESOLUTION <= h <= MAX_RESOLUTION and MIN_RESOLUTION <= w <= MAX_RESOLUTION):
+        raise InputRangeError("--resolution", f"{h} {w}",
+                              f"rows and columns from {MIN_RESOLUTION} to {MAX_RESOLUTION} pixels")
+    if not (a.baseline_depth > 0):
+        raise InputRangeError("--baseline-depth", a.baseline_depth, "> 0 metres, or inf")
+    for name, v in (("--psf-rays", a.psf_rays), ("--psf-wavelengths", a.psf_wavelengths)):
+        if v is not None and v < 1:
+            raise InputRangeError(name, v, "an integer >= 1")
+    try:
+        a.render = RenderSettings(samples=a.samples, denoise=not a.no_denoise, denoising_quality=a.denoise_quality,
+                                  denoising_prefilter=a.denoise_prefilter, diffuse_bounces=a.diffuse_bounces)
+    except ValueError as e:
+        raise InputRangeError("--cycles-samples" if "samples" in str(e) else "--diffuse-bounces", None, str(e)) \
+            from None
+    a.lenses = [load_lens(x) for x in (a.lens or ["mos-s1"])]
+    ids = [lens.id for lens in a.lenses]
+    if len(set(ids)) != len(ids):
+        raise InputRangeError("--lens", " ".join(ids), "each lens once (their files share a folder name)")
+    base = PSFSettings()
+    a.psf_settings = PSFSettings(pupil_samples=a.psf_rays or base.pupil_samples,
+                                 n_wavelengths=a.psf_wavelengths or base.n_wavelengths)
+    # per lens: a library of every bin (as the depth maps of a dataset reach them all) at the
+    # settings' kernel, and the PSF map of one image (the baseline's, kept for the run)
+    from dcdi_core.psf.library import LibraryGrid
+    g = LibraryGrid()
+    n_psf = g.n_fields * (g.n_depths + 1)
+    patches = -(-h // 16) * -(-w // 16)
+    check_psf_memory(a.psf_settings, n_psf, library_psfs=n_psf * len(a.lenses), map_kernels=2 * patches)
+    return a
+
+
+def shard_from_environment(text: str = "auto", env=None) -> tuple[int, int]:
+    """(I, N) of ``--shard auto`` (or ``auto/N``) from a job array: Slurm
+    (SLURM_ARRAY_TASK_ID, its MIN, STEP and COUNT: I is the task's position
+    in the array, which must be evenly spaced, N the task count), else a
+    Kubernetes indexed Job (JOB_COMPLETION_INDEX; N from ``auto/N``, else
+    DCDI_SHARD_COUNT, which the Job sets to its ``completions``). Refused
+    (InputRangeError naming --shard) when neither is there or they disagree."""
+    from dcdi_core.errors import InputRangeError
+    env = os.environ if env is None else env
+    head, _, given = text.strip().lower().partition("/")
+    if head != "auto" or (given and not given.isdigit()):
+        raise InputRangeError("--shard", text, "I/N, auto or auto/N")
+    n_given = int(given) if given else None
+
+    def number(name, default=None):
+        v = env.get(name, default)
+        try:
+            return int(v)
+        except (TypeError, ValueError):
+            raise InputRangeError(f"--shard {text}: environment variable {name}", v, "an integer") from None
+
+    if env.get("SLURM_ARRAY_TASK_ID"):
+        i, lo, step = number("SLURM_ARRAY_TASK_ID"), number("SLURM_ARRAY_TASK_MIN", 0), \
+            number("SLURM_ARRAY_TASK_STEP", 1)
+        n, hi = number("SLURM_ARRAY_TASK_COUNT"), number("SLURM_ARRAY_TASK_MAX")
+        if step < 1 or (i - lo) % step or hi != lo + (n - 1) * step:
+            raise InputRangeError("--shard auto", f"Slurm array {lo}-{hi}:{step} of {n} tasks",
+                                  "an evenly spaced array (e.g. --array=0-7): each task's position is its shard")
+        i = (i - lo) // step
+    elif env.get("JOB_COMPLETION_INDEX"):
+        i = number("JOB_COMPLETION_INDEX")
+        n = n_given if n_given is not None else number("DCDI_SHARD_COUNT") if env.get("DCDI_SHARD_COUNT") else None
+        if n is None:
+            raise InputRangeError("--shard auto (JOB_COMPLETION_INDEX set)", None,
+                                  "the shard count: --shard auto/N or DCDI_SHARD_COUNT=N (the Job's completions)")
+    else:
+        raise InputRangeError("--shard auto", None, "a job array's environment (SLURM_ARRAY_TASK_ID and "
+                                                    "SLURM_ARRAY_TASK_COUNT, or JOB_COMPLETION_INDEX), or --shard I/N")
+    if n_given is not None and n_given != n:
+        raise InputRangeError("--shard", text, f"auto or auto/{n}: the job array has {n} tasks")
+    if not 0 <= i < n:
+        raise InputRangeError("--shard auto", f"{i}/{n}", "0 <= I < N (the job array's index and count)")
+    return i, n
+
+
+# ------------------------------------------------------------------ the folder: settings, manifest, temporaries
+SETTINGS_FILE = "dataset.json"
+MANIFEST = "manifest.jsonl"
+SETTINGS_FORMAT = 1
+# each recorded setting and the option that sets it (for the refusal's message)
+OPTION_OF = {"recipe": "--recipe", "seed": "--seed", "shard": "--shard", "resolution": "--resolution",
+             "lenses": "--lens", "baseline_depth_m": "--baseline-depth",
+             "render.samples": "--cycles-samples", "render.denoise": "--no-denoise",
+             "render.denoising_quality": "--denoise-quality", "render.denoising_prefilter": "--denoise-prefilter",
+             "render.diffuse_bounces": "--diffuse-bounces",
+             "psf_settings.pupil_samples": "--psf-rays", "psf_settings.n_wavelengths": "--psf-wavelengths"}
+
+
+def run_settings(a) -> dict:
+    """What defines the samples of this folder (the count may grow; all else
+    must stay): recorded before the first sample, compared on every resume."""
+    from dcdi_core.psf.library import lens_fingerprint
+    return {"format": SETTINGS_FORMAT, "recipe": a.recipe, "seed": a.seed, "shard": a.shard,
+            "resolution": list(a.resolution), "lenses": [lens.id for lens in a.lenses],
+            "lens_fingerprints": {lens.id: lens_fingerprint(lens) for lens in a.lenses},
+            "baseline_depth_m": a.baseline_depth, "render": a.render.as_dict(),
+            "psf_settings": a.psf_settings.as_dict()}
+
+
+def _flat(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict) and k != "lens_fingerprints":
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[prefix + k] = v
+    return out
+
+
+def settings_from_manifest(record: dict) -> dict:
+    """The settings a folder made before dataset.json existed was made with,
+    as far as its first manifest record tells them."""
+    render = {k: v for k, v in record.get("render", {}).items() if k not in ("engine", "device", "seconds")}
+    out = {"recipe": record.get("recipe"), "seed": record.get("dataset_seed"),
+           "resolution": record.get("resolution"), "lenses": list(record.get("lenses", {})),
+           "render": render, "psf_settings": record.get("psf_settings", {})}
+    base = [v.get("baseline_depth_m") for v in record.get("lenses", {}).values() if isinstance(v, dict)]
+    if base and base[0] is not None:
+        out["baseline_depth_m"] = base[0]
+    return {k: v for k, v in out.items() if v is not None}
+
+
+def settings_differences(have: dict, want: dict) -> list[str]:
+    """'--option: folder X, this run Y' for every recorded setting that differs
+    (settings the folder does not record are not compared)."""
+    a, b = _flat(have), _flat(want)
+    diffs = []
+    for key in sorted(set(a) & set(b)):
+        if key == "format" or a[key] == b[key]:
+            continue
+        if key == "lens_fingerprints":
+            changed = sorted(x for x in set(a[key]) & set(b[key]) if a[key][x] != b[key][x])
+            if changed:
+                diffs.append(f"the lens file of {', '.join(changed)} (its optics changed since the folder was made)")
+            continue
+        name = OPTION_OF.get(key, f"{key.replace('.', ' ').replace('_', ' ')} (not an option: another version "
+                                  "of the factory or of dcdi_core)")
+        show = (lambda v: " ".join(v) if key == "lenses" else " ".join(map(str, v)) if isinstance(v, list) else v)
+        diffs.append(f"{name}: the folder {show(a[key])}, this run {show(b[key])}")
+    return diffs
+
+
+def read_manifest(manifest: Path, *, repair: bool = False) -> tuple[list[dict], list[str]]:
+    """(records, notes): the complete records of ``manifest``. A record torn
+    by a kill while it was appended (invalid JSON, or no newline at the end)
+    does not count; with ``repair`` the file is rewritten without it (and a
+    complete record glued to a torn one is kept), atomically, and ``notes``
+    says what was dropped."""
+    if not manifest.exists():
+        return [], []
+    raw = manifest.read_bytes()
+    text = raw.decode("utf-8", errors="replace")
+    lines = text.split("\n")
+    records, notes, clean = [], [], True
+    for n, line in enumerate(lines):
+        if not line.strip():
+            continue
+        rec = _record(line)
+        if n == len(lines) - 1:               # no newline after it: written, or torn, by a killed run
+            clean = False
+            if rec is None:
+                notes.append(f"dropped a torn last record ({len(line)} bytes): its sample is done again")
+                continue
+        elif rec is None:                     # a torn record, perhaps with the next one glued to it
+            clean = False
+            at = line.rfind('{"id": ')
+            rec = _record(line[at:]) if at > 0 else None
+            if rec is None:
+                notes.append(f"dropped a torn record at line {n + 1}: its sample is done again")
+                continue
+            notes.append(f"dropped a torn record at line {n + 1}, kept {rec['id']} glued to it")
+        records.append(rec)
+    if repair and not clean:
+        from dcdi_core.atomic import write_text
+        write_text(manifest, "".join(json.dumps(r) + "\n" for r in records))
+    return records, notes
+
+
+def _record(line: str):
+    try:
+        rec = json.loads(line)
+    except ValueError:
+        return None
+    return rec if isinstance(rec, dict) and isinstance(rec.get("id"), str) else None
+
+
+def finished_ids(manifest: Path) -> set[str]:
+    """Ids whose manifest line is complete (a torn line does not count)."""
+    return {r["id"] for r in read_manifest(manifest)[0]}
+
+
+def remove_stale_files(out: Path) -> list[Path]:
+    """This run's own leftovers of a killed run: the hidden temporaries of
+    atomic writes (.<name>.<random>.tmp<ext>, dcdi_core.atomic) and Blender's
+    hand-over renders (.<id>.render.exr). Only called with the folder's lock
+    held, so no live run's temporaries are touched."""
+    import re
+
+    from dcdi_core.atomic import remove_stale_temporaries
+    gone = remove_stale_temporaries(out)
+    form = re.compile(r"^\.[a-z]+-\d{6}\.render\.exr$")
+    for p in out.glob(".*.render.exr"):
+        if form.match(p.name):
+            try:
+                p.unlink()
+                gone.append(p)
+            except OSError:
+                pass
+    return gone
+
+
+class _FolderLock:
+    def __init__(self, fd):
+        self.fd = fd
+
+    def close(self):
+        os.close(self.fd)
+
+
+def _lock(out: Path):
+    """An exclusive lock on the folder itself (flock on its descriptor: no
+    lock file) for this run: another factory writing into it is refused.
+    None where the platform has no fcntl (Windows)."""
+    from dcdi_core.errors import DatasetError
+    try:
+        import fcntl
+    except ImportError:
+        return None
+    fd = os.open(out, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        raise DatasetError(f"--out {out}: another factory run is writing into this folder; wait for it to end "
+                           "or use another --out") from None
+    return _FolderLock(fd)
+
+
+def prepare_folder(out: Path, settings: dict, add_lens: bool = False) -> tuple[list[dict], list[str], list[str]]:
+    """Record the run's settings before the first sample, or compare them with
+    the folder's (refusing a mismatch by name); repair a torn manifest
+    record; remove stale temporaries. Returns (finished records, notes, the
+    lenses to add to the finished samples: only with ``add_lens``, when the
+    run's lenses are the folder's followed by new ones and nothing else
+    differs; the settings record is then rewritten once they are added)."""
+    from dcdi_core.atomic import write_text
+    from dcdi_core.errors import DatasetError
+    path = out / SETTINGS_FILE
+    records, notes = read_manifest(out / MANIFEST)
+    if path.exists():
+        try:
+            have = json.loads(path.read_text())
+        except ValueError as e:
+            raise DatasetError(f"{path}: unreadable settings record ({e}); it is written atomically, so it was "
+                               "edited: restore it or use another --out") from None
+    elif records:
+        have = settings_from_manifest(records[0])
+    else:
+        have = None
+    added = []
+    if have is not None:
+        diffs = settings_differences(have, settings)
+        old, new = list(have.get("lenses", [])), list(settings["lenses"])
+        only_more = (len(new) > len(old) and new[:len(old)] == old
+                     and settings_differences({k: v for k, v in have.items() if k != "lenses"},
+                                              {k: v for k, v in settings.items() if k != "lenses"}) == [])
+        if diffs and add_lens and only_more:
+            added = new[len(old):]
+        elif diffs:
+            hint = (" (to add lenses to its samples: --add-lens, the folder's lenses first)" if only_more else
+                    " (--add-lens adds lenses listed after the folder's own, when nothing else differs)"
+                    if add_lens else "")
+            raise DatasetError(f"--out {out} holds samples made with other settings: " + "; ".join(diffs)
+                               + f". Rerun with the folder's settings to resume it{hint}, or use another --out")
+    if not path.exists() and not added:
+        write_text(path, json.dumps(settings, indent=2) + "\n")
+    records, notes = read_manifest(out / MANIFEST, repair=True)
+    gone = remove_stale_files(out)
+    if gone:
+        notes.append(f"removed {len(gone)} stale temporary file(s) of a killed run")
+    return records, notes, added
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """Cycles settings of the all-in-focus render (CPU). The defaults come from
+    the error-against-time tables of ``python -m blender_addon.tools.render_noise``
+    (README): samples per pixel; the Open Image Denoise pass (quality HIGH,
+    BALANCED or FAST; prefilter of its albedo and normal guides NONE, FAST or
+    ACCURATE); light-path bounces (counts)."""
+
+    samples: int = 8
+    denoise: bool = True
+    denoising_quality: str = "HIGH"
+    # NONE: 0.7 dB below ACCURATE at 8 samples for a third less render time (render_noise table)
+    denoising_prefilter: str = "NONE"
+    max_bounces: int = 4
+    diffuse_bounces: int = 2
+    glossy_bounces: int = 2
+    transmission_bounces: int = 2
+
+    def __post_init__(self):
+        if not (isinstance(self.samples, int) and 1 <= self.samples <= 65536):
+            raise ValueError(f"render samples must be an integer in [1, 65536], got {self.samples!r}")
+        if self.denoising_quality not in ("HIGH", "BALANCED", "FAST"):
+            raise ValueError(f"denoising quality must be HIGH, BALANCED or FAST, got {self.denoising_quality!r}")
+        if self.denoising_prefilter not in ("NONE", "FAST", "ACCURATE"):
+            raise ValueError(f"denoising prefilter must be NONE, FAST or ACCURATE, got {self.denoising_prefilter!r}")
+        for name in ("max_bounces", "diffuse_bounces", "glossy_bounces", "transmission_bounces"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and 0 <= v <= 1024):
+                raise ValueError(f"{name.replace('_', ' ')} must be an integer in [0, 1024], got {v!r}")
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def setup_render(scene, lens, height: int, width: int, render: RenderSettings, seed: int):
+    """All-in-focus Cycles render on the CPU through the lens's pinhole
+    camera (dcdi_core.render.camera: at the entrance pupil, paraxial focal
+    length, the image spanning the sensor diagonal); returns that
+    PinholeCamera."""
+    import bpy
+
+    from blender_addon.bpy_render import set_area_pixel_filter, set_light_paths, set_multilayer_exr
+    from dcdi_core.render.camera import PinholeCamera
+
+    pinhole = PinholeCamera.for_lens(lens, height, width)
+    cam = bpy.data.cameras.new("lens")
+    for name, value in pinhole.blender_camera_settings().items():
+        setattr(cam, name, value)
+    cam.dof.use_dof = False
+    cam.clip_start = 0.01
+    cam.clip_end = 1.0e5
+    obj = bpy.data.objects.new("lens", cam)
+    scene.collection.objects.link(obj)
+    scene.camera = obj
+    scene.render.engine = "CYCLES"
+    c = scene.cycles
+    c.device = "CPU"
+    c.samples = render.samples
+    c.seed = seed
+    c.use_denoising = render.denoise
+    c.denoiser = "OPENIMAGEDENOISE"
+    c.denoising_quality = render.denoising_quality
+    c.denoising_prefilter = render.denoising_prefilter
+    # a dataset wants many clean images fast: few bounces, no caustics (render_noise's table)
+    set_light_paths(c, render.max_bounces, render.diffuse_bounces, render.glossy_bounces,
+                    render.transmission_bounces)
+    set_area_pixel_filter(c)
+    scene.render.resolution_x, scene.render.resolution_y = width, height
+    scene.render.resolution_percentage = 100
+    scene.render.film_transparent = False
+    scene.view_layers[0].use_pass_z = True
+    # the file is a hand-over read back at once and deleted: no compression (measured: no gain, no cost)
+    set_multilayer_exr(scene.render.image_settings)
+    return pinhole
+
+
+def render_rgbd(recipe: str, lens, seed: int, height: int, width: int, render: RenderSettings, tmp: Path,
+                timings: dict | None = None):
+    """Build the scene, render; returns (image (H, W, 3) float32 linear,
+    depth (H, W) float32 metres from the lens's first vertex, inf = background).
+    ``timings``, if given, receives the wall seconds of each stage: "scene"
+    (reset and recipe), "render" (Cycles: sync, BVH, path tracing, denoising,
+    the EXR hand-over file), "read" (reading that file back), and their CPU
+    seconds as "cpu_scene", "cpu_render", "cpu_read"."""
+    import bpy
+
+    from dcdi_core.io.images import read_depth, read_image
+    from dcdi_core.render.camera import depth_from_planar_z
+    from scenes.recipes import RECIPES
+
+    t, c = [time.perf_counter()], [_cpu_s()]
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    RECIPES[recipe](np.random.default_rng(seed))
+    pinhole = setup_render(scene, lens, height, width, render, seed)
+    scene.render.filepath = str(tmp)
+    t.append(time.perf_counter()), c.append(_cpu_s())
+    bpy.ops.render.render(write_still=True)
+    t.append(time.perf_counter()), c.append(_cpu_s())
+    img = read_image(tmp)
+    z = read_depth(tmp)
+    tmp.unlink()
+    t.append(time.perf_counter()), c.append(_cpu_s())
+    if timings is not None:
+        timings.update(scene=t[1] - t[0], render=t[2] - t[1], read=t[3] - t[2])
+        timings.update({"cpu_" + k: c[i + 1] - c[i] for i, k in enumerate(("scene", "render", "read"))})
+    return img, depth_from_planar_z(z, pinhole.entrance_pupil_mm)
+
+
+def run(argv=None) -> int:
+    """The factory: exit 0 when every sample of this shard is done, 2 with one
+    line ("factory: error: ...") for any error a user can cause (options,
+    lens files, the output folder, memory), 3 when stopped early by
+    DCDI_FACTORY_STOP_AFTER (tests). A failed run leaves no folder it
+    created without a finished sample."""
+    import shutil
+
+    from dcdi_core.errors import DcdiError
+    argv = sys.argv[sys.argv.index("--") + 1:] if argv is None and "--" in sys.argv else argv
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["merge"]:
+        from blender_addon.factory.merge_shards import main as merge_main
+        return merge_main(argv[1:])
+    a = parse(argv)
+    out = Path(a.out)
+    created = False
+    try:
+        check_arguments(a)
+        check_output_folder(out)
+        created = not out.exists()
+        out.mkdir(parents=True, exist_ok=True)
+        lock = _lock(out)
+        try:
+            return _run(a, out)
+        finally:
+            if lock is not None:
+                lock.close()
+    except BaseException as e:
+        if created and not finished_ids(out / MANIFEST):
+            shutil.rmtree(out, ignore_errors=True)       # nothing finished: leave no folder behind
+        if not isinstance(e, (DcdiError, MemoryError)):
+            raise                                        # a bug (or Ctrl-C): keep its traceback
+        msg = str(e) if isinstance(e, DcdiError) else ("out of memory: lower --psf-rays, --psf-wavelengths or "
+                                                       "--resolution")
+        print(f"factory: error: {' '.join(msg.split())}", file=sys.stderr, flush=True)
+        return 2
+
+
+def check_output_folder(out: Path) -> None:
+    from dcdi_core.errors import OutputError, check_writable_folder
+    if out.exists() and not out.is_dir():
+        raise OutputError(out, "--out must be a folder; this is a file")
+    check_writable_folder(out, "--out")
+
+
+def _run(a, out: Path) -> int:
+    from dcdi_core.io.images import write_depth, write_image
+    from dcdi_core.progress import psf_progress
+    from dcdi_core.render.geometry import ImageGeometry
+    from dcdi_core.render.simulate import LensSimulator
+
+    manifest = out / MANIFEST
+    lenses = a.lenses
+    h, w = a.resolution
+    settings = a.psf_settings
+    render = a.render
+    records, notes, added = prepare_folder(out, run_settings(a), a.add_lens)
+    for note in notes:
+        print(f"factory: {note}", flush=True)
+    if added:
+        add_lenses(out, records, [lens for lens in lenses if lens.id in added], a, run_settings(a))
+    done = {r["id"] for r in records}
+    todo = [i for i in range(a.count) if i % a.shard_count == a.shard_index
+            and f"{a.recipe}-{i:06d}" not in done]
+    print(f"factory: {a.recipe}, {len(todo)} samples to do in shard {a.shard}, {len(done)} already in the manifest",
+          flush=True)
+    t_start = time.perf_counter()
+    sims = {}                          # built on the first sample to do: no PSF work for a finished run
+    for n, i in enumerate(todo):
+        sid = f"{a.recipe}-{i:06d}"
+        seed = sample_seed(a.seed, i)
+        t0, c0 = time.perf_counter(), _cpu_s()
+        stages = {}
+        img, depth = render_rgbd(a.recipe, lenses[0], seed, h, w, render, out / f".{sid}.render.exr", stages)
+        t_render = time.perf_counter() - t0
+        t1 = time.perf_counter()
+        write_image(out / "aif" / f"{sid}.exr", img)
+        write_depth(out / "depth" / f"{sid}.exr", depth)
+        stages["write"] = time.perf_counter() - t1
+        lens_records = {}
+        for lens in lenses:
+            t1 = time.perf_counter()
+            if lens.id not in sims:
+                sims[lens.id] = LensSimulator(lens, ImageGeometry.full_sensor(lens, h, w), settings=settings,
+                                              baseline_depth_m=a.baseline_depth,
+                                              progress=psf_progress(f"factory: PSFs of {lens.id}"))
+                stages["setup"] = stages.get("setup", 0.0) + time.perf_counter() - t1
+            t2, c2 = time.perf_counter(), _cpu_s()
+            r = sims[lens.id](img, depth)
+            aberrated, baseline, sharp, info = r.image, r.baseline, r.sharp, r.info
+            t3 = time.perf_counter()
+            stages["cpu_simulate"] = stages.get("cpu_simulate", 0.0) + _cpu_s() - c2
+            write_image(out / lens.id / "aberrated" / f"{sid}.exr", aberrated)
+            write_image(out / lens.id / "baseline" / f"{sid}.exr", baseline)
+            write_image(out / lens.id / "sharp" / f"{sid}.exr", sharp)
+            t4 = time.perf_counter()
+            stages["simulate"] = stages.get("simulate", 0.0) + t3 - t2
+            stages["write"] += t4 - t3
+            lens_records[lens.id] = {"seconds": round(t4 - t1, 3), **info}
+        finite = depth[np.isfinite(depth)]
+        record = {"id": sid, "index": i, "recipe": a.recipe, "seed": seed, "dataset_seed": a.seed,
+                  "resolution": [h, w], "camera_lens": lenses[0].id,
+                  "render": {"engine": "CYCLES", "device": "CPU", **render.as_dict(), "seconds": round(t_render, 3)},
+                  "depth_m": {"min": float(finite.min()) if finite.size else None,
+                              "max": float(finite.max()) if finite.size else None,
+                              "infinite_fraction": float(np.isinf(depth).mean())},
+                  "stage_seconds": {k: round(v, 3) for k, v in stages.items()},
+                  "seconds": round(time.perf_counter() - t0, 3), "cpu_seconds": round(_cpu_s() - c0, 3),
+                  "lenses": lens_records, "psf_settings": settings.as_dict(), "versions": _versions()}
+        append_record(manifest, record)
+        el = time.perf_counter() - t_start
+        rate = (n + 1) / el
+        print(f"  {sid}: {time.perf_counter() - t0:.1f} s (render {t_render:.1f} s); {rate * 3600:.0f} samples/h, "
+              f"ETA {(len(todo) - n - 1) / rate:.0f} s, RSS {_rss_mib():.0f} MiB", flush=True)
+        if os.environ.get("DCDI_FACTORY_STOP_AFTER") and n + 1 >= int(os.environ["DCDI_FACTORY_STOP_AFTER"]):
+            print("factory: stopping early (DCDI_FACTORY_STOP_AFTER)", flush=True)
+            return 3
+    return 0
+
+
+def add_lenses(out: Path, records: list[dict], lenses, a, settings: dict) -> None:
+    """Simulate ``lenses`` on the finished samples (from their aif/ and depth/
+    files), then rewrite the manifest (each record with the new lenses) and
+    the settings record, atomically; killed half-way, the same command
+    starts over (every file is replaced atomically)."""
+    from dcdi_core.atomic import write_text
+    from dcdi_core.io.images import read_depth, read_image, write_image
+    from dcdi_core.progress import psf_progress
+    from dcdi_core.render.geometry import ImageGeometry
+    from dcdi_core.render.simulate import LensSimulator
+
+    h, w = a.resolution
+    print(f"factory: adding {', '.join(x.id for x in lenses)} to {len(records)} finished samples", flush=True)
+    for lens in lenses:
+        sim = LensSimulator(lens, ImageGeometry.full_sensor(lens, h, w), settings=a.psf_settings,
+                            baseline_depth_m=a.baseline_depth, progress=psf_progress(f"factory: PSFs of {lens.id}"))
+        for rec in records:
+            sid = rec["id"]
+            t = time.perf_counter()
+            r = sim(read_image(out / "aif" / f"{sid}.exr"), read_depth(out / "depth" / f"{sid}.exr"))
+            for kind, img in (("aberrated", r.image), ("baseline", r.baseline), ("sharp", r.sharp)):
+                write_image(out / lens.id / kind / f"{sid}.exr", img)
+            rec.setdefault("lenses", {})[lens.id] = {"seconds": round(time.perf_counter() - t, 3), **r.info}
+    write_text(out / MANIFEST, "".join(json.dumps(r) + "\n" for r in records))
+    write_text(out / SETTINGS_FILE, json.dumps(settings, indent=2) + "\n")
+
+
+def append_record(manifest: Path, record: dict) -> None:
+    """Append one manifest line in a single write, flushed to disk (a kill
+    can tear only this line: read_manifest repairs it on the next run)."""
+    from dcdi_core.errors import output_error
+    try:
+        with open(manifest, "a", encoding="utf-8") as f:
+            f.write(json.dumps(record) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+    except OSError as e:
+        raise output_error(manifest, e) from None
+
+
+def _versions() -> dict:
+    import platform
+
+    import bpy
+
+    import dcdi_core
+    return {"blender": bpy.app.version_string, "dcdi": dcdi_core.__version__, "numpy": np.__version__,
+            "python": platform.python_version()}
+
+
+def _cpu_s() -> float:
+    """CPU seconds (user + system) of this process, all threads."""
+    try:
+        import resource
+    except ImportError:           # not on Windows
+        return math.nan
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
+def _rss_mib() -> float:
+    """Current resident memory (Linux /proc), else the peak (resource), MiB."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    try:
+        import resource
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    except ImportError:
+        return math.nan
+
+
+if __name__ == "__main__":
+    sys.exit(run())

@@ -1,2 +1,0 @@
-"""Network architectures. ``spec`` is torch-free (shapes, sizes, parameter
-counts); the modules (``olf``) import torch."""

@@ -1,0 +1,67 @@
+"""The project's networks by name: where each one's package and shipped
+weights are, and which parts the Blender add-on bundles.
+
+Read by the ``dcdi`` command (shipped files per lens) and by ``build.py``
+(the add-on zip is built from these folders, not from a list of files);
+standard library only, so ``build.py`` can load it by path without numpy.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+
+
+@dataclass(frozen=True)
+class Network:
+    name: str                 # the CLI's noun: ``dcdi <name> ...``
+    summary: str
+    package: str              # folder under dcdi_core/models/: architecture, data, training, export
+    weights_prefix: str       # shipped files: weights/<prefix><key>.npz
+    addon_package: bool       # the add-on bundles the package (runs where torch exists)
+    addon_weights: bool       # the add-on bundles the shipped weights
+
+    def shipped_files(self) -> list[Path]:
+        return sorted(WEIGHTS_DIR.glob(f"{self.weights_prefix}*.npz")) if WEIGHTS_DIR.is_dir() else []
+
+    def shipped_keys(self) -> list[str]:
+        """The part of each shipped file's name after the prefix (a lens id, or 'radial')."""
+        return [p.stem[len(self.weights_prefix):] for p in self.shipped_files()]
+
+    def shipped_file(self, key: str) -> Path | None:
+        p = WEIGHTS_DIR / f"{self.weights_prefix}{key}.npz"
+        return p if p.is_file() else None
+
+
+NETWORKS = {
+    "olf": Network("olf", "Omni-Lens-Field: an MLP of a lens's PSFs over field, depth and focus", "olf",
+                   "olf-", addon_package=False, addon_weights=True),      # runtime/olf.py runs it in numpy
+    "dacn": Network("dacn", "depth-aware correction network (DA2T-trained), per lens", "dacn",
+                    "dacn-", addon_package=True, addon_weights=True),     # Correct Simulation with torch
+    "depth": Network("depth", "small metric-depth network on a lens's captures", "depth",
+                     "depth-", addon_package=False, addon_weights=False),  # Blender gives exact depth
+}
+
+# torch-free folders of dcdi_core/models/ every install has; ``common`` is the
+# shared training machinery and the inference helpers the networks' packages use
+ALWAYS_BUNDLED = ("runtime",)
+ADDON_SHARED = ("common",)     # bundled when any network's package is
+
+
+def network(name: str) -> Network:
+    try:
+        return NETWORKS[name]
+    except KeyError:
+        from ..errors import InputRangeError
+        raise InputRangeError("network", name, ", ".join(NETWORKS)) from None
+
+
+def addon_model_folders() -> list[str]:
+    """Folders of dcdi_core/models/ the add-on zip bundles."""
+    pkgs = [n.package for n in NETWORKS.values() if n.addon_package]
+    return list(ALWAYS_BUNDLED) + (list(ADDON_SHARED) if pkgs else []) + pkgs
+
+
+def addon_weight_prefixes() -> tuple[str, ...]:
+    return tuple(n.weights_prefix for n in NETWORKS.values() if n.addon_weights)
