@@ -33,9 +33,8 @@ def blender_fov_deg(settings: dict, height: int, width: int, clamp_mm: float = B
 
 def test_pinhole_has_the_paraxial_focal_length_and_spans_the_sensor_diagonal(paper_lens):
     cam = PinholeCamera.for_lens(paper_lens, H, W)
-    fo = first_order(paper_lens)
-    assert cam.focal_length_mm == pytest.approx(fo.effective_focal_length_mm, rel=1e-12)
-    assert cam.entrance_pupil_mm == pytest.approx(fo.entrance_pupil_position_mm, rel=1e-12, abs=1e-12)
+    # the focal length the paper's tables state (lenses/*.toml [stated]), not the code's own paraxial trace
+    assert cam.focal_length_mm == pytest.approx(paper_lens.stated["effective_focal_length_mm"], rel=3e-3)
     assert math.hypot(cam.sensor_width_mm, cam.sensor_height_mm) == pytest.approx(
         2.0 * paper_lens.sensor.semi_diagonal_mm, rel=1e-12)
     assert cam.sensor_width_mm / cam.sensor_height_mm == pytest.approx(W / H, rel=1e-12)

@@ -81,7 +81,32 @@ def test_unknown_lens_id_lists_known_ids():
         load_lens("no-such-lens")
 
 
-def test_shipped_files_match_the_schema_doc_keys():
+def _schema_doc_keys() -> dict:
+    """{table: keys} of the TOML example in lenses/SCHEMA.md (top level, sensor, stated, surface)."""
+    import re
+    text = (LENS_DIR / "SCHEMA.md").read_text()
+    block = re.search(r"```toml\n(.*?)```", text, re.S).group(1)
+    doc = tomllib.loads(block)
+    return {"top": set(doc), "sensor": set(doc["sensor"]), "stated": set(doc["stated"]),
+            "surface": set(doc["surface"][0])}
+
+
+def test_the_schema_doc_lists_exactly_the_keys_the_loader_accepts():
+    from dcdi_core.optics import lens as L
+    doc = _schema_doc_keys()
+    assert doc == {"top": L._TOP_KEYS, "sensor": L._SENSOR_KEYS, "stated": L._STATED_KEYS,
+                   "surface": L._SURFACE_KEYS}
+
+
+def test_shipped_files_use_only_keys_of_the_schema_doc():
+    doc = _schema_doc_keys()
     for lid in PAPER_LENSES:
         d = tomllib.loads((LENS_DIR / f"{lid}.toml").read_text())
+        assert set(d) <= doc["top"], lid
+        assert set(d["sensor"]) <= doc["sensor"], lid
+        assert set(d.get("stated", {})) <= doc["stated"], lid
+        for i, s in enumerate(d["surface"], 1):
+            assert set(s) <= doc["surface"], (lid, i)
         Lens.from_dict(copy.deepcopy(d), lid)
+
+

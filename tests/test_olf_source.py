@@ -72,8 +72,13 @@ def test_olf_backed_library_serves_the_olf_at_its_grid(olf_file):
     assert not lib.computed.any()                      # lazy: bins filled when asked for
     depths = np.array([0.7, 1.3, math.inf])
     got = lib.at(lib.fields[:, None], depths[None, :])
-    assert np.allclose(got[:, 0], olf.psf(lens, lib.fields, 0.7), atol=1e-6)          # on a bin: the OLF's own
-    assert np.allclose(got[:, 2], olf.psf(lens, lib.fields, math.inf), atol=1e-6)
+    # between bins: linear in diopters between the network's PSFs at the two neighbouring bins (weights by hand)
+    dio, d = lib.diopters, 1.0 / 1.3
+    i = int(np.nonzero(dio >= d)[0].max())
+    w = (dio[i] - d) / (dio[i] - dio[i + 1])
+    assert 0.05 < w < 0.95
+    want = (1 - w) * olf.psf(lens, lib.fields, lib.depths_m[i]) + w * olf.psf(lens, lib.fields, lib.depths_m[i + 1])
+    assert np.allclose(got[:, 1], want, atol=1e-5)
     assert got.min() >= 0 and np.abs(got.sum(axis=(-1, -2)) - 1).max() < 1e-5
     # the renderer takes it as it is; only the bins the depth map needs are run
     geom = ImageGeometry.from_pixel_pitch(lens, 48, 64, PITCH)
@@ -91,7 +96,7 @@ def test_renderer_never_imports_models():
         assert not re.search(r"^\s*(from|import)\s+[.\w]*models", f.read_text(), re.M), f
 
 
-def test_source_is_the_olf_where_it_covers_the_request_else_tracing(olf_file, tmp_path):
+def test_source_is_the_olf_where_it_covers_the_request_else_tracing(olf_file, tmp_path, monkeypatch):
     path, _ = olf_file
     lens = load_lens("mos-s1")
     learned = PSFSettings(pupil_samples=16, n_wavelengths=3)
@@ -115,9 +120,11 @@ def test_source_is_the_olf_where_it_covers_the_request_else_tracing(olf_file, tm
     src = psf_source(lens, olf_file=path, pixel_pitch_mm=0.05, settings=learned)
     assert src.kind == "olf" and "50 um pixels" in src.message and "area-resampled" in src.message
     assert psf_source(lens, olf_file=path, source="trace").kind == "trace"
-    # no OLF at all (none shipped, none given): tracing
+    # no OLF at all (none shipped, none given): tracing, saying so
+    import dcdi_core.models.runtime.library as runtime_library
+    monkeypatch.setattr(runtime_library, "SHIPPED", tmp_path / "none-shipped.npz")
     src = psf_source(lens, olf_file=None, pixel_pitch_mm=PITCH, settings=learned)
-    assert src.kind in ("olf", "trace") and src.message
+    assert src.kind == "trace" and src.library is None and "no OLF file ships" in src.message
 
 
 def test_cli_psf_from_the_olf_has_the_traced_form(cache_env, tmp_path, capsys):
