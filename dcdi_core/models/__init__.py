@@ -1,20 +1,21 @@
-"""Networks of the project (torch), and the numpy runtime that serves them.
+"""Networks of the project (torch), one package each, and the numpy runtime
+that serves them.
 
 Torch is imported only inside this package and only when a module that needs
-it is imported (``arch``, ``layers``, ``data.psf_samples``, ``train``, ``export``);
-``import dcdi_core.models`` itself, ``metrics`` (numpy part) and ``runtime``
-never import it, so Blender's own Python (numpy, no torch) can run an exported
-Omni-Lens-Field. Layout (DESIGN.md):
+it is imported; ``import dcdi_core.models`` itself, ``registry`` and
+``runtime`` never import it, so Blender's own Python (numpy, no torch) can run
+an exported Omni-Lens-Field. Layout (docs/design.md):
 
-  arch/      nn.Modules only (``arch.olf``, ``arch.dacn``) and their torch-free
-             specs (``arch.spec``, ``arch.dacn_spec``)
-  layers/    building blocks: deformable conv, cross-attention, Swin and EDSR blocks
-  data/      training samples (``data.psf_samples``: ray-traced PSFs for the OLF;
-             ``data.rgbd``, ``data.da2t``, ``data.split``, ``data.depth``: DACN's)
-  train/     configs as data, a plain loop, atomic checkpoints and exact resume
-  export     torch -> .npz arrays + JSON metadata (no pickle)
-  runtime/   numpy only: loads an exported .npz and runs it
-  metrics    PSNR, SSIM (numpy; torch versions for training)
+  olf/       Omni-Lens-Field: spec, architecture, PSF samples, training, export
+  dacn/      the correction network: layers, architecture, DA2T data, training,
+             export, tiled inference (``correct``), evaluation
+  depth/     the small depth network and the public estimators' adapters
+  common/    shared once: the training loop, checkpoints and exact resume,
+             configs as data, distributed, metrics, LPIPS, split by scene,
+             torch state to and from .npz
+  runtime/   numpy only, never imports training or data code: reads shipped
+             .npz files and runs the OLF; the part the add-on always bundles
+  registry   the networks by name and their shipped weights (weights/)
 """
 from __future__ import annotations
 
