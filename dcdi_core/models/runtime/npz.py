@@ -11,7 +11,7 @@ import numpy as np
 
 from ...atomic import atomic_path
 from ..errors import ModelFileError
-from .olf import checksum
+from .olf import checksum, read_npz_with_meta
 
 DTYPES = ("float16", "float32")
 
@@ -31,16 +31,7 @@ def read_model_npz(path, fmt: str, version: int, what: str) -> tuple[dict, dict]
     """(meta, arrays) of a file written by :func:`write_model_npz`, its
     format, version and checksum checked; ``what`` names the kind of file."""
     path = Path(path)
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            if "meta" not in z.files:
-                raise ModelFileError(path, f"no metadata record: not an exported {what}", field="meta")
-            meta = json.loads(str(z["meta"]))
-            arrays = {k: z[k] for k in z.files if k != "meta"}
-    except ModelFileError:
-        raise
-    except (OSError, ValueError) as e:
-        raise ModelFileError(path, f"not a readable .npz model file ({e})") from None
+    meta, arrays = read_npz_with_meta(path, what)
     if meta.get("format") != fmt:
         raise ModelFileError(path, f"format {meta.get('format')!r}", field="format", allowed=repr(fmt))
     if meta.get("version") != version:

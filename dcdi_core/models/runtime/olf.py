@@ -17,6 +17,8 @@ import hashlib
 import json
 import math
 import os
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +33,7 @@ FORMAT_VERSION = 1
 # ------------------------------------------------------------------ encodings
 def inverse_depth(depth_m, far_m: float) -> np.ndarray:
     """1/depth (1/m); depths at or beyond ``far_m`` (inf, 1e10 included) are
-    infinity, 0 (DESIGN.md). NaN, 0 and negative depths are errors."""
+    infinity, 0 (docs/design.md). NaN, 0 and negative depths are errors."""
     d = np.asarray(depth_m, dtype=np.float64)
     bad = ~(d > 0)
     if bad.any():
@@ -87,19 +89,37 @@ def checksum(meta: dict, arrays: dict) -> str:
     return h.hexdigest()
 
 
-def read_olf_file(path) -> tuple[dict, dict]:
-    """(metadata, arrays) of an exported OLF, checked (format, version, checksum)."""
+# what reading a damaged file raises: truncated or not a zip (BadZipFile,
+# EOFError), a member's bytes changed (BadZipFile: CRC, zlib.error), not an
+# .npz of arrays (ValueError: pickled or bad header), unreadable (OSError)
+READ_ERRORS = (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile, zlib.error, RuntimeError,
+               NotImplementedError)
+
+
+def read_npz_with_meta(path, what: str) -> tuple[dict, dict]:
+    """(meta, arrays) of an .npz with a JSON ``meta`` record; any damage is a
+    ModelFileError naming the file (``what``: the kind of file expected)."""
     path = Path(path)
     try:
         with np.load(path, allow_pickle=False) as z:
             if "meta" not in z.files:
-                raise ModelFileError(path, "no metadata record: not an exported Omni-Lens-Field", field="meta")
+                raise ModelFileError(path, f"no metadata record: not an exported {what}", field="meta")
             meta = json.loads(str(z["meta"]))
             arrays = {k: z[k] for k in z.files if k != "meta"}
     except ModelFileError:
         raise
-    except (OSError, ValueError, json.JSONDecodeError) as e:
-        raise ModelFileError(path, f"not a readable .npz model file ({e})") from None
+    except READ_ERRORS as e:
+        raise ModelFileError(path, f"not a readable .npz model file ({type(e).__name__}: {e})") from None
+    if not isinstance(meta, dict):
+        raise ModelFileError(path, f"the metadata record is not a JSON object: not an exported {what}",
+                             field="meta")
+    return meta, arrays
+
+
+def read_olf_file(path) -> tuple[dict, dict]:
+    """(metadata, arrays) of an exported OLF, checked (format, version, checksum)."""
+    path = Path(path)
+    meta, arrays = read_npz_with_meta(path, "Omni-Lens-Field")
     if meta.get("format") != FORMAT:
         raise ModelFileError(path, f"format {meta.get('format')!r}", field="format", allowed=repr(FORMAT))
     if meta.get("version") != FORMAT_VERSION:
