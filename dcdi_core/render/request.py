@@ -1,0 +1,213 @@
+"""A simulation or bokeh job described in plain values, checked before any work.
+
+The `dcdi` command and the Blender add-on ask for a render the same way: a
+lens, PSF settings, the image's pixel pitch, an over-scan frame around the
+sensor, the optical axis, the patch size, the warp's interpolation, sensor
+noise, a perturbation, a fixed depth. :class:`RenderRequest` refuses a bad
+value when it is made (before an image is read), and
+:meth:`RenderRequest.plan` adds what needs the image's size (the sensor's and
+the source image's geometry, the memory the PSFs will take) before a PSF is
+traced.
+
+Units: lengths on the sensor in mm, depths in metres, wavelengths in nm,
+positions and sizes in image pixels (row, col; pixel centres at integers).
+
+Names in messages: each error names a setting by its label in ``labels``
+({field: label}); the defaults are the `dcdi` command's options, as the
+engine's memory check names them (--rays, --kernel); the add-on can pass its
+panel's words.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from types import MappingProxyType
+
+from ..errors import InputRangeError
+from ..psf.compute import PSFSettings, check_psf_memory
+from ..psf.library import LibraryGrid
+from .distortion import check_interpolation
+from .geometry import ImageGeometry
+from .noise import check_noise
+from .simulate import DEFAULT_INTERPOLATION, MAX_FITTED_KERNEL, check_patch, check_within_sensor
+
+# field -> the name a user knows it by (the `dcdi` command's options)
+OPTION_LABELS = MappingProxyType({
+    "image_pixel_pitch_mm": "--image-pixel-pitch",
+    "pixel_pitch_mm": "--pixel-pitch",
+    "sensor_size": "--sensor-size",
+    "axis_px": "--axis",
+    "patch": "--patch",
+    "interpolation": "--interpolation",
+    "seed": "--seed",
+    "noise": "--noise",
+    "perturb_fraction": "--perturb-fraction",
+    "fixed_depth_m": "--fixed-depth",
+    "wavelength_nm": "--wavelength",
+})
+
+
+def check_library_memory(settings: PSFSettings, grid: LibraryGrid | None = None, *, map_kernels: int = 0) -> None:
+    """Refuse, before any work, a PSF library of ``grid`` (default: the
+    default grid) with ``settings`` that would not fit in memory, with a PSF
+    map of ``map_kernels`` patch kernels besides."""
+    g = grid or LibraryGrid()
+    n = g.n_fields * (g.n_depths + 1)
+    check_psf_memory(settings, n, 1 if settings.wavelength_nm is not None else None, library_psfs=n,
+                     map_kernels=map_kernels)
+
+
+@dataclass(frozen=True)
+class RenderPlan:
+    """What a checked request resolves to for an image of a given size."""
+
+    settings: PSFSettings                  # the PSFs' settings (their pitch is the geometry's)
+    geometry: ImageGeometry                # the sensor's frame: the output's pixels
+    source_geometry: ImageGeometry | None  # the input image when it is larger (over-scan), else None
+
+
+@dataclass(frozen=True)
+class RenderRequest:
+    """A simulation or bokeh job, checked when made (InputRangeError naming
+    the setting by its label).
+
+    ``psf``: the PSF settings; its ``pixel_pitch_mm`` (when set) is the
+    image's pixel pitch as well (the PSFs of an image are sampled at its own
+    pitch), ``focus_distance_m`` moves the sensor (a simulation; a bokeh's
+    focus is its own argument), ``wavelength_nm`` asks for one wavelength in
+    all three channels. ``fit_kernel``: the kernel grows to hold the depth
+    map's blur, up to ``render.simulate.MAX_FITTED_KERNEL`` px (else
+    ``psf.kernel_size`` is kept).
+
+    ``image_pixel_pitch_mm``: one image pixel on the sensor (mm; default: the
+    image, or the ``sensor_size`` frame, spans the sensor's diagonal).
+    ``sensor_size``: (rows, cols) of the sensor's frame, centred on the axis,
+    inside a larger (over-scan) image; the output has this size.
+    ``axis_px``: (row, col) of the optical axis in the image (default its
+    centre). ``noise``: add shot and read noise (needs ``seed``).
+    ``perturb_fraction``: checked when ``perturb_seed`` is set.
+    ``fixed_depth_m``: one depth for the whole image (depth-unaware).
+    """
+
+    lens: object
+    psf: PSFSettings = field(default_factory=PSFSettings)
+    fit_kernel: bool = True
+    image_pixel_pitch_mm: float | None = None
+    sensor_size: tuple[int, int] | None = None
+    axis_px: tuple[float, float] | None = None
+    patch: int = 16
+    interpolation: str | None = None       # None: render.simulate.DEFAULT_INTERPOLATION
+    noise: bool = False
+    full_well_electrons: float = 10000.0
+    read_noise_electrons: float = 3.0
+    seed: int | None = None
+    perturb_seed: int | None = None
+    perturb_fraction: float = 0.10
+    fixed_depth_m: float | None = None
+    labels: dict = field(default_factory=lambda: dict(OPTION_LABELS))
+
+    def __post_init__(self):
+        try:
+            check_patch(self.patch)
+        except InputRangeError as e:
+            raise InputRangeError(self._label("patch"), e.value, e.allowed) from None
+        if self.interpolation is None:
+            object.__setattr__(self, "interpolation", DEFAULT_INTERPOLATION)
+        try:
+            check_interpolation(self.interpolation)
+        except InputRangeError as e:
+            raise InputRangeError(self._label("interpolation"), e.value, e.allowed) from None
+        if self.noise:
+            if self.seed is None:
+                raise InputRangeError(self._label("seed"), None,
+                                      f"an integer: {self._label('noise')} needs an explicit seed")
+            check_noise(self.full_well_electrons, self.read_noise_electrons)
+        if self.perturb_seed is not None and not 0.0 <= self.perturb_fraction <= 0.5:
+            raise InputRangeError(self._label("perturb_fraction"), self.perturb_fraction,
+                                  "a number in [0, 0.5] (0.1 = +-10 %)")
+        if self.fixed_depth_m is not None:
+            near = LibraryGrid().near_m
+            if not self.fixed_depth_m >= near:
+                raise InputRangeError(self._label("fixed_depth_m"), self.fixed_depth_m,
+                                      f">= {near:g} m, the PSF library's nearest depth bin (or inf)")
+        if self.psf.wavelength_nm is not None:
+            self.lens.check_wavelengths(self.psf.wavelength_nm, self._label("wavelength_nm"))
+        self.image_pitch_mm      # noqa: B018 - the pitch options checked now
+
+    def _label(self, name: str) -> str:
+        return self.labels.get(name, name)
+
+    # ------------------------------------------------------------ resolved
+    @property
+    def image_pitch_mm(self) -> float | None:
+        """One image pixel on the sensor (mm) from ``image_pixel_pitch_mm`` or
+        ``psf.pixel_pitch_mm`` (they must agree), or None (the default)."""
+        a, b = self.image_pixel_pitch_mm, self.psf.pixel_pitch_mm
+        if a is not None and b is not None and a != b:
+            raise InputRangeError(self._label("pixel_pitch_mm"), b,
+                                  f"{self._label('image_pixel_pitch_mm')}'s {a} mm, or leave one out (the PSFs "
+                                  "of an image are sampled at its own pitch)")
+        pitch = a if a is not None else b
+        if pitch is not None and not (pitch > 0 and math.isfinite(pitch)):
+            raise InputRangeError(self._label("image_pixel_pitch_mm"), pitch, "a pixel pitch > 0 mm")
+        return pitch
+
+    @property
+    def settings(self) -> PSFSettings:
+        """The PSF settings the render uses: the pitch is the geometry's."""
+        return replace(self.psf, pixel_pitch_mm=None)
+
+    @property
+    def noise_settings(self) -> dict | None:
+        """The noise keywords of the simulation (full well, read noise), or None."""
+        if not self.noise:
+            return None
+        return {"full_well_electrons": self.full_well_electrons, "read_noise_electrons": self.read_noise_electrons}
+
+    # ------------------------------------------------------------ with the image's size
+    def geometries(self, height: int, width: int, image: str = "the image"):
+        """(sensor geometry, source geometry or None) of an image of
+        ``height`` x ``width`` pixels; ``image`` names it in messages."""
+        lens, h, w = self.lens, height, width
+        pitch = self.image_pitch_mm
+        axis = tuple(self.axis_px) if self.axis_px is not None else None
+        if axis is not None and not (-0.5 <= axis[0] <= h - 0.5 and -0.5 <= axis[1] <= w - 0.5):
+            raise InputRangeError(self._label("axis_px"), axis,
+                                  f"a pixel position (row, col) inside the {h} x {w} image")
+        if self.sensor_size is None:
+            if pitch is None:
+                if axis is not None:
+                    raise InputRangeError(self._label("axis_px"), axis,
+                                          f"only with {self._label('image_pixel_pitch_mm')} or "
+                                          f"{self._label('sensor_size')} (without them the image spans the "
+                                          "sensor's diagonal about its centre)")
+                return ImageGeometry.full_sensor(lens, h, w), None
+            geom = ImageGeometry.from_pixel_pitch(lens, h, w, pitch, center_px=axis)
+            check_within_sensor(geom, image)
+            return geom, None
+        rows, cols = self.sensor_size
+        if not (rows >= 1 and cols >= 1) or rows > h or cols > w:
+            raise InputRangeError(self._label("sensor_size"), (rows, cols),
+                                  f"at least 1 and at most the image's {h} x {w} pixels (the sensor's frame "
+                                  f"inside an over-scan render of {image})")
+        if pitch is None:        # the sensor's frame spans the lens's sensor diagonal
+            pitch = ImageGeometry.full_sensor(lens, rows, cols).pixel_pitch_mm
+        sensor = ImageGeometry.from_pixel_pitch(lens, rows, cols, pitch)
+        check_within_sensor(sensor, self._label("sensor_size"))
+        source = ImageGeometry.from_pixel_pitch(lens, h, w, pitch, center_px=axis)
+        return sensor, source
+
+    def check_memory(self, geometry: ImageGeometry) -> None:
+        """Refuse PSFs (the library and the PSF map of ``geometry``) that
+        would not fit in memory, with the largest kernel the run may use."""
+        biggest = replace(self.settings, kernel_size=MAX_FITTED_KERNEL) if self.fit_kernel else self.settings
+        patches = -(-geometry.height // self.patch) * -(-geometry.width // self.patch)
+        check_library_memory(biggest, map_kernels=patches)
+
+    def plan(self, height: int, width: int, image: str = "the image") -> RenderPlan:
+        """Settings and geometries for an image of ``height`` x ``width``
+        pixels, the memory checked: all that can be refused before a PSF is
+        traced."""
+        geometry, source = self.geometries(height, width, image)
+        self.check_memory(geometry)
+        return RenderPlan(self.settings, geometry, source)
