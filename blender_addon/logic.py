@@ -203,7 +203,8 @@ def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], 
     if progress is not None:
         progress("convolving", 1.0)
     try:
-        res = sim.bokeh(image, depth, lens, keep=keep, geometry=geom, library=lib, patch=patch, cancelled=cancelled)
+        res = sim.bokeh(image, depth, lens, sim.BokehOptions(keep=keep, geometry=geom, patch=patch), library=lib,
+                        cancelled=cancelled)
     except sim.Cancelled:
         raise Cancelled() from None
     info = dict(res.info, focus_m=float(focus_m), keep_m=[float(keep[0]), float(keep[1])], refocus=bool(refocus),

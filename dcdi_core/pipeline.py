@@ -109,13 +109,16 @@ def dof(capture, target_lens, *, keep=None, focus_m=None, depth_m=None, estimato
     ``keep`` (near, far) m or ``focus_m`` (m or 'prescribed') as
     ``render.simulate.bokeh``; ``corrector``: a DACN (``models.correct.
     load_dacn``) or None for a sharp input; ``psf_source`` None / 'olf' /
-    'trace' and ``olf_file`` as ``runtime.library.psf_source``; the rest is
-    passed to ``bokeh``."""
+    'trace' and ``olf_file`` as ``runtime.library.psf_source``; the rest are
+    fields of ``render.simulate.BokehOptions``."""
+    from dataclasses import replace
+
     from .render.geometry import ImageGeometry
-    from .render.simulate import bokeh
+    from .render.simulate import BokehOptions, bokeh
     from .models.runtime.library import psf_source as choose_source
     if (keep is None) == (focus_m is None):
         raise InputRangeError("keep / focus", (keep, focus_m), "exactly one of them")
+    options = BokehOptions(keep=keep, focus_m=focus_m, settings=settings, geometry=geometry, **bokeh_kw)
     seconds, notes = {}, []
     corrected, depth, dsrc = recover(capture, camera_pitch_mm=camera_pitch_mm, depth_m=depth_m, estimator=estimator,
                                      corrector=corrector, corrector_info=corrector_info, tile=tile, seconds=seconds,
@@ -125,7 +128,6 @@ def dof(capture, target_lens, *, keep=None, focus_m=None, depth_m=None, estimato
     t0 = time.perf_counter()
     src = choose_source(target_lens, source=psf_source, olf_file=olf_file, pixel_pitch_mm=geometry.pixel_pitch_mm,
                         settings=settings, focus_m=None if focus_m in (None, "prescribed") else focus_m)
-    r = bokeh(corrected, depth, target_lens, keep=keep, focus_m=focus_m, geometry=geometry, settings=settings,
-              library=src.library, **bokeh_kw)
+    r = bokeh(corrected, depth, target_lens, replace(options, geometry=geometry), library=src.library)
     seconds["psfs and bokeh"] = time.perf_counter() - t0
     return DofResult(r.image, corrected, depth, dsrc, src.kind, src.message, seconds, notes, dict(r.info))

@@ -8,7 +8,7 @@ from dcdi_core.optics.lens import load_lens
 from dcdi_core.psf.compute import PSFSettings
 from dcdi_core.psf.library import LibraryGrid, PSFLibrary
 from dcdi_core.render.geometry import ImageGeometry
-from dcdi_core.render.simulate import bokeh
+from dcdi_core.render.simulate import BokehOptions, bokeh
 
 pytestmark = pytest.mark.filterwarnings("ignore::dcdi_core.psf.compute.KernelTooSmallWarning")
 
@@ -38,8 +38,8 @@ def test_a_lone_light_blurs_out_to_its_kernels_reach(lens_lib):
     alone[40, 40] = 0.4                       # the light near: wide kernels
     alone[80:, 80:] = 1.2                     # the kept subject, away from the light
     whole = np.where(alone == 10.0, 0.4, alone)
-    got = bokeh(img, alone, lens, keep=keep, geometry=geom, library=lib).image
-    want = bokeh(img, whole, lens, keep=keep, geometry=geom, library=lib).image
+    got = bokeh(img, alone, lens, BokehOptions(keep=keep, geometry=geom), library=lib).image
+    want = bokeh(img, whole, lens, BokehOptions(keep=keep, geometry=geom), library=lib).image
     halo = np.zeros((96, 96), bool)
     halo[20:61, 20:61] = True
     halo[32:49, 32:49] = False                # beyond the light's own 16-px patch and its tents

@@ -14,7 +14,7 @@ from dcdi_core.optics.lens import load_lens
 from dcdi_core.psf.compute import PSFSettings
 from dcdi_core.psf.library import LibraryGrid, PSFLibrary
 from dcdi_core.render import accel_torch
-from dcdi_core.render.convolve import patch_convolve
+from dcdi_core.render.convolve import ConvolveOptions, patch_convolve
 from dcdi_core.render.geometry import ImageGeometry
 from dcdi_core.render.psfmap import _rotate_flat, _rotate_flat_fast, psf_map
 from dcdi_core.render.simulate import simulate
@@ -43,9 +43,10 @@ def test_fast_equals_windows(h, w, m, k, blend, backend):
     ker = _kernels(rng, nph, npw, k)
     ident = rng.uniform(size=(nph, npw)) < 0.2
     for pairs in (None, ((0, 0), (1, 1), (2, 2), (0, 1), (2, 0))):
-        want = patch_convolve(img, ker, m, identity=ident, blend=blend, fft_backend=backend, pairs=pairs)
-        got = patch_convolve(img, ker, m, identity=ident, blend=blend, fft_backend=backend, pairs=pairs,
-                             method="fast")
+        want = patch_convolve(img, ker, m, ConvolveOptions(blend=blend, fft_backend=backend), identity=ident,
+                              pairs=pairs)
+        got = patch_convolve(img, ker, m, ConvolveOptions(blend=blend, fft_backend=backend, method="fast"),
+                             identity=ident, pairs=pairs)
         assert got.shape == want.shape and got.dtype == np.float32
         assert np.abs(got - want).max() <= ROUNDING
 
@@ -56,12 +57,12 @@ def test_fast_skips_empty_parts_and_keeps_constants():
     x = rng.uniform(0, 1, (80, 112, 4)).astype(np.float32)
     x[:, 70:] = 0.0                                       # an empty part, as a depth layer has
     pairs = ((0, 0), (1, 1), (2, 2), (3, 0), (3, 1), (3, 2))
-    got = patch_convolve(x, ker, 16, pairs=pairs, method="fast")
+    got = patch_convolve(x, ker, 16, ConvolveOptions(method="fast"), pairs=pairs)
     assert np.abs(got - patch_convolve(x, ker, 16, pairs=pairs)).max() <= ROUNDING
     assert np.abs(got[:, 104:]).max() == 0.0              # windows there read no content: skipped
     one = np.ones((80, 112, 3), np.float32)
     for b in (8, 6, 4):
-        assert np.abs(patch_convolve(one, ker, 16, blend=b, method="fast") - 1.0).max() < 1e-5
+        assert np.abs(patch_convolve(one, ker, 16, ConvolveOptions(blend=b, method="fast")) - 1.0).max() < 1e-5
 
 
 @pytest.mark.parametrize("k", [1, 3, 5, 13, 25])
@@ -132,8 +133,8 @@ def test_torch_equals_numpy(scene):
     ker = _kernels(rng, 3, 4, 21)
     x = rng.uniform(0, 1, (40, 60, 4)).astype(np.float32)
     pairs = ((0, 0), (1, 1), (2, 2), (3, 0), (3, 1), (3, 2))
-    want = patch_convolve(x, ker, 16, pairs=pairs, method="fast", blend=6)
-    got = patch_convolve(x, ker, 16, pairs=pairs, method="fast", blend=6, accelerator="torch")
+    want = patch_convolve(x, ker, 16, ConvolveOptions(method="fast", blend=6), pairs=pairs)
+    got = patch_convolve(x, ker, 16, ConvolveOptions(method="fast", blend=6, accelerator="torch"), pairs=pairs)
     assert np.abs(got - want).max() <= ROUNDING
 
 
@@ -146,7 +147,8 @@ def test_torch_blocked_numpy_runs(scene, monkeypatch):
     with pytest.raises(InputRangeError, match="accelerator"):
         psf_map(lib, geom, depth, 8, accelerator="torch")
     with pytest.raises(ValueError, match="torch"):
-        patch_convolve(img, np.zeros((6, 9, 3, 5, 5), np.float32), 8, method="fast", accelerator="torch")
+        patch_convolve(img, np.zeros((6, 9, 3, 5, 5), np.float32), 8,
+                       ConvolveOptions(method="fast", accelerator="torch"))
     r = simulate(img, depth, lens, geometry=geom, library=lib, distortion=False)
     assert np.isfinite(r.image).all()
 
@@ -182,7 +184,8 @@ def test_stiff_inputs_no_nan(scene, accelerator):
         run(img, np.full((h, w), np.nan))
     pm = psf_map(lib, geom, np.full((h, w), np.nan), 8, accelerator=accelerator)    # all identity: copied
     assert pm.identity.all()
-    got = patch_convolve(img, pm.kernels, 8, identity=pm.identity, method="fast", accelerator=accelerator)
+    got = patch_convolve(img, pm.kernels, 8, ConvolveOptions(method="fast", accelerator=accelerator),
+                         identity=pm.identity)
     assert np.abs(got - img).max() <= ROUNDING
     for hh, ww in ((1, 1), (1, 9), (7, 1)):
         g = ImageGeometry.from_pixel_pitch(lens, hh, ww, 0.0122, center_px=(-60.0, -90.0))

@@ -265,13 +265,13 @@ def test_the_engine_refuses_and_warns_alike():
     from dcdi_core.errors import RenderError
     from dcdi_core.optics.lens import load_lens
     from dcdi_core.render.inputs import InputWarning
-    from dcdi_core.render.simulate import bokeh, simulate
+    from dcdi_core.render.simulate import BokehOptions, bokeh, simulate
     img, depth = synthetic_rgbd(16, 16, seed=0)
     lens = load_lens("mos-s1")
     with pytest.raises(RenderError, match="no valid depth"):
         simulate(img, np.zeros_like(depth), lens)
     with pytest.raises(RenderError, match="no valid depth"):
-        bokeh(img, -depth, lens, focus_m=2.0)
+        bokeh(img, -depth, lens, BokehOptions(focus_m=2.0))
     from dcdi_core.render.inputs import check_rgbd
     with pytest.warns(InputWarning, match="likely unit is mm"):
         check_rgbd(img, depth * 1000.0)

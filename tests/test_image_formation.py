@@ -86,7 +86,7 @@ def test_without_over_scan_the_border_is_reflected(distorted_case):
 
 def test_no_silent_overrides():
     from dcdi_core.errors import InputRangeError
-    from dcdi_core.render.simulate import bokeh, open_library
+    from dcdi_core.render.simulate import BokehOptions, bokeh, open_library
 
     lens = load_lens("6p")
     geom = ImageGeometry.full_sensor(lens, 16, 24)
@@ -96,10 +96,10 @@ def test_no_silent_overrides():
     lib = open_library(lens, geom, settings, LibraryGrid(n_fields=4, n_depths=2), cache=False)
     # a library focused as prescribed cannot render a focus at 1.2 m
     with pytest.raises(InputRangeError, match="library's own focus"):
-        bokeh(img, depth, lens, focus_m=1.2, geometry=geom, library=lib)
-    bokeh(img, depth, lens, focus_m="prescribed", geometry=geom, library=lib)
+        bokeh(img, depth, lens, BokehOptions(focus_m=1.2, geometry=geom), library=lib)
+    bokeh(img, depth, lens, BokehOptions(focus_m="prescribed", geometry=geom), library=lib)
     with pytest.raises(InputRangeError, match="prescribed"):
-        bokeh(img, depth, lens, focus_m="nearby", geometry=geom, library=lib)
+        bokeh(img, depth, lens, BokehOptions(focus_m="nearby", geometry=geom), library=lib)
     # a PSF pitch that is not the image's
     with pytest.raises(InputRangeError, match="pixel pitch"):
         open_library(lens, geom, PSFSettings(pixel_pitch_mm=0.01), cache=False)

@@ -1,8 +1,8 @@
-"""patch_convolve(method='lowrank') against the exact per-window path: the stated bound holds."""
+"""patch_convolve with ConvolveOptions(method='lowrank') against the exact per-window path: the stated bound holds."""
 import numpy as np
 import pytest
 
-from dcdi_core.render.convolve import low_rank, patch_convolve
+from dcdi_core.render.convolve import ConvolveOptions, low_rank, patch_convolve
 
 
 def _kernels(nph, npw, k=21):
@@ -34,9 +34,9 @@ def case():
                                               (1e-2, 4, "numpy")])
 def test_lowrank_within_bound(case, eps, tile, backend):
     img, kern, ident, m = case
-    exact = patch_convolve(img, kern, m, identity=ident, support_eps=0.0, fft_backend="numpy")
-    got = patch_convolve(img, kern, m, identity=ident, support_eps=0.0, method="lowrank", rank_eps=eps, tile=tile,
-                         fft_backend=backend)
+    exact = patch_convolve(img, kern, m, ConvolveOptions(support_eps=0.0, fft_backend="numpy"), identity=ident)
+    lowrank = ConvolveOptions(support_eps=0.0, method="lowrank", rank_eps=eps, tile=tile, fft_backend=backend)
+    got = patch_convolve(img, kern, m, lowrank, identity=ident)
     bound = 2 * eps / (1 - eps) * float(np.abs(img).max()) + 2e-6
     assert got.shape == exact.shape and got.dtype == np.float32
     assert np.abs(got - exact).max() <= bound
@@ -45,12 +45,13 @@ def test_lowrank_within_bound(case, eps, tile, backend):
 def test_lowrank_constant_pairs_and_zero(case):
     img, kern, ident, m = case
     one = np.ones_like(img)
-    assert np.abs(patch_convolve(one, kern, m, identity=ident, method="lowrank", rank_eps=0.1) - 1).max() < 1e-5
+    lowrank = ConvolveOptions(method="lowrank", rank_eps=0.1)
+    assert np.abs(patch_convolve(one, kern, m, lowrank, identity=ident) - 1).max() < 1e-5
     pairs = ((0, 0), (1, 1), (2, 2), (3, 0), (3, 1), (3, 2))
     x4 = np.concatenate([img, img[..., :1]], -1)
     x4[:, 70:] = 0                                     # an empty part, as a depth layer has
     exact = patch_convolve(x4, kern, m, pairs=pairs)
-    got = patch_convolve(x4, kern, m, pairs=pairs, method="lowrank", rank_eps=1e-2)
+    got = patch_convolve(x4, kern, m, ConvolveOptions(method="lowrank", rank_eps=1e-2), pairs=pairs)
     assert np.abs(got - exact).max() <= 2 * 1e-2 / 0.99 + 1e-5
     assert np.abs(got[:, 120:]).max() == 0.0           # beyond any kernel's reach of the content
 
@@ -68,9 +69,9 @@ def test_low_rank_rows_within_eps():
 def test_lowrank_refuses_bad_arguments(case):
     img, kern, _, m = case
     with pytest.raises(ValueError):
-        patch_convolve(img, kern, m, method="svd")
+        patch_convolve(img, kern, m, ConvolveOptions(method="svd"))
     with pytest.raises(ValueError):
-        patch_convolve(img, kern, m, method="lowrank", tile=0)
+        patch_convolve(img, kern, m, ConvolveOptions(method="lowrank", tile=0))
 
 
 def test_bokeh_lowrank_matches_windows_within_the_bound():
@@ -78,7 +79,7 @@ def test_bokeh_lowrank_matches_windows_within_the_bound():
     from dcdi_core.psf.compute import PSFSettings
     from dcdi_core.psf.library import LibraryGrid, PSFLibrary
     from dcdi_core.render.geometry import ImageGeometry
-    from dcdi_core.render.simulate import bokeh
+    from dcdi_core.render.simulate import BokehOptions, bokeh
 
     lens = load_lens("mos-s1")
     h, w = 64, 96
@@ -89,12 +90,13 @@ def test_bokeh_lowrank_matches_windows_within_the_bound():
     depth = np.full((h, w), 8.0)
     depth[20:44, 30:60] = 1.0
     eps = 1e-2
-    plain = [bokeh(img, depth, lens, keep=(0.9, 1.1), geometry=geom, library=lib, occlusion=False,
-                   convolution=c, rank_eps=eps).image for c in ("windows", "lowrank")]
+    plain = [bokeh(img, depth, lens,
+                   BokehOptions(keep=(0.9, 1.1), geometry=geom, occlusion=False, convolution=c, rank_eps=eps),
+                   library=lib).image for c in ("windows", "lowrank")]
     assert np.abs(plain[0] - plain[1]).max() <= 2 * eps / (1 - eps) * img.max() + 1e-5
-    layered = [bokeh(img, depth, lens, keep=(0.9, 1.1), geometry=geom, library=lib, convolution=c,
-                     rank_eps=eps).image for c in ("windows", "lowrank")]
+    layered = [bokeh(img, depth, lens, BokehOptions(keep=(0.9, 1.1), geometry=geom, convolution=c, rank_eps=eps),
+                     library=lib).image for c in ("windows", "lowrank")]
     assert np.abs(layered[1][20:44, 30:60] - img[20:44, 30:60]).max() < 1e-6      # the kept subject untouched
     assert np.abs(layered[0] - layered[1]).mean() < 2 * eps * img.max()
     with pytest.raises(Exception):
-        bokeh(img, depth, lens, keep=(0.9, 1.1), geometry=geom, library=lib, convolution="svd")
+        bokeh(img, depth, lens, BokehOptions(keep=(0.9, 1.1), geometry=geom, convolution="svd"), library=lib)

@@ -10,7 +10,7 @@ from dcdi_core.psf.library import LibraryGrid, PSFLibrary
 from dcdi_core.render import multires as mr
 from dcdi_core.experiments.simulation_accuracy import psnr
 from dcdi_core.render.geometry import ImageGeometry
-from dcdi_core.render.simulate import bokeh
+from dcdi_core.render.simulate import BokehOptions, bokeh
 
 H, W = 96, 128
 pytestmark = pytest.mark.filterwarnings("ignore::dcdi_core.psf.compute.KernelTooSmallWarning")
@@ -50,8 +50,8 @@ def test_level_rule_keeps_narrow_kernels_at_full_resolution():
 
 def test_narrow_kernels_give_the_exact_path(case):
     lens, geom, lib, img, depth = case
-    ex = bokeh(img, depth, lens, keep=(1.1, 1.3), geometry=geom, library=lib, convolution="windows")
-    mres = bokeh(img, depth, lens, keep=(1.1, 1.3), geometry=geom, library=lib, multires=1000.0)
+    ex = bokeh(img, depth, lens, BokehOptions(keep=(1.1, 1.3), geometry=geom, convolution="windows"), library=lib)
+    mres = bokeh(img, depth, lens, BokehOptions(keep=(1.1, 1.3), geometry=geom, multires=1000.0), library=lib)
     assert all(sum(lv[1:]) == 0 for lv in mres.info["layer_levels"])
     assert np.array_equal(ex.image, mres.image)
 
@@ -90,9 +90,10 @@ def _erode(mask, n):
 @pytest.mark.parametrize("occlusion", [True, False])
 def test_multires_matches_the_exact_path_within_the_stated_bound(case, occlusion):
     lens, geom, lib, img, depth = case
-    ex = bokeh(img, depth, lens, keep=(1.1, 1.3), geometry=geom, library=lib, occlusion=occlusion).image
-    res = bokeh(img, depth, lens, keep=(1.1, 1.3), geometry=geom, library=lib, occlusion=occlusion,
-                multires=2.0, max_level=2)
+    ex = bokeh(img, depth, lens, BokehOptions(keep=(1.1, 1.3), geometry=geom, occlusion=occlusion), library=lib).image
+    res = bokeh(img, depth, lens,
+                BokehOptions(keep=(1.1, 1.3), geometry=geom, occlusion=occlusion, multires=2.0, max_level=2),
+                library=lib)
     levels = res.info["layer_levels"] if occlusion else res.info["multires_patches_per_level"]
     assert sum(sum(lv[1:]) for lv in levels) > 0 if occlusion else sum(levels[1:]) > 0     # some of it coarse
     peak = float(img.max())
@@ -110,8 +111,9 @@ def test_multires_matches_the_exact_path_within_the_stated_bound(case, occlusion
 def test_constant_image_stays_constant(case, occlusion):
     lens, geom, lib, _, depth = case
     img = np.full((H, W, 3), 0.7, np.float32)
-    res = bokeh(img, depth, lens, keep=(1.1, 1.3), geometry=geom, library=lib, occlusion=occlusion,
-                multires=1.0, max_level=3)
+    res = bokeh(img, depth, lens,
+                BokehOptions(keep=(1.1, 1.3), geometry=geom, occlusion=occlusion, multires=1.0, max_level=3),
+                library=lib)
     assert np.abs(res.image - 0.7).max() < 2e-4
 
 
@@ -142,11 +144,13 @@ def _stiff(case):
 def test_no_nan_on_stiff_cases(case, name, occlusion):
     lens, geom, lib, _, _ = case
     img, depth = _stiff(case)[name]
-    res = bokeh(img, depth, lens, keep=(1.1, 1.3), geometry=geom, library=lib, occlusion=occlusion,
-                multires=1.0, max_level=3)
+    res = bokeh(img, depth, lens,
+                BokehOptions(keep=(1.1, 1.3), geometry=geom, occlusion=occlusion, multires=1.0, max_level=3),
+                library=lib)
     assert np.isfinite(res.image).all() and res.image.min() >= 0.0
     if name == "single bright pixel":   # the energy of the exact path (+ the clamped undershoot: module docstring)
-        ex = bokeh(img, depth, lens, keep=(1.1, 1.3), geometry=geom, library=lib, occlusion=occlusion).image
+        ex = bokeh(img, depth, lens, BokehOptions(keep=(1.1, 1.3), geometry=geom, occlusion=occlusion),
+                   library=lib).image
         assert abs(float(res.image.sum()) - float(ex.sum())) < 0.03 * float(ex.sum())
     if name == "zeros":
         assert not res.image.any()
@@ -155,9 +159,10 @@ def test_no_nan_on_stiff_cases(case, name, occlusion):
 def test_bad_parameters_are_refused_before_work(case):
     lens, geom, lib, img, depth = case
     with pytest.raises(InputRangeError):
-        bokeh(img, depth, lens, keep=(1.1, 1.3), geometry=geom, library=lib, multires=-1.0)
+        bokeh(img, depth, lens, BokehOptions(keep=(1.1, 1.3), geometry=geom, multires=-1.0), library=lib)
     with pytest.raises(InputRangeError):
-        bokeh(img, depth, lens, keep=(1.1, 1.3), geometry=geom, library=lib, multires=2.0, convolution="lowrank")
+        bokeh(img, depth, lens, BokehOptions(keep=(1.1, 1.3), geometry=geom, multires=2.0, convolution="lowrank"),
+              library=lib)
 
 
 def test_narrow_kernels_at_a_coarse_pitch_stay_at_full_resolution():
@@ -172,10 +177,11 @@ def test_narrow_kernels_at_a_coarse_pitch_stay_at_full_resolution():
     img = rng.random((120, 160, 3)).astype(np.float32)
     depth = np.where(rng.random((120, 160)) < 0.5, 0.8, 1e10)
     for occ in (True, False):
-        ex = bokeh(img, depth, lens, keep=(1.1, 1.3), geometry=geom, library=lib, occlusion=occ,
-                   convolution="windows")
+        ex = bokeh(img, depth, lens, BokehOptions(keep=(1.1, 1.3), geometry=geom, occlusion=occ, convolution="windows"),
+                   library=lib)
         for c in (mr.BENCH_C, 2.0):
-            res = bokeh(img, depth, lens, keep=(1.1, 1.3), geometry=geom, library=lib, occlusion=occ, multires=c)
+            res = bokeh(img, depth, lens, BokehOptions(keep=(1.1, 1.3), geometry=geom, occlusion=occ, multires=c),
+                        library=lib)
             levels = res.info["layer_levels"] if occ else [res.info["multires_patches_per_level"]]
             assert all(sum(lv[1:]) == 0 for lv in levels)
             assert np.array_equal(res.image, ex.image)

@@ -7,10 +7,10 @@ from dcdi_core.errors import InputRangeError
 from dcdi_core.optics.lens import load_lens
 from dcdi_core.psf.compute import PSFSettings
 from dcdi_core.psf.library import LibraryGrid, PSFLibrary
-from dcdi_core.render.convolve import patch_convolve
+from dcdi_core.render.convolve import ConvolveOptions, patch_convolve
 from dcdi_core.render.geometry import ImageGeometry
 from dcdi_core.render.psfmap import identity_kernel, psf_map
-from dcdi_core.render.simulate import bokeh, simulate
+from dcdi_core.render.simulate import BokehOptions, bokeh, simulate
 
 FAST = PSFSettings(pupil_samples=24, n_wavelengths=3, kernel_size=21)
 
@@ -138,14 +138,14 @@ def test_bokeh_keeps_the_kept_range_unchanged(lens):
     depth = np.full((h, w), 8.0)                  # background far
     depth[20:44, 30:60] = 1.0                      # subject, kept sharp
     for occ in (True, False):
-        r = bokeh(img, depth, lens, keep=(0.9, 1.1), geometry=geom, library=lib, occlusion=occ)
+        r = bokeh(img, depth, lens, BokehOptions(keep=(0.9, 1.1), geometry=geom, occlusion=occ), library=lib)
         inside = r.image[20:44, 30:60]
         if occ:   # nothing nearer covers the subject: exactly unchanged
             assert np.abs(inside - img[20:44, 30:60]).max() < 1e-6
         bg = r.image[:, :20]
         assert np.abs(bg - img[:, :20]).mean() > 0.01       # the background is blurred
     with pytest.raises(InputRangeError):
-        bokeh(img, depth, lens, geometry=geom, library=lib)
+        bokeh(img, depth, lens, BokehOptions(geometry=geom), library=lib)
 
 
 def test_bokeh_cancelled_callback_stops_between_layers(lens):
@@ -158,14 +158,15 @@ def test_bokeh_cancelled_callback_stops_between_layers(lens):
     depth[:, :30] = 3.0
     depth[20:44, 30:60] = 1.0
     calls = []
-    ref = bokeh(img, depth, lens, keep=(0.9, 1.1), geometry=geom, library=lib,
+    ref = bokeh(img, depth, lens, BokehOptions(keep=(0.9, 1.1), geometry=geom), library=lib,
                 cancelled=lambda: calls.append(1) and False)
     assert len(calls) >= 2                               # asked before every blurred layer
-    assert np.array_equal(ref.image, bokeh(img, depth, lens, keep=(0.9, 1.1), geometry=geom, library=lib).image)
+    again = bokeh(img, depth, lens, BokehOptions(keep=(0.9, 1.1), geometry=geom), library=lib)
+    assert np.array_equal(ref.image, again.image)
     for occ in (True, False):
         asked = []
         with pytest.raises(Cancelled):
-            bokeh(img, depth, lens, keep=(0.9, 1.1), geometry=geom, library=lib, occlusion=occ,
+            bokeh(img, depth, lens, BokehOptions(keep=(0.9, 1.1), geometry=geom, occlusion=occ), library=lib,
                   cancelled=lambda: asked.append(1) or len(asked) >= (2 if occ else 1))
         assert len(asked) == (2 if occ else 1)           # stopped at once, no further layer
 
@@ -204,7 +205,7 @@ def test_cropped_support_matches_the_full_kernel_with_a_small_psf_in_a_large_ker
     small /= small.sum(axis=(1, 2), keepdims=True)
     big = np.zeros((3, 41, 41), np.float32)
     big[:, 18:23, 18:23] = small
-    out = patch_convolve(img, np.broadcast_to(big, (3, 4, 3, 41, 41)), 16, support_eps=0.0)
+    out = patch_convolve(img, np.broadcast_to(big, (3, 4, 3, 41, 41)), 16, ConvolveOptions(support_eps=0.0))
     assert np.abs(out - _direct(img, small)).max() < 1e-5
 
 
@@ -217,10 +218,10 @@ def test_support_crop_error_is_bounded_by_eps_and_constants_stay_constant(eps):
     kern = np.broadcast_to(g / g.sum(), (3, k, k))
     rng = np.random.default_rng(7)
     img = rng.random((48, 64, 3)).astype(np.float32)
-    out = patch_convolve(img, np.broadcast_to(kern, (3, 4, 3, k, k)), 16, support_eps=eps)
+    out = patch_convolve(img, np.broadcast_to(kern, (3, 4, 3, k, k)), 16, ConvolveOptions(support_eps=eps))
     assert np.abs(out - _direct(img, kern)).max() < 2 * eps
     const = patch_convolve(np.full((48, 64, 3), 0.5, np.float32), np.broadcast_to(kern, (3, 4, 3, k, k)), 16,
-                           support_eps=eps)
+                           ConvolveOptions(support_eps=eps))
     assert np.abs(const - 0.5).max() < 1e-5
 
 
@@ -235,11 +236,11 @@ def test_fft_backends_agree():
     kern /= kern.sum(axis=(-2, -1), keepdims=True)
     fast = patch_convolve(img, kern, 16)
     assert fft.backend() == "scipy" and fft.backend("numpy") == "numpy"
-    slow = patch_convolve(img, kern, 16, fft_backend="numpy")
+    slow = patch_convolve(img, kern, 16, ConvolveOptions(fft_backend="numpy"))
     assert fft.backend() == "scipy"                     # a parameter: nothing process-wide changed
     assert np.abs(fast - slow).max() < 1e-5
     with pytest.raises(ValueError, match="allowed scipy, numpy"):
-        patch_convolve(img, kern, 16, fft_backend="fftw")
+        patch_convolve(img, kern, 16, ConvolveOptions(fft_backend="fftw"))
 
 
 def test_psf_map_support_crop_matches_the_full_kernels(lens):
@@ -271,7 +272,7 @@ def test_layered_bokeh_leaves_no_seam_on_a_continuous_surface(lens):
     lib = _lib(lens, geom)
     depth = np.repeat(np.linspace(0.8, 9.0, h)[:, None], w, axis=1)
     img = np.full((h, w, 3), 0.5, np.float32)
-    r = bokeh(img, depth, lens, keep=(20.0, 30.0), geometry=geom, library=lib, occlusion=True, n_layers=6)
+    r = bokeh(img, depth, lens, BokehOptions(keep=(20.0, 30.0), geometry=geom, occlusion=True, n_layers=6), library=lib)
     assert r.info["layers"] == 6
     assert np.abs(r.image - 0.5).max() < 1e-3
 

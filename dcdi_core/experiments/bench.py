@@ -5,6 +5,7 @@ process and prints the ratio, so that figures from different machines compare.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import time
@@ -167,10 +168,10 @@ def bench_render(quick: bool = False) -> int:
     import tracemalloc
 
     from ..optics.lens import load_lens
-    from ..render.convolve import patch_convolve
+    from ..render.convolve import ConvolveOptions, patch_convolve
     from ..render.geometry import ImageGeometry
     from ..render.psfmap import psf_map
-    from ..render.simulate import bokeh, open_library, simulate
+    from ..render.simulate import BokehOptions, bokeh, open_library, simulate
     from ..render.synthetic import synthetic_rgbd
 
     h, w = (320, 480) if quick else (1280, 1920)
@@ -195,21 +196,23 @@ def bench_render(quick: bool = False) -> int:
     # the fallback that Blender's Python gets
     t_sim_np, _ = _best(lambda: simulate(img, depth, mos, geometry=geom, library=lib, distortion=False,
                                          fft_backend="numpy"), 1)
-    t_bk_plain, _ = _best(lambda: bokeh(img, depth, p6, keep=(1.1, 1.3), library=lib6, occlusion=False), rep)
-    t_bk, _ = _best(lambda: bokeh(img, depth, p6, keep=(1.1, 1.3), library=lib6, occlusion=True), rep)
-    # the low-rank method (patch_convolve(method='lowrank')), alternated with the default in this process
+    plain, layered = BokehOptions(keep=(1.1, 1.3), occlusion=False), BokehOptions(keep=(1.1, 1.3), occlusion=True)
+    t_bk_plain, _ = _best(lambda: bokeh(img, depth, p6, plain, library=lib6), rep)
+    t_bk, _ = _best(lambda: bokeh(img, depth, p6, layered, library=lib6), rep)
+    # the low-rank method (ConvolveOptions(method='lowrank')), alternated with the default in this process
     eps_lr = 0.005
+    lowrank = ConvolveOptions(method="lowrank", rank_eps=eps_lr)
     t_conv_lr, t_bk_lr, t_bk_plain_lr = math.inf, math.inf, math.inf
     for _ in range(rep):
-        t_conv_lr = min(t_conv_lr, _best(lambda: patch_convolve(img, pm.kernels, m, identity=pm.identity,
-                                                                 method="lowrank", rank_eps=eps_lr), 1)[0])
+        t_conv_lr = min(t_conv_lr, _best(lambda: patch_convolve(img, pm.kernels, m, lowrank, identity=pm.identity),
+                                         1)[0])
         t_conv = min(t_conv, _best(lambda: patch_convolve(img, pm.kernels, m, identity=pm.identity), 1)[0])
-    t_bk_plain_lr, _ = _best(lambda: bokeh(img, depth, p6, keep=(1.1, 1.3), library=lib6, occlusion=False,
-                                          convolution="lowrank", rank_eps=eps_lr), rep)
-    t_bk_lr, _ = _best(lambda: bokeh(img, depth, p6, keep=(1.1, 1.3), library=lib6, occlusion=True,
-                                    convolution="lowrank", rank_eps=eps_lr), rep)
+    plain_lr = dataclasses.replace(plain, convolution="lowrank", rank_eps=eps_lr)
+    layered_lr = dataclasses.replace(layered, convolution="lowrank", rank_eps=eps_lr)
+    t_bk_plain_lr, _ = _best(lambda: bokeh(img, depth, p6, plain_lr, library=lib6), rep)
+    t_bk_lr, _ = _best(lambda: bokeh(img, depth, p6, layered_lr, library=lib6), rep)
     tracemalloc.start()
-    patch_convolve(img, pm.kernels, m, identity=pm.identity, method="lowrank", rank_eps=eps_lr)
+    patch_convolve(img, pm.kernels, m, lowrank, identity=pm.identity)
     peak_lr = tracemalloc.get_traced_memory()[1]
     tracemalloc.reset_peak()
     patch_convolve(img, pm.kernels, m, identity=pm.identity)
@@ -220,7 +223,7 @@ def bench_render(quick: bool = False) -> int:
     simulate(img, depth, mos, geometry=geom, library=lib, distortion=True)
     peak_sim = tracemalloc.get_traced_memory()[1]
     tracemalloc.reset_peak()
-    bokeh(img, depth, p6, keep=(1.1, 1.3), library=lib6, occlusion=True)
+    bokeh(img, depth, p6, layered, library=lib6)
     peak_bk = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
     print(f"  simulation: {t_sim:.2f} s (PSF map {t_map:.2f} s + convolution {t_conv:.2f} s, "
@@ -359,7 +362,7 @@ def bench_simulation_paths(quick: bool = False) -> int:
 
 # ---- multi-resolution bokeh (issue 15): kept in one block, called from bench_render
 def _bench_bokeh_multires(img, depth, lens, lib41, quick: bool, rep: int) -> None:
-    """The multi-resolution bokeh (``bokeh(multires=c)``) against the exact
+    """The multi-resolution bokeh (``BokehOptions(multires=c)``) against the exact
     path, alternated in this process, occlusion-aware and plain, with the
     41 px library above and with the fitted kernels ``bokeh()`` opens by
     default; PSNR and max abs difference against the exact result; peak
@@ -369,7 +372,7 @@ def _bench_bokeh_multires(img, depth, lens, lib41, quick: bool, rep: int) -> Non
     from .simulation_accuracy import psnr
     from ..render.geometry import ImageGeometry
     from ..render.multires import BENCH_C, DEFAULT_MAX_LEVEL
-    from ..render.simulate import bokeh, open_library
+    from ..render.simulate import BokehOptions, bokeh, open_library
 
     h, w = depth.shape
     fitted = open_library(lens, ImageGeometry.full_sensor(lens, h, w), fit_depth_m=depth)
@@ -377,7 +380,8 @@ def _bench_bokeh_multires(img, depth, lens, lib41, quick: bool, rep: int) -> Non
     for lib in (lib41, fitted):
         for occ in (True, False):
             def run(c):
-                return bokeh(img, depth, lens, keep=(1.1, 1.3), library=lib, occlusion=occ, multires=c).image
+                opts = BokehOptions(keep=(1.1, 1.3), occlusion=occ, multires=c)
+                return bokeh(img, depth, lens, opts, library=lib).image
             t_ex, t_mr = math.inf, math.inf
             for _ in range(rep):                     # alternated: the load changes both alike
                 t, exact = _best(lambda: run(None), 1)

@@ -112,7 +112,7 @@ def engine(out: Path, quick: bool) -> int:
     from ..psf.compute import PSFSettings
     from .bokeh_reference import crop_reference
     from ..render.geometry import ImageGeometry
-    from ..render.simulate import bokeh, open_library
+    from ..render.simulate import BokehOptions, bokeh, open_library
     from ..render.synthetic import synthetic_rgbd
 
     h, w = (320, 480) if quick else (1280, 1920)
@@ -134,9 +134,11 @@ def engine(out: Path, quick: bool) -> int:
     rep = 1 if quick else 2
     rows = {}
     for name, occ in (("occlusion-aware", True), ("plain", False)):
-        t_b, c_b, res = _timed(lambda occ=occ: bokeh(img, depth, p6, focus_m=FOCUS_M, library=lib, occlusion=occ),
+        t_b, c_b, res = _timed(lambda occ=occ: bokeh(img, depth, p6, BokehOptions(focus_m=FOCUS_M, occlusion=occ),
+                                                     library=lib),
                                rep)
-        peak = _peak_mib(lambda occ=occ: bokeh(img, depth, p6, focus_m=FOCUS_M, library=lib, occlusion=occ))
+        peak = _peak_mib(lambda occ=occ: bokeh(img, depth, p6, BokehOptions(focus_m=FOCUS_M, occlusion=occ),
+                                               library=lib))
         rows[name] = {"seconds": t_b, "cpu_seconds": c_b, "peak_mib": peak, "image": res.image}
     boxes = crop_boxes(depth, 32 if quick else 96)
     t = time.perf_counter()

@@ -240,7 +240,7 @@ def downstream(olf: OmniLensField, sim_lens, bokeh_lens, height: int, width: int
     of the synthetic scene, OLF PSFs against the traced library's (image
     PSNR, peak 1), at the learned pitch."""
     from ..render.geometry import ImageGeometry
-    from ..render.simulate import LensSimulator, bokeh
+    from ..render.simulate import BokehOptions, LensSimulator, bokeh
     from ..render.synthetic import synthetic_rgbd
     img, depth = synthetic_rgbd(height, width, seed=0)
     out = {"image": [height, width]}
@@ -258,7 +258,7 @@ def downstream(olf: OmniLensField, sim_lens, bokeh_lens, height: int, width: int
             if what == "simulate":
                 r = LensSimulator(lens, geom, library=lib, distortion=False)(img, depth)
             else:
-                r = bokeh(img, depth, lens, focus_m="prescribed", geometry=geom, library=lib)
+                r = bokeh(img, depth, lens, BokehOptions(focus_m="prescribed", geometry=geom), library=lib)
             res[name] = (r.image, time.perf_counter() - t)
         out[what] = {"lens": lens.id, "psnr_db": _psnr_image(res["olf"][0], res["library"][0]),
                      "olf_s": res["olf"][1], "library_s": res["library"][1],

@@ -45,9 +45,10 @@ def held_out(pairs_dir, split_runs: list, count: int) -> list:
 
 
 def _bokeh(image, depth, lens, keep, library=None, settings=None):
-    from ..render.simulate import bokeh
+    from ..render.simulate import BokehOptions, bokeh
     # not imaged (NaN): left as it is by the bokeh, and out of the scores
-    return bokeh(np.clip(image, 0, None), depth, lens, keep=keep, library=library, settings=settings).image
+    return bokeh(np.clip(image, 0, None), depth, lens, BokehOptions(keep=keep, settings=settings),
+                 library=library).image
 
 
 def lens_rows(lens_id: str, pairs_dir, ids: list, models: dict, target, keep, *, olf_file=None, pictures=None,

@@ -25,10 +25,10 @@ from ..atomic import write_text
 from ..optics.lens import load_lens
 from ..psf.compute import PSFSettings
 from ..psf.library import LibraryGrid, PSFLibrary
-from ..render.convolve import patch_convolve
+from ..render.convolve import ConvolveOptions, patch_convolve
 from ..render.geometry import ImageGeometry
 from ..render.psfmap import psf_map, rotate_radial_kernels
-from ..render.simulate import bokeh
+from ..render.simulate import BokehOptions, bokeh
 from ..render.synthetic import synthetic_rgbd
 
 
@@ -250,7 +250,7 @@ def lowrank_rows(img, pm, library, geom, depth, ref, exact, eps_list=(0.005, 0.0
     for method, eps in [("windows", 0.0)] + [("lowrank", e) for e in eps_list]:
         t = time.perf_counter()
         pmd = psf_map(library, geom, depth, 16)
-        res = patch_convolve(img, pmd.kernels, 16, identity=pmd.identity, method=method, rank_eps=eps)
+        res = patch_convolve(img, pmd.kernels, 16, ConvolveOptions(method=method, rank_eps=eps), identity=pmd.identity)
         dt = time.perf_counter() - t
         rows.append((method, eps, psnr(res, ref), float(np.abs(res - exact).max()), dt))
         print(f"  {method} rank eps {eps:g}: PSNR {rows[-1][2]:6.2f} dB, max |diff| vs exact {rows[-1][3]:.2e}, "
@@ -262,7 +262,7 @@ MULTIRES_RULES = ((8.0, 2), (4.0, 2), (3.0, 2), (2.0, 2))
 
 
 def multires_rows(*, quick: bool, rules=MULTIRES_RULES) -> tuple[list, str]:
-    """The multi-resolution bokeh (``bokeh(multires=c, max_level=)``) against
+    """The multi-resolution bokeh (``BokehOptions(multires=c, max_level=)``) against
     the exact path (multires None) at the pitch of a 1280 x 1920 image on
     6P's sensor, where the defocus kernels are 10-30 px wide: the whole
     frame (PSNR and max abs difference against the exact result, peak 1),
@@ -289,7 +289,7 @@ def multires_rows(*, quick: bool, rules=MULTIRES_RULES) -> tuple[list, str]:
     keep = (1.1, 1.3)
     subject = (depth >= keep[0]) & (depth <= keep[1])
     ring = _edge_band(np.where(subject, 1.0, 100.0), width=8) & ~subject
-    behind = bokeh(img_bg, depth_bg, p6, keep=keep, geometry=geom, library=lib).image
+    behind = bokeh(img_bg, depth_bg, p6, BokehOptions(keep=keep, geometry=geom), library=lib).image
     truth = np.where(subject[..., None], img, behind)
     peak = float(img.max())
     rows = []
@@ -301,15 +301,16 @@ def multires_rows(*, quick: bool, rules=MULTIRES_RULES) -> tuple[list, str]:
         return out, time.perf_counter() - t, time.process_time() - c
 
     for occ in (True, False):
-        exact, t_exact, c_exact = timed(lambda: bokeh(img, depth, p6, keep=keep, geometry=geom, library=lib,
-                                                      occlusion=occ).image)
+        exact, t_exact, c_exact = timed(lambda: bokeh(img, depth, p6,
+                                                      BokehOptions(keep=keep, geometry=geom, occlusion=occ),
+                                                      library=lib).image)
         edge_exact = psnr(exact / peak, truth / peak, ring) if occ else math.nan
         first = len(rows)
         for c, max_level in rules:
-            res, dt, dc = timed(lambda: bokeh(img, depth, p6, keep=keep, geometry=geom, library=lib, occlusion=occ,
-                                              multires=c, max_level=max_level))
-            _, te, ce = timed(lambda: bokeh(img, depth, p6, keep=keep, geometry=geom, library=lib,
-                                            occlusion=occ))                                  # alternated
+            opts = BokehOptions(keep=keep, geometry=geom, occlusion=occ, multires=c, max_level=max_level)
+            res, dt, dc = timed(lambda: bokeh(img, depth, p6, opts, library=lib))
+            _, te, ce = timed(lambda: bokeh(img, depth, p6, BokehOptions(keep=keep, geometry=geom, occlusion=occ),
+                                            library=lib))                                  # alternated
             t_exact, c_exact = min(t_exact, te), min(c_exact, ce)
             lv = res.info["layer_levels"] if occ else res.info["multires_patches_per_level"]
             edge = psnr(res.image / peak, truth / peak, ring) if occ else math.nan
@@ -349,7 +350,7 @@ def fast_path_rows(img, library, geom, depth, ref, blends=(6, 4)) -> list:
         for _ in range(2):                     # best of 2: the first torch call also starts torch
             t = time.perf_counter()
             pm = psf_map(library, geom, depth, 16, **map_kw)
-            res = patch_convolve(img, pm.kernels, 16, identity=pm.identity, **conv_kw)
+            res = patch_convolve(img, pm.kernels, 16, ConvolveOptions(**conv_kw), identity=pm.identity)
             dt = min(dt, time.perf_counter() - t)
         base = res if base is None else base
         rows.append((name, psnr(res, ref), float(np.abs(res - base).max()), dt))
@@ -471,12 +472,14 @@ def run_report(lens_id: str, out: str | Path, *, quick: bool = False) -> int:
     from ..render import fft
     crop_rows = []
     pm = psf_map(lib_ref, geom, depth, 16, support_eps=0.0)
-    exact = patch_convolve(img, pm.kernels, 16, identity=pm.identity, support_eps=0.0, fft_backend="numpy")
+    exact = patch_convolve(img, pm.kernels, 16, ConvolveOptions(support_eps=0.0, fft_backend="numpy"),
+                           identity=pm.identity)
     for backend in sorted(fft.available(), reverse=True):        # numpy first, then scipy if installed
         for eps in (0.0, 1e-4, 1e-3, 1e-2):
             t = time.perf_counter()
             pme = psf_map(lib_ref, geom, depth, 16, support_eps=eps)
-            res = patch_convolve(img, pme.kernels, 16, identity=pme.identity, support_eps=eps, fft_backend=backend)
+            res = patch_convolve(img, pme.kernels, 16, ConvolveOptions(support_eps=eps, fft_backend=backend),
+                                 identity=pme.identity)
             dt = time.perf_counter() - t
             crop_rows.append((backend, eps, psnr(res, ref), float(np.abs(res - exact).max()), dt))
             print(f"  support eps {eps:g}, {backend} FFT: PSNR {crop_rows[-1][2]:6.2f} dB, "
@@ -499,13 +502,13 @@ def run_report(lens_id: str, out: str | Path, *, quick: bool = False) -> int:
     subject = (depth >= keep[0]) & (depth <= keep[1])
     img_bg, depth_bg = synthetic_rgbd(h, w, seed=0, disk=False)
     blib.ensure(depth_bg)
-    behind = bokeh(img_bg, depth_bg, p6, keep=keep, library=blib, occlusion=True).image
+    behind = bokeh(img_bg, depth_bg, p6, BokehOptions(keep=keep, occlusion=True), library=blib).image
     truth = np.where(subject[..., None], img, behind)
     ring = _edge_band(np.where(subject, 1.0, 100.0), width=8) & ~subject
     brows = []
     for occ in (False, True):
         t = time.perf_counter()
-        res = bokeh(img, depth, p6, keep=keep, library=blib, occlusion=occ).image
+        res = bokeh(img, depth, p6, BokehOptions(keep=keep, occlusion=occ), library=blib).image
         dt = time.perf_counter() - t
         leak = float(np.abs(res - truth)[ring].mean())
         brows.append(("occlusion-aware layers" if occ else "plain patch-wise", psnr(res, truth),
@@ -517,12 +520,13 @@ def run_report(lens_id: str, out: str | Path, *, quick: bool = False) -> int:
     # layers; and the subject-free background against the plain renderer, which
     # has no occlusion to get wrong there (the seams layers leave on continuous surfaces)
     layer_rows = []
-    many = bokeh(img_bg, depth_bg, p6, keep=keep, library=blib, occlusion=False).image
+    many = bokeh(img_bg, depth_bg, p6, BokehOptions(keep=keep, occlusion=False), library=blib).image
     for n_layers in ((4, 12) if quick else (2, 4, 8, 12, 16, 24)):
         t = time.perf_counter()
-        res = bokeh(img, depth, p6, keep=keep, library=blib, occlusion=True, n_layers=n_layers).image
+        res = bokeh(img, depth, p6, BokehOptions(keep=keep, occlusion=True, n_layers=n_layers), library=blib).image
         dt = time.perf_counter() - t
-        bg_n = bokeh(img_bg, depth_bg, p6, keep=keep, library=blib, occlusion=True, n_layers=n_layers).image
+        bg_n = bokeh(img_bg, depth_bg, p6, BokehOptions(keep=keep, occlusion=True, n_layers=n_layers),
+                     library=blib).image
         truth_n = np.where(subject[..., None], img, bg_n)
         layer_rows.append((n_layers, psnr(res, truth_n, ring), psnr(bg_n, many), dt))
         print(f"  bokeh layers {n_layers:>2}: around the subject {layer_rows[-1][1]:6.2f} dB, background vs plain "
@@ -545,7 +549,7 @@ def run_report(lens_id: str, out: str | Path, *, quick: bool = False) -> int:
         md.append(f"| {c_[0]} ({'float32' if c_[0] == 'scipy' else 'float64'}) | {c_[1]:g} | {c_[2]:.2f} | "
                   f"{c_[3]:.2e} | {c_[4]:.2f} |")
     md += ["", "## Low-rank tiles (kernel 41, patch 16, support eps 1e-3)", "",
-           "`patch_convolve(method='lowrank')`: each tile of 8 x 8 patches convolved with its kernels' eigen-PSFs "
+           "`ConvolveOptions(method='lowrank')`: each tile of 8 x 8 patches convolved with its kernels' eigen-PSFs "
            "(truncated SVD, rank: every kernel within rank eps in L1); bound: max abs diff <= 2 eps max|image| "
            "against the same patch-wise result.", "",
            "| method | rank eps | PSNR vs per-pixel dB | max abs diff vs exact | time s |", "|---|---|---|---|---|"]
@@ -593,7 +597,7 @@ def run_report(lens_id: str, out: str | Path, *, quick: bool = False) -> int:
     for lr in layer_rows:
         md.append(f"| {lr[0]} | {lr[1]:.2f} | {lr[2]:.2f} | {lr[3]:.2f} |")
     md += ["", "## Multi-resolution bokeh against the exact path", "",
-           f"`bokeh(multires=c, max_level=s_max)`: a patch whose kernel's half-energy "
+           f"`BokehOptions(multires=c, max_level=s_max)`: a patch whose kernel's half-energy "
            f"radius is >= c 2^s px is blurred at 1/2^s of the resolution (render/multires.py). {mr_where}. PSNR and "
            "max abs difference against the exact path over the whole frame (peak 1); around the subject: 8 px "
            "around the kept subject against the truth (subject over the subject-free background, exact path).", "",

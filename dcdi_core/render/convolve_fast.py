@@ -1,4 +1,4 @@
-"""``patch_convolve(method="fast")``: the windows method restructured, same result.
+"""``ConvolveOptions(method="fast")``: the windows method restructured, same result.
 
 The maths is that of the default ``windows`` method (convolve.py): every
 patch's window of m + 2b pixels, its input reaching the kernel's half-width

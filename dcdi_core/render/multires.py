@@ -45,14 +45,14 @@ import numpy as np
 
 from ..errors import InputRangeError
 from ..psf.pitch import area_resample, resampled_size
-from .convolve import patch_convolve
+from .convolve import ConvolveOptions, patch_convolve
 from .psfmap import psf_map, support_radius
 
 # the level rule reads the disk holding half the energy: the core's width. 6P's
 # defocus kernels are a peaked core in a wide halo, and a rule on the 90 %
 # radius sent such kernels to 1/2, where the core was lost
 LEVEL_EPS = 0.5
-# the rule `dcdi bench render` times: bokeh()'s default stays the exact path
+# the rule `dcdi bench render` times: BokehOptions' default stays the exact path
 # (multires None): at 1280 x 1920 no rule was both faster and as close at the
 # depth edge (report simulation-accuracy's multi-resolution table, README)
 BENCH_C = 4.0
@@ -250,7 +250,8 @@ def coarse_blur(image: np.ndarray, depth: np.ndarray, valid: np.ndarray, library
     p = geometry.pixel_pitch_mm
     k = pm.kernels.shape[-1]
     kern = area_resample(pm.kernels, p, p * f, resampled_size(k, p, p * f))
-    out = patch_convolve(img, kern, coarse_patch, identity=pm.identity, pairs=pairs, fft_backend=fft_backend)
+    out = patch_convolve(img, kern, coarse_patch, ConvolveOptions(fft_backend=fft_backend), identity=pm.identity,
+                         pairs=pairs)
     # block means of a blurred image brought back by Keys' cubic: closer to the
     # exact blur than bilinear on 6P's kernels (upsampling='linear' to compare)
     return upsample(out, f, h, w, upsampling, averages=upsampling == "cubic"), pm
@@ -273,7 +274,7 @@ def grouped_blur(x: np.ndarray, depth: np.ndarray, valid: np.ndarray, ident: np.
     constant. grow: px of the kernels' reach around a group's patches.
     table: the library's :func:`radius_table` (made here if None).
     Returns (float32 (H, W, len(pairs)), levels (nph, npw), -1 where ident)."""
-    from .simulate import _box
+    from .simulate import _box, _box_geometry
 
     h, w = depth.shape
     pr = np.array([(i, i) for i in range(x.shape[-1])] if pairs is None else pairs, int).reshape(-1, 2)
@@ -287,19 +288,17 @@ def grouped_blur(x: np.ndarray, depth: np.ndarray, valid: np.ndarray, ident: np.
         # every window is a copy, and inside it no level-0 window reads the
         # box's reflected border
         ys, xs = _box(per_pixel == 0, m, grow)
-        sub = replace(geometry, height=ys.stop - ys.start, width=xs.stop - xs.start,
-                      center_px=(geometry.center_px[0] - ys.start, geometry.center_px[1] - xs.start))
+        sub = _box_geometry(geometry, ys, xs)
         pm0 = psf_map(library, sub, np.where(valid[ys, xs] & (per_pixel[ys, xs] == 0), depth[ys, xs], np.nan), m,
                       keep_range_m=keep_range_m)
-        out[ys, xs] = patch_convolve(x[ys, xs], pm0.kernels, m, identity=pm0.identity, pairs=pairs,
-                                     fft_backend=fft_backend)
+        out[ys, xs] = patch_convolve(x[ys, xs], pm0.kernels, m, ConvolveOptions(fft_backend=fft_backend),
+                                     identity=pm0.identity, pairs=pairs)
     for s in range(1, max_level + 1):
         group = levels == s
         if not group.any():
             continue
         ys, xs = _box(np.repeat(np.repeat(group, m, 0), m, 1)[:h, :w], m, grow)
-        sub = replace(geometry, height=ys.stop - ys.start, width=xs.stop - xs.start,
-                      center_px=(geometry.center_px[0] - ys.start, geometry.center_px[1] - xs.start))
+        sub = _box_geometry(geometry, ys, xs)
         own = valid[ys, xs] & (per_pixel[ys, xs] == s)
         blurred = coarse_blur(x[ys, xs], depth[ys, xs], own, library, sub, 2 ** s, coarse_patch, pairs=pairs,
                               fallback_valid=valid[ys, xs], fft_backend=fft_backend)[0]
@@ -311,7 +310,7 @@ def grouped_blur(x: np.ndarray, depth: np.ndarray, valid: np.ndarray, ident: np.
 
 def plain_blur(img: np.ndarray, depth: np.ndarray, library, geometry, m: int, keep_range_m, c: float,
                max_level: int, coarse_patch: int, grow: int, *, fft_backend=None):
-    """The plain patch-wise bokeh (``bokeh(occlusion=False)``) with each
+    """The plain patch-wise bokeh (``BokehOptions(occlusion=False)``) with each
     patch at its level (:func:`grouped_blur`); patches without valid depth
     or whose depth is in ``keep_range_m`` are copied, as the exact path's.
     Returns (image float32 (H, W, 3), info dict)."""
