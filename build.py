@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """Set-up, test, demo and packaging entry point.
 
-    python build.py demo [--out DIR]  # make .venv/, install, run the demo job (engine and factory)
+    python build.py demo [--out DIR]  # make .venv/, install, run the demo job: one factory sample,
+                                      # then DCDI on it and on a synthetic scene, lens reports
     python build.py test              # make .venv/, install, run the fast test suite
     python build.py test-slow         # the tests marked slow
     python build.py bench ARGS        # `dcdi bench ARGS` inside the environment
@@ -208,44 +209,46 @@ def _option(argv: list[str], name: str, default: str) -> str:
     return argv[argv.index(name) + 1] if name in argv[:-1] else default
 
 
+# the networks' training frames span the sensor at 480 x 640: the factory's
+# camera does too at this resolution, so the sample is at their pixel pitch
+FACTORY_DEMO_RESOLUTION = (480, 640)
+
+
 def factory_demo(py: Path, out: Path) -> int:
-    """One sample of the dataset factory (bpy, Cycles) with PNG previews and a
-    section appended to the demo's report.md; runs inside the environment."""
+    """The demo job: one dataset-factory sample (room recipe, Blender Cycles,
+    MOS-S1) in OUT/factory-480x640/ (a finished one is kept: the factory
+    resumes), then the engine's demo (`python -m dcdi_core.demo`) with that
+    sample as its second scene, or with the reason there is none (the
+    engine's demo then runs on its synthetic scene alone). Output lines of
+    the factory go to OUT/factory.log; its progress lines are shown too."""
     import time
 
-    folder = out / "factory"
+    h, w = FACTORY_DEMO_RESOLUTION
+    # the resolution in the name: a folder of other settings is never resumed (the factory refuses it)
+    folder, log = out / f"factory-{h}x{w}", out / "factory.log"
+    print(f"factory: one room sample at {h} x {w} (Blender Cycles; MOS-S1) in {folder}", flush=True)
     t0 = time.perf_counter()
-    code = subprocess.call([str(py), "-m", "blender_addon.factory", "--recipe", "room", "--count", "1",
-                            "--lens", "mos-s1", "--out", str(folder), "--seed", "0", "--resolution", "240", "320"],
-                           cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    if code != 0:
-        print(f"  factory sample failed (exit {code}); run `python -m blender_addon.factory ...` to see why")
-        lines = ["", "## Dataset factory", "", f"the factory sample failed (exit {code})"]
+    out.mkdir(parents=True, exist_ok=True)
+    with open(log, "w") as f, subprocess.Popen(
+            [str(py), "-m", "blender_addon.factory", "--recipe", "room", "--count", "1", "--lens", "mos-s1",
+             "--out", str(folder), "--seed", "0", "--resolution", str(h), str(w)],
+            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, errors="replace") as job:
+        for line in job.stdout:
+            f.write(line)
+            # the factory's own progress; Blender's timestamped log lines stay in the log
+            if line.strip() and not line[:1].isdigit():
+                print("  " + line.strip(), flush=True)
+    code = job.returncode
+    args = [str(py), "-m", "dcdi_core.demo", "--out", str(out)]
+    if code == 0:
+        print(f"  factory: done in {time.perf_counter() - t0:.1f} s (its log: {log})", flush=True)
+        args += ["--factory-sample", str(folder)]
     else:
-        preview = f"""
-import sys
-from pathlib import Path
-from dcdi_core.io.images import read_depth, read_image, write_image
-from dcdi_core.render.pictures import side_by_side
-out, folder, sid = Path(sys.argv[1]), Path(sys.argv[2]), "room-000000"
-img = read_image(folder / "aif" / f"{{sid}}.exr")
-depth = read_depth(folder / "depth" / f"{{sid}}.exr")
-ab = read_image(folder / "mos-s1" / "aberrated" / f"{{sid}}.exr")
-write_image(out / "factory_aif.png", img)
-write_image(out / "factory_aberrated_mos-s1.png", ab)
-side_by_side(out / "factory_side.png", img, depth, ab, "dataset factory: room scene, MOS-S1 aberrated")
-"""
-        code = subprocess.call([str(py), "-c", preview, str(out), str(folder)], cwd=ROOT)
-        print(f"  factory: one room sample rendered and simulated in {time.perf_counter() - t0:.1f} s "
-              f"(files in {folder})")
-        lines = ["", "## Dataset factory", "", "- `factory_side.png`: a rendered room (AiF, depth, MOS-S1 "
-                 "aberrated); the sample's files are in `factory/`"]
-    report = out / "report.md"
-    if report.exists():
-        tmp = report.with_name(f".{report.name}.tmp")
-        tmp.write_text(report.read_text().rstrip("\n") + "\n" + "\n".join(lines) + "\n")
-        os.replace(tmp, report)
-    return code
+        lines = [x.strip() for x in log.read_text(errors="replace").splitlines() if x.strip()]
+        why = f"the factory sample failed (exit {code}: {lines[-1] if lines else 'no output'}; its log: {log})"
+        print(f"  {why}; the demo goes on with the synthetic scene alone", flush=True)
+        args += ["--factory-error", why]
+    return _run(args)
 
 
 def bench_factory(py: Path, quick: bool = False) -> int:
@@ -360,9 +363,6 @@ def main(argv: list[str]) -> int:
         if code != 0 or rest[:1] != ["render"]:
             return code
         return bench_defocus(py, quick="--quick" in rest)
-    code = _run([py, "-m", "dcdi_core", "demo", *rest])
-    if code != 0:
-        return code
     return factory_demo(py, (ROOT / _option(rest, "--out", "out/demo")).resolve())
 
 

@@ -1,11 +1,5 @@
-"""`dcdi demo`: the engine's demo job on built-in defaults.
-
-A report for every lens in lenses/, pictures of its spot diagrams and PSFs
-across field and depth, and the simulation and bokeh on the built-in
-synthetic RGB-D scene, written to one folder with a summary (report.md).
-`python build.py demo` runs this and then one sample of the dataset factory
-(the Blender layer, started from build.py: the engine never starts it).
-"""
+"""The demo's lens reports: for every lens in lenses/, its figures (text and
+JSON), its spot diagrams and its RGB PSFs across field and depth."""
 from __future__ import annotations
 
 import json
@@ -15,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import save_figure, write_text
+from ..atomic import save_figure, write_text
 
 FIELDS = [0.0, 0.5, 0.7, 1.0]
 DEPTHS_M = [0.7, 1.0, 2.0, 5.0, 10.0, math.inf]
@@ -77,9 +71,9 @@ def psf_figure(lens, path) -> str:
     one-line note of what the kernel clips."""
     import warnings
 
-    from .optics.aiming import sources
-    from .psf.compute import PSFSettings, compute_sources, pixel_pitch_mm, spectral_samples
-    from .psf.plots import depth_label, psf_grid_png
+    from ..optics.aiming import sources
+    from ..psf.compute import PSFSettings, compute_sources, pixel_pitch_mm, spectral_samples
+    from ..psf.plots import depth_label, psf_grid_png
 
     settings = PSFSettings()
     aimed = sources(lens, PSF_DEPTHS_M, field=PSF_FIELDS)
@@ -94,50 +88,17 @@ def psf_figure(lens, path) -> str:
             + (f" (needs {int(b.kernel_size_needed.max())} px)" if worst > 0.01 else ""))
 
 
-def render_demo(out: Path) -> list[str]:
-    """Simulate MOS-S1's aberrations and render the 6P lens's bokeh on the
-    built-in synthetic RGB-D scene; returns lines for the summary."""
-    from .io.images import write_depth, write_image
-    from .optics.lens import load_lens
-    from .render.pictures import side_by_side
-    from .render.simulate import bokeh, simulate
-    from .render.synthetic import synthetic_rgbd
+def lens_section(out: Path) -> list[str]:
+    """Write every lens's report, figures JSON, spot diagrams and PSFs to
+    ``out``; returns the report's lines (a table, one row per lens)."""
+    from ..optics.analysis import spot_diagram
+    from ..optics.lens import available_lenses, load_lens
+    from ..optics.report import format_info, lens_info
 
-    lines = ["", "## Simulation and bokeh on the built-in RGB-D test scene", ""]
-    img, depth = synthetic_rgbd(240, 360, seed=0)
-    write_image(out / "scene_aif.exr", img)
-    write_depth(out / "scene_depth.exr", depth)
-    t0 = time.perf_counter()
-    sim = simulate(img, depth, load_lens("mos-s1"), seed=0)
-    write_image(out / "simulate_mos-s1.png", sim.image)
-    write_image(out / "simulate_mos-s1_sharp.png", sim.sharp)
-    side_by_side(out / "simulate_mos-s1_side.png", img, depth, sim.image,
-                 "MOS-S1 depth-aware aberration simulation (with its distortion)")
-    t1 = time.perf_counter()
-    bk = bokeh(img, depth, load_lens("6p"), focus_m=1.2)
-    write_image(out / "bokeh_6p_focus1.2m.png", bk.image)
-    side_by_side(out / "bokeh_6p_side.png", img, depth, bk.image, "6P lens focused at 1.2 m (occlusion-aware)")
-    t2 = time.perf_counter()
-    print(f"  simulate (mos-s1) {t1 - t0:.1f} s, bokeh (6p, focus 1.2 m) {t2 - t1:.1f} s on 240 x 360 "
-          "(the first run also builds the PSF libraries; later runs read them from the cache)")
-    lines += [f"- `simulate_mos-s1_side.png`: aberrated by MOS-S1 ({t1 - t0:.1f} s)",
-              f"- `bokeh_6p_side.png`: the 6P lens focused at 1.2 m ({t2 - t1:.1f} s)",
-              "- inputs: `scene_aif.exr`, `scene_depth.exr`"]
-    return lines
-
-
-def run(out: str | Path) -> int:
-    from .optics.analysis import spot_diagram
-    from .optics.lens import available_lenses, load_lens
-    from .optics.report import format_info, lens_info
-
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    print(f"dcdi demo: writing to {out.resolve()}")
-    summary = ["# dcdi demo: lens reports", "",
-               "| lens | EFL mm (stated) | F/# (stated) | working F/# | FoV diagonal, real, deg | FoV stated, deg "
-               "(its own measure: see lenses/README.md) | in-focus object m | spot rms on axis at inf, um |",
-               "|---|---|---|---|---|---|---|---|"]
+    lines = ["## The lenses", "",
+             "| lens | EFL mm (stated) | F/# (stated) | working F/# | FoV diagonal, real, deg | FoV stated, deg "
+             "(its own measure: see lenses/README.md) | in-focus object m | spot rms on axis at inf, um |",
+             "|---|---|---|---|---|---|---|---|"]
     for lid in available_lenses():
         t0 = time.perf_counter()
         lens = load_lens(lid)
@@ -150,17 +111,16 @@ def run(out: str | Path) -> int:
         spot_figure(lens, spots, out / f"{lid}_spots.png")
         clip = psf_figure(lens, out / f"{lid}_psfs.png")
         st = info["stated"]
-        summary.append(
+        focus = info["in_focus_object_distance_m"]
+        lines.append(
             f"| {lid} | {info['effective_focal_length_mm']:.3f} ({st.get('effective_focal_length_mm', '-')}) "
             f"| {info['f_number']:.3f} ({st.get('f_number', '-')}) | {info['working_f_number']:.3f} "
             f"| {info['field_of_view_deg']:.2f} | {st.get('field_of_view_deg', '-')} "
-            f"| {info['in_focus_object_distance_m'] if isinstance(info['in_focus_object_distance_m'], str) else round(info['in_focus_object_distance_m'], 4)} "
+            f"| {focus if isinstance(focus, str) else round(focus, 4)} "
             f"| {spots.rms_radius_mm[0, -1, 1] * 1000:.2f} |")
-        print(f"  {lid}: report, info JSON, spot diagrams and PSFs in {time.perf_counter() - t0:.1f} s; {clip}")
-    summary += render_demo(out)
-    summary += ["", "Per lens: `<id>_report.txt` (text), `<id>_info.json` (all figures), "
-                "`<id>_spots.png` (spot diagrams across field and depth), `<id>_psfs.png` (RGB PSFs "
-                "at the sensor's pixel pitch across field and depth).", ""]
-    write_text(out / "report.md", "\n".join(summary))
-    print(f"  summary: {out / 'report.md'}")
-    return 0
+        print(f"  {lid}: report, info JSON, spot diagrams and PSFs in {time.perf_counter() - t0:.1f} s; {clip}",
+              flush=True)
+    lines += ["", "Per lens: `<id>_report.txt` (text), `<id>_info.json` (all figures), "
+              "`<id>_spots.png` (spot diagrams across field and depth), `<id>_psfs.png` (RGB PSFs "
+              "at the sensor's pixel pitch across field and depth, traced)."]
+    return lines
