@@ -1,0 +1,316 @@
+"""What every command group of `dcdi` shares: value types, the shared option
+sets (PSF settings, PSF source, device), output and cache checks, JSON
+printing, progress lines and training runs.
+
+Imports of the engine are inside the functions: `dcdi --help` and the light
+commands start without numpy's heavier modules, and torch stays optional.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+
+UNITS = ("units: lens lengths in mm; depth D in metres from the lens's first vertex "
+         "('inf' for infinity); wavelengths in nm; angles in degrees; field F is the "
+         "normalised image height (1 = sensor semi-diagonal).")
+
+
+# ------------------------------------------------------------------ value types
+def depth_value(text: str) -> float:
+    """A depth in metres (> 0) or 'inf'."""
+    if text.strip().lower() in ("inf", "infinity"):
+        return math.inf
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"depth must be a number of metres or 'inf', got {text!r}")
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f"depth must be > 0 metres (or 'inf'), got {text!r}")
+    return v
+
+
+def focus_value(text: str):
+    """A focus distance in metres, 'inf', or 'prescribed' (the lens as its prescription stands)."""
+    if text.strip().lower() == "prescribed":
+        return "prescribed"
+    try:
+        return depth_value(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"focus must be a distance in metres (> 0), 'inf' or 'prescribed', "
+                                         f"got {text!r}") from None
+
+
+def positive_int(text: str) -> int:
+    v = int(text)
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
+    return v
+
+
+def shard(text: str):
+    """I/N: the items at positions i % N == I."""
+    try:
+        i, n = (int(v) for v in text.split("/"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}': expected I/N, e.g. 0/4") from None
+    if not (n >= 1 and 0 <= i < n):
+        raise argparse.ArgumentTypeError(f"'{text}': need 0 <= I < N")
+    return i, n
+
+
+def lens_map(items, what: str) -> dict:
+    """{lens: path} from repeated LENS=PATH options (``what`` names the option)."""
+    out = {}
+    for item in items or []:
+        lens, sep, path = item.partition("=")
+        if not sep or not lens or not path:
+            from ..errors import InputRangeError
+            raise InputRangeError(what, item, "LENS=PATH, e.g. mos-s1=out/pairs-mos-s1")
+        out[lens] = path
+    return out
+
+
+# ------------------------------------------------------------------ printing
+def dump(obj) -> str:
+    """JSON with infinities as 'inf' (JSON has none)."""
+    def fix(o):
+        if isinstance(o, float) and not math.isfinite(o):
+            return "inf" if o > 0 else ("-inf" if o < 0 else None)
+        if isinstance(o, dict):
+            return {k: fix(v) for k, v in o.items()}
+        if isinstance(o, (list, tuple)):
+            return [fix(v) for v in o]
+        return o
+    return json.dumps(fix(obj), indent=2)
+
+
+def print_table_or_json(res: dict, as_json: bool) -> None:
+    print(dump(res) if as_json else "\n".join(f"{k:<22} {v}" for k, v in res.items()))
+
+
+def one_line(text) -> str:
+    return " ".join(str(text).split())
+
+
+def say(text: str) -> None:
+    """A line for the user on standard error."""
+    print(f"dcdi: {text}", file=sys.stderr)
+
+
+def show_warning(message, category, filename, lineno, file=None, line=None):
+    """warnings.showwarning for the command: one line each, no source line."""
+    print(f"dcdi: warning: {one_line(message)}", file=sys.stderr)
+
+
+def counter(what: str):
+    """progress(done, total) drawing 'dcdi <what> done/total' on a terminal, silent elsewhere."""
+    tty = sys.stderr.isatty()
+
+    def progress(done, total):
+        if tty:
+            print(f"\rdcdi {what} {done}/{total}", end="" if done < total else "\n", file=sys.stderr)
+    return progress
+
+
+# ------------------------------------------------------------------ checks before any work
+def check_output(path, option: str, *, image: bool = False, suffix: str | None = None) -> None:
+    """Refuse, before any work, an output that cannot be written: an image
+    extension that is not supported (or not ``suffix``), a folder that is
+    read-only or a file."""
+    if not path:
+        return
+    from pathlib import Path
+
+    from ..errors import InputRangeError, check_writable_folder
+    if image:
+        from ..io.images import check_image_output
+        check_image_output(path)
+    if suffix is not None and not str(path).lower().endswith(suffix):
+        raise InputRangeError(option, str(path), f"a file name ending in {suffix} (what it writes)")
+    check_writable_folder(Path(path).resolve().parent, f"{option} {path}")
+
+
+def check_cache(args=None) -> None:
+    """Refuse, before any work, a PSF cache folder that cannot be written."""
+    if args is not None and getattr(args, "no_cache", False):
+        return
+    from ..errors import check_writable_folder
+    from ..psf.library import default_cache_dir
+    check_writable_folder(default_cache_dir(), "the PSF cache (set DCDI_CACHE_DIR to a writable folder)")
+
+
+def check_wavelength(lens, args) -> None:
+    if getattr(args, "wavelength", None) is not None:
+        lens.check_wavelengths(args.wavelength, "--wavelength")
+
+
+def check_olf_file(args) -> None:
+    """An OLF file given with --olf, read and checked before any work: a
+    damaged one is an error naming it (the PSF source would else fall back
+    to tracing, saying why, as it does for a file that does not cover the
+    request)."""
+    if getattr(args, "olf", None) and getattr(args, "psf_source", None) != "trace":
+        from ..models.runtime.olf import read_olf_file
+        read_olf_file(args.olf)
+
+
+# ------------------------------------------------------------------ shared option sets
+def add_subcommands(parser, dest: str, metavar: str = "SUBCOMMAND"):
+    """The subcommands of a command group (one of them is required)."""
+    return parser.add_subparsers(dest=dest, required=True, metavar=metavar)
+
+
+def add_psf_options(q, *, sensor_focus: bool = True, render: bool = False) -> None:
+    """The PSF settings' options. ``sensor_focus``: --focus moves the sensor
+    (bokeh and dof give --focus a meaning of their own); ``render``: the
+    kernel grows with the depth map unless --kernel is given."""
+    from ..psf.compute import PSFSettings
+    d = PSFSettings()
+    grows = "; without this option it grows to hold the depth map's blur, up to 129" if render else ""
+    q.add_argument("--kernel", type=positive_int, default=None, metavar="K",
+                   help=f"kernel size K x K px, odd (default {d.kernel_size}{grows})")
+    q.add_argument("--deposit-sigma", type=float, default=None, metavar="PX",
+                   help=f"Gaussian spread of each ray in pixels on top of the pixel it lands in (default "
+                        f"{d.deposit_sigma_px:g}: what a sensor records; the paper's 0.471 blurs)")
+    q.add_argument("--rays", type=positive_int, default=None, metavar="N",
+                   help=f"pupil grid N x N over the real stop (default {d.pupil_samples})")
+    q.add_argument("--wavelengths", type=positive_int, default=None, metavar="W",
+                   help=f"wavelength samples over 400-700 nm (default {d.n_wavelengths})")
+    q.add_argument("--precision", choices=["float32", "float64"], default=None,
+                   help=f"ray tracing precision (default {d.precision})")
+    q.add_argument("--pixel-pitch", type=float, default=None, metavar="MM",
+                   help="pixel pitch in mm (default: the lens's sensor)")
+    if sensor_focus:
+        q.add_argument("--focus", type=depth_value, default=None, metavar="D",
+                       help="move the sensor to focus depth D metres (default: as prescribed)")
+    q.add_argument("--response", default=None, metavar="CSV",
+                   help="sensor spectral response CSV (wavelength_nm,r,g,b); default: shipped curves")
+
+
+def add_psf_source_options(q) -> None:
+    q.add_argument("--psf-source", choices=["olf", "trace"], default=None,
+                   help="where the PSFs come from: the Omni-Lens-Field (an error if it cannot serve the "
+                        "request) or ray tracing; default: the OLF where it covers the lens (its learned "
+                        "prescription) and the request (depth range, pixel pitch, focus, PSF settings), "
+                        "else tracing; a line on standard error says which and why")
+    q.add_argument("--olf", default=None, metavar="FILE.npz",
+                   help="the OLF file to serve PSFs from (default: the one shipped in dcdi_core/models/weights)")
+
+
+def add_device_option(parser, torchrun: bool = True) -> None:
+    """--device of a torch command (not a setting: a run resumes on another device)."""
+    parser.add_argument("--device", default="auto", metavar="auto|cpu|cuda[:N]",
+                        help="where torch computes: auto (CUDA when torch sees a device, else the CPU), cpu, "
+                             "cuda or cuda:N" + ("; under torchrun each process takes cuda:LOCAL_RANK"
+                                                 if torchrun else ""))
+
+
+def add_export_options(t) -> None:
+    """The options of `dacn export` and `depth export`."""
+    t.add_argument("run", help="run folder or checkpoint.pt")
+    t.add_argument("-o", "--output", required=True, help="the .npz to write")
+    t.add_argument("--dtype", choices=["float16", "float32"], default="float16", help="storage dtype")
+    t.add_argument("--weights", choices=["ema", "model"], default="ema", help="which weights")
+
+
+def psf_settings(args, *, sensor_focus: bool = True):
+    """PSF settings from the shared options; ``sensor_focus``: read --focus
+    as the sensor's focus (bokeh's and dof's --focus mean more, read there)."""
+    from ..psf.compute import PSFSettings
+    base = PSFSettings()
+    sigma = getattr(args, "deposit_sigma", None)
+    return PSFSettings(kernel_size=args.kernel or base.kernel_size,
+                       pupil_samples=args.rays or base.pupil_samples,
+                       n_wavelengths=args.wavelengths or base.n_wavelengths,
+                       precision=args.precision or base.precision,
+                       deposit_sigma_px=base.deposit_sigma_px if sigma is None else sigma,
+                       pixel_pitch_mm=args.pixel_pitch,
+                       focus_distance_m=getattr(args, "focus", None) if sensor_focus else None)
+
+
+def response(args):
+    """The sensor response of --response, or None (the shipped curves)."""
+    if getattr(args, "response", None):
+        from ..psf.spectral import load_response
+        return load_response(args.response)
+    return None
+
+
+# ------------------------------------------------------------------ training runs
+def progress_bar(desc: str, every: int = 0):
+    """(progress(step, total, loss), log(text), close()) for a training run:
+    a tqdm bar on a terminal, made at the first step so that its rate is the
+    training's (a resumed run starts at its step); off a terminal (a
+    background run's log) one line every ``every`` steps and at the end, and
+    the run's own messages."""
+    tty = sys.stderr.isatty()
+    bar = None
+    t_start = time.perf_counter()
+
+    def progress(step, total, loss):
+        nonlocal bar
+        if not tty:
+            if every and (step % every == 0 or step == total):
+                print(f"{desc}: iteration {step}/{total}, loss {loss:.3g}, "
+                      f"{time.perf_counter() - t_start:.0f} s since start", file=sys.stderr, flush=True)
+            return
+        if bar is None:
+            try:
+                from tqdm import tqdm
+            except ImportError:     # no bar without tqdm (requirements.txt has it)
+                return
+            bar = tqdm(total=total, initial=step - 1, desc=desc, unit="it", file=sys.stderr, dynamic_ncols=True)
+        bar.set_postfix(loss=f"{loss:.3g}", refresh=False)
+        bar.update(step - bar.n)
+
+    def log(text):
+        if bar is not None:
+            bar.write(text)
+        else:
+            print(f"{text} ({time.perf_counter() - t_start:.0f} s since start)", file=sys.stderr, flush=True)
+
+    def close():
+        if bar is not None:
+            bar.close()
+    return progress, log, close
+
+
+def torchrun_worker() -> bool:
+    """A torchrun process other than rank 0 (it trains but writes nothing)."""
+    import os
+    return os.environ.get("RANK", "0") not in ("", "0")
+
+
+def ran_on(where: dict) -> str:
+    n = where.get("world_size", 1)
+    return f"ran on {where.get('device', 'cpu')}" + (f", {n} processes (torchrun)" if n > 1 else "")
+
+
+def run_training(desc: str, run, train_fn, every: int = 0):
+    """train_fn(progress=..., log=...) under a progress bar; None (after
+    saying how to resume) when interrupted."""
+    progress, log, close = progress_bar(desc, every)
+    try:
+        result = train_fn(progress=progress, log=log)
+    except KeyboardInterrupt:
+        close()
+        say(f"interrupted; the last checkpoint is in {run}: run the same command to resume")
+        return None
+    close()
+    return result
+
+
+def exported(args, meta: dict) -> int:
+    """The line both export commands print about the file they wrote."""
+    from pathlib import Path
+    print(f"wrote {args.output} ({Path(args.output).stat().st_size / 1e6:.2f} MB, {args.dtype}, {meta['weights']} "
+          f"weights, lens {meta['lens']}, {meta['step']} iterations)")
+    return 0
+
+
+def deprecated(parser, new: str) -> None:
+    """Mark ``parser`` as an old spelling of ``new`` (main says so on stderr)."""
+    parser.set_defaults(deprecated_for=new)

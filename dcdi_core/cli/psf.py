@@ -1,0 +1,211 @@
+"""`dcdi psf` and `dcdi psflib build|show`: PSFs of a lens, one or a library,
+traced or served by the Omni-Lens-Field.
+
+Engine imports are inside the handlers so that `dcdi --help` stays fast.
+"""
+from __future__ import annotations
+
+import math
+import time
+
+from .common import (UNITS, add_psf_options, add_psf_source_options, add_subcommands, check_cache,
+                     check_olf_file, check_output, check_wavelength, depth_value, positive_int,
+                     print_table_or_json, psf_settings, response, say)
+from .lens import add_field_options, no_ray_error
+
+
+def choose_psf_source(args, lens, *, pixel_pitch_mm, settings, focus_m, extra_reason=None):
+    """The PSF source of a psf / simulate / bokeh request (``--psf-source``,
+    ``--olf``): the OLF where it covers the request, else tracing; says which
+    and why on standard error (one line). ``extra_reason``: why the OLF
+    cannot serve this request whatever it holds (then traced)."""
+    from ..models.errors import ModelError
+    from ..models.runtime.library import PSFSource, psf_source
+    if extra_reason is not None and args.psf_source != "trace":
+        if args.psf_source == "olf":
+            raise ModelError(f"--psf-source olf: the Omni-Lens-Field cannot serve this request: {extra_reason}")
+        src = PSFSource("trace", f"PSFs traced: {extra_reason}")
+    else:
+        src = psf_source(lens, source=args.psf_source, olf_file=args.olf, pixel_pitch_mm=pixel_pitch_mm,
+                         settings=settings, kernel_size=args.kernel, focus_m=focus_m,
+                         custom_response=args.response is not None)
+    say(src.message)
+    return src
+
+
+def _psf_from_olf(args, src):
+    """``dcdi psf`` served by the OLF: (kernel (3, k, k), pixel pitch), or
+    None where the request lies outside its ranges (then traced, said why)."""
+    from ..models.errors import ModelError, OutsideTrainedRangeError
+    try:
+        kernel = src.library.kernels(args.field, args.depth)     # at the request's pitch
+    except OutsideTrainedRangeError as e:
+        if args.psf_source == "olf":
+            raise ModelError(f"--psf-source olf: the Omni-Lens-Field cannot serve this request: {e}") from None
+        say(f"PSFs traced instead: {e}")
+        return None
+    return kernel.astype("float32"), src.library.pixel_pitch_mm
+
+
+def _write_kernel(path, kernel, pitch) -> None:
+    import numpy as np
+
+    from ..atomic import atomic_path
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, psf=kernel, pixel_pitch_mm=np.float64(pitch))
+
+
+def cmd_psf(args) -> int:
+    from ..optics.lens import load_lens
+    from ..psf.compute import check_psf_memory, pixel_pitch_mm, psf
+    from ..psf.plots import depth_label, psf_grid_png
+    lens = load_lens(args.lens)
+    check_output(args.out, "--out", suffix=".npz")
+    check_output(args.png, "--png", suffix=".png")
+    check_wavelength(lens, args)
+    settings = psf_settings(args)
+    check_psf_memory(settings, 1, 1 if args.wavelength is not None else None)
+    check_olf_file(args)
+    extra = ("a field angle (--angle) was given; the OLF takes a field (--field)" if args.angle is not None else
+             f"a monochromatic kernel (--wavelength {args.wavelength:g}) was asked for; the OLF learned the "
+             "visible band" if args.wavelength is not None else None)
+    src = choose_psf_source(args, lens, pixel_pitch_mm=pixel_pitch_mm(lens, settings), settings=settings,
+                            focus_m=settings.focus_distance_m, extra_reason=extra)
+    served = _psf_from_olf(args, src) if src.kind == "olf" else None
+    if served is not None:
+        kernel, pitch = served
+        res = {"lens": lens.id, "depth_m": args.depth, "field": args.field, "kernel_size": kernel.shape[-1],
+               "pixel_pitch_mm": pitch, "psf_source": "olf", "olf_file": src.olf_file,
+               "channel_sums": [float(v) for v in kernel.sum(axis=(-1, -2))]}
+        if args.out:
+            _write_kernel(args.out, kernel, pitch)
+        if args.png:
+            psf_grid_png(kernel[None, None], [f"field {args.field}"], [depth_label(args.depth)], args.png,
+                         f"{lens.name} (OLF)", pitch)
+        print_table_or_json(res, args.json)
+        return 0
+    r = psf(lens, depth_m=args.depth, field=args.field, angle_deg=args.angle, settings=settings,
+            response=response(args), wavelength_nm=args.wavelength)
+    pitch = pixel_pitch_mm(lens, settings)
+    if r.zero_energy:
+        raise no_ray_error(args, "the kernel would be empty")
+    res = {
+        "lens": lens.id, "depth_m": args.depth, "field": args.field, "angle_deg": args.angle,
+        "wavelength_nm": args.wavelength, "kernel_size": settings.kernel_size, "pixel_pitch_mm": pitch,
+        "chief_ray_height_mm": float(r.chief_ray_height_mm),
+        "relative_illumination": float(r.relative_illumination),
+        "energy_outside": float(r.energy_outside.max()), "psf_source": "trace",
+    }
+    for c, name in enumerate("RGB"):
+        res[name] = {"centroid_mm": [float(v) for v in r.centroid_mm[c]],
+                     "rms_radius_mm": float(r.rms_radius_mm[c]),
+                     "energy_outside": float(r.energy_outside[c]),
+                     "vignetted_fraction": float(r.vignetted_fraction[c])}
+    if args.out:
+        _write_kernel(args.out, r.psf, pitch)
+    if args.png:
+        at = f"field {args.field}" if args.field is not None else f"{args.angle} deg"
+        psf_grid_png(r.psf[None, None], [at], [depth_label(args.depth)], args.png, f"{lens.name}", pitch)
+    print_table_or_json(res, args.json)
+    return 0
+
+
+def cmd_psflib_build(args) -> int:
+    from ..optics.lens import load_lens
+    from ..progress import psf_progress
+    from ..psf.library import LibraryGrid, PSFLibrary
+    from ..render.request import check_library_memory
+    lens = load_lens(args.lens)
+    check_output(args.output, "-o", suffix=".npz")
+    check_cache(args)
+    grid = LibraryGrid(n_fields=args.fields, n_depths=args.depths, near_m=args.near, far_m=args.far)
+    settings = psf_settings(args)
+    check_library_memory(settings, grid)
+    lib = PSFLibrary.open(lens, settings, grid, response(args), cache=not args.no_cache)
+    t = time.perf_counter()
+    done = lib.build(progress=psf_progress(f"psflib {lens.id}"))
+    lib.save(args.output)
+    print(f"wrote {args.output}: {len(lib.depths_m)} depth bins x {len(lib.fields)} fields x 3 x "
+          f"{lib.kernel_size} x {lib.kernel_size}; computed {len(done)} bins in "
+          f"{time.perf_counter() - t:.1f} s ({len(lib.depths_m) - len(done)} from the cache)")
+    return 0
+
+
+def cmd_psflib_show(args) -> int:
+    import numpy as np
+
+    from ..optics.lens import load_lens
+    from ..psf.library import LibraryGrid, PSFLibrary
+    from ..psf.plots import depth_label, psf_grid_png
+    from ..render.request import check_library_memory
+    check_output(args.png, "--png", suffix=".png")
+    if args.library.endswith(".npz"):
+        lib = PSFLibrary.load(args.library)
+    else:
+        lens = load_lens(args.library)
+        check_cache()
+        settings = psf_settings(args)
+        check_library_memory(settings)
+        near = LibraryGrid().near_m
+        if min(args.show_depths) < near:
+            from ..errors import InputRangeError
+            raise InputRangeError("--show-depths", min(args.show_depths), f">= {near:g} m, the library's nearest "
+                                  "depth bin")
+        lib = PSFLibrary.open(lens, settings)
+    fields = np.array(args.show_fields)
+    depths = np.array(args.show_depths)
+    if lib.lens is None:   # a file: show the bins it holds, nearest to what was asked
+        keep = np.flatnonzero(lib.computed)
+        di = [int(keep[np.argmin(np.abs(lib.diopters[keep] - (0 if math.isinf(d) else 1 / d)))]) for d in depths]
+        fi = [int(np.argmin(np.abs(lib.fields - f))) for f in fields]
+        kernels = lib.psf[np.ix_(di, fi)].swapaxes(0, 1)
+        depths, fields = lib.depths_m[di], lib.fields[fi]
+    else:
+        kernels = lib.at(fields[:, None], depths[None, :], clamp_near=False)
+    psf_grid_png(kernels, [f"field {f:.2f}" for f in fields], [depth_label(d) for d in depths],
+                 args.png, f"PSF library: {lib.meta['lens_id']}", lib.pixel_pitch_mm)
+    print(f"wrote {args.png}")
+    return 0
+
+
+def add_commands(sub) -> None:
+    q = sub.add_parser("psf", help="the RGB PSF of one field and depth",
+                       description="RGB PSF on the sensor's pixel grid, centred on the chief ray. " + UNITS)
+    q.add_argument("lens", help="lens id or .toml path")
+    add_field_options(q)
+    q.add_argument("--wavelength", type=float, default=None, metavar="NM",
+                   help="monochromatic kernel at NM nm (all three channels alike)")
+    q.add_argument("--out", default=None, metavar="FILE.npz", help="write psf (3,k,k) and pixel_pitch_mm")
+    q.add_argument("--png", default=None, metavar="FILE.png", help="write a picture of the kernel")
+    q.add_argument("--json", action="store_true", help="print JSON")
+    add_psf_options(q)
+    add_psf_source_options(q)
+    q.set_defaults(func=cmd_psf)
+
+    q = sub.add_parser("psflib", help="PSF libraries (fields x depths): build, show")
+    psub = add_subcommands(q, "psflib_command")
+    b = psub.add_parser("build", help="build a lens's PSF library and write it to a file",
+                        description="Depth bins uniform in 1/depth from --near to --far, plus infinity. " + UNITS)
+    b.add_argument("lens", help="lens id or .toml path")
+    b.add_argument("-o", "--output", required=True, metavar="FILE.npz", help="the library file to write")
+    b.add_argument("--fields", type=positive_int, default=64, help="fields over [0, 1] (default 64)")
+    b.add_argument("--depths", type=positive_int, default=20, help="finite depth bins (default 20), plus infinity")
+    b.add_argument("--near", type=float, default=0.7, metavar="M", help="nearest depth bin, metres (default 0.7)")
+    b.add_argument("--far", type=float, default=10.0, metavar="M",
+                   help="farthest finite bin, metres (default 10); farther = infinity")
+    b.add_argument("--no-cache", action="store_true", help="do not read or write the cache")
+    add_psf_options(b)
+    b.set_defaults(func=cmd_psflib_build)
+    s_ = psub.add_parser("show", help="a PNG grid of PSFs across field and depth")
+    s_.add_argument("library", help="a library file (.npz from psflib build: its own settings and bins) or a "
+                                    "lens id or .toml path (its library with the options below, from the cache)")
+    s_.add_argument("--png", required=True, metavar="FILE.png", help="the picture to write (PNG)")
+    s_.add_argument("--show-fields", type=float, nargs="+", default=[0.0, 0.5, 0.7, 1.0], metavar="F",
+                    help="fields to show, normalised image height in [0, 1] (default 0 0.5 0.7 1); from a "
+                         "file, the nearest fields it holds")
+    s_.add_argument("--show-depths", type=depth_value, nargs="+", default=[0.7, 1.0, 2.0, 5.0, math.inf], metavar="D",
+                    help="depths to show, metres >= 0.7 or inf (default 0.7 1 2 5 inf); from a "
+                         "file, the nearest computed bins")
+    add_psf_options(s_)
+    s_.set_defaults(func=cmd_psflib_show)

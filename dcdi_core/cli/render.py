@@ -1,0 +1,227 @@
+"""`dcdi simulate` and `dcdi bokeh`: a lens's aberrations or depth of field on
+an all-in-focus RGB-D image; the RGB-D options and checks `dcdi dof` shares.
+
+Engine imports are inside the handlers so that `dcdi --help` stays fast.
+"""
+from __future__ import annotations
+
+import contextlib
+
+from .common import (UNITS, add_psf_options, add_psf_source_options, check_cache, check_olf_file,
+                     check_output, depth_value, dump, focus_value, positive_int, psf_settings, response)
+from .psf import choose_psf_source
+
+
+def add_rgbd_options(q, *, sensor_focus: bool, depth_required: bool = True,
+                     image_help: str = "all-in-focus image (EXR linear, or PNG/JPEG sRGB)") -> None:
+    """The image, depth map, lens, output, geometry and PSF options of a render.
+    ``sensor_focus``: the PSF options' --focus moves the sensor (simulate);
+    bokeh and dof add a --focus of their own."""
+    from ..render.distortion import INTERPOLATIONS
+    from ..render.simulate import DEFAULT_INTERPOLATION
+    q.add_argument("--image", required=True, help=image_help)
+    q.add_argument("--depth", required=depth_required,
+                   help="metric depth map (EXR, metres from the lens; NaN/0/<0 invalid)"
+                        + ("" if depth_required else "; without it, it is estimated from the image"))
+    q.add_argument("--depth-channel", default=None, metavar="NAME",
+                   help="the depth map's channel, e.g. Z or ViewLayer.Depth.Z (default: the first of "
+                        "Z, depth.Z, Depth.V, V, depth, R, Y found)")
+    q.add_argument("--lens", required=True, help="lens id or .toml path")
+    q.add_argument("-o", "--output", required=True, help="output image (.exr linear, or .png)")
+    q.add_argument("--patch", type=positive_int, default=16, help="patch size m in pixels (default 16)")
+    q.add_argument("--image-pixel-pitch", type=float, default=None, metavar="MM",
+                   help="size of one image pixel on the sensor (default: the image spans the sensor diagonal)")
+    q.add_argument("--sensor-size", type=positive_int, nargs=2, default=None, metavar=("ROWS", "COLS"),
+                   help="the sensor's frame in image pixels, centred on the optical axis, when the image is "
+                        "larger (an over-scan render); the output has this size (default: the whole image)")
+    q.add_argument("--axis", type=float, nargs=2, default=None, metavar=("ROW", "COL"),
+                   help="the optical axis's pixel position in the image (default: its centre)")
+    q.add_argument("--wavelength", type=float, default=None, metavar="NM",
+                   help="one wavelength for all three channels (monochrome, narrow-band); default: the "
+                        "visible band weighted by the sensor's response")
+    q.add_argument("--interpolation", default=DEFAULT_INTERPOLATION, choices=INTERPOLATIONS,
+                   help=f"how the distortion warp resamples the image (default {DEFAULT_INTERPOLATION})")
+    add_psf_options(q, sensor_focus=sensor_focus, render=True)
+    add_psf_source_options(q)
+
+
+def add_focus_options(q, focus_help: str) -> None:
+    """--keep NEAR FAR or --focus D (one of them): bokeh's and dof's depth of field."""
+    g = q.add_mutually_exclusive_group(required=True)
+    g.add_argument("--keep", type=float, nargs=2, metavar=("NEAR", "FAR"), help="depth range kept sharp, metres")
+    g.add_argument("--focus", type=focus_value, metavar="D", help=focus_help)
+
+
+def read_rgbd(args, *, check_depth: bool = True):
+    """The image and depth map (None without --depth), checked: same size; a
+    depth map with no valid pixel refused; an implausible one (another unit)
+    or negative light warned about, naming the files (render.inputs).
+    ``check_depth``: False where the depth map is not used (--fixed-depth)."""
+    import warnings
+
+    from ..io.images import read_depth, read_image
+    from ..render.inputs import InputWarning, depth_problems, light_problems
+    img = read_image(args.image)
+    depth = None if args.depth is None else read_depth(args.depth, channel=args.depth_channel)
+    if depth is not None and depth.shape != img.shape[:2]:
+        from ..errors import InputRangeError
+        raise InputRangeError(f"depth map {args.depth}", depth.shape, f"{img.shape[:2]} (the image {args.image})")
+    problems = light_problems(img, args.image)
+    if depth is not None and check_depth:
+        problems += depth_problems(depth, args.depth)
+    for msg in problems:
+        warnings.warn(msg, InputWarning)
+    return img, depth
+
+
+def render_request(args, lens, *, sensor_focus: bool):
+    """The engine's RenderRequest of a render command's options, checked."""
+    from dataclasses import replace
+
+    from ..render.request import RenderRequest
+    settings = replace(psf_settings(args, sensor_focus=sensor_focus), wavelength_nm=args.wavelength)
+    return RenderRequest(
+        lens=lens, psf=settings, fit_kernel=not args.kernel, image_pixel_pitch_mm=args.image_pixel_pitch,
+        sensor_size=tuple(args.sensor_size) if args.sensor_size else None,
+        axis_px=tuple(args.axis) if args.axis else None, patch=args.patch, interpolation=args.interpolation,
+        noise=getattr(args, "noise", False), full_well_electrons=getattr(args, "full_well", 10000.0),
+        read_noise_electrons=getattr(args, "read_noise", 3.0), seed=getattr(args, "seed", None),
+        perturb_seed=getattr(args, "perturb", None), perturb_fraction=getattr(args, "perturb_fraction", 0.10),
+        fixed_depth_m=getattr(args, "fixed_depth", None))
+
+
+def check_render_outputs(args) -> None:
+    check_output(args.output, "-o", image=True)
+    check_output(getattr(args, "sharp_out", None), "--sharp-out", image=True)
+    check_output(getattr(args, "side_by_side", None), "--side-by-side", suffix=".png")
+    check_cache()
+
+
+def render_inputs(args, *, sensor_focus: bool):
+    """Everything simulate and bokeh check before any work: the lens, the
+    outputs, the request, the response file, the images, the geometry.
+    Returns (lens, request, plan, response, image, depth)."""
+    from ..optics.lens import load_lens
+    lens = load_lens(args.lens)
+    check_render_outputs(args)
+    request = render_request(args, lens, sensor_focus=sensor_focus)
+    resp = response(args)
+    img, depth = read_rgbd(args, check_depth=request.fixed_depth_m is None)
+    plan = request.plan(*img.shape[:2], image=f"the image {args.image}")
+    check_olf_file(args)
+    return lens, request, plan, resp, img, depth
+
+
+@contextlib.contextmanager
+def quiet_input_warnings():
+    """The engine repeats the input warnings that read_rgbd gave (naming the files): silence its copies."""
+    import warnings
+
+    from ..render.inputs import InputWarning
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", InputWarning)
+        yield
+
+
+def cmd_simulate(args) -> int:
+    from ..io.images import write_image
+    from ..progress import Steps, psf_progress
+    from ..render.simulate import LensSimulator
+    lens, request, plan, resp, img, depth = render_inputs(args, sensor_focus=True)
+    steps = Steps("dcdi simulate")
+    steps.start("PSF library (built once per lens and setting, then read from the cache)")
+    record = None
+    if args.perturb is not None:
+        from ..optics.perturb import perturb_lens
+        lens, record = perturb_lens(lens, seed=args.perturb, fraction=args.perturb_fraction)
+    src = choose_psf_source(args, lens, pixel_pitch_mm=plan.geometry.pixel_pitch_mm, settings=plan.settings,
+                            focus_m=plan.settings.focus_distance_m)
+    # without --kernel, the kernel grows to hold the PSFs this depth map needs
+    # (an OLF's kernels hold 99 % of the energy over its whole depth range)
+    sim = LensSimulator(lens, plan.geometry, source_geometry=plan.source_geometry, settings=plan.settings,
+                        library=src.library, response=resp, patch=request.patch,
+                        distortion=not args.no_distortion, interpolation=request.interpolation,
+                        fit_depth_m=depth if request.fit_kernel else None,
+                        progress=psf_progress("PSFs"), accelerator=args.accelerator)
+    steps.start(f"distortion, PSF map and convolution of {img.shape[0]} x {img.shape[1]} pixels")
+    with quiet_input_warnings():
+        r = sim(img, depth, fixed_depth_m=request.fixed_depth_m, noise=request.noise_settings, seed=args.seed)
+    steps.start("writing")
+    write_image(args.output, r.image)
+    if args.sharp_out:
+        write_image(args.sharp_out, r.sharp)
+    steps.done()
+    print(dump({"output": args.output, **r.info, "perturbation": record, "psf_source": src.kind,
+                "olf_file": src.olf_file if src.kind == "olf" else None}))
+    return 0
+
+
+def cmd_bokeh(args) -> int:
+    from ..io.images import write_image
+    from ..progress import Steps, bar, psf_progress
+    from ..render.multires import DEFAULT_MAX_LEVEL, check_multires
+    from ..render.simulate import bokeh
+    check_multires(args.multires, DEFAULT_MAX_LEVEL if args.max_level is None else args.max_level, 16)
+    lens, request, plan, resp, img, depth = render_inputs(args, sensor_focus=False)
+    steps = Steps("dcdi bokeh")
+    steps.start("PSF library (built once per lens, focus and setting, then read from the cache), then the blur")
+    keep = tuple(args.keep) if args.keep else None
+    focus_m = None if args.focus in (None, "prescribed") else args.focus
+    src = choose_psf_source(args, lens, pixel_pitch_mm=plan.geometry.pixel_pitch_mm, settings=plan.settings,
+                            focus_m=focus_m)
+    with quiet_input_warnings():
+        r = bokeh(img, depth, lens, keep=keep, focus_m=args.focus, geometry=plan.geometry,
+                  source_geometry=plan.source_geometry, distortion=args.distort, interpolation=request.interpolation,
+                  patch=request.patch, occlusion=not args.plain, settings=plan.settings, response=resp,
+                  fit_kernel=request.fit_kernel, library=src.library, progress=psf_progress("PSFs"),
+                  layer_progress=bar("depth layers", "layer"), multires=args.multires, max_level=args.max_level)
+    steps.start("writing")
+    write_image(args.output, r.image)
+    if args.side_by_side:
+        from ..render.pictures import side_by_side
+        what = (f"keep {keep[0]:g}-{keep[1]:g} m" if keep else
+                "as prescribed" if args.focus == "prescribed" else f"focus {args.focus:g} m")
+        side_by_side(args.side_by_side, img if r.sharp is None else r.sharp,
+                     depth if r.depth is None else r.depth, r.image, f"{lens.name}: {what}")
+    steps.done()
+    print(dump({"output": args.output, **r.info, "psf_source": src.kind,
+                "olf_file": src.olf_file if src.kind == "olf" else None}))
+    return 0
+
+
+def add_commands(sub) -> None:
+    q = sub.add_parser("simulate", help="depth-aware aberration simulation of an all-in-focus RGB-D image",
+                       description="Patch-wise depth-aware PSF convolution, lens distortion, optional noise. " + UNITS)
+    add_rgbd_options(q, sensor_focus=True)
+    q.add_argument("--fixed-depth", type=depth_value, default=None, metavar="D",
+                   help="depth-unaware baseline: one depth D metres for the whole image")
+    q.add_argument("--no-distortion", action="store_true", help="do not apply the lens's distortion")
+    q.add_argument("--sharp-out", default=None, help="also write the sharp image, distorted alike (aligned pair)")
+    q.add_argument("--noise", action="store_true", help="add shot and read noise (needs --seed)")
+    q.add_argument("--full-well", type=float, default=10000.0, help="electrons at 1.0 (default 10000)")
+    q.add_argument("--read-noise", type=float, default=3.0, help="read noise, electrons (default 3)")
+    q.add_argument("--seed", type=int, default=None, help="random seed (noise)")
+    q.add_argument("--perturb", type=int, default=None, metavar="SEED",
+                   help="domain randomisation: perturb radii and thicknesses with this seed (recorded in the output)")
+    q.add_argument("--perturb-fraction", type=float, default=0.10, metavar="F",
+                   help="largest relative change of each perturbed value (default 0.10)")
+    q.add_argument("--accelerator", choices=("torch",), default=None,
+                   help="run the PSF map and convolution in torch (the same result to float32 rounding; "
+                        "default numpy, as in Blender)")
+    q.set_defaults(func=cmd_simulate)
+
+    q = sub.add_parser("bokeh", help="the depth of field of a lens on an all-in-focus RGB-D image",
+                       description="Keep a depth range sharp (--keep) or focus at a distance (--focus). " + UNITS)
+    add_rgbd_options(q, sensor_focus=False)
+    add_focus_options(q, "focus the lens at D metres, or 'prescribed': the lens as its prescription stands "
+                         "(full physical defocus everywhere)")
+    q.add_argument("--distort", action="store_true", help="also apply the lens's distortion (before the blur)")
+    q.add_argument("--plain", action="store_true", help="plain patch-wise blur instead of occlusion-aware layers")
+    q.add_argument("--multires", type=float, default=None, metavar="C",
+                   help="multi-resolution blur: a patch whose kernel holds half its energy within a radius "
+                        ">= C 2^s px is blurred at 1/2^s of the resolution (error and time against the exact path: "
+                        "`dcdi report simulation-accuracy`); default: every layer at full resolution")
+    q.add_argument("--max-level", type=int, default=None, metavar="S",
+                   help="with --multires: at most 1/2^S of the resolution (default 2)")
+    q.add_argument("--side-by-side", default=None, metavar="PNG", help="also write input | depth | result")
+    q.set_defaults(func=cmd_bokeh)

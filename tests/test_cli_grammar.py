@@ -1,0 +1,217 @@
+"""The `dcdi` command's grammar and user-facing guarantees: the noun-verb
+spellings and the old ones, `correct` with the shipped network, damaged model
+files ending in one line, the depth-unit warning of `dof`, the generated
+reference page, and the engine's render request the command builds."""
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import write_rgbd_scene
+
+from dcdi_core.cli import build_parser, main
+from dcdi_core.io.images import write_depth, write_image
+from dcdi_core.models.registry import network
+
+FAST = ["--rays", "16", "--wavelengths", "3", "--kernel", "15"]
+WEIGHTS = Path(__file__).resolve().parents[1] / "dcdi_core" / "models" / "weights"
+
+
+def _cli(capsys, *argv):
+    try:
+        code = main([str(a) for a in argv])
+    except SystemExit as e:                  # argparse's own refusals
+        code = e.code
+    cap = capsys.readouterr()
+    return code, cap.out, cap.err
+
+
+def _one_error_line(code, err, *says):
+    lines = err.strip().splitlines()
+    assert code == 2 and "Traceback" not in err, err
+    assert [x for x in lines if x.startswith("dcdi: error:")] == lines[-1:], err
+    for s in says:
+        assert s in lines[-1], lines[-1]
+    return lines[-1]
+
+
+@pytest.fixture
+def scene(tmp_path, monkeypatch):
+    write_rgbd_scene(tmp_path, monkeypatch, 24, 32)
+    return tmp_path
+
+
+# ------------------------------------------------------------------ grammar
+@pytest.mark.parametrize("new, old", [
+    (["dacn", "train", "--data", "d", "-o", "r"], ["train", "dacn", "--data", "d", "-o", "r"]),
+    (["depth", "train", "--data", "d", "-o", "r"], ["train", "depth", "--data", "d", "-o", "r"]),
+    (["dacn", "eval", "run", "--data", "d"], ["eval", "run", "--data", "d"]),
+    (["dacn", "correct", "--image", "i", "-o", "o.exr"], ["correct", "--image", "i", "-o", "o.exr"]),
+])
+def test_old_and_new_spellings_reach_the_same_command_with_the_same_options(new, old):
+    p = build_parser()
+    a, b = vars(p.parse_args(new)), vars(p.parse_args(old))
+    assert a["func"] is b["func"]
+    differ = {k for k in set(a) | set(b) if a.get(k) != b.get(k)}
+    assert differ <= {"command", "dacn_command", "depth_command", "train_command", "deprecated_for"}
+
+
+def test_an_old_spelling_works_with_a_one_line_note(tmp_path, capsys):
+    code, _, err = _cli(capsys, "eval", tmp_path / "no-run", "--data", tmp_path)
+    lines = err.strip().splitlines()
+    assert lines[0] == "dcdi: note: 'dcdi eval' is deprecated and goes in the next release; use 'dcdi dacn eval'"
+    _one_error_line(code, err, "no-run", "does not exist")
+    code, _, err = _cli(capsys, "dacn", "eval", tmp_path / "no-run", "--data", tmp_path)
+    assert "note" not in err and code == 2
+
+
+def test_old_spellings_are_not_listed_in_the_help(capsys):
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    text = capsys.readouterr().out
+    assert "\n    train" not in text and "\n    eval" not in text
+    for noun in ("dacn", "olf", "depth", "correct", "dof"):
+        assert f"\n    {noun}" in text
+
+
+# ------------------------------------------------------------------ correct with the shipped DACN
+def test_correct_takes_the_shipped_dacn_of_the_lens(tmp_path, capsys):
+    pytest.importorskip("torch")
+    shipped = network("dacn").shipped_keys()
+    if "mos-s1" not in shipped:
+        pytest.skip("no shipped DACN of mos-s1")
+    write_image(tmp_path / "cap.exr", np.random.default_rng(0).uniform(0, 1, (20, 30, 3)).astype(np.float32))
+    write_depth(tmp_path / "d.exr", np.full((20, 30), 2.0, np.float32))
+    code, out, err = _cli(capsys, "correct", "--image", tmp_path / "cap.exr", "--depth", tmp_path / "d.exr",
+                          "--lens", "mos-s1", "-o", tmp_path / "out.exr")
+    assert code == 0, err
+    assert "lens mos-s1" in out and (tmp_path / "out.exr").exists()
+    code, _, err = _cli(capsys, "correct", "--image", tmp_path / "cap.exr", "--depth", tmp_path / "d.exr",
+                        "--lens", "6p", "-o", tmp_path / "x.exr")
+    _one_error_line(code, err, "no shipped DACN for lens 6p", ", ".join(shipped), "--model")
+    code, _, err = _cli(capsys, "correct", "--image", tmp_path / "cap.exr", "--depth", tmp_path / "d.exr",
+                        "-o", tmp_path / "x.exr")
+    _one_error_line(code, err, "--model is missing", "--lens")
+    assert not (tmp_path / "x.exr").exists()
+
+
+# ------------------------------------------------------------------ damaged model files
+def _damaged(tmp_path) -> dict:
+    """{kind: path} of model files a user might hand over by mistake."""
+    good = (WEIGHTS / "dacn-mos-s1.npz").read_bytes() if (WEIGHTS / "dacn-mos-s1.npz").exists() else None
+    files = {}
+    if good is not None:
+        files["truncated"] = tmp_path / "truncated.npz"
+        files["truncated"].write_bytes(good[: len(good) // 2])
+        flipped = bytearray(good)
+        flipped[len(good) // 3: len(good) // 3 + 64] = bytes(64)
+        files["corrupt"] = tmp_path / "corrupt.npz"
+        files["corrupt"].write_bytes(bytes(flipped))
+    files["random"] = tmp_path / "random.npz"
+    files["random"].write_bytes(np.random.default_rng(0).bytes(4000))
+    files["zip"] = tmp_path / "zip.npz"
+    with zipfile.ZipFile(files["zip"], "w") as z:
+        z.writestr("readme.txt", "not arrays")
+    files["empty"] = tmp_path / "empty.npz"
+    files["empty"].write_bytes(b"")
+    return files
+
+
+def test_the_runtime_readers_turn_any_damage_into_a_model_file_error(tmp_path):
+    from dcdi_core.models.errors import ModelFileError
+    from dcdi_core.models.runtime.npz import read_model_npz
+    from dcdi_core.models.runtime.olf import read_olf_file
+    for path in _damaged(tmp_path).values():
+        for read in (read_olf_file, lambda p: read_model_npz(p, "dcdi-dacn", 1, "DACN")):
+            with pytest.raises(ModelFileError, match=path.name):
+                read(path)
+
+
+@pytest.mark.parametrize("command", ["olf info", "simulate --olf", "bokeh --olf", "psf --olf", "correct --model",
+                                     "dof --dacn", "dof --depth-checkpoint"])
+def test_a_damaged_model_file_ends_in_one_line_naming_it(scene, capsys, command):
+    d = scene
+    if command.startswith(("correct", "dof")):
+        pytest.importorskip("torch")
+    files = _damaged(d)
+    if "dof" in command or "olf" in command:     # the wrong kind of file too: a DACN for an OLF, ...
+        wrong = WEIGHTS / ("depth-mos-s1.npz" if command == "dof --dacn" else "dacn-mos-s1.npz")
+        if wrong.exists():
+            files["wrong format"] = wrong
+    rgbd = ["--image", d / "aif.exr", "--depth", d / "depth.exr"]
+    for kind, path in files.items():
+        argv = {"olf info": ["olf", "info", path],
+                "simulate --olf": ["simulate", *rgbd, "--lens", "mos-s1", "-o", d / "o.exr", "--olf", path, *FAST],
+                "bokeh --olf": ["bokeh", *rgbd, "--lens", "6p", "--focus", "2", "-o", d / "o.exr", "--olf", path,
+                                *FAST],
+                "psf --olf": ["psf", "mos-s1", "--field", "0.5", "--depth", "2", "--olf", path, *FAST],
+                "correct --model": ["correct", *rgbd, "--model", path, "-o", d / "o.exr"],
+                "dof --dacn": ["dof", *rgbd, "--lens", "6p", "--keep", "1", "2", "--camera", "mos-s1", "--dacn", path,
+                               "-o", d / "o.exr", *FAST],
+                "dof --depth-checkpoint": ["dof", "--image", d / "aif.exr", "--lens", "6p", "--keep", "1", "2",
+                                           "--camera", "none", "--depth-checkpoint", path, "-o", d / "o.exr",
+                                           *FAST]}[command]
+        code, _, err = _cli(capsys, *argv)
+        _one_error_line(code, err, path.name)
+        assert not (d / "o.exr").exists(), kind
+        assert not (d / "cache").exists(), f"{kind}: a PSF was traced before the file was refused"
+
+
+# ------------------------------------------------------------------ dof warns about depth units
+def test_dof_warns_about_a_depth_map_in_millimetres(scene, capsys):
+    pytest.importorskip("torch")
+    d = scene
+    from dcdi_core.io.images import read_depth
+    write_depth(d / "mm.exr", read_depth(d / "depth.exr") * 1000.0)
+    code, _, err = _cli(capsys, "dof", "--image", d / "aif.exr", "--depth", d / "mm.exr", "--lens", "6p",
+                        "--keep", "1", "2", "--camera", "none", "-o", d / "o.exr", "--psf-source", "trace", *FAST)
+    assert code == 0, err
+    warn = [x for x in err.splitlines() if x.startswith("dcdi: warning:")]
+    assert len(warn) == 1 and "mm.exr" in warn[0] and "the likely unit is mm" in warn[0]
+
+
+# ------------------------------------------------------------------ the reference page
+def test_docs_cli_md_is_the_generated_reference():
+    from dcdi_core.cli.reference import DOC, reference
+    text = reference()
+    assert DOC.read_text(encoding="utf-8") == text, \
+        "docs/cli.md is out of date: run python -m dcdi_core.cli.reference --write"
+    for command in ("dcdi dacn train", "dcdi olf info", "dcdi depth export", "dcdi correct", "--image-pixel-pitch"):
+        assert command in text
+
+
+# ------------------------------------------------------------------ the engine's request
+def test_render_request_is_checked_from_plain_values_before_any_image():
+    from dcdi_core.errors import InputRangeError
+    from dcdi_core.optics.lens import load_lens
+    from dcdi_core.psf.compute import PSFSettings
+    from dcdi_core.render.request import RenderRequest
+    lens = load_lens("mos-s1")
+    for kw, says in [({"patch": 15}, "--patch = 15"), ({"interpolation": "cubic"}, "--interpolation"),
+                     ({"noise": True}, "--seed is missing"), ({"fixed_depth_m": 0.1}, "--fixed-depth = 0.1"),
+                     ({"perturb_seed": 1, "perturb_fraction": 0.9}, "--perturb-fraction"),
+                     ({"psf": PSFSettings(wavelength_nm=250.0)}, "--wavelength"),
+                     ({"image_pixel_pitch_mm": 0.01, "psf": PSFSettings(pixel_pitch_mm=0.02)}, "--pixel-pitch")]:
+        with pytest.raises(InputRangeError, match=says.replace("(", r"\(")):
+            RenderRequest(lens=lens, **kw)
+    # the add-on names the settings in its own words
+    with pytest.raises(InputRangeError, match="Patch size = 15"):
+        RenderRequest(lens=lens, patch=15, labels={"patch": "Patch size"})
+
+
+def test_render_request_plans_an_over_scan_frame():
+    from dcdi_core.errors import InputRangeError
+    from dcdi_core.optics.lens import load_lens
+    from dcdi_core.render.request import RenderRequest
+    lens = load_lens("mos-s1")
+    over_scan = RenderRequest(lens=lens, sensor_size=(48, 64), axis_px=(55.5, 71.5), image_pixel_pitch_mm=0.05)
+    plan = over_scan.plan(112, 144)
+    assert (plan.geometry.height, plan.geometry.width) == (48, 64)
+    assert plan.source_geometry.center_px == (55.5, 71.5) and plan.settings.pixel_pitch_mm is None
+    whole = RenderRequest(lens=lens).plan(48, 64)
+    assert whole.source_geometry is None and 0.95 < whole.geometry.max_field <= 1.0   # pixel centres
+    with pytest.raises(InputRangeError, match="--sensor-size"):
+        RenderRequest(lens=lens, sensor_size=(200, 64)).plan(112, 144)
+    with pytest.raises(InputRangeError, match="--axis"):
+        RenderRequest(lens=lens, axis_px=(5.0, 5.0)).plan(112, 144)
