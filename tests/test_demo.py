@@ -68,9 +68,12 @@ def test_demo_refuses_bad_input_before_any_work(tmp_path):
 def test_verdict_says_plainly_when_no_correction_would_have_served_better():
     class R:
         key = "x"
-        scores = {"capture_psnr": 30.0, "corrected_psnr": 29.0, "dof_psnr": 31.0, "dof_uncorrected_psnr": 31.5}
+        scores = {"capture_psnr": 30.0, "corrected_psnr": 29.0, "dof_psnr": 31.0, "dof_uncorrected_psnr": 31.5,
+                  "depth_abs_rel": 0.25}
     text = verdict(R())
     assert "lowers" in text and "1.00 dB" in text and "farther from" in text and "served better" in text
-    R.scores = {"capture_psnr": 30.0, "corrected_psnr": 31.0, "dof_psnr": 32.0, "dof_uncorrected_psnr": 31.5}
+    assert "off by 25%" in text
+    R.scores = {"capture_psnr": 30.0, "corrected_psnr": 31.0, "dof_psnr": 32.0, "dof_uncorrected_psnr": 31.5,
+                "depth_abs_rel": 0.25}
     text = verdict(R())
     assert "raises" in text and "closer to" in text and "served better" not in text

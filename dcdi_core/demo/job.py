@@ -106,7 +106,8 @@ def verdict(r) -> str:
     return (f"{r.key}: the correction {'raises' if gain > 0 else 'lowers'} the PSNR against the sharp truth by "
             f"{abs(gain):.2f} dB; the pipeline's depth of field is {abs(dof_gain):.2f} dB "
             f"{'closer to' if dof_gain > 0 else 'farther from'} the ideal than that of the uncorrected capture"
-            + ("" if dof_gain > 0 else " (here no correction would have served better)"))
+            + ("" if dof_gain > 0 else " (here no correction would have served better)")
+            + f"; the estimated depth is off by {s['depth_abs_rel']:.0%} of the true depth on average (AbsRel)")
 
 
 def simulation_section(scenes, results, nets: Networks, settings: ChainSettings, out: Path) -> list[str]:
