@@ -67,6 +67,16 @@ def test_factory_folder_lists_finished_samples_only(tmp_path):
     assert set(src.pair("room-000000", "mos-s1")) == {"aberrated", "baseline", "sharp"}
 
 
+def test_pair_records_torn_by_a_kill_do_not_count(tmp_path):
+    from dcdi_core.models.dacn.data import finished_pairs
+    a, b, c = ({"id": f"room-00000{i}~0", "scene": "room"} for i in range(3))
+    # b torn while appended, c appended after it by the resumed build, then a torn last line
+    (tmp_path / "pairs.jsonl").write_text(json.dumps(a) + "\n" + json.dumps(b)[:10] + json.dumps(c) + "\n"
+                                          + '{"id": "room-000003~0", "sce')
+    assert sorted(finished_pairs(tmp_path)) == ["room-000000~0", "room-000002~0"]
+    assert finished_pairs(tmp_path / "none") == {}
+
+
 def _write_nyu_mat(path, images, depths, scenes):
     """A MATLAB v7.3 file as NYUv2's labeled set is laid out (HDF5 with a
     512-byte MATLAB header; arrays transposed; scenes a cell array of

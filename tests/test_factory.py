@@ -246,16 +246,6 @@ def test_torn_manifest_record_is_repaired_and_stale_temporaries_removed(tmp_path
     assert not any(p.exists() for p in stale) and keep.read_text() == "mine"
 
 
-def test_a_torn_record_with_the_next_glued_to_it_keeps_the_glued_one(tmp_path):
-    manifest = tmp_path / "manifest.jsonl"
-    a, b, c = ({"id": f"room-00000{i}", "index": i} for i in range(3))
-    manifest.write_text(json.dumps(a) + "\n" + json.dumps(b)[:9] + json.dumps(c) + "\n")
-    recs, notes = factory.read_manifest(manifest, repair=True)
-    assert [r["id"] for r in recs] == ["room-000000", "room-000002"] and "kept room-000002" in notes[0]
-    assert manifest.read_text() == json.dumps(a) + "\n" + json.dumps(c) + "\n"
-    assert factory.read_manifest(manifest, repair=True) == (recs, [])     # repaired once, clean after
-
-
 def test_a_folder_from_before_the_settings_record_is_compared_by_its_manifest():
     rec = {"id": "room-000000", "recipe": "room", "dataset_seed": 0, "resolution": [480, 640],
            "render": {"engine": "CYCLES", "samples": 8, "seconds": 3.2}, "psf_settings": {"pupil_samples": 64},
@@ -303,3 +293,15 @@ def test_help_tells_images_from_render_samples(capsys):
     assert "--count N images in the whole dataset" in out and "--cycles-samples SPP Cycles render samples" in out
     assert "--samples" not in out.replace("--cycles-samples", "")      # the old name still works, unlisted
     assert factory.parse(["--recipe", "room", "--count", "1", "--out", "x", "--samples", "3"]).samples == 3
+
+
+def test_the_old_tools_factory_name_runs_the_factory_with_a_note():
+    import subprocess
+    import sys
+    from pathlib import Path
+    root = Path(__file__).resolve().parents[1]
+    p = subprocess.run([sys.executable, "-m", "blender_addon.tools.factory", "--help"], cwd=root,
+                       capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    assert "blender_addon.tools.factory is now blender_addon.factory" in p.stderr
+    assert "--recipe RECIPE" in p.stdout and "--cycles-samples SPP" in p.stdout

@@ -122,6 +122,17 @@ def test_the_factory_command_runs_the_merge(tmp_path):
     assert "merged 3 samples of 2 shards" in p.stdout
 
 
+def test_the_old_tools_factory_name_still_runs_the_merge_with_a_note(tmp_path):
+    shards = [_shard(tmp_path, i, 2, 3) for i in range(2)]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    p = subprocess.run([sys.executable, "-m", "blender_addon.tools.factory", "merge", *map(str, shards),
+                        "--count", "3", "--out", str(tmp_path / "m")], cwd=ROOT, env=env, capture_output=True,
+                       text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert "blender_addon.tools.factory is now blender_addon.factory" in p.stderr
+    assert len((tmp_path / "m" / "manifest.jsonl").read_text().splitlines()) == 3
+
+
 @pytest.mark.parametrize("case, says", [
     ("settings", r"shards made with different settings.*--psf-rays: 64 vs 32; --resolution: 24 32 vs 48 64"),
     ("lens", r"the optics of lens mos-s2"),

@@ -5,17 +5,11 @@ then passed through the depth-aware simulation of each requested lens.
         --lens mos-s1 --out DIR --seed 0 [--shard I/N]
     python -m blender_addon.factory --recipe room --count 10 --lens mos-s1 --out DIR --seed 0
 
-Layout of DIR (paired folders share file names, so paired-folder loaders
-read them directly):
-
-    dataset.json                  the run's settings (compared on every resume: a mismatch is refused)
-    manifest.jsonl                one JSON line per finished sample
-    aif/<id>.exr                  all-in-focus render, linear RGB float32
-    depth/<id>.exr                planar depth in metres from the lens's first vertex ("Z"; background = inf)
-    <lens>/aberrated/<id>.exr     depth-aware simulation (with the lens's distortion)
-    <lens>/baseline/<id>.exr      depth-unaware baseline (one depth for the whole image)
-    <lens>/sharp/<id>.exr         the all-in-focus image distorted like the others (the aligned target)
-
+DIR is a factory folder, its format defined in
+dcdi_core.dataset.factory_folder: dataset.json (the run's settings,
+compared on every resume: a mismatch is refused), manifest.jsonl (one JSON
+line per finished sample), aif/<id>.exr (all-in-focus, linear RGB),
+depth/<id>.exr (planar metres), <lens>/aberrated|baseline|sharp/<id>.exr;
 <id> is <recipe>-<index, 6 digits>. A sample counts only once its manifest
 line is written; every file is written to a temporary name and renamed, so a
 killed run restarted with the same arguments finishes the missing samples
@@ -37,7 +31,6 @@ missing or out of range).
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import sys
@@ -79,6 +72,11 @@ import numpy as np  # noqa: E402
 
 if __package__ in (None, ""):          # run as a file by `blender --python`
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from dcdi_core.dataset import factory_folder as ff  # noqa: E402
+from dcdi_core.dataset.factory_folder import (  # noqa: E402
+    MANIFEST, SETTINGS_FILE, append_record, finished_ids, read_manifest, settings_from_manifest)
+
 
 def sample_seed(seed: int, index: int) -> int:
     """A well-mixed 31-bit seed per sample (same seed, same scene)."""
@@ -226,9 +224,7 @@ def shard_from_environment(text: str = "auto", env=None) -> tuple[int, int]:
 
 
 # ------------------------------------------------------------------ the folder: settings, manifest, temporaries
-SETTINGS_FILE = "dataset.json"
-MANIFEST = "manifest.jsonl"
-SETTINGS_FORMAT = 1
+# (the format itself: dcdi_core.dataset.factory_folder)
 # each recorded setting and the option that sets it (for the refusal's message)
 OPTION_OF = {"recipe": "--recipe", "seed": "--seed", "shard": "--shard", "resolution": "--resolution",
              "lenses": "--lens", "baseline_depth_m": "--baseline-depth",
@@ -242,40 +238,17 @@ def run_settings(a) -> dict:
     """What defines the samples of this folder (the count may grow; all else
     must stay): recorded before the first sample, compared on every resume."""
     from dcdi_core.psf.library import lens_fingerprint
-    return {"format": SETTINGS_FORMAT, "recipe": a.recipe, "seed": a.seed, "shard": a.shard,
-            "resolution": list(a.resolution), "lenses": [lens.id for lens in a.lenses],
-            "lens_fingerprints": {lens.id: lens_fingerprint(lens) for lens in a.lenses},
-            "baseline_depth_m": a.baseline_depth, "render": a.render.as_dict(),
-            "psf_settings": a.psf_settings.as_dict()}
-
-
-def _flat(d: dict, prefix: str = "") -> dict:
-    out = {}
-    for k, v in d.items():
-        if isinstance(v, dict) and k != "lens_fingerprints":
-            out.update(_flat(v, f"{prefix}{k}."))
-        else:
-            out[prefix + k] = v
-    return out
-
-
-def settings_from_manifest(record: dict) -> dict:
-    """The settings a folder made before dataset.json existed was made with,
-    as far as its first manifest record tells them."""
-    render = {k: v for k, v in record.get("render", {}).items() if k not in ("engine", "device", "seconds")}
-    out = {"recipe": record.get("recipe"), "seed": record.get("dataset_seed"),
-           "resolution": record.get("resolution"), "lenses": list(record.get("lenses", {})),
-           "render": render, "psf_settings": record.get("psf_settings", {})}
-    base = [v.get("baseline_depth_m") for v in record.get("lenses", {}).values() if isinstance(v, dict)]
-    if base and base[0] is not None:
-        out["baseline_depth_m"] = base[0]
-    return {k: v for k, v in out.items() if v is not None}
+    return ff.settings_record(recipe=a.recipe, seed=a.seed, shard=a.shard, resolution=a.resolution,
+                              lenses=[lens.id for lens in a.lenses],
+                              lens_fingerprints={lens.id: lens_fingerprint(lens) for lens in a.lenses},
+                              baseline_depth_m=a.baseline_depth, render=a.render.as_dict(),
+                              psf_settings=a.psf_settings.as_dict())
 
 
 def settings_differences(have: dict, want: dict) -> list[str]:
     """'--option: folder X, this run Y' for every recorded setting that differs
     (settings the folder does not record are not compared)."""
-    a, b = _flat(have), _flat(want)
+    a, b = ff.flat_settings(have), ff.flat_settings(want)
     diffs = []
     for key in sorted(set(a) & set(b)):
         if key == "format" or a[key] == b[key]:
@@ -292,67 +265,15 @@ def settings_differences(have: dict, want: dict) -> list[str]:
     return diffs
 
 
-def read_manifest(manifest: Path, *, repair: bool = False) -> tuple[list[dict], list[str]]:
-    """(records, notes): the complete records of ``manifest``. A record torn
-    by a kill while it was appended (invalid JSON, or no newline at the end)
-    does not count; with ``repair`` the file is rewritten without it (and a
-    complete record glued to a torn one is kept), atomically, and ``notes``
-    says what was dropped."""
-    if not manifest.exists():
-        return [], []
-    raw = manifest.read_bytes()
-    text = raw.decode("utf-8", errors="replace")
-    lines = text.split("\n")
-    records, notes, clean = [], [], True
-    for n, line in enumerate(lines):
-        if not line.strip():
-            continue
-        rec = _record(line)
-        if n == len(lines) - 1:               # no newline after it: written, or torn, by a killed run
-            clean = False
-            if rec is None:
-                notes.append(f"dropped a torn last record ({len(line)} bytes): its sample is done again")
-                continue
-        elif rec is None:                     # a torn record, perhaps with the next one glued to it
-            clean = False
-            at = line.rfind('{"id": ')
-            rec = _record(line[at:]) if at > 0 else None
-            if rec is None:
-                notes.append(f"dropped a torn record at line {n + 1}: its sample is done again")
-                continue
-            notes.append(f"dropped a torn record at line {n + 1}, kept {rec['id']} glued to it")
-        records.append(rec)
-    if repair and not clean:
-        from dcdi_core.atomic import write_text
-        write_text(manifest, "".join(json.dumps(r) + "\n" for r in records))
-    return records, notes
-
-
-def _record(line: str):
-    try:
-        rec = json.loads(line)
-    except ValueError:
-        return None
-    return rec if isinstance(rec, dict) and isinstance(rec.get("id"), str) else None
-
-
-def finished_ids(manifest: Path) -> set[str]:
-    """Ids whose manifest line is complete (a torn line does not count)."""
-    return {r["id"] for r in read_manifest(manifest)[0]}
-
-
 def remove_stale_files(out: Path) -> list[Path]:
     """This run's own leftovers of a killed run: the hidden temporaries of
     atomic writes (.<name>.<random>.tmp<ext>, dcdi_core.atomic) and Blender's
     hand-over renders (.<id>.render.exr). Only called with the folder's lock
     held, so no live run's temporaries are touched."""
-    import re
-
     from dcdi_core.atomic import remove_stale_temporaries
     gone = remove_stale_temporaries(out)
-    form = re.compile(r"^\.[a-z]+-\d{6}\.render\.exr$")
-    for p in out.glob(".*.render.exr"):
-        if form.match(p.name):
+    for p in out.glob(".*" + ff.RENDER_HANDOVER_SUFFIX):
+        if ff.is_render_handover(p.name):
             try:
                 p.unlink()
                 gone.append(p)
@@ -395,20 +316,13 @@ def prepare_folder(out: Path, settings: dict, add_lens: bool = False) -> tuple[l
     lenses to add to the finished samples: only with ``add_lens``, when the
     run's lenses are the folder's followed by new ones and nothing else
     differs; the settings record is then rewritten once they are added)."""
-    from dcdi_core.atomic import write_text
     from dcdi_core.errors import DatasetError
     path = out / SETTINGS_FILE
     records, notes = read_manifest(out / MANIFEST)
-    if path.exists():
-        try:
-            have = json.loads(path.read_text())
-        except ValueError as e:
-            raise DatasetError(f"{path}: unreadable settings record ({e}); it is written atomically, so it was "
-                               "edited: restore it or use another --out") from None
-    elif records:
+    have = ff.read_settings(out, advice="it is written atomically, so it was edited: restore it or use another "
+                                        "--out")
+    if have is None and records:
         have = settings_from_manifest(records[0])
-    else:
-        have = None
     added = []
     if have is not None:
         diffs = settings_differences(have, settings)
@@ -425,7 +339,7 @@ def prepare_folder(out: Path, settings: dict, add_lens: bool = False) -> tuple[l
             raise DatasetError(f"--out {out} holds samples made with other settings: " + "; ".join(diffs)
                                + f". Rerun with the folder's settings to resume it{hint}, or use another --out")
     if not path.exists() and not added:
-        write_text(path, json.dumps(settings, indent=2) + "\n")
+        ff.write_settings(out, settings)
     records, notes = read_manifest(out / MANIFEST, repair=True)
     gone = remove_stale_files(out)
     if gone:
@@ -589,12 +503,11 @@ def check_output_folder(out: Path) -> None:
 
 
 def _run(a, out: Path) -> int:
-    from dcdi_core.io.images import write_depth, write_image
     from dcdi_core.progress import psf_progress
     from dcdi_core.render.geometry import ImageGeometry
     from dcdi_core.render.simulate import LensSimulator
 
-    manifest = out / MANIFEST
+    layout = ff.FolderLayout(out)
     lenses = a.lenses
     h, w = a.resolution
     settings = a.psf_settings
@@ -606,21 +519,20 @@ def _run(a, out: Path) -> int:
         add_lenses(out, records, [lens for lens in lenses if lens.id in added], a, run_settings(a))
     done = {r["id"] for r in records}
     todo = [i for i in range(a.count) if i % a.shard_count == a.shard_index
-            and f"{a.recipe}-{i:06d}" not in done]
+            and ff.sample_id(a.recipe, i) not in done]
     print(f"factory: {a.recipe}, {len(todo)} samples to do in shard {a.shard}, {len(done)} already in the manifest",
           flush=True)
     t_start = time.perf_counter()
     sims = {}                          # built on the first sample to do: no PSF work for a finished run
     for n, i in enumerate(todo):
-        sid = f"{a.recipe}-{i:06d}"
+        sid = ff.sample_id(a.recipe, i)
         seed = sample_seed(a.seed, i)
         t0, c0 = time.perf_counter(), _cpu_s()
         stages = {}
-        img, depth = render_rgbd(a.recipe, lenses[0], seed, h, w, render, out / f".{sid}.render.exr", stages)
+        img, depth = render_rgbd(a.recipe, lenses[0], seed, h, w, render, layout.render_handover(sid), stages)
         t_render = time.perf_counter() - t0
         t1 = time.perf_counter()
-        write_image(out / "aif" / f"{sid}.exr", img)
-        write_depth(out / "depth" / f"{sid}.exr", depth)
+        ff.write_rgbd(layout, sid, img, depth)
         stages["write"] = time.perf_counter() - t1
         lens_records = {}
         for lens in lenses:
@@ -635,9 +547,7 @@ def _run(a, out: Path) -> int:
             aberrated, baseline, sharp, info = r.image, r.baseline, r.sharp, r.info
             t3 = time.perf_counter()
             stages["cpu_simulate"] = stages.get("cpu_simulate", 0.0) + _cpu_s() - c2
-            write_image(out / lens.id / "aberrated" / f"{sid}.exr", aberrated)
-            write_image(out / lens.id / "baseline" / f"{sid}.exr", baseline)
-            write_image(out / lens.id / "sharp" / f"{sid}.exr", sharp)
+            ff.write_lens_images(layout, lens.id, sid, aberrated=aberrated, baseline=baseline, sharp=sharp)
             t4 = time.perf_counter()
             stages["simulate"] = stages.get("simulate", 0.0) + t3 - t2
             stages["write"] += t4 - t3
@@ -652,7 +562,7 @@ def _run(a, out: Path) -> int:
                   "stage_seconds": {k: round(v, 3) for k, v in stages.items()},
                   "seconds": round(time.perf_counter() - t0, 3), "cpu_seconds": round(_cpu_s() - c0, 3),
                   "lenses": lens_records, "psf_settings": settings.as_dict(), "versions": _versions()}
-        append_record(manifest, record)
+        append_record(layout.manifest, record)
         el = time.perf_counter() - t_start
         rate = (n + 1) / el
         print(f"  {sid}: {time.perf_counter() - t0:.1f} s (render {t_render:.1f} s); {rate * 3600:.0f} samples/h, "
@@ -668,12 +578,11 @@ def add_lenses(out: Path, records: list[dict], lenses, a, settings: dict) -> Non
     files), then rewrite the manifest (each record with the new lenses) and
     the settings record, atomically; killed half-way, the same command
     starts over (every file is replaced atomically)."""
-    from dcdi_core.atomic import write_text
-    from dcdi_core.io.images import read_depth, read_image, write_image
     from dcdi_core.progress import psf_progress
     from dcdi_core.render.geometry import ImageGeometry
     from dcdi_core.render.simulate import LensSimulator
 
+    layout = ff.FolderLayout(out)
     h, w = a.resolution
     print(f"factory: adding {', '.join(x.id for x in lenses)} to {len(records)} finished samples", flush=True)
     for lens in lenses:
@@ -682,25 +591,11 @@ def add_lenses(out: Path, records: list[dict], lenses, a, settings: dict) -> Non
         for rec in records:
             sid = rec["id"]
             t = time.perf_counter()
-            r = sim(read_image(out / "aif" / f"{sid}.exr"), read_depth(out / "depth" / f"{sid}.exr"))
-            for kind, img in (("aberrated", r.image), ("baseline", r.baseline), ("sharp", r.sharp)):
-                write_image(out / lens.id / kind / f"{sid}.exr", img)
+            r = sim(*ff.read_rgbd(layout, sid))
+            ff.write_lens_images(layout, lens.id, sid, aberrated=r.image, baseline=r.baseline, sharp=r.sharp)
             rec.setdefault("lenses", {})[lens.id] = {"seconds": round(time.perf_counter() - t, 3), **r.info}
-    write_text(out / MANIFEST, "".join(json.dumps(r) + "\n" for r in records))
-    write_text(out / SETTINGS_FILE, json.dumps(settings, indent=2) + "\n")
-
-
-def append_record(manifest: Path, record: dict) -> None:
-    """Append one manifest line in a single write, flushed to disk (a kill
-    can tear only this line: read_manifest repairs it on the next run)."""
-    from dcdi_core.errors import output_error
-    try:
-        with open(manifest, "a", encoding="utf-8") as f:
-            f.write(json.dumps(record) + "\n")
-            f.flush()
-            os.fsync(f.fileno())
-    except OSError as e:
-        raise output_error(manifest, e) from None
+    ff.write_manifest(layout.manifest, records)
+    ff.write_settings(out, settings)
 
 
 def _versions() -> dict:

@@ -32,11 +32,11 @@ from pathlib import Path
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from blender_addon.factory.batch import (MANIFEST, OPTION_OF, SETTINGS_FILE, _flat,  # noqa: E402
-                                         read_manifest)
+from blender_addon.factory.batch import OPTION_OF  # noqa: E402
+from dcdi_core.dataset import factory_folder as ff  # noqa: E402
+from dcdi_core.dataset.factory_folder import MANIFEST, SETTINGS_FILE, read_manifest  # noqa: E402
 
 SHOWN = 5                     # how many indices or files a refusal lists
-KINDS = ("aberrated", "baseline", "sharp")
 NOT_COMPARED = ("shard",)     # what may differ between the shards of one dataset
 
 
@@ -110,16 +110,13 @@ def read_settings(shard: Path) -> dict:
     if not path.exists() or not (shard / MANIFEST).exists():
         raise DatasetError(f"shard {shard}: no {SETTINGS_FILE} and {MANIFEST}: not a factory folder (or one made "
                            "before the factory recorded its settings: its settings cannot be checked)")
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except ValueError as e:
-        raise DatasetError(f"{path}: unreadable settings record ({e})") from None
+    return ff.read_settings(shard)
 
 
 def setting_differences(a: dict, b: dict) -> list[str]:
     """'--option: A vs B' for every setting (the shard excepted) that differs,
     settings recorded by one side only included."""
-    fa, fb = _flat(a), _flat(b)
+    fa, fb = ff.flat_settings(a), ff.flat_settings(b)
     out = []
     for key in sorted(set(fa) | set(fb)):
         if key in NOT_COMPARED or fa.get(key) == fb.get(key):
@@ -165,7 +162,7 @@ def check_indices(records: list, count: int, recipe: str, counts: set) -> None:
     where, doubled, outside, bad_id = {}, [], [], []
     for shard, rec in records:
         i = rec.get("index")
-        if not isinstance(i, int) or rec["id"] != f"{recipe}-{i:06d}":
+        if not isinstance(i, int) or rec["id"] != _id_of(recipe, i):
             bad_id.append(f"{rec['id']} (index {i!r}) in {shard}")
             continue
         if not 0 <= i < count:
@@ -195,6 +192,14 @@ def check_indices(records: list, count: int, recipe: str, counts: set) -> None:
         raise DatasetError("not merged: " + "; ".join(problems))
 
 
+def _id_of(recipe: str, index: int) -> str | None:
+    """The id of ``index``; None for an index no sample id can hold (negative)."""
+    try:
+        return ff.sample_id(recipe, index)
+    except ValueError:
+        return None
+
+
 def _first(items) -> str:
     shown = ", ".join(map(str, items[:SHOWN]))
     return shown + (f", ... ({len(items) - SHOWN} more)" if len(items) > SHOWN else "")
@@ -206,10 +211,7 @@ def sample_files(records: list, lenses: list) -> list[tuple[Path, Path]]:
     from dcdi_core.errors import DatasetError
     jobs, missing = [], []
     for shard, rec in records:
-        sid = rec["id"]
-        rels = [Path("aif") / f"{sid}.exr", Path("depth") / f"{sid}.exr"]
-        rels += [Path(lens) / kind / f"{sid}.exr" for lens in lenses for kind in KINDS]
-        for rel in rels:
+        for rel in ff.sample_files(rec["id"], lenses):
             if not (shard / rel).is_file():
                 missing.append(str(shard / rel))
             jobs.append((shard / rel, rel))
@@ -237,10 +239,11 @@ def place(src: Path, dest: Path, *, copy: bool = False) -> bool:
 def write_dataset(out: Path, settings: dict, records: list, shards: list, count: int) -> None:
     """The settings record (shard 0/1), merge.json, then the manifest last."""
     from dcdi_core.atomic import write_text
-    write_text(out / SETTINGS_FILE, json.dumps({**settings, "shard": "0/1"}, indent=2) + "\n")
-    write_text(out / "merge.json", json.dumps({"shards": [str(s) for s in shards], "count": count,
-                                               "samples": len(records)}, indent=2) + "\n")
-    write_text(out / MANIFEST, "".join(json.dumps(r) + "\n" for r in records))
+    layout = ff.FolderLayout(out)
+    ff.write_settings(out, {**settings, "shard": "0/1"})
+    write_text(layout.merge_record, json.dumps({"shards": [str(s) for s in shards], "count": count,
+                                                "samples": len(records)}, indent=2) + "\n")
+    ff.write_manifest(layout.manifest, records)
 
 
 if __name__ == "__main__":

@@ -2,9 +2,9 @@
 
     python -m blender_addon.tools.dataset_cost DIR [DIR ...] [--pairs PAIRS ...]
 
-Reads each factory folder's manifest (the seconds every sample recorded:
-scene build, Cycles render, EXR read, the lens simulations, writes) and
-prints per recipe the sample count, mean wall and CPU seconds per sample and
+Reads each factory folder's manifest (format: dcdi_core.dataset.factory_folder;
+the seconds every sample recorded: scene build, Cycles render, EXR read,
+the lens simulations, writes) and prints per recipe the sample count, mean wall and CPU seconds per sample and
 the render's share; with ``--pairs``, the DA2T pair folders' counts per
 lens. Wall seconds depend on what else the machine ran; CPU seconds less so.
 No bpy: it reads JSON only.
@@ -16,18 +16,18 @@ import json
 import sys
 from pathlib import Path
 
+if __package__ in (None, ""):
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from dcdi_core.dataset.factory_folder import FolderLayout, read_manifest  # noqa: E402
+
 
 def manifest(folder: Path) -> list:
-    p = Path(folder) / "manifest.jsonl"
+    """The finished samples' records of a factory folder (a torn last line does not count)."""
+    p = FolderLayout(folder).manifest
     if not p.exists():
         raise SystemExit(f"dataset_cost: {p} does not exist (not a factory folder)")
-    out = []
-    for line in p.read_text(encoding="utf-8").splitlines():
-        try:
-            out.append(json.loads(line))
-        except ValueError:
-            continue
-    return out
+    return read_manifest(p)[0]
 
 
 def summary(records: list) -> dict:
@@ -42,7 +42,8 @@ def summary(records: list) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m blender_addon.tools.dataset_cost", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m blender_addon.tools.dataset_cost",
+                                 description=__doc__.split("\n\n")[0])
     ap.add_argument("folders", nargs="+", type=Path)
     ap.add_argument("--pairs", nargs="*", type=Path, default=[])
     args = ap.parse_args(argv)

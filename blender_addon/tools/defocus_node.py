@@ -15,7 +15,7 @@ values into Blender and runs the compositor (circular bokeh, full quality:
 Blender 5 has no preview mode).
 
 Input: ``.npz`` with ``image`` (H, W, 3) linear float and ``depth`` (H, W)
-metres from the lens's first vertex (DESIGN.md: inf or 1e10 = infinity; NaN,
+metres from the lens's first vertex (docs/design.md: inf or 1e10 = infinity; NaN,
 0, negative = invalid, left sharp); or ``--input`` an image (.npy, .exr) with
 ``--depth`` its depth map (.npy, .exr: the first channel). Output: ``.npz``
 (``image``, float32 (H, W, 3)) or ``.exr`` (32-bit float RGBA), written to
@@ -67,7 +67,8 @@ if __package__ in (None, ""):          # run as a file by `blender --python`
 
 
 def parse(argv):
-    p = argparse.ArgumentParser(prog="defocus_node", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m blender_addon.tools.defocus_node",
+                                description=__doc__.split("\n")[0])
     p.add_argument("--input", required=True, help=".npz (image, depth) or an image .npy / .exr (with --depth)")
     p.add_argument("--depth", help="depth map .npy / .exr (metres from the lens's first vertex) for an image input")
     p.add_argument("--lens", default="6p", help="lens id or .toml (default 6p)")

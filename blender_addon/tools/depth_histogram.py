@@ -101,7 +101,8 @@ def save_png(hist: dict, path) -> None:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="depth_histogram", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m blender_addon.tools.depth_histogram",
+                                description=__doc__.split("\n\n")[0])
     p.add_argument("--recipe", action="append", default=None, help="recipe (repeat; default room, tabletop, street)")
     p.add_argument("--seeds", type=int, default=8, help="samples per recipe (indices 0..N-1 of --dataset-seed)")
     p.add_argument("--dataset-seed", type=int, default=0)

@@ -93,7 +93,8 @@ def render_noise_report(recipes=("room",), height: int = 240, width: int = 320, 
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="render_noise", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m blender_addon.tools.render_noise",
+                                description=__doc__.split("\n\n")[0])
     p.add_argument("--recipe", action="append", default=None, help="scene recipe (repeat for several; default room)")
     p.add_argument("--resolution", type=int, nargs=2, default=[240, 320], metavar=("H", "W"))
     p.add_argument("--reference", type=int, default=256, help="samples of the reference render")

@@ -17,7 +17,7 @@ PY=${PYTHON:-.venv/bin/python}
 mkdir -p "$OUT"
 for spec in "room 100" "tabletop 40" "street 30"; do
   set -- $spec
-  "$PY" -m blender_addon.factory.batch --recipe "$1" --count "$2" --lens mos-s1 --out "$OUT/factory-$1" --seed 0
+  "$PY" -m blender_addon.factory --recipe "$1" --count "$2" --lens mos-s1 --out "$OUT/factory-$1" --seed 0
 done
 for lens in mos-s1 mos-s2; do
   for recipe in room tabletop street; do

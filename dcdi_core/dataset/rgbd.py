@@ -1,6 +1,6 @@
 """RGB-D sources for DA2T training: all-in-focus images with metric depth.
 
-Every reader gives frames as the project holds them in memory (DESIGN.md):
+Every reader gives frames as the project holds them in memory (docs/design.md):
 image float32 (H, W, 3) linear light, depth float32 (H, W) planar metres
 (NaN invalid, inf infinity), and says which *scene* each frame shows, so
 that a split by scene keeps every view of a scene on one side.
@@ -8,8 +8,8 @@ that a split by scene keeps every view of a scene on one side.
 Readers (each ``ids()``, ``scene(id)``, ``load(id) -> RGBDFrame``):
 
 ``FactoryFolder(root)``
-    the dataset factory's output (blender_addon/README.md): ids from
-    ``manifest.jsonl`` (finished samples only), ``aif/<id>.exr`` and
+    the dataset factory's output (format: ``dataset.factory_folder``): ids
+    from ``manifest.jsonl`` (finished samples only), ``aif/<id>.exr`` and
     ``depth/<id>.exr``; each sample is its own seeded scene. The factory's
     own pre-simulated pairs (``<lens>/aberrated|baseline|sharp``) are read
     by ``pair(id, lens)``.
@@ -44,8 +44,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import ModelError
 from ..io.images import ImageFileError, read_depth, read_image, srgb_to_linear
-from ..models.errors import ModelError
+from . import factory_folder as ff
 
 
 @dataclass
@@ -119,33 +120,29 @@ def read_any_depth(path) -> np.ndarray:
 
 
 class FactoryFolder(RGBDSource):
+    """A factory folder (layout and manifest: ``dataset.factory_folder``)."""
+
     name = "factory"
 
     def __init__(self, root):
         self.root = Path(root)
-        manifest = self.root / "manifest.jsonl"
-        if not manifest.exists():
-            raise ModelError(f"{manifest}: not found (a factory output folder has one; see blender_addon/README.md)")
-        self.records = {}
-        for line in manifest.read_text(encoding="utf-8").splitlines():
-            try:
-                rec = json.loads(line)
-                self.records[rec["id"]] = rec
-            except (ValueError, KeyError):
-                continue                          # a torn last line: that sample is not finished
+        self.layout = ff.FolderLayout(self.root)
+        if not self.layout.manifest.exists():
+            raise ModelError(f"{self.layout.manifest}: not found (a factory output folder has one; see "
+                             "blender_addon/README.md)")
+        self.records = ff.finished_samples(self.root)       # a torn last record: that sample is not finished
         self._ids = sorted(self.records)
 
     def ids(self):
         return list(self._ids)
 
     def load(self, id):
-        img = read_image(self.root / "aif" / f"{id}.exr")
-        dep = read_depth(self.root / "depth" / f"{id}.exr")
+        img, dep = ff.read_rgbd(self.layout, id)
         return RGBDFrame(id, self.scene(id), img, dep, self.name, {"manifest": self.records[id]})
 
     def pair(self, id, lens: str) -> dict:
         """The factory's own simulation of ``lens``: aberrated, baseline, sharp (H, W, 3)."""
-        return {k: read_image(self.root / lens / k / f"{id}.exr") for k in ("aberrated", "baseline", "sharp")}
+        return ff.read_lens_images(self.layout, lens, id)
 
 
 class RGBDFolder(RGBDSource):
@@ -327,7 +324,7 @@ def open_source(path, kind: str | None = None) -> RGBDSource:
         return READERS[kind](path)
     if path.is_file() and path.suffix.lower() == ".mat":
         return NYUv2Labeled(path)
-    if (path / "manifest.jsonl").exists():
+    if ff.is_factory_folder(path):
         return FactoryFolder(path)
     if (path / "images").is_dir():
         return RGBDFolder(path)

@@ -44,7 +44,6 @@ frame (``lens_pool`` 0, the paper's per-sample perturbation).
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
@@ -234,17 +233,10 @@ def load_pair(path, record: dict | None = None) -> DA2TPair:
 
 
 def finished_pairs(root) -> dict:
-    """{pair id: record} of the pairs whose pairs.jsonl line is complete."""
-    out = {}
-    p = Path(root) / "pairs.jsonl"
-    if p.exists():
-        for line in p.read_text(encoding="utf-8").splitlines():
-            try:
-                rec = json.loads(line)
-                out[rec["id"]] = rec
-            except (ValueError, KeyError):
-                continue
-    return out
+    """{pair id: record} of the pairs whose pairs.jsonl line is complete
+    (read as the factory's manifest is: a torn line does not count)."""
+    from ...dataset.factory_folder import read_manifest
+    return {rec["id"]: rec for rec in read_manifest(Path(root) / "pairs.jsonl")[0]}
 
 
 def build_pairs(source, root, config: DA2TConfig, *, ids=None, variants: int = 1, shard=(0, 1), log=None) -> dict:
@@ -271,6 +263,7 @@ def build_pairs(source, root, config: DA2TConfig, *, ids=None, variants: int = 1
     todo = [(f, k) for pos, f in enumerate(frame_ids) if pos % n == i for k in range(variants)
             if f"{f}~{k}" not in done]
     say(f"DA2T: {len(todo)} pairs to build ({len(done)} done) in {root}")
+    from ...dataset.factory_folder import append_record
     from ...optics.lens import load_lens
     lens = load_lens(config.lens)
     frame, simulators = None, {}
@@ -279,10 +272,7 @@ def build_pairs(source, root, config: DA2TConfig, *, ids=None, variants: int = 1
             frame = source.load(f)
         pair = degrade(frame, config, k, lens=lens, simulators=simulators)
         save_pair(root, pair)
-        with open(root / "pairs.jsonl", "a", encoding="utf-8") as fh:
-            fh.write(json.dumps(pair.record) + "\n")
-            fh.flush()
-            os.fsync(fh.fileno())
+        append_record(root / "pairs.jsonl", pair.record)
         done[pair.id] = pair.record
         say(f"  {pair.id}")
     return done
