@@ -16,7 +16,7 @@ renderer approximates that, so at such edges neither is ground truth.
 grown by the kernel's reach (every source whose light reaches the crop), so
 a crop of the reference equals the same crop of a full-frame one.
 
-Depth conventions (DESIGN.md): beyond the library's far limit, inf and
+Depth conventions (docs/design.md): beyond the library's far limit, inf and
 Blender's background use the infinity PSF; nearer than its near limit is
 clamped to it; invalid depths (NaN, 0, negative) are left sharp.
 """

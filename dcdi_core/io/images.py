@@ -1,7 +1,7 @@
 """Read and write images and depth maps in the project's conventions.
 
 In memory an image is float32 ``(H, W, 3)`` linear light and a depth map is
-float32 ``(H, W)`` in metres, planar (DESIGN.md "Conventions"; NaN, 0 or a
+float32 ``(H, W)`` in metres, planar (docs/design.md "Conventions"; NaN, 0 or a
 negative depth marks an invalid pixel, ``inf`` or Blender's 1e10 infinity;
 this module stores depths exactly as they are and leaves that reading to the
 caller).

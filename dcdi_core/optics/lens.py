@@ -68,7 +68,7 @@ class Lens:
 
     ``vertex_z_mm[i]`` is the axial position of surface i's vertex (the first
     vertex at 0); ``sensor_z_mm`` the sensor plane. Depths (object distances)
-    are measured from the first vertex, in metres, as DESIGN.md states.
+    are measured from the first vertex, in metres, as docs/design.md states.
     """
 
     id: str

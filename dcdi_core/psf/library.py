@@ -3,7 +3,7 @@
 Rotational symmetry: one radial line of fields (normalised image height 0..1
 along sensor +y) is enough; a renderer rotates each kernel to its azimuth.
 Depth bins are uniform in inverse depth (diopters) from ``near_m`` to
-``far_m`` plus infinity; as DESIGN.md fixes, any depth at or beyond ``far_m``
+``far_m`` plus infinity; as docs/design.md fixes, any depth at or beyond ``far_m``
 (including ``inf`` and Blender's 1e10 background) uses the infinity PSF. A
 depth below ``near_m`` is an error unless the caller asks to clamp it.
 

@@ -1,4 +1,4 @@
-"""The pinhole camera that frames like a lens, and planar depth (DESIGN.md).
+"""The pinhole camera that frames like a lens, and planar depth (docs/design.md).
 
 A renderer such as Blender draws an all-in-focus image through a pinhole;
 the lens's blur and distortion are added afterwards from its PSFs. For the

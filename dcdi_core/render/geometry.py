@@ -3,7 +3,7 @@
 Pixel centres sit at integer (row, col) coordinates; row 0 is the top of the
 image, col 0 its left edge. Sensor lengths are in millimetres. The optical
 axis is at ``center_px`` (fractional pixel coordinates); field 1.0 is the
-lens's sensor semi-diagonal (DESIGN.md).
+lens's sensor semi-diagonal (docs/design.md).
 """
 from __future__ import annotations
 

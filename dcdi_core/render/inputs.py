@@ -1,6 +1,6 @@
 """Plausibility of an RGB-D input, checked before any work.
 
-A depth map is metres (DESIGN.md "Conventions"); NaN, 0 and negative values
+A depth map is metres (docs/design.md "Conventions"); NaN, 0 and negative values
 are invalid (left sharp), ``inf`` and Blender's background (1e10) are
 infinity. Two mistakes give garbage without these checks:
 

@@ -3,7 +3,7 @@
 Depth per patch: the paper averages the patch's depths (AvgPool); we average
 *inverse* depth over the patch's valid pixels, because blur scales with
 diopters and infinity (0 diopters) then needs no special case. Depth
-conventions (DESIGN.md): NaN, 0 and negative depths are invalid and left out
+conventions (docs/design.md): NaN, 0 and negative depths are invalid and left out
 of the average; >= the library's far limit, inf and Blender's 1e10 count as
 infinity. A patch with no valid depth keeps the identity kernel (it is left
 sharp) and is counted in the map's ``info``.

@@ -19,7 +19,7 @@ in dcdi_core; Blender code only copies :meth:`NodeDefocus.blender_settings`):
 - f = the lens's paraxial EFL, N = its paraxial F-number (EFL / entrance
   pupil diameter), both from ``optics.paraxial.first_order``;
 - the thin lens sits at the front principal plane H, so the node's Z is the
-  planar depth from H: the depth from the first vertex (DESIGN.md) plus H's
+  planar depth from H: the depth from the first vertex (docs/design.md) plus H's
   position behind that vertex (``principal_plane_mm``; ~1-4 mm for the 6P,
   against the Z pass's entrance pupil). With Z and s measured from H, v(z)
   is the thick lens's paraxial image distance from H' exactly: the node

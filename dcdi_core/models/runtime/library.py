@@ -6,7 +6,7 @@
 ``settings`` for the simulator's checks). :class:`OLFLibrary` is a
 ``PSFLibrary`` whose bins are filled by the OLF's forward pass instead of
 ray tracing, at the same grid, so the renderer needs no change and never
-imports ``models`` (DESIGN.md: the caller hands it a PSF source).
+imports ``models`` (docs/design.md: the caller hands it a PSF source).
 
 :func:`psf_source` decides which source serves a request: the OLF where it
 covers it (the lens's optical fingerprint is the learned one; the PSF
