@@ -160,7 +160,7 @@ def cmd_bokeh(args) -> int:
     from ..io.images import write_image
     from ..progress import Steps, bar, psf_progress
     from ..render.multires import DEFAULT_MAX_LEVEL, check_multires
-    from ..render.simulate import bokeh
+    from ..render.simulate import BokehOptions, bokeh
     check_multires(args.multires, DEFAULT_MAX_LEVEL if args.max_level is None else args.max_level, 16)
     lens, request, plan, resp, img, depth = render_inputs(args, sensor_focus=False)
     steps = Steps("dcdi bokeh")
@@ -169,12 +169,14 @@ def cmd_bokeh(args) -> int:
     focus_m = None if args.focus in (None, "prescribed") else args.focus
     src = choose_psf_source(args, lens, pixel_pitch_mm=plan.geometry.pixel_pitch_mm, settings=plan.settings,
                             focus_m=focus_m)
+    options = BokehOptions(keep=keep, focus_m=args.focus, geometry=plan.geometry,
+                           source_geometry=plan.source_geometry, distortion=args.distort,
+                           interpolation=request.interpolation, patch=request.patch, occlusion=not args.plain,
+                           settings=plan.settings, response=resp, fit_kernel=request.fit_kernel,
+                           multires=args.multires, max_level=args.max_level)
     with quiet_input_warnings():
-        r = bokeh(img, depth, lens, keep=keep, focus_m=args.focus, geometry=plan.geometry,
-                  source_geometry=plan.source_geometry, distortion=args.distort, interpolation=request.interpolation,
-                  patch=request.patch, occlusion=not args.plain, settings=plan.settings, response=resp,
-                  fit_kernel=request.fit_kernel, library=src.library, progress=psf_progress("PSFs"),
-                  layer_progress=bar("depth layers", "layer"), multires=args.multires, max_level=args.max_level)
+        r = bokeh(img, depth, lens, options, library=src.library, progress=psf_progress("PSFs"),
+                  layer_progress=bar("depth layers", "layer"))
     steps.start("writing")
     write_image(args.output, r.image)
     if args.side_by_side:

@@ -505,20 +505,8 @@ def _check_library_focus(options: BokehOptions, library: PSFLibrary) -> None:
                               "leave the focus out")
 
 
-def _legacy_options(options: BokehOptions | None, fields: dict) -> BokehOptions:
-    """TEMPORARY, until the `dcdi` command passes BokehOptions: bokeh's former
-    keyword arguments (each a BokehOptions field) gathered into one."""
-    if not fields:
-        if not isinstance(options, BokehOptions):
-            raise InputRangeError("options", options, "BokehOptions (what to keep sharp, and how to render)")
-        return options
-    if options is not None:
-        raise TypeError(f"bokeh(): give BokehOptions, not also {', '.join(sorted(fields))}")
-    return BokehOptions(**fields)
-
-
-def bokeh(image, depth, lens, options: BokehOptions | None = None, *, library: PSFLibrary | None = None,
-          cancelled=None, progress=None, layer_progress=None, **legacy_fields) -> RenderResult:
+def bokeh(image, depth, lens, options: BokehOptions, *, library: PSFLibrary | None = None,
+          cancelled=None, progress=None, layer_progress=None) -> RenderResult:
     """``image`` (H, W, 3) float32 linear light with ``depth`` (H, W) metres
     as ``lens`` would take it, kept sharp or focused as ``options`` say
     (:class:`BokehOptions`).
@@ -529,9 +517,9 @@ def bokeh(image, depth, lens, options: BokehOptions | None = None, *, library: P
     convolution; when it returns True, :class:`Cancelled` is raised.
     progress(done, total): called as PSF bins are computed;
     layer_progress(done, total): after each depth layer of the
-    occlusion-aware renderer. (Until the `dcdi` command passes BokehOptions,
-    the options' fields are also taken as keywords instead: temporary.)"""
-    options = _legacy_options(options, legacy_fields)
+    occlusion-aware renderer."""
+    if not isinstance(options, BokehOptions):
+        raise InputRangeError("options", options, "BokehOptions (what to keep sharp, and how to render)")
     if library is not None:
         _check_library_focus(options, library)
     scene = _bokeh_scene(image, depth, lens, options, library, progress)
