@@ -1,7 +1,9 @@
 import math
 
+import numpy as np
 import pytest
 
+from dcdi_core.dataset.rgbd import RGBDFrame, RGBDSource
 from dcdi_core.optics.lens import Lens, load_lens
 
 PAPER_LENSES = ["mos-s1", "mos-s2", "double-gauss", "6p"]
@@ -46,3 +48,59 @@ def write_rgbd_scene(tmp_path, monkeypatch, height, width, seed=1):
     write_image(tmp_path / "aif.exr", img)
     write_depth(tmp_path / "depth.exr", depth)
     return img, depth
+
+
+# ------------------------------------------------- training: kills and DA2T pairs
+class Killed(Exception):
+    """What ``kill_at`` raises: a run stopped as a kill would stop it."""
+
+
+def kill_at(n: int):
+    """An ``on_step`` callback that stops a training run after step ``n``
+    (after any checkpoint due at it), as a kill at that moment would."""
+    def on_step(step):
+        if step == n:
+            raise Killed
+    return on_step
+
+
+# tiny PSF libraries for DA2T pairs: every pair builds in about a second
+PAIR_FAST = dict(pupil_samples=8, n_wavelengths=3, n_fields=6, n_depths=3)
+DACN_ARCH = dict(channels=8, groups=1, blocks=2, window=4)
+
+
+class Frames(RGBDSource):
+    """Six 48 x 64 frames of six scenes: blocks of colour, two depths (0.9 and 5 m)."""
+
+    def __init__(self):
+        self.f = {}
+        for k in range(6):
+            rng = np.random.default_rng(k)
+            img = np.kron(rng.uniform(0.1, 0.9, (12, 16, 3)), np.ones((4, 4, 1))).astype(np.float32)
+            dep = np.where(np.arange(64)[None, :] < 20 + 4 * k, 0.9, 5.0) * np.ones((48, 1))
+            self.f[f"scene{k}"] = RGBDFrame(f"scene{k}", f"scene{k}", img, dep.astype(np.float32), "test")
+
+    def ids(self):
+        return sorted(self.f)
+
+    def load(self, id):
+        return self.f[id]
+
+
+@pytest.fixture(scope="module")
+def pairs(tmp_path_factory):
+    """DA2T pairs of ``Frames`` for mos-s2 (one set a test module)."""
+    from dcdi_core.models.dacn.data import DA2TConfig, build_pairs
+    root = tmp_path_factory.mktemp("pairs")
+    build_pairs(Frames(), root, DA2TConfig(lens="mos-s2", **PAIR_FAST))
+    return root
+
+
+def dacn_config(data, **kw):
+    """A tiny DACN training config on the pairs at ``data`` (6 iterations,
+    checkpoints at 3 and 6; the six scenes split 3 / 1 / 2)."""
+    from dcdi_core.models.dacn.config import DACNTrainConfig
+    base = dict(data=str(data), config="tiny", arch=DACN_ARCH, iters=6, batch=2, crop=16, lr=1e-3, val_size=32,
+                checkpoint_every=3, val_fraction=1 / 6, test_fraction=2 / 6, threads=1)
+    base.update(kw)
+    return DACNTrainConfig(**base)

@@ -8,7 +8,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from test_dacn_train import _config, pairs  # noqa: E402,F401  (the module's fixture)
+from conftest import dacn_config as _config  # noqa: E402
 
 
 def test_band_scores_pool_squared_error_over_the_band_pixels():

@@ -7,59 +7,15 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from dcdi_core.dataset.rgbd import RGBDFrame, RGBDSource  # noqa: E402
-
-FAST = dict(pupil_samples=8, n_wavelengths=3, n_fields=6, n_depths=3)
-ARCH = dict(channels=8, groups=1, blocks=2, window=4)
-
-
-class Frames(RGBDSource):
-    """Six 48 x 64 frames of six scenes: blocks of colour, two depths."""
-
-    def __init__(self):
-        self.f = {}
-        for k in range(6):
-            rng = np.random.default_rng(k)
-            img = np.kron(rng.uniform(0.1, 0.9, (12, 16, 3)), np.ones((4, 4, 1))).astype(np.float32)
-            dep = np.where(np.arange(64)[None, :] < 20 + 4 * k, 0.9, 5.0) * np.ones((48, 1))
-            self.f[f"scene{k}"] = RGBDFrame(f"scene{k}", f"scene{k}", img, dep.astype(np.float32), "test")
-
-    def ids(self):
-        return sorted(self.f)
-
-    def load(self, id):
-        return self.f[id]
-
-
-@pytest.fixture(scope="module")
-def pairs(tmp_path_factory):
-    from dcdi_core.models.dacn.data import DA2TConfig, build_pairs
-    root = tmp_path_factory.mktemp("pairs")
-    build_pairs(Frames(), root, DA2TConfig(lens="mos-s2", **FAST))
-    return root
-
-
-def _config(data, **kw):
-    from dcdi_core.models.dacn.config import DACNTrainConfig
-    base = dict(data=str(data), config="tiny", arch=ARCH, iters=6, batch=2, crop=16, lr=1e-3, val_size=32,
-                checkpoint_every=3, val_fraction=1 / 6, test_fraction=2 / 6, threads=1)
-    base.update(kw)
-    return DACNTrainConfig(**base)
+from conftest import Frames, Killed, dacn_config, kill_at  # noqa: E402
 
 
 def test_kill_and_resume_gives_the_uninterrupted_weights(pairs, tmp_path):
     from dcdi_core.models.dacn.train import train_dacn
-    full = train_dacn(_config(pairs), tmp_path / "full")
-
-    class Kill(Exception):
-        pass
-
-    def kill(step):
-        if step == 4:                       # after the checkpoint at 3, before the one at 6
-            raise Kill
-    with pytest.raises(Kill):
-        train_dacn(_config(pairs), tmp_path / "killed", on_step=kill)
-    resumed = train_dacn(_config(pairs), tmp_path / "killed")
+    full = train_dacn(dacn_config(pairs), tmp_path / "full")
+    with pytest.raises(Killed):             # after the checkpoint at 3, before the one at 6
+        train_dacn(dacn_config(pairs), tmp_path / "killed", on_step=kill_at(4))
+    resumed = train_dacn(dacn_config(pairs), tmp_path / "killed")
     for a, b in ((full.model, resumed.model), (full.ema, resumed.ema)):
         for (k, va), vb in zip(a.state_dict().items(), b.state_dict().values()):
             assert torch.equal(va, vb), k
@@ -69,10 +25,10 @@ def test_kill_and_resume_gives_the_uninterrupted_weights(pairs, tmp_path):
     # another setting is refused, naming it
     from dcdi_core.models import CheckpointMismatchError
     with pytest.raises(CheckpointMismatchError, match="lr"):
-        train_dacn(_config(pairs, lr=5e-4), tmp_path / "full")
+        train_dacn(dacn_config(pairs, lr=5e-4), tmp_path / "full")
     from dcdi_core.models.dacn.config import DACNTrainConfig
-    assert DACNTrainConfig.from_json(_config(pairs).to_json()) == _config(pairs)
-    assert [_config(pairs, iters=100).lr_at(s) for s in (0, 49, 50, 80, 95)] == [1e-3, 1e-3, 5e-4, 2.5e-4, 6.25e-5]
+    assert DACNTrainConfig.from_json(dacn_config(pairs).to_json()) == dacn_config(pairs)
+    assert [dacn_config(pairs, iters=100).lr_at(s) for s in (0, 49, 50, 80, 95)] == [1e-3, 1e-3, 5e-4, 2.5e-4, 6.25e-5]
 
 
 def test_the_test_split_never_meets_training(pairs, tmp_path, monkeypatch):
@@ -86,7 +42,7 @@ def test_the_test_split_never_meets_training(pairs, tmp_path, monkeypatch):
         return real(path)
     monkeypatch.setattr(da2t, "load_pair", spy)
     monkeypatch.setattr(dacn_loop, "load_pair", spy)
-    result = dacn_loop.train_dacn(_config(pairs, iters=4, checkpoint_every=4), tmp_path / "run")
+    result = dacn_loop.train_dacn(dacn_config(pairs, iters=4, checkpoint_every=4), tmp_path / "run")
     split = json.loads((tmp_path / "run" / "split.json").read_text())
     test_scenes = {s for s, p in split["scenes"].items() if p == "test"}
     assert len(test_scenes) == 2 and len(result.data.val) == 1 and len(result.data.train) == 3
@@ -99,7 +55,7 @@ def test_tiled_correction_equals_the_whole_image_and_leaves_no_seams(pairs, tmp_
     from dcdi_core.models.dacn.correct import correct, load_dacn
     from dcdi_core.models.runtime.depth_encoding import encode_depth
     from dcdi_core.models.dacn.train import train_dacn
-    train_dacn(_config(pairs, iters=3, checkpoint_every=3), tmp_path / "run")
+    train_dacn(dacn_config(pairs, iters=3, checkpoint_every=3), tmp_path / "run")
     model, info = load_dacn(tmp_path / "run")
     assert info["step"] == 3 and info["da2t"]["lens"] == "mos-s2"
     with torch.no_grad():                        # a network far from the identity

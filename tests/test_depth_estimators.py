@@ -10,8 +10,6 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from test_dacn_train import pairs  # noqa: E402,F401  (the module's fixture)
-
 
 def _depth_config(data, **kw):
     from dcdi_core.models.depth.config import DepthTrainConfig
@@ -53,7 +51,7 @@ def test_depth_network_overfits_one_pair(tmp_path):
     """It learns the depth, not just a lower loss: on a scene whose depth
     follows its colour (red blocks at 1 m, the rest at 5 m), the predicted
     depth ends within 15 % (AbsRel) of the truth."""
-    from test_dacn_train import FAST
+    from conftest import PAIR_FAST as FAST
 
     from dcdi_core.models.dacn.data import DA2TConfig, build_pairs, finished_pairs, load_pair, pair_path
     from dcdi_core.dataset.rgbd import RGBDFrame, RGBDSource

@@ -17,6 +17,7 @@ torch = pytest.importorskip("torch")
 from dcdi_core.errors import InputRangeError  # noqa: E402
 from dcdi_core.models.common import distributed  # noqa: E402
 from dcdi_core.models.common.distributed import Context, resolve_device  # noqa: E402
+from conftest import Killed, kill_at  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 # 2 processes against 1: the gradients differ by float rounding (sums in
@@ -130,15 +131,6 @@ def _final_records(run: Path) -> list:
     return [r for r in map(json.loads, (run / "log.jsonl").read_text().splitlines()) if r.get("final")]
 
 
-@pytest.fixture(scope="module")
-def pairs(tmp_path_factory):
-    from dcdi_core.models.dacn.data import DA2TConfig, build_pairs
-    from test_dacn_train import FAST, Frames
-    root = tmp_path_factory.mktemp("pairs")
-    build_pairs(Frames(), root, DA2TConfig(lens="mos-s2", **FAST))
-    return root
-
-
 def test_two_gloo_processes_train_dacn_as_one_process_with_the_same_global_batch(pairs, tmp_path):
     from dcdi_core.models.dacn.config import DACNTrainConfig
     from dcdi_core.models.dacn.train import train_dacn
@@ -172,15 +164,8 @@ def test_a_run_resumes_across_a_changed_world_size(tmp_path):
                          offgrid=6, held_out=4)
     config = OLFTrainConfig(data=data, iters=6, batch=16, lr=3e-3, threads=1, checkpoint_every=3)
     straight = train(config, tmp_path / "straight", cache_dir=cache)
-
-    class Killed(Exception):
-        pass
-
-    def kill(step):
-        if step == 4:
-            raise Killed
     with pytest.raises(Killed):
-        train(config, tmp_path / "olf.npz.run", cache_dir=cache, on_step=kill)
+        train(config, tmp_path / "olf.npz.run", cache_dir=cache, on_step=kill_at(4))
     argv = ("olf train --lens mos-s1 --lens mos-s2 --iters 6 --batch 16 --lr 3e-3 --threads 1 --checkpoint-every 3 "
             "--rays 16 --wavelengths 3 --fields 3 --depths 2 --offgrid 6 --held-out 4 --device auto").split()
     seconds, out = _torchrun([*argv, "-o", str(tmp_path / "olf.npz")], {"DCDI_CACHE_DIR": str(cache)})

@@ -21,6 +21,8 @@ from dcdi_core.optics.lens import load_lens
 
 torch = pytest.importorskip("torch")
 
+from conftest import Killed, kill_at  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
 # tiny PSFs and grids: every library here builds in well under a second
 FAST = dict(pupil_samples=16, n_wavelengths=3, n_fields=3, n_depths=2, offgrid=6, held_out=4)
@@ -334,16 +336,6 @@ def test_kill_and_resume_ends_where_an_uninterrupted_run_does(cache, tmp_path):
     from dcdi_core.models.olf.train import train
     config = _config(iters=6, checkpoint_every=3)
     straight = train(config, tmp_path / "a", cache_dir=cache)
-
-    class Killed(Exception):
-        pass
-
-    def kill_at(n):
-        def on_step(step):
-            if step == n:
-                raise Killed
-        return on_step
-
     # killed after step 4: the work after the checkpoint at 3 is lost and redone
     with pytest.raises(Killed):
         train(config, tmp_path / "b", cache_dir=cache, on_step=kill_at(4))

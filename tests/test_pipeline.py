@@ -6,7 +6,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from conftest import write_rgbd_scene  # noqa: E402
-from test_dacn_train import _config, pairs  # noqa: E402,F401
+from conftest import dacn_config as _config  # noqa: E402
 
 from dcdi_core.cli import main  # noqa: E402
 from dcdi_core.io.images import read_image  # noqa: E402

@@ -1,5 +1,7 @@
-"""What every trainer here shares: atomic checkpoints, their refusal when
-written with other settings, and the EMA of the weights."""
+"""Checkpoints and the EMA of the weights, for the shared training loop
+(``loop``): atomic checkpoints, their refusal when written with other
+settings or on other data, the exact restore of a run's state, and one
+optimiser step followed by the EMA."""
 from __future__ import annotations
 
 import copy
@@ -116,14 +118,3 @@ def check_data(ck: dict | None, ckpt_path, key: str, what: str) -> None:
     if ck is not None and ck["data_key"] != key:
         raise CheckpointMismatchError(ckpt_path, {what: (ck["data_key"][:12], key[:12])})
 
-
-def after_step(step: int, iters: int, checkpoint_every: int, loss: float, checkpoint, progress, on_step) -> None:
-    """What both trainers do after each step: a checkpoint every
-    ``checkpoint_every`` steps and at the end, then the progress and the
-    step callbacks."""
-    if step % checkpoint_every == 0 or step == iters:
-        checkpoint()
-    if progress:
-        progress(step, iters, loss)
-    if on_step:
-        on_step(step)

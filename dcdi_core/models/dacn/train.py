@@ -1,50 +1,46 @@
-"""The DACN training loop (DA2T): plain, seeded, resumable, like the OLF's.
+"""The DACN's training (DA2T) on the shared loop (``common.loop``: seeded,
+resumable bit for bit, atomic checkpoints, torchrun).
 
 A run folder holds ``config.json``, ``split.json`` (the split by scene it
 trained under: training pairs only from 'train' scenes, validation from
-'val', 'test' never read), ``checkpoint.pt`` (atomic, every
-``checkpoint_every`` iterations and at the end: weights, EMA, optimiser,
-iteration, the crop generator's and torch's RNG states) and ``log.jsonl``.
-Same config, data and thread count: the same weights, bit for bit; a
-killed run started again resumes from its last checkpoint and ends where an
-uninterrupted run would. A checkpoint written with other settings or other
-data is refused, naming them.
+'val', 'test' never read), ``data.json`` (the pairs' folder, key and ids),
+``checkpoint.pt`` (besides the loop's training state, ``kind`` 'dacn' and
+the network's ``spec``, which export reads) and ``log.jsonl``. A checkpoint
+resumes only with the same result settings and the same pairs, DA2T
+settings and split.
 
 Each step: ``batch`` random crops of ``crop`` px from the training pairs
-(``data.da2t.PairCrops``: within the imaged area, flips and rotations,
-depth encoded per crop as the spec says), the network's correction of the
-input (the depth-aware capture, or the depth-unaware baseline), L1 against
-the sharp target, Adam, the learning rate by its milestones, then the EMA.
+(``data.PairCrops``: within the imaged area, flips and rotations, depth
+encoded per crop as the spec says), the network's correction of the input
+(the depth-aware capture, or the depth-unaware baseline), L1 against the
+sharp target, Adam, the learning rate by its milestones
+(``DACNTrainConfig.lr_at``), then the EMA. Validation: PSNR and SSIM on the
+validation pairs' centre crops (``evaluate``). ``seconds`` is this session's
+training time.
 
-``device`` (auto, cpu, cuda[:N]) and the number of processes (``torchrun
---nproc-per-node N``, ``distributed``) are not settings: a checkpoint resumes
-on another device or world size. Under N processes each draws the same
-global batch of crops and trains on its N-th; rank 0 alone writes the run
-folder (and the split, if the data has none). The log records the device and
-world size.
+Under N processes each draws the same global batch of crops and trains on
+its N-th; rank 0 alone writes the run folder (and the split, if the data has
+none).
 """
 from __future__ import annotations
 
 import hashlib
 import json
-import os
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from ...atomic import write_text
-from .. import require_torch
-from .data import PairCrops, finished_pairs, load_pair, pair_path
-from ..runtime.depth_encoding import encode_depth
 from ...errors import InputRangeError
+from .. import require_torch
+from ..common.loop import Network, train_network
+from ..common.metrics import psnr, ssim
 from ..common.split import Split, rank_key, split_by_scene
 from ..errors import ModelError
-from ..common.metrics import psnr, ssim
-from ..common.checkpoint import after_step, check_data, make_ema, open_run, restore, save_checkpoint, training_state, update
+from ..runtime.depth_encoding import encode_depth
 from .config import DACNTrainConfig
-from ..common.distributed import Context, LossModule
+from .data import PairCrops, finished_pairs, load_pair, pair_path
 
 torch = require_torch()
 from .arch import DACN  # noqa: E402  (after the torch check)
@@ -160,80 +156,76 @@ def l1_loss(model, x, y, d):
     return (model(x, d) - y).abs().mean()
 
 
-def train_dacn(config: DACNTrainConfig, run_dir, *, progress=None, on_step=None, log=None,
-               device: str = "cpu") -> DACNResult:
-    """Train (or resume) the run in ``run_dir``. ``progress(step, iters,
-    loss)`` after each step; ``on_step(step)`` too (an exception there stops
-    the run as a kill would, after the step and before any later checkpoint).
-    ``device``: auto, cpu, cuda or cuda:N (``distributed.resolve_device``);
-    under torchrun the processes share each global batch (module docstring)."""
-    ctx = Context.from_environment(device)
-    try:
-        result = _train_dacn(config, run_dir, ctx, progress=progress, on_step=on_step, log=log)
-    except BaseException:
-        ctx.close(clean=False)
-        raise
-    ctx.close()
-    return result
+class PairTraining(Network):
+    """What a network trained on DA2T crops shares: the pairs and their split
+    (``open_data``; recorded in the run folder as ``split.json``, and
+    ``data.json``: the pairs' folder, key and ids), the crops, Adam, and the
+    checkpoint's ``kind`` and ``spec``. A batch, by default: (input, target,
+    encoded depth) tensors (B, C, crop, crop). Subclasses: ``stream``,
+    ``kind``, ``encoding`` (of the crops' depth), ``build``, ``loss``,
+    ``validate``, ``final``."""
 
+    data_what = "data (pairs, their DA2T settings or the split)"
+    kind = ""
 
-def _train_dacn(config: DACNTrainConfig, run_dir, ctx: Context, *, progress, on_step, log) -> DACNResult:
-    say = (log or (lambda s: None)) if ctx.main else (lambda s: None)
-    progress = progress if ctx.main else None
-    rows = ctx.part(config.batch)                        # refused before any work
-    run_dir, ckpt_path, settings, ck = open_run(run_dir, config)
-    with ctx.main_first():                               # rank 0 records the split if there is none
-        data = open_data(config)
-    check_data(ck, ckpt_path, data.key, "data (pairs, their DA2T settings or the split)")
-    if ctx.main:
-        write_text(run_dir / "config.json", config.to_json() + "\n")
+    def open_data(self, run_dir, say) -> DACNData:
+        return open_data(self.config)
+
+    def data_key(self, data: DACNData) -> str:
+        return data.key
+
+    def write_records(self, run_dir, data: DACNData) -> None:
         data.split.save(run_dir / "split.json")
         write_text(run_dir / "data.json", json.dumps({"root": str(data.root), "key": data.key, "train": data.train,
                                                       "val": data.val}, indent=1) + "\n")
-    spec = config.spec()
-    torch.manual_seed(config.seed)
-    model = DACN(spec).to(ctx.device)
-    ema = make_ema(model)
-    opt = torch.optim.Adam(model.parameters(), lr=config.lr, betas=config.betas)
-    rng = np.random.default_rng([config.seed, 13])
-    crops = PairCrops([pair_path(data.root, p) for p in data.train], spec.depth_encoding, augment=config.augment)
-    step, history = restore(ck, model, ema, opt, rng, say=say, path=ckpt_path, iters=config.iters)
-    step_loss = ctx.wrap(LossModule(model, l1_loss))
-    where = ctx.record()
 
-    def checkpoint():
-        if ctx.main:
-            save_checkpoint(ckpt_path, training_state(
-                step=step, settings=settings, config_json=config.to_json(), data_key=data.key, model=model,
-                ema=ema, opt=opt, rng=rng, history=history, kind="dacn", spec=json.dumps(spec.as_dict())))
-        ctx.barrier()
+    def optimizer(self, model):
+        return torch.optim.Adam(model.parameters(), lr=self.config.lr, betas=self.config.betas)
 
-    t0 = time.perf_counter()
-    model.train()
-    loss_v = float("nan")
-    with open(run_dir / "log.jsonl" if ctx.main else os.devnull, "a", encoding="utf-8") as logf:
-        while step < config.iters:
-            batch = crops.sample(rng, config.batch, config.crop, input=config.input)   # the global batch
-            x, y, d = (_tensor(a[rows]).to(ctx.device) for a in batch)                # this rank's share
-            loss = step_loss(x, y, d)
-            update(opt, loss, config.lr_at(step), model, ema, config.ema_decay)
-            step += 1
-            loss_v = ctx.mean(loss.detach())
-            if ctx.main and config.validate_every and step % config.validate_every == 0 and step < config.iters:
-                rec = {"step": step, "loss": loss_v, "seconds": time.perf_counter() - t0,
-                       "it_per_s": step / max(time.perf_counter() - t0, 1e-9),
-                       "val_ema": evaluate(ema, data, config).get("mean"), **where}
-                history.append(rec)
-                logf.write(json.dumps(rec) + "\n")
-                logf.flush()
-                say(f"iteration {step}: loss {loss_v:.4g}, validation {rec['val_ema']}")
-            after_step(step, config.iters, config.checkpoint_every, loss_v, checkpoint, progress, on_step)
-    seconds = time.perf_counter() - t0
-    val = {}
-    if ctx.main:
-        val = {"ema": evaluate(ema, data, config), "model": evaluate(model, data, config)}
-        rec = {"step": step, "loss": loss_v, "seconds": seconds, "val_ema": val["ema"].get("mean"),
-               "val_model": val["model"].get("mean"), "final": True, **where}
-        with open(run_dir / "log.jsonl", "a", encoding="utf-8") as logf:
-            logf.write(json.dumps(rec) + "\n")
-    return DACNResult(config, model.cpu(), ema.cpu(), data, step, seconds, history, val, where)
+    def batches(self, data: DACNData):
+        c = self.config
+        crops = PairCrops([pair_path(data.root, p) for p in data.train], self.encoding, augment=c.augment)
+
+        def draw(rng, rows, device):
+            return self.tensors(crops.sample(rng, c.batch, c.crop, input=c.input), rows, device)
+        return draw
+
+    def tensors(self, batch: tuple, rows: slice, device) -> tuple:
+        """The loss's arguments from this rank's ``rows`` of the global batch
+        of crops (input, target, encoded depth)."""
+        return tuple(_tensor(a[rows]).to(device) for a in batch)
+
+    def checkpoint_extra(self) -> dict:
+        return {"kind": self.kind, "spec": json.dumps(self.config.spec().as_dict())}
+
+
+class DACNTraining(PairTraining):
+    """The DACN's part of the shared loop."""
+
+    stream = 13
+    kind = "dacn"
+
+    @property
+    def encoding(self) -> str:
+        return self.config.spec().depth_encoding
+
+    def build(self, data: DACNData):
+        return DACN(self.config.spec())
+
+    def loss(self, model, x, y, d):
+        return l1_loss(model, x, y, d)
+
+    def validate(self, model, ema, data: DACNData) -> dict:
+        return {"val_ema": evaluate(ema, data, self.config).get("mean")}
+
+    def final(self, model, ema, data: DACNData) -> tuple[dict, dict]:
+        val = {"ema": evaluate(ema, data, self.config), "model": evaluate(model, data, self.config)}
+        return val, {"val_ema": val["ema"].get("mean"), "val_model": val["model"].get("mean")}
+
+
+def train_dacn(config: DACNTrainConfig, run_dir, *, progress=None, on_step=None, log=None,
+               device: str = "cpu") -> DACNResult:
+    """Train (or resume) the run in ``run_dir`` (``common.loop.train_network``:
+    callbacks, device, torchrun)."""
+    r = train_network(DACNTraining(config), run_dir, device=device, progress=progress, on_step=on_step, log=log)
+    return DACNResult(config, r.model, r.ema, r.data, r.step, r.seconds, r.history, r.validation, r.where)

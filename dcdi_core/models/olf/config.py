@@ -1,6 +1,7 @@
 """The Omni-Lens-Field's training config (data as a nested config)."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields
 
 from ...errors import InputRangeError
@@ -52,6 +53,11 @@ class OLFTrainConfig(JSONConfig):
     @property
     def variant(self) -> str:
         return self.data.variant
+
+    def lr_at(self, step: int) -> float:
+        """Learning rate of update ``step`` (0-based): cosine from lr to lr_min over ``iters``."""
+        t = min(step, self.iters) / self.iters
+        return self.lr_min + (self.lr - self.lr_min) * 0.5 * (1.0 + math.cos(math.pi * t))
 
     def arch(self) -> dict:
         """hidden_layers and width after the size and its overrides."""

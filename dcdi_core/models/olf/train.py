@@ -1,47 +1,39 @@
-"""The training loop of the Omni-Lens-Field: plain, seeded, resumable.
+"""The training of the Omni-Lens-Field, on the shared loop
+(``common.loop``: seeded, resumable bit for bit, atomic checkpoints,
+torchrun).
 
 One run lives in a folder: ``config.json`` (the settings), ``points.npz``
 (the traced off-grid and held-out PSFs, so a resumed run need not trace them
-again), ``checkpoint.pt`` (written atomically every ``checkpoint_every``
-iterations and at the end: weights, EMA weights, optimiser state, iteration,
-the batch generator's and torch's RNG states) and ``log.jsonl``.
-
-Same config, same seed, same thread count: the same weights, bit for bit;
-a run killed at any point and started again with the same config resumes
-from its last checkpoint and ends exactly where an uninterrupted run would.
-A checkpoint written with other settings is refused, naming them.
+again), ``checkpoint.pt`` (every ``checkpoint_every`` iterations and at the
+end; besides the loop's training state, ``seconds``: the training time of
+all sessions so far) and ``log.jsonl``. A checkpoint resumes only with the
+same result settings and the same lenses' optics and PSF algorithm.
 
 Each step: a batch from ``OLFData.sample`` (lenses uniform; grid and
 off-grid points), the network's PSFs, MSE on the paper's scale (prediction
 and target divided by the target's per-channel peak), AdamW, learning rate
-cosine from ``lr`` to ``lr_min`` over ``iters``, then the EMA of the weights.
+cosine from ``lr`` to ``lr_min`` over ``iters`` (``OLFTrainConfig.lr_at``),
+then the EMA of the weights. Validation: ``metrics.psf_scores`` on the
+held-out points, of the EMA and of the model.
 
-``device`` (auto, cpu, cuda[:N]) and the number of processes (``torchrun
---nproc-per-node N``, ``distributed``) are not settings: a checkpoint resumes
-on another device or world size. Under N processes each draws the same
-global batch and trains on its N-th (``local_groups``); rank 0 alone writes
-the run folder. The log records the device and world size.
+Under N processes each draws the same global batch and trains on its N-th
+(``local_groups``).
 """
 from __future__ import annotations
 
-import json
-import math
-import os
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from ...atomic import write_text
 from .. import require_torch
+from ..common.loop import Network, train_network
 from ..common.metrics import psf_scores
-from .data import Batch, OLFData, build_data, data_key
-from ..common.checkpoint import after_step, check_data, make_ema, open_run, restore, save_checkpoint, training_state, update
 from .config import OLFTrainConfig
-from ..common.distributed import Context, LossModule
+from .data import Batch, OLFData, build_data, data_key
 
 torch = require_torch()
 from .arch import OLF  # noqa: E402  (after the torch check)
+
 
 @dataclass
 class TrainResult:
@@ -55,12 +47,6 @@ class TrainResult:
     history: list = field(default_factory=list)
     held_out: dict = field(default_factory=dict)   # {"ema": scores, "model": scores}; rank 0 only
     where: dict = field(default_factory=dict)      # device and world size it ran on (the last session)
-
-
-def cosine_lr(config: OLFTrainConfig, step: int) -> float:
-    """Learning rate of update ``step`` (0-based): cosine from lr to lr_min."""
-    t = min(step, config.iters) / config.iters
-    return config.lr_min + (config.lr - config.lr_min) * 0.5 * (1.0 + math.cos(math.pi * t))
 
 
 def _groups_to_torch(batch, device=None):
@@ -133,85 +119,59 @@ def _init_heads_from_data(model, data: OLFData):
             model.heads[li].bias.copy_(torch.from_numpy(np.log(mean + 1e-8)).float())
 
 
+class OLFTraining(Network):
+    """The OLF's part of the shared loop."""
+
+    stream = 7
+    data_what = "data (a lens's optics or the PSF algorithm)"
+    # the exported file records the training time of the whole run as its cost
+    session_seconds = False
+
+    def __init__(self, config: OLFTrainConfig, *, cache_dir=None, lenses: dict | None = None):
+        super().__init__(config)
+        self.cache_dir, self.lenses = cache_dir, lenses
+
+    def open_data(self, run_dir, say) -> OLFData:
+        # rank 0 traces and caches the PSFs, the others read them
+        return build_data(self.config.data, cache_dir=self.cache_dir, points_file=run_dir / "points.npz",
+                          lenses=self.lenses, log=say)
+
+    def data_key(self, data: OLFData) -> str:
+        return data_key(self.config.data, [ls.lens for ls in data.lenses])
+
+    def build(self, data: OLFData):
+        model = OLF(data.spec(**self.config.arch()))
+        _init_heads_from_data(model, data)
+        return model
+
+    def optimizer(self, model):
+        c = self.config
+        return torch.optim.AdamW(model.parameters(), lr=c.lr, betas=c.betas, weight_decay=c.weight_decay)
+
+    def batches(self, data: OLFData):
+        def draw(rng, rows, device):
+            groups = local_groups(data.sample(rng, self.config.batch).groups, rows)
+            return (_groups_to_torch(Batch(groups), device),)
+        return draw
+
+    def loss(self, model, groups):
+        return loss_of(model, groups)
+
+    def unused_parameters(self, data: OLFData) -> bool:
+        # radial, several lenses: a rank's share may lack a lens, whose head is then unused there
+        return self.config.data.variant == "radial" and len(data.lenses) > 1
+
+    def final(self, model, ema, data: OLFData) -> tuple[dict, dict]:
+        held = {"ema": evaluate(ema, data), "model": evaluate(model, data)}
+        return held, {"held_out_ema": held["ema"]["mean"], "held_out_model": held["model"]["mean"]}
+
+
 def train(config: OLFTrainConfig, run_dir, *, cache_dir=None, lenses: dict | None = None, progress=None,
           on_step=None, log=None, device: str = "cpu") -> TrainResult:
-    """Train (or resume) the run in ``run_dir``. ``cache_dir``: the PSF
-    library cache (None: the default; False: none). ``progress(step, iters,
-    loss)`` after each step; ``on_step(step)`` too (an exception there stops
-    the run as a kill would, after the step and before any later checkpoint).
-    ``device``: auto, cpu, cuda or cuda:N (``distributed.resolve_device``);
-    under torchrun the processes share each global batch (module docstring)."""
-    ctx = Context.from_environment(device)
-    try:
-        result = _train(config, run_dir, ctx, cache_dir=cache_dir, lenses=lenses, progress=progress,
-                        on_step=on_step, log=log)
-    except BaseException:
-        ctx.close(clean=False)
-        raise
-    ctx.close()
-    return result
-
-
-def _train(config: OLFTrainConfig, run_dir, ctx: Context, *, cache_dir, lenses, progress, on_step,
-           log) -> TrainResult:
-    say = (log or (lambda s: None)) if ctx.main else (lambda s: None)
-    progress = progress if ctx.main else None
-    rows = ctx.part(config.batch)                        # refused before any work
-    run_dir, ckpt_path, settings, ck = open_run(run_dir, config)
-    if ctx.main:
-        write_text(run_dir / "config.json", config.to_json() + "\n")
-    with ctx.main_first():                               # rank 0 traces and caches, the others read
-        data = build_data(config.data, cache_dir=cache_dir, points_file=run_dir / "points.npz", lenses=lenses,
-                          log=say)
-    key = data_key(config.data, [ls.lens for ls in data.lenses])
-    check_data(ck, ckpt_path, key, "data (a lens's optics or the PSF algorithm)")
-    spec = data.spec(**config.arch())
-    torch.manual_seed(config.seed)
-    model = OLF(spec)
-    _init_heads_from_data(model, data)
-    model.to(ctx.device)
-    ema = make_ema(model)
-    opt = torch.optim.AdamW(model.parameters(), lr=config.lr, betas=config.betas,
-                            weight_decay=config.weight_decay)
-    rng = np.random.default_rng([config.seed, 7])
-    step, history = restore(ck, model, ema, opt, rng, say=say, path=ckpt_path, iters=config.iters)
-    prior_s = 0.0 if ck is None else float(ck.get("seconds", 0.0))   # training time of the steps it holds
-    # radial, several lenses: a rank's share may lack a lens, whose head is then unused there
-    step_loss = ctx.wrap(LossModule(model, loss_of),
-                         find_unused_parameters=spec.variant == "radial" and len(data.lenses) > 1)
-    where = ctx.record()
-
-    def checkpoint():
-        if ctx.main:
-            save_checkpoint(ckpt_path, training_state(
-                step=step, settings=settings, config_json=config.to_json(), data_key=key, model=model, ema=ema,
-                opt=opt, rng=rng, history=history, seconds=prior_s + time.perf_counter() - t0))
-        ctx.barrier()
-
-    t0 = time.perf_counter()
-    model.train()
-    loss_v = float("nan")
-    with open(run_dir / "log.jsonl" if ctx.main else os.devnull, "a", encoding="utf-8") as logf:
-        while step < config.iters:
-            groups = local_groups(data.sample(rng, config.batch).groups, rows)
-            loss = step_loss(_groups_to_torch(Batch(groups), ctx.device))
-            update(opt, loss, cosine_lr(config, step), model, ema, config.ema_decay)
-            step += 1
-            loss_v = ctx.mean(loss.detach())
-            if ctx.main and config.validate_every and step % config.validate_every == 0 and step < config.iters:
-                rec = {"step": step, "loss": loss_v, "seconds": prior_s + time.perf_counter() - t0,
-                       "held_out_ema": evaluate(ema, data)["mean"], "held_out_model": evaluate(model, data)["mean"],
-                       **where}
-                history.append(rec)
-                logf.write(json.dumps(rec) + "\n")
-                logf.flush()
-            after_step(step, config.iters, config.checkpoint_every, loss_v, checkpoint, progress, on_step)
-    seconds = prior_s + time.perf_counter() - t0
-    held = {}
-    if ctx.main:
-        held = {"ema": evaluate(ema, data), "model": evaluate(model, data)}
-        rec = {"step": step, "loss": loss_v, "seconds": seconds, "held_out_ema": held["ema"]["mean"],
-               "held_out_model": held["model"]["mean"], "final": True, **where}
-        with open(run_dir / "log.jsonl", "a", encoding="utf-8") as logf:
-            logf.write(json.dumps(rec) + "\n")
-    return TrainResult(config, spec, model.cpu(), ema.cpu(), data, step, seconds, history, held, where)
+    """Train (or resume) the run in ``run_dir`` (``common.loop.train_network``:
+    callbacks, device, torchrun). ``cache_dir``: the PSF library cache (None:
+    the default; False: none); ``lenses``: {id: Lens} instead of loading them."""
+    net = OLFTraining(config, cache_dir=cache_dir, lenses=lenses)
+    r = train_network(net, run_dir, device=device, progress=progress, on_step=on_step, log=log)
+    return TrainResult(config, r.model.spec, r.model, r.ema, r.data, r.step, r.seconds, r.history, r.validation,
+                       r.where)
