@@ -2,7 +2,7 @@
 
 ``factory_folder``: the dataset factory's folder format, defined once (file
 names, layout, sample ids, the manifest of finished samples, the settings
-record): the factory (``blender_addon.factory``) writes it with these
+record): the factory (blender_addon/factory/) writes it with these
 helpers and every reader reads it through them.
 
 ``rgbd``: readers of all-in-focus RGB-D frames (image and metric depth) for

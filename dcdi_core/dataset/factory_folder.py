@@ -1,6 +1,6 @@
 """The dataset factory's folder format, defined once.
 
-Written by the factory (``blender_addon.factory``: ``batch`` makes a folder,
+Written by the factory (blender_addon/factory/: ``batch`` makes a folder,
 ``merge_shards`` makes one of several), read by ``dataset.rgbd.FactoryFolder``
 (DA2T training) and the developer tools. numpy and the standard library
 only (the images through ``dcdi_core.io.images``): no bpy, no torch.
