@@ -63,7 +63,7 @@ def test_end_to_end_with_the_dcdi_depth_network(scene, networks, capsys):
 
 @pytest.mark.parametrize("backend", ["depth-anything-v2", "unidepth", "depth-pro"])
 def test_end_to_end_with_each_public_estimator_through_a_stand_in(scene, networks, monkeypatch, capsys, backend):
-    from test_depth_estimators import install_stand_ins
+    from support.depth_stand_ins import install_stand_ins
 
     from dcdi_core.io.images import read_depth
     from dcdi_core.models.depth.estimators import srgb_uint8

@@ -351,7 +351,7 @@ def prepare_folder(out: Path, settings: dict, add_lens: bool = False) -> tuple[l
 class RenderSettings:
     """Cycles settings of the all-in-focus render (CPU). The defaults come from
     the error-against-time tables of ``python -m blender_addon.tools.render_noise``
-    (README): samples per pixel; the Open Image Denoise pass (quality HIGH,
+    (docs/factory.md): samples per pixel; the Open Image Denoise pass (quality HIGH,
     BALANCED or FAST; prefilter of its albedo and normal guides NONE, FAST or
     ACCURATE); light-path bounces (counts)."""
 

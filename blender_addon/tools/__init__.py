@@ -16,7 +16,7 @@ and read its folders through ``dcdi_core.dataset.factory_folder``:
   its manifest);
 - ``reproduce_dacn.sh``: the shipped DACN and depth networks from scratch
   (factory, DA2T pairs, study, exports);
-- ``screenshots``: the README's screenshots of the add-on in a real Blender UI;
+- ``screenshots``: the screenshots of docs/addon.md of the add-on in a real Blender UI;
 - ``defocus_node``: the compositor's Defocus node (Z buffer) on an RGB-D image
   with the thin lens of a prescription, headless and timed (the comparison
   row of ``python build.py bench render``).

@@ -1,4 +1,4 @@
-"""Screenshots of the Lens Bokeh add-on in a real Blender UI, for the README.
+"""Screenshots of the Lens Bokeh add-on in a real Blender UI, for docs/addon.md.
 
     python blender_addon/tools/screenshots.py [--blender blender] [--zip dist/dcdi_lens_bokeh-0.1.0.zip] [--out docs]
 

@@ -168,7 +168,8 @@ def add_commands(sub) -> None:
     q.add_argument("--threads", type=positive_int, default=1, help="dacn: torch threads (default 1)")
     q.set_defaults(func=cmd_bench)
 
-    q = sub.add_parser("demo", help="the demo job: lens reports, spot diagrams and PSFs of all lenses, simulation "
-                                    "and bokeh on a synthetic scene (python build.py demo adds a factory sample)")
+    q = sub.add_parser("demo", help="the demo job: DCDI end to end on a synthetic scene (a MOS-S1 capture, its correction "
+                                    "and depth, the 6P's depth of field beside the ideal), lens reports, spot "
+                                    "diagrams, PSFs, simulation and bokeh (python build.py demo adds a factory scene)")
     q.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     q.set_defaults(func=cmd_demo)

@@ -129,7 +129,7 @@ class FactoryFolder(RGBDSource):
         self.layout = ff.FolderLayout(self.root)
         if not self.layout.manifest.exists():
             raise ModelError(f"{self.layout.manifest}: not found (a factory output folder has one; see "
-                             "blender_addon/README.md)")
+                             "docs/factory.md)")
         self.records = ff.finished_samples(self.root)       # a torn last record: that sample is not finished
         self._ids = sorted(self.records)
 

@@ -51,7 +51,7 @@ from ..models.runtime.library import OLFLibrary, shipped_olf_files
 from ..models.runtime.olf import OmniLensField
 
 PAPER_POINT = {"psnr_8bit": 49.29, "ssim_8bit": 0.9953, "megabytes": 240.0, "label": "paper (4 lenses, GPU)"}
-# `dcdi report psf-accuracy mos-s1` (README, "PSF accuracy against run time"),
+# `dcdi report psf-accuracy mos-s1` (docs/psf.md),
 # at the defaults: relative L1 of the library's interpolation between depth
 # bins (20) and fields (64), each against directly traced PSFs with the same
 # rays (so both include the kernels' ray noise), and the sampling error of

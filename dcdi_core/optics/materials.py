@@ -298,7 +298,7 @@ def _model_number(field, value, lo, allowed):
 # Coefficients were copied programmatically from the files named in each
 # source string (and cross-checked against a second copy where one exists);
 # each reproduces its catalogue nd to < 4e-6 and vd to < 0.005, which
-# tests/test_materials.py re-checks for every glass.
+# tests/optics/test_materials.py re-checks for every glass.
 
 _SCHOTT_2018 = (
     "SCHOTT optical glass catalogue, status 2018-06-01: Zemax AGF 'SCHOTT. preferred. inquiry and "

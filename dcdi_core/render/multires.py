@@ -54,7 +54,7 @@ from .psfmap import psf_map, support_radius
 LEVEL_EPS = 0.5
 # the rule `dcdi bench render` times: BokehOptions' default stays the exact path
 # (multires None): at 1280 x 1920 no rule was both faster and as close at the
-# depth edge (report simulation-accuracy's multi-resolution table, README)
+# depth edge (report simulation-accuracy's multi-resolution table, docs/performance.md)
 BENCH_C = 4.0
 DEFAULT_MAX_LEVEL = 2      # at most 1/4 of the resolution
 

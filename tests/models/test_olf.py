@@ -23,7 +23,7 @@ torch = pytest.importorskip("torch")
 
 from conftest import Killed, kill_at  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 # tiny PSFs and grids: every library here builds in well under a second
 FAST = dict(pupil_samples=16, n_wavelengths=3, n_fields=3, n_depths=2, offgrid=6, held_out=4)
 

@@ -17,7 +17,7 @@ def test_cost_summary_means_and_shares(tmp_path, capsys):
 def test_the_reproduction_script_parses_and_names_what_ships():
     import subprocess
     from pathlib import Path
-    script = Path(__file__).resolve().parents[1] / "blender_addon" / "tools" / "reproduce_dacn.sh"
+    script = Path(__file__).resolve().parents[2] / "blender_addon" / "tools" / "reproduce_dacn.sh"
     assert subprocess.run(["bash", "-n", str(script)]).returncode == 0
     text = script.read_text()
     for needed in ("--seed 0", "dacn_study", "dacn export", "depth export", "--iters 2000", "--lens-pool 8"):

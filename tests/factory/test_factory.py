@@ -76,7 +76,7 @@ def test_bench_factory_quick(capsys):
     import importlib.util
     import sys
     from pathlib import Path
-    spec = importlib.util.spec_from_file_location("dcdi_build", Path(__file__).resolve().parent.parent / "build.py")
+    spec = importlib.util.spec_from_file_location("dcdi_build", Path(__file__).resolve().parents[2] / "build.py")
     build = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(build)
     assert build.bench_factory(Path(sys.executable), quick=True) == 0
@@ -299,7 +299,7 @@ def test_the_old_tools_factory_name_runs_the_factory_with_a_note():
     import subprocess
     import sys
     from pathlib import Path
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     p = subprocess.run([sys.executable, "-m", "blender_addon.tools.factory", "--help"], cwd=root,
                        capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr

@@ -1,11 +1,11 @@
-"""Run by tests/test_addon.py in a fresh interpreter, like addon_headless.py:
+"""Run by tests/addon/test_addon.py in a fresh interpreter, like addon_headless.py:
 installs the built zip, then on the same small scene runs Simulate
 Minimalist Lens and Correct Simulation (the DCDI round trip), first with
 torch blocked by an import hook (Correct refuses, saying what to install),
 then with torch and a tiny exported DACN as the lens's shipped network;
 writes what it saw to a JSON file (pixels as .npy beside it).
 
-    python tests/addon_headless_roundtrip.py ZIP OUT_DIR DACN_NPZ LENS
+    python tests/addon/addon_headless_roundtrip.py ZIP OUT_DIR DACN_NPZ LENS
 """
 import importlib
 import importlib.abc

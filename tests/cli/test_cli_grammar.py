@@ -15,7 +15,7 @@ from dcdi_core.io.images import write_depth, write_image
 from dcdi_core.models.registry import network
 
 FAST = ["--rays", "16", "--wavelengths", "3", "--kernel", "15"]
-WEIGHTS = Path(__file__).resolve().parents[1] / "dcdi_core" / "models" / "weights"
+WEIGHTS = Path(__file__).resolve().parents[2] / "dcdi_core" / "models" / "weights"
 
 
 def _cli(capsys, *argv):

@@ -16,7 +16,7 @@ import pytest
 
 from blender_addon import logic
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 EXT_ID = tomllib.loads((ROOT / "blender_addon" / "blender_manifest.toml").read_text())["id"]
 
 
@@ -164,7 +164,7 @@ def test_preview_shape_keeps_the_render_aspect():
 
 
 def test_keep_range():
-    # (the depth conversion is dcdi_core.render.camera's: tests/test_camera.py)
+    # (the depth conversion is dcdi_core.render.camera's: tests/render/test_camera.py)
     assert logic.keep_range(2.0, 0.5, 1.0) == (1.5, 3.0)
     with pytest.raises(logic.BokehInputError, match="positive and finite"):
         logic.keep_range(-1.0, 0.1, 0.1)
@@ -184,7 +184,7 @@ def headless(addon_zip, tmp_path_factory):
     out = tmp_path_factory.mktemp("addon-run")
     env = dict(os.environ, DCDI_CACHE_DIR=str(out / "psf-cache"))
     env.pop("DCDI_LENS_PATH", None)
-    p = subprocess.run([sys.executable, str(ROOT / "tests" / "addon_headless.py"), str(addon_zip), str(out)],
+    p = subprocess.run([sys.executable, str(ROOT / "tests" / "addon" / "addon_headless.py"), str(addon_zip), str(out)],
                        capture_output=True, text=True, env=env, timeout=600)
     assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
     res = json.loads((out / "result.json").read_text())
@@ -502,7 +502,7 @@ def round_trip(addon_zip, tiny_dacn, tmp_path_factory):
     out = tmp_path_factory.mktemp("addon-round-trip")
     env = dict(os.environ, DCDI_CACHE_DIR=str(out / "psf-cache"))
     env.pop("DCDI_LENS_PATH", None)
-    p = subprocess.run([sys.executable, str(ROOT / "tests" / "addon_headless_roundtrip.py"), str(addon_zip), str(out),
+    p = subprocess.run([sys.executable, str(ROOT / "tests" / "addon" / "addon_headless_roundtrip.py"), str(addon_zip), str(out),
                         str(tiny_dacn), ROUND_TRIP_LENS], capture_output=True, text=True, env=env, timeout=600)
     assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
     res = json.loads((out / "result.json").read_text())

@@ -24,7 +24,7 @@ from dcdi_core.render.synthetic import synthetic_rgbd
 
 torch = pytest.importorskip("torch")
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 FAST = dict(pupil_samples=16, n_wavelengths=3, n_fields=3, n_depths=2, offgrid=6, held_out=4)
 # the PSF settings that OLF learned, as command-line options
 LEARNED = ["--rays", "16", "--wavelengths", "3"]
@@ -116,7 +116,7 @@ def test_source_is_the_olf_where_it_covers_the_request_else_tracing(olf_file, tm
         assert src.kind == "trace" and src.library is None and re.search(why, src.message), (why, src.message)
         with pytest.raises(ModelError, match="--psf-source olf.*" + why):
             psf_source(l_, olf_file=path, source="olf", **kw)
-    # a coarser pitch: served, its kernels area-resampled (tests/test_psf_pitch.py)
+    # a coarser pitch: served, its kernels area-resampled (tests/psf/test_psf_pitch.py)
     src = psf_source(lens, olf_file=path, pixel_pitch_mm=0.05, settings=learned)
     assert src.kind == "olf" and "50 um pixels" in src.message and "area-resampled" in src.message
     assert psf_source(lens, olf_file=path, source="trace").kind == "trace"

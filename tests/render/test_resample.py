@@ -205,5 +205,5 @@ def test_the_warp_modules_do_not_import_scipy():
     code = ("import sys, dcdi_core.render.resample, dcdi_core.experiments.resample_accuracy, "
             "dcdi_core.render.distortion; print(sorted(m for m in sys.modules if m.startswith('scipy')))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
-                         cwd=Path(__file__).resolve().parents[1])      # this checkout's dcdi_core
+                         cwd=Path(__file__).resolve().parents[2])      # this checkout's dcdi_core
     assert out.stdout.strip() == "[]"

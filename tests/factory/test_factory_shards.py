@@ -1,7 +1,7 @@
 """The factory on a scheduler: --shard auto from a Slurm array or a
 Kubernetes indexed Job, and the merge of the shards' folders (refusing
 other settings, doubled, missing and out-of-range indices); the cluster
-scripts of the README, checked as far as this machine allows."""
+scripts of docs/scaling-out.md, checked as far as this machine allows."""
 import json
 import os
 import re
@@ -15,7 +15,7 @@ from blender_addon.factory import merge_shards
 from blender_addon.factory.batch import shard_from_environment
 from dcdi_core.errors import DatasetError, InputRangeError
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 CLUSTER = ROOT / "blender_addon" / "factory" / "cluster"
 LENSES = ["mos-s1", "mos-s2"]
 

@@ -10,7 +10,7 @@ from conftest import PAPER_LENSES, singlet_dict
 from dcdi_core.optics.errors import LensFileError, OpticsError
 from dcdi_core.optics.lens import Lens, available_lenses, load_lens
 
-LENS_DIR = Path(__file__).resolve().parent.parent / "lenses"
+LENS_DIR = Path(__file__).resolve().parents[2] / "lenses"
 
 
 def test_all_paper_lenses_ship_and_load():

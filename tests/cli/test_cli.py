@@ -65,7 +65,7 @@ def test_bad_depth_is_an_argparse_error(capsys):
 
 
 def test_lens_import_writes_a_loadable_toml(tmp_path, capsys):
-    from test_zemax import singlet_text, write_utf16
+    from support.zemax import singlet_text, write_utf16
 
     src = tmp_path / "My Singlet.zmx"
     write_utf16(src, singlet_text())
@@ -77,7 +77,7 @@ def test_lens_import_writes_a_loadable_toml(tmp_path, capsys):
 
 
 def test_lens_import_refusal_names_the_line(tmp_path, capsys):
-    from test_zemax import singlet_text, write_ascii
+    from support.zemax import singlet_text, write_ascii
 
     src = tmp_path / "bad.zmx"
     write_ascii(src, singlet_text().replace("TYPE STANDARD", "TYPE TOROIDAL", 1))

@@ -97,7 +97,7 @@ def test_multires_matches_the_exact_path_within_the_stated_bound(case, occlusion
     levels = res.info["layer_levels"] if occlusion else res.info["multires_patches_per_level"]
     assert sum(sum(lv[1:]) for lv in levels) > 0 if occlusion else sum(levels[1:]) > 0     # some of it coarse
     peak = float(img.max())
-    # the bound the report states for levels 1-2 on this kind of scene (README: speed section)
+    # the bound the report states for levels 1-2 on this kind of scene (docs/performance.md)
     assert psnr(res.image / peak, ex / peak) >= 35.0
     kept = (depth >= 1.1) & (depth <= 1.3)
     if occlusion:                # the kept subject stays sharp where the exact path leaves it (no nearer layer)

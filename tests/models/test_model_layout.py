@@ -13,7 +13,7 @@ imports inside functions count; relative imports resolved):
 import ast
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 ENGINE = ROOT / "dcdi_core"
 
 RUNTIME_MAY_NOT = ("torch", "dcdi_core.models.olf", "dcdi_core.models.dacn", "dcdi_core.models.depth",

@@ -1,5 +1,5 @@
 """Shared by the headless add-on scripts (tests/addon_headless*.py, run by
-tests/test_addon.py with the pip bpy module): the test scene, installing the
+tests/addon/test_addon.py with the pip bpy module): the test scene, installing the
 built zip, and snapshots of RNA data to compare before / after."""
 import time
 

@@ -19,7 +19,7 @@ from dcdi_core.models.common import distributed  # noqa: E402
 from dcdi_core.models.common.distributed import Context, resolve_device  # noqa: E402
 from conftest import Killed, kill_at  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 # 2 processes against 1: the gradients differ by float rounding (sums in
 # another order); Adam divides each by its own RMS, so where a gradient is
 # near zero (tiny, cancelling sums) rounding moves that element's update by a

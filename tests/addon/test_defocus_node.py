@@ -17,7 +17,7 @@ from dcdi_core.optics.paraxial import first_order, image_distance_mm
 from dcdi_core.render.geometry import ImageGeometry
 from dcdi_core.render.thin_lens import NodeDefocus
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_node_settings_are_the_paraxial_lens():

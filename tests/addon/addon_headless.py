@@ -1,9 +1,9 @@
-"""Run by tests/test_addon.py in a fresh interpreter (BLENDER_USER_RESOURCES
+"""Run by tests/addon/test_addon.py in a fresh interpreter (BLENDER_USER_RESOURCES
 must be set before bpy is imported): installs the built extension zip into a
 temporary user folder, enables it, runs Apply Lens Bokeh on a small scene,
 and writes what it saw to a JSON file (pixels as .npy beside it).
 
-    python tests/addon_headless.py ZIP OUT_DIR
+    python tests/addon/addon_headless.py ZIP OUT_DIR
 """
 import json
 import os

@@ -1,0 +1,1 @@
+"""Shared test helpers (not tests): importable as ``support.<module>`` because tests/ is on sys.path."""
