@@ -41,6 +41,13 @@ class LensEntry:
     number: int          # stable enum number (crc32 of the id), so saved files keep their choice
 
 
+# the render request's settings by the names the panel shows (render.request.RenderRequest's labels)
+PANEL_LABELS = {"patch": "Patch Size", "interpolation": "Interpolation", "seed": "Seed", "noise": "Sensor Noise",
+                "wavelength_nm": "Wavelength", "image_pixel_pitch_mm": "pixel pitch", "sensor_size": "sensor size",
+                "axis_px": "optical axis", "pixel_pitch_mm": "pixel pitch", "fixed_depth_m": "fixed depth",
+                "perturb_fraction": "perturbation"}
+
+
 def lens_catalogue(extra_dirs=()) -> list[LensEntry]:
     """Every ``*.toml`` in dcdi_core's lens folders ($DCDI_LENS_PATH, the
     bundled ``lenses/``) and in ``extra_dirs`` (the add-on's imported lenses);
@@ -175,14 +182,17 @@ def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], 
     ``cancelled()`` returning True stops the PSF build or the convolution
     (between its layers) with :class:`Cancelled`. Returns (image, info)."""
     sim = core("render.simulate")
-    geom = core("render.geometry").ImageGeometry.full_sensor(lens, image.shape[0], image.shape[1])
+    settings = replace(core("psf.compute").PSFSettings(), focus_distance_m=float(focus_m) if refocus else None)
+    # the same checked request as `dcdi bokeh` builds; messages name the panel's settings
+    plan = core("render.request").RenderRequest(lens, psf=settings, patch=patch, labels=PANEL_LABELS).plan(
+        image.shape[0], image.shape[1], "the render")
+    geom = plan.geometry
     finite = depth[np.isfinite(depth) & (depth > 0)]
     kept = int(((depth >= keep[0]) & (depth <= keep[1])).sum())
     if kept == 0:
         seen = (f"{finite.min():.2f}-{finite.max():.2f} m" if finite.size else "only background (infinity)")
         raise BokehInputError(f"nothing in view lies in the kept range {keep[0]:.2f}-{keep[1]:.2f} m "
                               f"(depths in view: {seen}); move the focus or widen the range")
-    settings = replace(core("psf.compute").PSFSettings(), focus_distance_m=float(focus_m) if refocus else None)
     report = _psf_progress(progress, cancelled)
 
     # The PSFs the scene needs are built first, so that progress and Esc work
@@ -223,7 +233,9 @@ def run_simulation(image, depth, lens, *, noise: bool = False, seed: int = 0, pr
     :func:`run_bokeh` (cancel works while PSFs are traced). Returns (image,
     depth on the sensor (NaN where the lens images nothing), info)."""
     sim = core("render.simulate")
-    geom = core("render.geometry").ImageGeometry.full_sensor(lens, image.shape[0], image.shape[1])
+    plan = core("render.request").RenderRequest(lens, labels=PANEL_LABELS).plan(image.shape[0], image.shape[1],
+                                                                               "the render")
+    geom = plan.geometry
     src = core("models.runtime.library").psf_source(lens, pixel_pitch_mm=geom.pixel_pitch_mm)
     simulator = sim.LensSimulator(lens, geom, library=src.library,
                                   fit_depth_m=depth if src.library is None else None,
