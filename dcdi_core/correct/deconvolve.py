@@ -1,0 +1,248 @@
+"""Depth- and field-aware non-blind deconvolution of a capture (numpy).
+
+The capture is what ``render.simulate`` makes: every m x m patch of the
+sharp image on the sensor blurred with the lens's PSF for its field, azimuth
+and depth, blended with tent weights, plus sensor noise. The deconvolution
+inverts that model patch by patch with the same PSF map (same library, same
+patches, same kernels): each patch's window (the 2m tent region and some
+context) is Wiener-deconvolved (``wiener``) with its kernel, and the windows
+are blended back with the same tent weights.
+
+Depth inside a patch: a patch's kernel is the PSF at the patch's mean
+inverse depth; pixels of its window whose inverse depth differs from that by
+more than half of ``layer_step_diopters`` take the window deconvolved with
+the PSF at their own depth, rounded to that step (a depth layer). Most
+patches hold one depth and cost one window; a patch on an occlusion edge
+costs one window per depth layer it holds.
+
+Regularisation: lambda = ``weight`` x the noise variance at the window's
+mean brightness (``noise``: the sensor model, or estimated from the capture).
+Clipped highlights are not deconvolved (their light is lost): pixels within
+the kernel's reach of a clipped pixel keep the capture's value. The output is
+on the capture's grid, so it aligns with ``simulate``'s sharp image (the
+distortion is the capture's too).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import InputRangeError
+from ..render import fft
+from ..render.geometry import ImageGeometry
+from ..render.psfmap import PSFMap, psf_map, valid_depth_mask
+from ..render.simulate import check_patch, open_library
+from .noise import NoiseModel, estimate_noise
+from .wiener import WindowLayout, deconvolve_all, layout_for
+
+# weight of the gradient prior per unit of noise variance, and the layer
+# step: chosen by `dcdi report correction` (error against time, held-out)
+DEFAULT_WEIGHT = 100.0
+DEFAULT_LAYER_STEP = None
+
+
+@dataclass(frozen=True)
+class DeconvOptions:
+    """What the deconvolution does (checked when made).
+
+    patch: the PSF map's patch (px, even; the simulation's 16 by default).
+    layer_step_diopters: depth layers inside a patch, 1/m apart; None: one
+    depth per patch (the patch's mean). one_depth_m: one depth for the whole
+    image (the depth-unaware baseline). weight: the prior's weight per unit
+    of noise variance. noise: the sensor's model, None to estimate it from
+    the capture. clip_level: a capture value at or above it is clipped
+    (linear, per channel). pad: context of each window, px (None: from the
+    kernel size)."""
+
+    patch: int = 16
+    layer_step_diopters: float | None = DEFAULT_LAYER_STEP
+    one_depth_m: float | None = None
+    weight: float = DEFAULT_WEIGHT
+    noise: NoiseModel | None = None
+    clip_level: float = 0.98
+    pad: int | None = None
+    chunk: int = 64
+    fft_backend: str | None = None
+
+    def __post_init__(self):
+        check_patch(self.patch)
+        s = self.layer_step_diopters
+        if s is not None and not (math.isfinite(s) and 0.005 <= s <= 2.0):
+            raise InputRangeError("layer_step_diopters", s, "a number in [0.005, 2] 1/m, or None (one depth a patch)")
+        if self.one_depth_m is not None and not self.one_depth_m > 0:
+            raise InputRangeError("one_depth_m", self.one_depth_m, "> 0 metres or inf")
+        if not (math.isfinite(self.weight) and self.weight > 0):
+            raise InputRangeError("weight", self.weight, "a finite number > 0")
+        if not (0.0 < self.clip_level <= 1e6):
+            raise InputRangeError("clip_level", self.clip_level, "> 0 (linear light; 0.98 for a [0, 1] sensor)")
+        if self.pad is not None and not (isinstance(self.pad, int) and 2 <= self.pad <= 512):
+            raise InputRangeError("pad", self.pad, "an integer in [2, 512] px, or None")
+        if not (isinstance(self.chunk, int) and self.chunk >= 1):
+            raise InputRangeError("chunk", self.chunk, "an integer >= 1")
+        fft.backend(self.fft_backend)
+
+
+@dataclass
+class DeconvResult:
+    image: np.ndarray                     # (H, W, 3) float32 linear, the capture's grid
+    info: dict = field(default_factory=dict)
+    psf_map: PSFMap | None = None
+
+
+def _check(capture, depth_m, geometry: ImageGeometry):
+    y = np.asarray(capture, np.float32)
+    if y.ndim != 3 or y.shape[2] != 3:
+        raise InputRangeError("capture shape", y.shape, "(H, W, 3)")
+    if not np.isfinite(y).all():
+        raise InputRangeError("capture", "non-finite values", "finite linear RGB")
+    d = np.asarray(depth_m, np.float64)
+    if d.shape != y.shape[:2]:
+        raise InputRangeError("depth map shape", d.shape, f"{y.shape[:2]}, the capture's")
+    if (geometry.height, geometry.width) != y.shape[:2]:
+        raise InputRangeError("capture shape", y.shape[:2], f"({geometry.height}, {geometry.width}), its geometry's")
+    return y, d
+
+
+def deconvolve(capture, depth_m, lens, options: DeconvOptions = DeconvOptions(), *,
+               geometry: ImageGeometry | None = None, library=None, settings=None, progress=None) -> DeconvResult:
+    """The sharp image on the sensor from a ``capture`` (H, W, 3) linear and
+    its depth (H, W) metres from the lens's first vertex (NaN, 0 or negative:
+    unknown; those pixels take their patch's depth, and a patch with none is
+    left as it is). geometry: where the capture lies on the sensor (default:
+    it spans the sensor's diagonal). library: the lens's PSFs at the
+    capture's pixel pitch (the OLF's or a traced one); without one it is
+    opened with ``settings``. ``progress(done, total)`` as windows finish."""
+    t0 = time.perf_counter()
+    geometry = geometry or ImageGeometry.full_sensor(lens, *np.shape(capture)[:2])
+    y, d = _check(capture, depth_m, geometry)
+    if library is None:
+        library = open_library(lens, geometry, settings, fit_depth_m=d)
+    m = options.patch
+    base = psf_map(library, geometry, d, m, fixed_depth_m=options.one_depth_m, clamp_field=True)
+    t_map = time.perf_counter() - t0
+    noise = options.noise if options.noise is not None else estimate_noise(y)
+    plan = _layer_plan(d, base, library, geometry, options)
+    lay = layout_for(m, base.kernels.shape[-1], options.pad)
+    out, n_windows = _blend_windows(y, plan, noise, lay, options, progress)
+    out = _keep_clipped(y, out, options.clip_level, base.kernels.shape[-1] // 2)
+    info = {"method": "deconvolution", "patch": m, "windows": n_windows, "patches": int(base.identity.size),
+            "layer_step_diopters": None if options.one_depth_m is not None else options.layer_step_diopters,
+            "one_depth_m": options.one_depth_m, "weight": options.weight,
+            "noise": {"gain": noise.gain, "floor": noise.floor, "given": options.noise is not None},
+            "kernel_px": int(base.kernels.shape[-1]), "pad_px": lay.pad,
+            "clipped_px": int((y >= options.clip_level).any(axis=2).sum()),
+            "seconds": {"psf_map": round(t_map, 3), "total": round(time.perf_counter() - t0, 3)}}
+    return DeconvResult(out, info, base)
+
+
+# ------------------------------------------------------------------ depth layers
+@dataclass
+class _Plan:
+    """Every (patch, layer) window: its patch, its kernel, and which pixels of
+    the patch's 2m core take it."""
+
+    patch_ij: np.ndarray          # (n, 2) patch indices
+    kernels: np.ndarray           # (n, C, k, k)
+    offset: np.ndarray            # (n,) the layer, in steps from the patch's own depth
+    offsets: np.ndarray | None    # (nph, npw, 2m, 2m) each core pixel's layer (None: all 0)
+    identity: np.ndarray          # (nph, npw) patches left as they are
+
+
+def _core_inverse_depth(d: np.ndarray, m: int, nph: int, npw: int, far_m: float):
+    """(nph, npw, 2m, 2m) inverse depth of each patch's tent region (NaN: unknown)."""
+    valid = valid_depth_mask(d)
+    inv = np.where(valid, np.where(d >= far_m, 0.0, 1.0 / np.where(valid, d, 1.0)), np.nan)
+    b = m // 2
+    full = np.pad(inv, ((b, nph * m - d.shape[0] + b), (b, npw * m - d.shape[1] + b)), constant_values=np.nan)
+    win = np.lib.stride_tricks.sliding_window_view(full, (2 * m, 2 * m))
+    return win[::m, ::m][:nph, :npw]
+
+
+def _layer_plan(d, base: PSFMap, library, geometry, options: DeconvOptions) -> _Plan:
+    m = options.patch
+    nph, npw = base.identity.shape
+    todo = ~base.identity
+    ij = np.argwhere(todo)
+    step = options.layer_step_diopters
+    if options.one_depth_m is not None or step is None:
+        return _Plan(ij, base.kernels[todo], np.zeros(len(ij), np.int64), None, base.identity)
+    far = library.grid.far_m
+    own = np.where(np.isfinite(base.depth_m), 1.0 / np.where(np.isfinite(base.depth_m), base.depth_m, 1.0), 0.0)
+    own = np.where(base.depth_m >= far, 0.0, own)
+    core = _core_inverse_depth(d, m, nph, npw, far)
+    off = np.rint((core - own[:, :, None, None]) / step)
+    off = np.where(np.isfinite(off), off, 0.0).astype(np.int64)
+    off[base.identity] = 0
+    patch_ij, kernels, offset = [ij], [base.kernels[todo]], [np.zeros(len(ij), np.int64)]
+    present = np.zeros((nph, npw), bool)
+    for k in np.unique(off[todo]):
+        if k == 0:
+            continue
+        present[:] = (off == k).any(axis=(2, 3)) & todo
+        inv_k = np.maximum(own + k * step, 0.0)
+        depth_k = np.where(present, np.where(inv_k > 0, 1.0 / np.where(inv_k > 0, inv_k, 1.0), np.inf), np.nan)
+        pm = psf_map(library, geometry, np.kron(depth_k, np.ones((m, m)))[:geometry.height, :geometry.width], m,
+                     clamp_field=True)
+        where = np.argwhere(present & ~pm.identity)
+        patch_ij.append(where)
+        kernels.append(pm.kernels[present & ~pm.identity])
+        offset.append(np.full(len(where), k, np.int64))
+    return _Plan(np.concatenate(patch_ij), np.concatenate(kernels), np.concatenate(offset), off, base.identity)
+
+
+# ------------------------------------------------------------------ the windows and their blend
+def _blend_windows(y: np.ndarray, plan: _Plan, noise: NoiseModel, lay: WindowLayout, options: DeconvOptions,
+                   progress):
+    from ..render.convolve import blend_window
+
+    m, b = options.patch, options.patch // 2
+    h, w, c = y.shape
+    nph, npw = plan.identity.shape
+    lead = b + lay.pad                                   # padded pixel (0, 0) is image pixel (-lead, -lead)
+    padded = np.pad(y, ((lead, nph * m - h + lead), (lead, npw * m - w + lead), (0, 0)), mode="reflect")
+    origins = plan.patch_ij * m                          # window of patch (i, j) starts at padded (i m, j m)
+    lam = _weights(padded, origins, lay, noise, options.weight)
+    be = fft.backend(options.fft_backend)
+    cores = deconvolve_all(padded, origins, plan.kernels, lam, lay, be, options.chunk, progress)
+    tent = blend_window(m, b).astype(np.float32)
+    tent2 = tent[:, None] * tent[None, :]
+    acc = np.zeros((nph * m + 2 * b, npw * m + 2 * b, c), np.float32)
+    for n, (i, j) in enumerate(plan.patch_ij):
+        wgt = tent2 if plan.offsets is None else tent2 * (plan.offsets[i, j] == plan.offset[n])
+        acc[i * m:i * m + 2 * m, j * m:j * m + 2 * m] += np.moveaxis(cores[n], 0, -1) * wgt[:, :, None]
+    for i, j in np.argwhere(plan.identity):              # no depth known: the capture as it is
+        acc[i * m:i * m + 2 * m, j * m:j * m + 2 * m] += padded[lay.pad + i * m:lay.pad + i * m + 2 * m,
+                                                                lay.pad + j * m:lay.pad + j * m + 2 * m] * tent2[..., None]
+    return acc[b:b + h, b:b + w], len(plan.patch_ij)
+
+
+def _weights(padded, origins, lay: WindowLayout, noise: NoiseModel, weight: float) -> np.ndarray:
+    """lambda (n, C): the prior's weight times the noise variance at each
+    window core's mean brightness."""
+    p, core = lay.pad, lay.core
+    s = np.cumsum(np.cumsum(np.pad(padded, ((1, 0), (1, 0), (0, 0))), axis=0), axis=1)
+    r0, c0 = origins[:, 0] + p, origins[:, 1] + p
+    r1, c1 = r0 + core, c0 + core
+    total = s[r1, c1] - s[r0, c1] - s[r1, c0] + s[r0, c0]
+    return (weight * noise.variance(total / core ** 2)).astype(np.float32)
+
+
+def _dilate(mask: np.ndarray, r: int) -> np.ndarray:
+    """True within r px (a square) of a True pixel: box sums of a summed-area table."""
+    s = np.pad(np.cumsum(np.cumsum(mask.astype(np.int64), 0), 1), ((1, 0), (1, 0)))
+    h, w = mask.shape
+    r0, r1 = np.clip(np.arange(h) - r, 0, h), np.clip(np.arange(h) + r + 1, 0, h)
+    c0, c1 = np.clip(np.arange(w) - r, 0, w), np.clip(np.arange(w) + r + 1, 0, w)
+    return (s[r1][:, c1] - s[r0][:, c1] - s[r1][:, c0] + s[r0][:, c0]) > 0
+
+
+def _keep_clipped(y: np.ndarray, out: np.ndarray, level: float, reach: int) -> np.ndarray:
+    """Non-negative output; within ``reach`` px of a clipped pixel the capture's value."""
+    out = np.maximum(out, 0.0)
+    clipped = (y >= level).any(axis=2)
+    if not clipped.any():
+        return out.astype(np.float32)
+    return np.where(_dilate(clipped, reach)[..., None], y, out).astype(np.float32)

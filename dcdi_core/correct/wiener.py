@@ -1,0 +1,123 @@
+"""Wiener deconvolution of overlapping windows, one kernel per window.
+
+Each window is the tent-weighted region of one m x m patch (``2m`` pixels
+square, as ``render.convolve`` blends the forward blur) with ``pad`` pixels of
+context on every side. Its mean is taken out, its outer ``taper`` pixels are
+ramped to zero (a window's edges are not periodic; without the ramp the
+circular FFT rings into the region kept), and it is divided in the Fourier
+domain by its kernel with a gradient prior:
+
+    X = conj(K) Y / (|K|^2 + lambda |D|^2),   |D|^2 = 4 - 2 cos(wx) - 2 cos(wy)
+
+lambda is the noise variance over the image's gradient power (per window and
+channel, set by the caller). The kernel sums to 1 and |D|^2 vanishes at DC,
+so a constant passes unchanged and the mean goes back as it came.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..parallel import thread_pool, workers
+from ..render import fft
+
+
+@dataclass(frozen=True)
+class WindowLayout:
+    m: int            # patch size, px
+    pad: int          # context on each side of the 2m core, px
+    taper: int        # px of the context ramped to zero at the window's edge
+
+    @property
+    def core(self) -> int:
+        return 2 * self.m
+
+    @property
+    def size(self) -> int:
+        return self.core + 2 * self.pad
+
+    @property
+    def fft_size(self) -> int:
+        return fft.fast_size(self.size)
+
+
+def layout_for(m: int, kernel_size: int, pad: int | None = None) -> WindowLayout:
+    """Context of at least the kernel's radius plus a ramp of a quarter of it
+    (``dcdi report correction`` measures the error against ``pad``)."""
+    r = kernel_size // 2
+    taper = max(4, r // 2)
+    return WindowLayout(m, r + taper if pad is None else max(int(pad), 2), taper)
+
+
+def _ramp(n: int, t: int) -> np.ndarray:
+    """1-D weights: a raised-cosine rise over t px at each end, 1 between."""
+    x = np.ones(n)
+    if t > 0:
+        r = 0.5 - 0.5 * np.cos(np.pi * (np.arange(t) + 0.5) / t)
+        x[:t], x[n - t:] = r, r[::-1]
+    return x
+
+
+def gradient_power(f: int) -> np.ndarray:
+    """|D|^2 on the rfft grid of an f x f transform: 4 - 2 cos wx - 2 cos wy."""
+    wy = 2 * np.pi * np.fft.fftfreq(f)
+    wx = 2 * np.pi * np.fft.rfftfreq(f)
+    return (4.0 - 2.0 * np.cos(wy)[:, None] - 2.0 * np.cos(wx)[None, :]).astype(np.float32)
+
+
+def kernel_spectra(kernels: np.ndarray, f: int, be: str) -> np.ndarray:
+    """rfft2 of (n, C, k, k) kernels centred on pixel (0, 0) of an f x f grid."""
+    n, c, k, _ = kernels.shape
+    grid = np.zeros((n, c, f, f), np.float32)
+    grid[..., :k, :k] = kernels
+    grid = np.roll(grid, (-(k // 2), -(k // 2)), axis=(-2, -1))
+    return fft.rfft2(grid, (f, f), be)
+
+
+def deconvolve_windows(padded: np.ndarray, origins: np.ndarray, kernels: np.ndarray, lam: np.ndarray,
+                       lay: WindowLayout, be: str) -> np.ndarray:
+    """Wiener-deconvolved cores (n, C, 2m, 2m) of the windows whose top-left
+    corners in ``padded`` (H', W', C) are ``origins`` (n, 2), each with its
+    kernel (n, C, k, k) and weight ``lam`` (n, C)."""
+    L, f, p = lay.size, lay.fft_size, lay.pad
+    ramp = _ramp(L, lay.taper).astype(np.float32)
+    taper2d = ramp[:, None] * ramp[None, :]
+    rows = origins[:, 0, None] + np.arange(L)[None, :]
+    cols = origins[:, 1, None] + np.arange(L)[None, :]
+    win = padded[rows[:, :, None], cols[:, None, :]]                  # (n, L, L, C)
+    win = np.moveaxis(win, -1, 1).astype(np.float32)                  # (n, C, L, L)
+    mean = win.mean(axis=(-2, -1), keepdims=True)
+    spec = fft.rfft2((win - mean) * taper2d, (f, f), be)
+    k_spec = kernel_spectra(kernels, f, be)
+    d2 = gradient_power(f)
+    filt = np.conj(k_spec) / (np.abs(k_spec) ** 2 + lam[:, :, None, None].astype(np.float32) * d2)
+    out = fft.irfft2(spec * filt, (f, f), be)[..., p:p + lay.core, p:p + lay.core]
+    return (out + mean).astype(np.float32)
+
+
+def deconvolve_all(padded, origins, kernels, lam, lay: WindowLayout, be: str, chunk: int = 64,
+                   on_chunk=None) -> np.ndarray:
+    """``deconvolve_windows`` over chunks of windows on the shared pool;
+    ``on_chunk(done, total)`` after each."""
+    n = len(origins)
+    out = np.empty((n, padded.shape[-1], lay.core, lay.core), np.float32)
+    starts = list(range(0, n, chunk))
+
+    def work(s):
+        sl = slice(s, min(s + chunk, n))
+        out[sl] = deconvolve_windows(padded, origins[sl], kernels[sl], lam[sl], lay, be)
+        return sl.stop - sl.start
+
+    done = 0
+    if workers() > 1 and len(starts) > 1:
+        for k in thread_pool().map(work, starts):
+            done += k
+            if on_chunk:
+                on_chunk(done, n)
+    else:
+        for s in starts:
+            done += work(s)
+            if on_chunk:
+                on_chunk(done, n)
+    return out
