@@ -7,7 +7,7 @@ in Blender without torch. A PSF source (a traced library or the
 Omni-Lens-Field's) is handed in by the caller; nothing here imports
 ``models``.
 """
-from .deconvolve import DeconvOptions, DeconvResult, deconvolve
+from .deconvolution import DeconvOptions, DeconvResult, deconvolve
 from .noise import NoiseModel, estimate_noise
 
 __all__ = ["DeconvOptions", "DeconvResult", "deconvolve", "NoiseModel", "estimate_noise"]

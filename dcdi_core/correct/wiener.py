@@ -43,11 +43,15 @@ class WindowLayout:
 
 
 def layout_for(m: int, kernel_size: int, pad: int | None = None) -> WindowLayout:
-    """Context of at least the kernel's radius plus a ramp of a quarter of it
-    (``dcdi report correction`` measures the error against ``pad``)."""
-    r = kernel_size // 2
-    taper = max(4, r // 2)
-    return WindowLayout(m, r + taper if pad is None else max(int(pad), 2), taper)
+    """Context of 3 kernel radii, the outer half of it a ramp, by default: a
+    defocus kernel's inverse reaches far, and a window cut short rings into
+    the core (a 0.75 m MOS-S1 blur at 12.2 um: 1.5 radii lose 2.0 dB against
+    one Wiener filter over the whole image, 3 radii 1.3 dB)."""
+    r = max(kernel_size // 2, 2)
+    if pad is None:
+        return WindowLayout(m, 3 * r, (3 * r) // 2)
+    pad = max(int(pad), 2)
+    return WindowLayout(m, pad, max(1, pad // 2))
 
 
 def _ramp(n: int, t: int) -> np.ndarray:

@@ -19,6 +19,7 @@ Regularisation: lambda = ``weight`` x the noise variance at the window's
 mean brightness (``noise``: the sensor model, or estimated from the capture).
 Clipped highlights are not deconvolved (their light is lost): pixels within
 the kernel's reach of a clipped pixel keep the capture's value. The output is
+never negative, and at most 1 where the capture is a sensor's (at most 1). It is
 on the capture's grid, so it aligns with ``simulate``'s sharp image (the
 distortion is the capture's too).
 """
@@ -40,7 +41,7 @@ from .wiener import WindowLayout, deconvolve_all, layout_for
 
 # weight of the gradient prior per unit of noise variance, and the layer
 # step: chosen by `dcdi report correction` (error against time, held-out)
-DEFAULT_WEIGHT = 100.0
+DEFAULT_WEIGHT = 60.0
 DEFAULT_LAYER_STEP = None
 
 
@@ -48,7 +49,9 @@ DEFAULT_LAYER_STEP = None
 class DeconvOptions:
     """What the deconvolution does (checked when made).
 
-    patch: the PSF map's patch (px, even; the simulation's 16 by default).
+    patch: the PSF map's patch (px, even; the simulation's 16 by default:
+    32 costs half as much and loses up to 3 dB where the PSF changes across
+    the field, ``dcdi report correction``).
     layer_step_diopters: depth layers inside a patch, 1/m apart; None: one
     depth per patch (the patch's mean). one_depth_m: one depth for the whole
     image (the depth-unaware baseline). weight: the prior's weight per unit
@@ -210,13 +213,17 @@ def _blend_windows(y: np.ndarray, plan: _Plan, noise: NoiseModel, lay: WindowLay
     tent = blend_window(m, b).astype(np.float32)
     tent2 = tent[:, None] * tent[None, :]
     acc = np.zeros((nph * m + 2 * b, npw * m + 2 * b, c), np.float32)
+    # the tents sum to 1 between patches, not at the frame's border (no patch beyond it): divide by their sum
+    wsum = np.zeros(acc.shape[:2], np.float32)
     for n, (i, j) in enumerate(plan.patch_ij):
         wgt = tent2 if plan.offsets is None else tent2 * (plan.offsets[i, j] == plan.offset[n])
         acc[i * m:i * m + 2 * m, j * m:j * m + 2 * m] += np.moveaxis(cores[n], 0, -1) * wgt[:, :, None]
+        wsum[i * m:i * m + 2 * m, j * m:j * m + 2 * m] += wgt
     for i, j in np.argwhere(plan.identity):              # no depth known: the capture as it is
         acc[i * m:i * m + 2 * m, j * m:j * m + 2 * m] += padded[lay.pad + i * m:lay.pad + i * m + 2 * m,
                                                                 lay.pad + j * m:lay.pad + j * m + 2 * m] * tent2[..., None]
-    return acc[b:b + h, b:b + w], len(plan.patch_ij)
+        wsum[i * m:i * m + 2 * m, j * m:j * m + 2 * m] += tent2
+    return acc[b:b + h, b:b + w] / wsum[b:b + h, b:b + w, None], len(plan.patch_ij)
 
 
 def _weights(padded, origins, lay: WindowLayout, noise: NoiseModel, weight: float) -> np.ndarray:
@@ -240,8 +247,11 @@ def _dilate(mask: np.ndarray, r: int) -> np.ndarray:
 
 
 def _keep_clipped(y: np.ndarray, out: np.ndarray, level: float, reach: int) -> np.ndarray:
-    """Non-negative output; within ``reach`` px of a clipped pixel the capture's value."""
-    out = np.maximum(out, 0.0)
+    """Light is never negative, and a sensor's capture (values <= 1) has a
+    sharp image that saturates at 1 too: the output is clipped to that range
+    (ringing beyond it is the inverse filter's, not the scene's). Within
+    ``reach`` px of a clipped pixel, the capture's value."""
+    out = np.clip(out, 0.0, 1.0 if float(y.max()) <= 1.0 else None)
     clipped = (y >= level).any(axis=2)
     if not clipped.any():
         return out.astype(np.float32)
