@@ -80,6 +80,10 @@ def violations(root: Path) -> list[str]:
                 out.append(where + " (the engine never uses the experiments)")
             if _within(name, BLENDER):
                 out.append(where + " (dcdi_core never imports Blender or the add-on)")
+            if rel.startswith(("dcdi_core/render/", "dcdi_core/correct/")) and _within(name, ("dcdi_core.models",)):
+                out.append(where + " (render and correct never import the networks: a PSF source is handed in)")
+            if rel.startswith("dcdi_core/correct/") and _within(name, ("torch",)):
+                out.append(where + " (the deconvolution is numpy only: it runs in Blender)")
     return out
 
 
@@ -102,6 +106,7 @@ def test_the_checker_finds_each_kind_of_import(tmp_path):
             "    return importlib.import_module('dcdi_core.models.dacn.train')\n"),
         "dcdi_core/models/runtime/__init__.py": "from ..depth.arch import DepthNet\n",
         "dcdi_core/render/x.py": "def g():\n    from ..experiments import bench\n    import bpy\n",
+        "dcdi_core/correct/y.py": "from ..models.runtime.library import psf_source\n",
         "dcdi_core/cli/reports.py": "from ..experiments import bench\n",
         "dcdi_core/experiments/y.py": "from . import bench\nfrom ..models.olf import train\n",
         "dcdi_core/pipeline.py": "from blender_addon.factory import batch\ntext = 'import bpy'\n",
@@ -124,4 +129,6 @@ def test_the_checker_finds_each_kind_of_import(tmp_path):
         "dcdi_core/render/x.py:3: imports bpy",
         "dcdi_core/pipeline.py:1: imports blender_addon.factory",
         "dcdi_core/pipeline.py:1: imports blender_addon.factory.batch",
+        "dcdi_core/correct/y.py:1: imports dcdi_core.models.runtime.library",
+        "dcdi_core/correct/y.py:1: imports dcdi_core.models.runtime.library.psf_source",
     }
