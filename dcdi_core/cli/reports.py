@@ -94,6 +94,15 @@ def cmd_report_olf(args) -> int:
                       held_out_points=args.held_out_points)
 
 
+def cmd_report_correction(args) -> int:
+    from ..experiments.correction_report import ReportOptions, run_report
+    options = ReportOptions(lenses=tuple(args.lens or ("mos-s1", "mos-s2")), data=tuple(args.data or ()),
+                            quick=args.quick, frames=args.frames, threads=args.threads)
+    run_report(options, args.out, log=lambda t: print(t, file=sys.stderr, flush=True))
+    print((Path(args.out) / "report.md").read_text(encoding="utf-8"), end="")
+    return 0
+
+
 def cmd_bench(args) -> int:
     from ..experiments import bench
     return bench.run(args.what, args)
@@ -148,6 +157,20 @@ def add_commands(sub) -> None:
                         "(compares an old and a new OLF on the same traced points)")
     r.set_defaults(func=cmd_report_olf)
 
+    r = rsub.add_parser("correction", help="deconvolution with the lens's own PSFs against the truth, beside the "
+                                           "capture, one-depth deconvolution and the shipped DACN; settings "
+                                           "against time")
+    r.add_argument("--lens", action="append", default=None, metavar="LENS",
+                   help="a lens id (repeat for several; default mos-s1 and mos-s2)")
+    r.add_argument("--data", action="append", default=None, metavar="FACTORY_DIR",
+                   help="a factory folder (or another RGB-D source) whose frames join the synthetic scenes "
+                        "(repeat for several)")
+    r.add_argument("--frames", type=positive_int, default=2, help="frames per --data folder (default 2)")
+    r.add_argument("--threads", type=positive_int, default=1, help="torch threads for the DACN (default 1)")
+    r.add_argument("--out", default="out/report", help="folder for report.md, results.json and the pictures")
+    r.add_argument("--quick", action="store_true", help="small frames, one seed, no traced PSFs (for tests)")
+    r.set_defaults(func=cmd_report_correction)
+
     r = _network_report(rsub, "pipeline", "DCDI end to end on held-out factory pairs against the ideal; stage times")
     r.add_argument("--target", default="6p", help="the target lens (default 6p)")
     r.add_argument("--keep", type=float, nargs=2, default=[0.7, 1.5], metavar=("NEAR", "FAR"),
@@ -161,10 +184,10 @@ def add_commands(sub) -> None:
     q = sub.add_parser("bench", help="benchmarks (times, not tests)",
                        description="Benchmarks of the engine; the dataset factory's is `python build.py bench "
                                    "factory` (it starts the Blender layer, which the engine never does).")
-    q.add_argument("what", choices=["trace", "psflib", "render", "dacn"], help="what to benchmark")
+    q.add_argument("what", choices=["trace", "psflib", "render", "dacn", "correction"], help="what to benchmark")
     q.add_argument("--rays", type=positive_int, default=1 << 20, help="rays per trace (default 2^20)")
     q.add_argument("--repeat", type=positive_int, default=3, help="timed repetitions (best is kept)")
-    q.add_argument("--quick", action="store_true", help="psflib: a small library (for tests)")
+    q.add_argument("--quick", action="store_true", help="psflib, render, dacn, correction: smaller (for tests)")
     q.add_argument("--threads", type=positive_int, default=1, help="dacn: torch threads (default 1)")
     q.set_defaults(func=cmd_bench)
 
