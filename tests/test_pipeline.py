@@ -1,15 +1,18 @@
-"""`dcdi dof`: the pipeline end to end with each depth backend, and with a
-sharp input, --camera none and the true depth, exactly `dcdi bokeh`."""
+"""`dcdi dof` and dcdi_core.pipeline: the pipeline end to end with each depth
+backend, and with a sharp input, --camera none and the true depth, exactly
+`dcdi bokeh`; the one rule that chooses the correction (choose_correction),
+the deconvolution and the network through recover() and dof()."""
+import json
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
-torch = pytest.importorskip("torch")
+from conftest import write_rgbd_scene
+from conftest import dacn_config as _config
 
-from conftest import write_rgbd_scene  # noqa: E402
-from conftest import dacn_config as _config  # noqa: E402
-
-from dcdi_core.cli import main  # noqa: E402
-from dcdi_core.io.images import read_image  # noqa: E402
+from dcdi_core.cli import main
+from dcdi_core.io.images import read_image
 
 FAST = ["--rays", "16", "--wavelengths", "3", "--kernel", "15", "--psf-source", "trace"]
 
@@ -23,6 +26,7 @@ def scene(tmp_path, monkeypatch):
 @pytest.fixture(scope="module")
 def networks(pairs, tmp_path_factory):  # noqa: F811
     """A tiny DACN and depth network of mos-s2 (a few steps), exported as shipped."""
+    pytest.importorskip("torch")
     from dcdi_core.models.dacn.export import export_dacn
     from dcdi_core.models.depth.export import export_depthnet
     from dcdi_core.models.dacn.train import train_dacn
@@ -44,10 +48,33 @@ def _args(d, *extra):
 def test_sharp_input_camera_none_true_depth_equals_bokeh(scene, capsys):
     d = scene
     assert main(["bokeh", *_args(d, "--depth", str(d / "depth.exr"), "-o", str(d / "b.exr"))]) == 0
+    capsys.readouterr()
     assert main(["dof", *_args(d, "--depth", str(d / "depth.exr"), "--camera", "none", "-o", str(d / "p.exr"))]) == 0
-    out = capsys.readouterr().out
-    assert "camera none, depth given, PSFs trace" in out
+    out = json.loads(capsys.readouterr().out)
+    assert (out["camera"], out["depth_source"], out["psf_source"]) == ("none", "given", "trace")
+    assert out["correction"]["method"] == "none"
     np.testing.assert_array_equal(read_image(d / "p.exr"), read_image(d / "b.exr"))
+
+
+def test_without_a_depth_map_the_deconvolution_takes_the_estimated_depth(scene, networks, capsys):
+    d = scene
+    assert main(["dof", *_args(d, "--camera", "mos-s2", "--method", "deconv", "--depth-checkpoint",
+                               str(networks / "depth.npz"), "-o", str(d / "p.exr"), "--save-intermediates",
+                               str(d / "mid"))]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["depth_source"] == "dcdi" and out["correction"]["method"] == "deconv"
+    from dcdi_core.correct import deconvolve
+    from dcdi_core.io.images import read_depth
+    from dcdi_core.optics.lens import load_lens
+    from dcdi_core.psf.compute import PSFSettings
+    from dcdi_core.render.simulate import open_library
+    from dcdi_core.render.geometry import ImageGeometry
+    cam = load_lens("mos-s2")
+    capture, depth = read_image(d / "aif.exr"), read_depth(d / "mid" / "depth.exr")
+    geom = ImageGeometry.full_sensor(cam, 48, 64)
+    lib = open_library(cam, geom, PSFSettings(pupil_samples=16, n_wavelengths=3, kernel_size=15), fit_depth_m=depth)
+    want = deconvolve(capture, depth, cam, geometry=geom, library=lib).image
+    np.testing.assert_allclose(read_image(d / "mid" / "corrected.exr"), want, atol=1e-3)
 
 
 def test_end_to_end_with_the_dcdi_depth_network(scene, networks, capsys):
@@ -55,8 +82,10 @@ def test_end_to_end_with_the_dcdi_depth_network(scene, networks, capsys):
     assert main(["dof", *_args(d, "--camera", "mos-s2", "--dacn", str(networks / "dacn.npz"), "--depth-checkpoint",
                                str(networks / "depth.npz"), "-o", str(d / "p.exr"), "--save-intermediates",
                                str(d / "mid"), "--side-by-side", str(d / "s.png"))]) == 0
-    out = capsys.readouterr().out
-    assert "depth dcdi" in out and "correction" in out and "depth " in out
+    out = json.loads(capsys.readouterr().out)
+    assert out["depth_source"] == "dcdi" and {"correction", "depth"} <= set(out["seconds"])
+    # a network given with --dacn: auto runs it
+    assert out["correction"]["method"] == "dacn" and "--dacn" in out["correction"]["reason"]
     res, cor = read_image(d / "p.exr"), read_image(d / "mid" / "corrected.exr")
     assert res.shape == cor.shape == (48, 64, 3) and np.isfinite(res).all() and (d / "s.png").exists()
 
@@ -72,7 +101,7 @@ def test_end_to_end_with_each_public_estimator_through_a_stand_in(scene, network
     assert main(["dof", *_args(d, "--camera", "mos-s2", "--dacn", str(networks / "dacn.npz"), "--depth-backend",
                                backend, "--depth-checkpoint", str(ck), "-o", str(d / "p.exr"),
                                "--save-intermediates", str(d / "mid"))]) == 0
-    assert f"depth {backend}" in capsys.readouterr().out
+    assert json.loads(capsys.readouterr().out)["depth_source"] == backend
     expected = 1 + 4 * srgb_uint8(read_image(d / "aif.exr")).mean(axis=2) / 255
     np.testing.assert_allclose(read_depth(d / "mid" / "depth.exr"), expected, rtol=1e-5)
     assert np.isfinite(read_image(d / "p.exr")).all()
@@ -80,7 +109,7 @@ def test_end_to_end_with_each_public_estimator_through_a_stand_in(scene, network
 
 def test_what_is_missing_is_said_before_any_work(scene, networks, capsys):
     d = scene
-    cases = [(["--camera", "6p", "--depth", str(d / "depth.exr")], "no shipped DACN for 6p"),
+    cases = [(["--camera", "6p", "--method", "dacn", "--depth", str(d / "depth.exr")], "no shipped DACN for lens 6p"),
              (["--camera", "none"], "no depth map"),
              (["--camera", "mos-s1", "--dacn", str(networks / "dacn.npz"), "--depth", str(d / "depth.exr")],
               "trained for lens mos-s2")]
@@ -102,3 +131,90 @@ def test_pipeline_and_depth_reports_on_held_out_pairs(pairs, networks, tmp_path,
                  "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "| mos-s2 | 2 | capture |" in out and "| mos-s2 | 2 | sharp |" in out
+
+
+# ------------------------------------------------------------------ the one rule
+def test_auto_picks_the_deconvolution_for_every_lens_today():
+    from dcdi_core.optics.lens import load_lens
+    from dcdi_core.pipeline import choose_correction
+    from dcdi_core.render.geometry import ImageGeometry
+    for lens_id in ("mos-s1", "mos-s2", "double-gauss", "6p"):
+        pitch = ImageGeometry.full_sensor(load_lens(lens_id), 480, 640).pixel_pitch_mm
+        method, why = choose_correction(lens_id, pitch)
+        assert method == "deconv", (lens_id, why)
+    from dcdi_core.models.registry import network
+    for lens_id in network("dacn").shipped_keys():
+        method, why = choose_correction(lens_id, 0.0122)
+        assert why == (f"the shipped DACN of {lens_id} is not recorded better than the deconvolution on held-out "
+                       "captures, `dcdi report correction`")
+
+
+@pytest.fixture
+def recorded_better(monkeypatch):
+    """The registry as if `dcdi report correction` had found the shipped DACN of mos-s1 better."""
+    from dcdi_core.models import registry
+    if registry.NETWORKS["dacn"].shipped_file("mos-s1") is None:
+        pytest.skip("no shipped DACN of mos-s1")
+    nets = dict(registry.NETWORKS)
+    nets["dacn"] = replace(nets["dacn"], beats_deconvolution=("mos-s1",))
+    monkeypatch.setattr(registry, "NETWORKS", nets)
+    import dcdi_core.pipeline as pipeline
+    monkeypatch.setattr(pipeline, "NETWORKS", nets)
+    from dcdi_core.pipeline import trained_pitch_mm
+    return trained_pitch_mm(nets["dacn"].shipped_file("mos-s1"))
+
+
+def test_auto_picks_a_network_recorded_better_at_the_pitch_it_learned_only(recorded_better):
+    from dcdi_core.pipeline import PITCH_TOLERANCE, choose_correction
+    learned = recorded_better
+    assert learned and learned > 0
+    method, why = choose_correction("mos-s1", learned * (1 + PITCH_TOLERANCE / 2))
+    assert method == "dacn" and "recorded better" in why and "pixel pitch it learned" in why
+    method, why = choose_correction("mos-s1", learned * 1.5)
+    assert method == "deconv" and f"learned {learned * 1000:.4g} um pixels" in why
+    assert choose_correction("mos-s2", learned)[0] == "deconv"          # not recorded for mos-s2
+    assert choose_correction("mos-s1", learned, "deconv") == ("deconv", "asked for: --method deconv")
+
+
+def test_choose_correction_refuses_what_cannot_run_naming_the_option():
+    from dcdi_core.errors import DcdiError
+    from dcdi_core.pipeline import choose_correction
+    for args, kw, says in [(("6p", 0.01, "wiener"), {}, "--method = 'wiener'"),
+                           (("6p", 0.01, "dacn"), {}, "no shipped DACN for lens 6p"),
+                           (("6p", 0.01, "dacn"), {"labels": {"model": "Correction Model"}}, "give Correction Model"),
+                           ((None, 0.01, "auto"), {}, "--lens is missing"),
+                           (("6p", 0.01, "deconv", "net.npz"), {}, "--model = 'net.npz'")]:
+        with pytest.raises(DcdiError, match=says):
+            choose_correction(*args, **kw)
+    assert choose_correction(None, None, "auto", "net.npz") == ("dacn", "a network was given: --model net.npz")
+    assert choose_correction("6p", 0.01, "dacn", "net.npz")[0] == "dacn"
+
+
+def test_recover_and_dof_deconvolve_with_the_camera_lens(tmp_path, monkeypatch):
+    from dcdi_core.optics.lens import load_lens
+    from dcdi_core.pipeline import Deconvolution, correction_for, dof, recover
+    from dcdi_core.psf.compute import PSFSettings
+    from dcdi_core.render.geometry import ImageGeometry
+    from dcdi_core.render.simulate import LensSimulator
+    img, depth = write_rgbd_scene(tmp_path, monkeypatch, 48, 64)
+    cam, target = load_lens("6p"), load_lens("mos-s1")
+    settings = PSFSettings(pupil_samples=16, n_wavelengths=3, kernel_size=15)
+    geom = ImageGeometry.from_pixel_pitch(cam, 48, 64, 0.05)
+    r = LensSimulator(cam, geom, settings=settings, fit_depth_m=depth)(img, depth)
+    template = Deconvolution(cam, psf_source="trace", settings=settings)
+    correction = correction_for(cam, geom, deconvolution=template)
+    assert correction.method == "deconv" and correction.geometry == geom and "no DACN ships" in correction.reason
+    record = {}
+    out, d, source = recover(r.image, depth_m=depth, correction=correction, record=record)
+    assert source == "given" and record["method"] == "deconv" and record["psf_source"] == "trace"
+
+    def psnr(a):
+        return -10 * np.log10(np.mean((np.clip(a, 0, 1) - np.clip(r.sharp, 0, 1)) ** 2))
+    assert psnr(out) > psnr(r.image) + 2.0
+    # dof() with a method for the camera lens: the same rule and the same deconvolution
+    res = dof(r.image, target, keep=(1.0, 2.0), depth_m=depth, correction="auto", camera=cam, camera_pitch_mm=0.05,
+              psf_source="trace", settings=settings)
+    assert res.correction["method"] == "deconv" and "no DACN ships for lens 6p" in res.correction["reason"]
+    np.testing.assert_array_equal(res.corrected, out)
+    with pytest.raises(Exception, match="camera is missing"):
+        dof(r.image, target, keep=(1.0, 2.0), depth_m=depth, correction="deconv")

@@ -240,4 +240,5 @@ def add_commands(sub) -> None:
     add_export_options(t)
     t.set_defaults(func=cmd_dacn_export)
     eval_parser(dsub, "eval", help="score trained DACNs on held-out pairs, per scene and depth band")
-    correct_parser(dsub, "correct", help="undo a lens's blur with a trained DACN (the same as `dcdi correct`)")
+    correct_parser(dsub, "correct", network_only=True,
+                   help="undo a lens's blur with a trained DACN (`dcdi correct --method dacn`)")

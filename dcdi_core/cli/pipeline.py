@@ -6,9 +6,8 @@ has been checked and needs it.
 """
 from __future__ import annotations
 
-import time
-
-from .common import (UNITS, add_device_option, check_output, counter, positive_int, say)
+from .common import (UNITS, add_device_option, add_psf_options, add_psf_source_options, check_cache, check_olf_file,
+                     check_output, counter, depth_value, dump, positive_int, response, say)
 from .render import add_focus_options, add_rgbd_options, quiet_input_warnings, render_inputs
 
 
@@ -23,84 +22,203 @@ def _shipped_for(kind: str) -> str:
     return ", ".join(network(kind).shipped_keys()) or "none"
 
 
-def _correct_model(args) -> tuple[str, str | None]:
-    """(model, lens it must have been trained for or None): --model and
-    --lens, or the shipped DACN of --lens; refused, naming the lenses that
-    have one."""
-    if args.model is not None:
-        return args.model, args.lens
-    if args.lens is None:
+# ------------------------------------------------------------------ the deconvolution's options
+# the option each DeconvOptions / NoiseModel field is given by
+DECONV_LABELS = {"weight": "--deconv-weight", "one_depth_m": "--one-depth",
+                 "full well (electrons)": "--noise-full-well", "read noise (electrons)": "--noise-read"}
+DECONV_ONLY = ("deconv_weight", "one_depth", "noise_full_well", "noise_read")
+DOF_LABELS = {"model": "--dacn", "lens": "--camera"}
+
+
+def _relabelled(make):
+    """``make()``, an engine error renamed by the option the user gave."""
+    from ..errors import InputRangeError
+    try:
+        return make()
+    except InputRangeError as e:
+        if e.name not in DECONV_LABELS:
+            raise
+        raise InputRangeError(DECONV_LABELS[e.name], e.value, e.allowed) from None
+
+
+def deconv_options(args):
+    """The ``correct.DeconvOptions`` of the command's options, checked
+    (before any work): the noise of --noise-full-well / --noise-read (the
+    other at the simulation's default), else estimated from the capture."""
+    from ..correct import DeconvOptions, NoiseModel
+    fw, rn = getattr(args, "noise_full_well", None), getattr(args, "noise_read", None)
+    kw = {}
+    if fw is not None or rn is not None:
+        kw["noise"] = _relabelled(lambda: NoiseModel.sensor(10000.0 if fw is None else fw, 3.0 if rn is None else rn))
+    if getattr(args, "deconv_weight", None) is not None:
+        kw["weight"] = args.deconv_weight
+    if getattr(args, "one_depth", None) is not None:
+        kw["one_depth_m"] = args.one_depth
+    return _relabelled(lambda: DeconvOptions(**kw))
+
+
+def _refuse_deconv_only(args, method: str, reason: str) -> None:
+    """A deconvolution's setting given where a network corrects: refused, saying why the network corrects."""
+    given = [o for o in DECONV_ONLY if getattr(args, o, None) is not None]
+    if method == "dacn" and given:
         from ..errors import InputRangeError
-        raise InputRangeError("--model", None, "a DACN run folder, checkpoint.pt or exported .npz, or --lens LENS "
-                              f"for the lens's shipped DACN (shipped for: {_shipped_for('dacn')})")
-    from ..optics.lens import load_lens
-    lens_id = load_lens(args.lens).id
-    path = _shipped("dacn", lens_id)
-    if path is None:
-        from ..models.errors import ModelError
-        raise ModelError(f"no shipped DACN for lens {lens_id} (shipped for: {_shipped_for('dacn')}); "
-                         "give --model MODEL (a DACN run folder, checkpoint.pt or exported .npz)")
-    return str(path), lens_id
+        raise InputRangeError("--" + given[0].replace("_", "-"), getattr(args, given[0]),
+                              f"only with the deconvolution; the network corrects here ({reason}): give --method "
+                              "deconv")
+
+
+def _early_network(args, model_option: str) -> None:
+    """A network asked for (--method dacn, or a network file): its device and the deconvolution's settings
+    refused before any image is read."""
+    model = getattr(args, model_option)
+    if args.method == "dacn" or (model is not None and args.method == "auto"):
+        _refuse_deconv_only(args, "dacn", f"--method {args.method}" if args.method == "dacn" else
+                            f"a network was given: --{model_option} {model}")
+        if hasattr(args, "device"):
+            from ..models.common.distributed import resolve_device
+            resolve_device(args.device)
+
+
+def _say_correction(correction) -> None:
+    name = "the deconvolution" if correction.method == "deconv" else "the network (DACN)"
+    say(f"correction by {name}: {correction.reason}")
+
+
+def _deconvolution(args, camera, settings, resp):
+    """The deconvolution's settings (its geometry is set by pipeline.correction_for)."""
+    from ..pipeline import Deconvolution
+    return Deconvolution(camera, options=deconv_options(args), psf_source=getattr(args, "psf_source", None),
+                         olf_file=getattr(args, "olf", None), settings=settings, kernel_size=getattr(args, "kernel", None),
+                         response=resp)
+
+
+# ------------------------------------------------------------------ dcdi correct
+def _correct_geometry(args, lens, h: int, w: int):
+    """(capture's geometry on the lens's sensor, PSF settings) from --image-pixel-pitch, --axis and the PSF
+    options (`dacn correct` has none: the image spans the sensor's diagonal)."""
+    from ..render.geometry import ImageGeometry
+    if not hasattr(args, "image_pixel_pitch"):
+        return ImageGeometry.full_sensor(lens, h, w), None
+    from ..render.request import RenderRequest
+    from .common import psf_settings
+    request = RenderRequest(lens=lens, psf=psf_settings(args, sensor_focus=True), fit_kernel=not args.kernel,
+                            image_pixel_pitch_mm=args.image_pixel_pitch,
+                            axis_px=tuple(args.axis) if args.axis else None)
+    plan = request.plan(h, w, image=f"the image {args.image}")
+    return plan.geometry, plan.settings
+
+
+def _refuse_missing_depth(args) -> None:
+    """No --depth (and no --one-depth): refused, before any work."""
+    if args.depth is None and getattr(args, "one_depth", None) is None:
+        from ..errors import InputRangeError
+        one = ", or --one-depth D for the deconvolution's depth-unaware baseline" if hasattr(args, "one_depth") else ""
+        raise InputRangeError("--depth", None, "the scene's depth: give --depth DEPTH (metres: EXR 'Z', .npy, or "
+                              "a 16-bit PNG in mm), e.g. the factory's depth/<id>.exr or a metric monocular "
+                              f"estimate of the capture{one}")
+
+
+def _correct_depth(args, shape):
+    """The capture's depth map (metres), or --one-depth everywhere without one; refused when of another size."""
+    if args.depth is None:
+        import numpy as np
+        return np.full(shape, args.one_depth, np.float32)
+    from ..dataset.rgbd import read_any_depth
+    from ..errors import InputRangeError
+    depth = read_any_depth(args.depth)
+    if depth.shape != tuple(shape):
+        raise InputRangeError(f"depth map {args.depth}", depth.shape, f"{tuple(shape)} (the image {args.image})")
+    return depth
 
 
 def cmd_correct(args) -> int:
+    """`dcdi correct` and `dcdi dacn correct` (--method dacn, no deconvolution options)."""
     from ..io.images import check_image_output, read_image, write_image
-    if args.depth is None:
-        from ..errors import InputRangeError
-        raise InputRangeError("--depth", None, "the scene's depth: give --depth DEPTH (metres: EXR 'Z', .npy, or a "
-                              "16-bit PNG in mm), e.g. the factory's depth/<id>.exr or a metric monocular estimate "
-                              "of the capture")
+    from ..pipeline import check_correction, correction_for, recover
     out = check_image_output(args.output)
-    model_path, lens = _correct_model(args)
-    from ..models.common.distributed import resolve_device
-    resolve_device(args.device)                         # refused before any image is read
-    from ..dataset.rgbd import read_any_depth
+    _refuse_missing_depth(args)
+    lens = None
+    if args.lens is not None:
+        from ..optics.lens import load_lens
+        lens = load_lens(args.lens)
+    # `dacn correct` has no --method: the deconvolution is `dcdi correct`'s
+    labels = None if hasattr(args, "deconv_weight") else {"method": "dcdi correct --method"}
+    check_correction(lens.id if lens is not None else None, args.method, args.model, labels=labels)
+    _early_network(args, "model")
+    deconvolves = lens is not None and args.method != "dacn" and args.model is None
+    if deconvolves:                                     # its settings, PSF cache and OLF file checked now
+        deconv_options(args)
+        check_cache()
+        check_olf_file(args)
     image = read_image(args.image)
-    depth = read_any_depth(args.depth)
-    import torch
-    torch.set_num_threads(args.threads)
-    from ..models.dacn.correct import correct, load_dacn
-    model, info = load_dacn(model_path, weights=args.weights, device=args.device)
-    trained = (info.get("da2t") or {}).get("lens")
-    if lens is not None and trained is not None and lens != trained:
-        from ..models.errors import ModelError
-        raise ModelError(f"{model_path} was trained for lens {trained}, not {lens}")
-    t0 = time.perf_counter()
-    result = correct(model, image, depth, tile=args.tile, overlap=args.overlap, progress=counter("correct: tile"))
+    depth = _correct_depth(args, image.shape[:2])
+    geometry, settings = _correct_geometry(args, lens, *image.shape[:2]) if lens is not None else (None, None)
+    deconvolution = _deconvolution(args, lens, settings, response(args)) if deconvolves else None
+    correction = correction_for(lens, geometry, args.method, args.model, deconvolution=deconvolution,
+                                weights=args.weights, device=args.device, tile=args.tile, overlap=args.overlap,
+                                labels=labels)
+    _refuse_deconv_only(args, correction.method, correction.reason)
+    _say_correction(correction)
+    if correction.method == "dacn":
+        import torch
+        torch.set_num_threads(args.threads)
+    seconds, notes, record = {}, [], {}
+    progress = counter("correct: " + ("tile" if correction.method == "dacn" else "window"))
+    result, _, _ = recover(image, camera_pitch_mm=geometry.pixel_pitch_mm if geometry is not None else None,
+                           depth_m=depth, correction=correction, seconds=seconds, notes=notes, record=record,
+                           progress=progress)
+    if correction.method == "deconv":
+        say(record["psf_message"])
+    for note in notes:
+        say(f"note: {note}")
     write_image(out, result)
-    print(f"wrote {out} ({image.shape[1]} x {image.shape[0]}, {time.perf_counter() - t0:.1f} s, "
-          f"lens {trained or 'unknown'}, on {info['device']})")
+    print(dump({"output": str(out), "size": [image.shape[0], image.shape[1]],
+                "lens": lens.id if lens is not None else record.get("trained_for"), "correction": record,
+                "seconds": {k: round(v, 3) for k, v in seconds.items()}, "notes": notes}))
     return 0
 
 
-def _dof_networks(args, camera):
-    """(estimator or None, DACN or None, its info) for `dcdi dof`, all loaded
-    (and refused, by name) before any work."""
+# ------------------------------------------------------------------ dcdi dof
+def _dof_estimator(args, camera):
+    """The depth estimator of `dcdi dof` (None with --depth), loaded and refused, by name, before any work."""
+    if args.depth is not None:
+        return None
     from ..models.errors import ModelError
-    estimator = corrector = info = None
-    if args.depth is None:
-        ck = args.depth_checkpoint
-        if ck is None and args.depth_backend == "dcdi":
-            ck = _shipped("depth", camera.id if camera is not None else None)
-            if ck is None:
-                raise ModelError("no depth map (--depth) and no shipped depth network for "
-                                 f"{'a sharp image (--camera none)' if camera is None else camera.id} (shipped: "
-                                 f"{_shipped_for('depth')}); give --depth, or --depth-backend with "
-                                 "--depth-checkpoint")
-        from ..models.depth.estimators import load_estimator
-        opts = {"threads": args.threads} if args.depth_backend == "dcdi" else {}
-        estimator = load_estimator(args.depth_backend, ck, **opts)
-    if camera is not None:
-        path = args.dacn or _shipped("dacn", camera.id)
-        if path is None:
-            raise ModelError(f"no shipped DACN for {camera.id} (shipped: {_shipped_for('dacn')});"
-                             " give --dacn MODEL, or --camera none for a sharp image")
-        from ..models.dacn.correct import load_dacn
-        corrector, info = load_dacn(path)
-        trained = (info.get("da2t") or {}).get("lens")
-        if trained is not None and trained != camera.id:
-            raise ModelError(f"{path} was trained for lens {trained}, not the camera {camera.id}")
-    return estimator, corrector, info
+    ck = args.depth_checkpoint
+    if ck is None and args.depth_backend == "dcdi":
+        ck = _shipped("depth", camera.id if camera is not None else None)
+        if ck is None:
+            raise ModelError("no depth map (--depth) and no shipped depth network for "
+                             f"{'a sharp image (--camera none)' if camera is None else camera.id} (shipped: "
+                             f"{_shipped_for('depth')}); give --depth, or --depth-backend with "
+                             "--depth-checkpoint")
+    from ..models.depth.estimators import load_estimator
+    opts = {"threads": args.threads} if args.depth_backend == "dcdi" else {}
+    return load_estimator(args.depth_backend, ck, **opts)
+
+
+def _dof_correction(args, camera, img, plan, resp):
+    """(correction, the capture's geometry on the camera's sensor) of `dcdi dof` ((None, None) for
+    --camera none), by pipeline.choose_correction's rule; the capture lies on the camera's sensor as the
+    geometry options place it."""
+    if camera is None:
+        given = [f"--{o.replace('_', '-')}" for o in ("dacn", *DECONV_ONLY) if getattr(args, o, None) is not None]
+        given += [f"--method {args.method}"] if args.method != "auto" else []
+        if given:
+            from ..errors import InputRangeError
+            raise InputRangeError("--camera", "none", f"a lens: {given[0]} corrects a capture of a lens "
+                                  "(--camera none: a sharp image, no correction)")
+        return None, None
+    from ..pipeline import correction_for
+    from .render import render_request
+    sensor, source = render_request(args, camera, sensor_focus=False).geometries(*img.shape[:2],
+                                                                                image=f"the image {args.image}")
+    deconvolution = _deconvolution(args, camera, plan.settings, resp)
+    geometry = source or sensor
+    correction = correction_for(camera, geometry, args.method, args.dacn, deconvolution=deconvolution,
+                                labels=DOF_LABELS)
+    _refuse_deconv_only(args, correction.method, correction.reason)
+    return correction, geometry
 
 
 def cmd_dof(args) -> int:
@@ -108,24 +226,34 @@ def cmd_dof(args) -> int:
 
     from ..io.images import write_depth, write_image
     from ..optics.lens import load_lens
-    from ..render.geometry import ImageGeometry
+    from ..pipeline import check_correction
     camera = None if args.camera == "none" else load_lens(args.camera)
+    if camera is not None:                              # refused before any image is read
+        check_correction(camera.id, args.method, args.dacn, labels=DOF_LABELS)
+        _early_network(args, "dacn")
+    deconv_options(args)
     lens, request, plan, resp, img, depth = render_inputs(args, sensor_focus=False)
     if args.save_intermediates:
         for name in ("corrected.exr", "depth.exr"):
             check_output(str(Path(args.save_intermediates) / name), "--save-intermediates", image=True)
-    import torch
-    torch.set_num_threads(args.threads)
-    estimator, corrector, info = _dof_networks(args, camera)
+    correction, camera_geometry = _dof_correction(args, camera, img, plan, resp)
+    estimator = _dof_estimator(args, camera)
+    if estimator is not None or (correction is not None and correction.method == "dacn"):
+        import torch
+        torch.set_num_threads(args.threads)
+    if correction is not None:
+        _say_correction(correction)
     from ..pipeline import dof
-    camera_pitch = ImageGeometry.full_sensor(camera, *img.shape[:2]).pixel_pitch_mm if camera is not None else None
+    camera_pitch = camera_geometry.pixel_pitch_mm if camera_geometry is not None else None
     with quiet_input_warnings():
         r = dof(img, lens, keep=tuple(args.keep) if args.keep else None, focus_m=args.focus, depth_m=depth,
-                estimator=estimator, corrector=corrector, corrector_info=info, camera_pitch_mm=camera_pitch,
+                estimator=estimator, correction=correction, camera_pitch_mm=camera_pitch,
                 psf_source=args.psf_source, olf_file=args.olf, settings=plan.settings, geometry=plan.geometry,
                 source_geometry=plan.source_geometry, response=resp, distortion=args.distort,
                 interpolation=request.interpolation, patch=request.patch, occlusion=not args.plain,
                 fit_kernel=request.fit_kernel)
+    if r.correction.get("psf_message"):
+        say(f"camera {camera.id}: {r.correction['psf_message']}")
     say(r.psf_message)
     for note in r.notes:
         say(f"note: {note}")
@@ -137,29 +265,74 @@ def cmd_dof(args) -> int:
         from ..models.dacn.evaluate import panel_strip
         from ..render.pictures import depth_panel
         write_image(args.side_by_side, panel_strip([img, r.corrected, depth_panel(r.depth_m), r.image]))
-    times = ", ".join(f"{k} {v:.2f} s" for k, v in r.seconds.items())
-    print(f"wrote {args.output}: camera {args.camera}, depth {r.depth_source}, PSFs {r.psf_source}; {times}")
+    print(dump({"output": args.output, "camera": args.camera, "lens": lens.id, "correction": r.correction,
+                "depth_source": r.depth_source, "psf_source": r.psf_source,
+                "seconds": {k: round(v, 3) for k, v in r.seconds.items()}, "notes": r.notes}))
     return 0
 
 
-def correct_parser(subparsers, name: str, **kw):
-    """The parser of `correct` (top level and `dacn correct`)."""
-    t = subparsers.add_parser(name, **kw,
-                              description="Correct a capture with a trained DACN (by default the shipped one of "
-                                          "--lens): overlapping tiles cross-faded, memory bounded by one tile. "
-                                          + UNITS)
+# ------------------------------------------------------------------ the parsers
+def add_method_option(q, what: str) -> None:
+    """--method of `correct` and `dof` (``what``: the lens option that names the capture's lens)."""
+    q.add_argument("--method", default="auto", metavar="auto|deconv|dacn",
+                   help=f"how the capture is corrected: deconv, the deconvolution with the {what} lens's own PSFs "
+                        "(any lens, no training); dacn, a trained network (the lens's shipped DACN or the one "
+                        "given); auto (default), the shipped network only where it is recorded better than the "
+                        "deconvolution on held-out captures (`dcdi report correction`) and the image has the "
+                        "pixel pitch it learned, else the deconvolution. A line on standard error says which "
+                        "ran and why")
+
+
+def add_deconv_options(q) -> None:
+    """The deconvolution's settings (`correct` and `dof`)."""
+    from ..correct import DeconvOptions
+    d = DeconvOptions()
+    q.add_argument("--deconv-weight", type=float, default=None, metavar="W",
+                   help=f"the deconvolution's prior weight per unit of noise variance, > 0 (default {d.weight:g}): "
+                        "higher is smoother, lower sharper and noisier")
+    q.add_argument("--noise-full-well", type=float, default=None, metavar="E",
+                   help="the sensor's full well, electrons at 1.0 (with --noise-read: its noise model; a missing "
+                        "one takes the simulation's default, 10000 or 3); default: the noise is estimated from "
+                        "the capture")
+    q.add_argument("--noise-read", type=float, default=None, metavar="E",
+                   help="the sensor's read noise, electrons RMS (see --noise-full-well)")
+    q.add_argument("--one-depth", type=depth_value, default=None, metavar="D",
+                   help="the depth-unaware baseline: deconvolve with the PSFs of one depth D metres (or 'inf') "
+                        "everywhere")
+
+
+def correct_parser(subparsers, name: str, *, network_only: bool = False, **kw):
+    """The parser of `correct`; ``network_only``: `dacn correct`, the
+    network alone (no method, no deconvolution options)."""
+    what = ("Correct a capture with a trained DACN (by default the shipped one of --lens): overlapping tiles "
+            "cross-faded, memory bounded by one tile. " if network_only else
+            "Undo a lens's blur: the deconvolution with the lens's own PSFs (any lens; depth- and field-aware, "
+            "PSFs from the Omni-Lens-Field where it covers the request, else traced), or a trained DACN (tiled), "
+            "as --method chooses. Prints what it did as JSON. ")
+    t = subparsers.add_parser(name, **kw, description=what + UNITS)
     t.add_argument("--image", required=True, help="the capture (EXR linear, or PNG/JPEG sRGB)")
     t.add_argument("--depth", default=None, help="its depth map in metres (EXR, .npy, 16-bit PNG in mm)")
     t.add_argument("--model", default=None,
                    help="a DACN run folder, its checkpoint.pt or an exported .npz (default: the shipped DACN of "
                         "--lens)")
     t.add_argument("--lens", default=None,
-                   help="the lens that took the capture: its shipped DACN without --model; with --model, refuse "
-                        "a model trained for another lens")
+                   help="the lens that took the capture: its PSFs, or its shipped DACN without --model; with "
+                        "--model, refuse a model trained for another lens")
     t.add_argument("-o", "--output", required=True, help="the corrected image (.exr, .png, .jpg)")
-    t.add_argument("--tile", type=positive_int, default=256, help="tile size, px (default 256)")
-    t.add_argument("--overlap", type=int, default=32, help="tile overlap, px (default 32)")
-    t.add_argument("--weights", choices=["ema", "model"], default="ema", help="which weights")
+    if network_only:
+        t.set_defaults(method="dacn")
+    else:
+        add_method_option(t, "--lens")
+        t.add_argument("--image-pixel-pitch", type=float, default=None, metavar="MM",
+                       help="size of one image pixel on the sensor (default: the image spans the sensor diagonal)")
+        t.add_argument("--axis", type=float, nargs=2, default=None, metavar=("ROW", "COL"),
+                       help="the optical axis's pixel position in the image (default: its centre)")
+        add_deconv_options(t)
+        add_psf_options(t, sensor_focus=True, render=True)
+        add_psf_source_options(t)
+    t.add_argument("--tile", type=positive_int, default=256, help="the network's tile size, px (default 256)")
+    t.add_argument("--overlap", type=int, default=32, help="the network's tile overlap, px (default 32)")
+    t.add_argument("--weights", choices=["ema", "model"], default="ema", help="which weights of the network")
     t.add_argument("--threads", type=positive_int, default=1, help="torch threads (default 1)")
     add_device_option(t, torchrun=False)
     t.set_defaults(func=cmd_correct)
@@ -167,19 +340,25 @@ def correct_parser(subparsers, name: str, **kw):
 
 
 def add_commands(sub) -> None:
-    correct_parser(sub, "correct", help="undo a lens's blur with a trained DACN (tiled, any size)")
+    correct_parser(sub, "correct", help="undo a lens's blur: deconvolution with its PSFs (any lens) or a trained DACN")
 
     q = sub.add_parser("dof", help="DCDI end to end: a minimalist-lens capture -> another lens's depth of field",
                        description="Depth (given, or estimated from the capture), correction of the camera lens's "
-                                   "aberrations (DACN), then the target lens's occlusion-aware bokeh with PSFs from "
-                                   "the Omni-Lens-Field where it covers the request, else traced. " + UNITS)
+                                   "aberrations (the deconvolution with its PSFs, or its trained DACN, as --method "
+                                   "chooses), then the target lens's occlusion-aware bokeh with PSFs from the "
+                                   "Omni-Lens-Field where it covers the request, else traced. Prints what it did as "
+                                   "JSON. " + UNITS)
     add_rgbd_options(q, sensor_focus=False, depth_required=False,
                      image_help="the capture (EXR linear, or PNG/JPEG sRGB)")
     q.add_argument("--camera", required=True,
-                   help="the lens that took the capture (its shipped DACN corrects it), or 'none' for a sharp image")
+                   help="the lens that took the capture (--method says how its blur is undone), or 'none' for a "
+                        "sharp image")
     add_focus_options(q, "focus the target lens at D metres, or 'prescribed'")
+    add_method_option(q, "--camera")
     q.add_argument("--dacn", default=None, metavar="MODEL",
-                   help="the correction network (default: the shipped one of --camera)")
+                   help="the correction network (default: the shipped one of --camera, where --method picks a "
+                        "network)")
+    add_deconv_options(q)
     q.add_argument("--depth-backend", default="dcdi", choices=["dcdi", "unidepth", "depth-anything-v2", "depth-pro"],
                    help="the estimator when no --depth is given (default dcdi: the shipped depth network of "
                         "--camera)")

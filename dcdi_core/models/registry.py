@@ -21,6 +21,11 @@ class Network:
     weights_prefix: str       # shipped files: weights/<prefix><key>.npz
     addon_package: bool       # the add-on bundles the package (runs where torch exists)
     addon_weights: bool       # the add-on bundles the shipped weights
+    # lens ids whose shipped network scored better than the deconvolution
+    # (dcdi_core.correct) on held-out captures: `dcdi report correction`
+    # decides it; `pipeline.choose_correction` runs a network in 'auto' only
+    # for these lenses
+    beats_deconvolution: tuple[str, ...] = ()
 
     def shipped_files(self) -> list[Path]:
         return sorted(WEIGHTS_DIR.glob(f"{self.weights_prefix}*.npz")) if WEIGHTS_DIR.is_dir() else []
@@ -37,8 +42,11 @@ class Network:
 NETWORKS = {
     "olf": Network("olf", "Omni-Lens-Field: an MLP of a lens's PSFs over field, depth and focus", "olf",
                    "olf-", addon_package=False, addon_weights=True),      # runtime/olf.py runs it in numpy
+    # the shipped DACNs gain 0.2-0.6 dB over the capture, the deconvolution
+    # several dB: none is recorded better (beats_deconvolution empty)
     "dacn": Network("dacn", "depth-aware correction network (DA2T-trained), per lens", "dacn",
-                    "dacn-", addon_package=True, addon_weights=True),     # Correct Simulation with torch
+                    "dacn-", addon_package=True, addon_weights=True,      # Correct Simulation with torch
+                    beats_deconvolution=()),
     "depth": Network("depth", "small metric-depth network on a lens's captures", "depth",
                      "depth-", addon_package=False, addon_weights=False),  # Blender gives exact depth
 }

@@ -1,5 +1,6 @@
 """The `dcdi` command's grammar and user-facing guarantees: the noun-verb
-spellings and the old ones, `correct` with the shipped network, damaged model
+spellings and the old ones, `correct` with the shipped network (`dacn
+correct`: the network alone, `correct --method dacn`), damaged model
 files ending in one line, the depth-unit warning of `dof`, the generated
 reference page, and the engine's render request the command builds."""
 import zipfile
@@ -47,7 +48,6 @@ def scene(tmp_path, monkeypatch):
     (["dacn", "train", "--data", "d", "-o", "r"], ["train", "dacn", "--data", "d", "-o", "r"]),
     (["depth", "train", "--data", "d", "-o", "r"], ["train", "depth", "--data", "d", "-o", "r"]),
     (["dacn", "eval", "run", "--data", "d"], ["eval", "run", "--data", "d"]),
-    (["dacn", "correct", "--image", "i", "-o", "o.exr"], ["correct", "--image", "i", "-o", "o.exr"]),
 ])
 def test_old_and_new_spellings_reach_the_same_command_with_the_same_options(new, old):
     p = build_parser()
@@ -55,6 +55,19 @@ def test_old_and_new_spellings_reach_the_same_command_with_the_same_options(new,
     assert a["func"] is b["func"]
     differ = {k for k in set(a) | set(b) if a.get(k) != b.get(k)}
     assert differ <= {"command", "dacn_command", "depth_command", "train_command", "deprecated_for"}
+
+
+def test_dacn_correct_is_correct_with_the_network_and_its_options_only():
+    p = build_parser()
+    net = vars(p.parse_args(["dacn", "correct", "--image", "i", "-o", "o.exr"]))
+    top = vars(p.parse_args(["correct", "--image", "i", "-o", "o.exr", "--method", "dacn"]))
+    assert net["func"] is top["func"] and net["method"] == top["method"] == "dacn"
+    assert vars(p.parse_args(["correct", "--image", "i", "-o", "o.exr"]))["method"] == "auto"
+    assert {k: v for k, v in top.items() if k in net and k not in ("command", "dacn_command")} == \
+        {k: v for k, v in net.items() if k not in ("command", "dacn_command")}
+    # the deconvolution's options and the PSF options are `dcdi correct`'s alone
+    assert {"deconv_weight", "one_depth", "noise_full_well", "noise_read", "image_pixel_pitch", "rays",
+            "psf_source"} <= set(top) - set(net)
 
 
 def test_an_old_spelling_works_with_a_one_line_note(tmp_path, capsys):
@@ -76,23 +89,28 @@ def test_old_spellings_are_not_listed_in_the_help(capsys):
 
 
 # ------------------------------------------------------------------ correct with the shipped DACN
-def test_correct_takes_the_shipped_dacn_of_the_lens(tmp_path, capsys):
+@pytest.mark.parametrize("verb", [["correct", "--method", "dacn"], ["dacn", "correct"]])
+def test_correct_takes_the_shipped_dacn_of_the_lens(tmp_path, capsys, verb):
     pytest.importorskip("torch")
+    import json
     shipped = network("dacn").shipped_keys()
     if "mos-s1" not in shipped:
         pytest.skip("no shipped DACN of mos-s1")
     write_image(tmp_path / "cap.exr", np.random.default_rng(0).uniform(0, 1, (20, 30, 3)).astype(np.float32))
     write_depth(tmp_path / "d.exr", np.full((20, 30), 2.0, np.float32))
-    code, out, err = _cli(capsys, "correct", "--image", tmp_path / "cap.exr", "--depth", tmp_path / "d.exr",
+    code, out, err = _cli(capsys, *verb, "--image", tmp_path / "cap.exr", "--depth", tmp_path / "d.exr",
                           "--lens", "mos-s1", "-o", tmp_path / "out.exr")
     assert code == 0, err
-    assert "lens mos-s1" in out and (tmp_path / "out.exr").exists()
-    code, _, err = _cli(capsys, "correct", "--image", tmp_path / "cap.exr", "--depth", tmp_path / "d.exr",
+    info = json.loads(out)
+    assert info["lens"] == "mos-s1" and info["correction"]["method"] == "dacn" and (tmp_path / "out.exr").exists()
+    assert info["correction"]["model"].endswith("dacn-mos-s1.npz") and info["correction"]["trained_for"] == "mos-s1"
+    assert "dcdi: correction by the network (DACN)" in err
+    code, _, err = _cli(capsys, *verb, "--image", tmp_path / "cap.exr", "--depth", tmp_path / "d.exr",
                         "--lens", "6p", "-o", tmp_path / "x.exr")
     _one_error_line(code, err, "no shipped DACN for lens 6p", ", ".join(shipped), "--model")
-    code, _, err = _cli(capsys, "correct", "--image", tmp_path / "cap.exr", "--depth", tmp_path / "d.exr",
+    code, _, err = _cli(capsys, *verb, "--image", tmp_path / "cap.exr", "--depth", tmp_path / "d.exr",
                         "-o", tmp_path / "x.exr")
-    _one_error_line(code, err, "--model is missing", "--lens")
+    _one_error_line(code, err, "--lens is missing", "--model")
     assert not (tmp_path / "x.exr").exists()
 
 
