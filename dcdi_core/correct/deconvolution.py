@@ -19,7 +19,9 @@ Regularisation: lambda = ``weight`` x the noise variance at the window's
 mean brightness (``noise``: the sensor model, or estimated from the capture).
 Clipped highlights are not deconvolved (their light is lost): pixels within
 the kernel's reach of a clipped pixel keep the capture's value. The output is
-never negative, and at most 1 where the capture is a sensor's (at most 1). It is
+never negative, and at most 1 where the capture is a sensor's (at most 1);
+within a kernel radius of the frame's edge it fades to the capture (that
+band holds light from outside the frame). It is
 on the capture's grid, so it aligns with ``simulate``'s sharp image (the
 distortion is the capture's too).
 """
@@ -140,7 +142,8 @@ def deconvolve(capture, depth_m, lens, options: DeconvOptions = DeconvOptions(),
     plan = _layer_plan(d, base, library, geometry, options)
     lay = layout_for(m, base.kernels.shape[-1], options.pad)
     out, n_windows = _blend_windows(y, plan, noise, lay, options, progress)
-    out = _keep_clipped(y, out, options.clip_level, base.kernels.shape[-1] // 2)
+    reach = int(base.kernels.shape[-1] // 2)
+    out = _keep_clipped(y, _fade_to_border(y, out, reach), options.clip_level, reach)
     info = {"method": "deconvolution", "algorithm": options.method, "patch": m, "windows": n_windows, "patches": int(base.identity.size),
             "layer_step_diopters": None if options.one_depth_m is not None else options.layer_step_diopters,
             "one_depth_m": options.one_depth_m, "weight": options.weight,
@@ -246,6 +249,18 @@ def _weights(padded, origins, lay: WindowLayout, noise: NoiseModel, weight: floa
     r1, c1 = r0 + core, c0 + core
     total = s[r1, c1] - s[r0, c1] - s[r1, c0] + s[r0, c0]
     return (weight * noise.variance(total / core ** 2)).astype(np.float32)
+
+
+def _fade_to_border(y: np.ndarray, out: np.ndarray, reach: int) -> np.ndarray:
+    """Within ``reach`` px of the frame's edge the capture holds light from
+    outside the frame, which no deconvolution knows: the result fades
+    linearly to the capture there (on a frame not much larger than the
+    kernel, a deconvolution of mirrored context made the capture worse)."""
+    h, w = y.shape[:2]
+    dist = np.minimum(np.minimum(np.arange(h), np.arange(h)[::-1])[:, None],
+                      np.minimum(np.arange(w), np.arange(w)[::-1])[None, :])
+    ramp = np.clip((dist + 0.5) / max(reach, 1), 0.0, 1.0).astype(np.float32)[..., None]
+    return y + ramp * (out - y)
 
 
 def _dilate(mask: np.ndarray, r: int) -> np.ndarray:
