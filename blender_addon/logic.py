@@ -1,5 +1,7 @@
 """The add-on's logic without bpy: the lens catalogue and readout, preview
-size, the kept range, and the bokeh job (run on a worker thread in the UI).
+size, the kept range, and the jobs run on a worker thread in the UI (the
+bokeh, the simulation, its correction: deconvolution without torch, or a
+network where torch imports).
 Everything optical is a call into ``dcdi_core`` (the camera and depth
 conversion: ``dcdi_core.render.camera``).
 
@@ -231,7 +233,8 @@ def run_simulation(image, depth, lens, *, noise: bool = False, seed: int = 0, pr
     PSFs from the shipped Omni-Lens-Field where it covers the lens, else
     traced (the bokeh's rule). ``progress`` / ``cancelled`` as
     :func:`run_bokeh` (cancel works while PSFs are traced). Returns (image,
-    depth on the sensor (NaN where the lens images nothing), info)."""
+    depth on the sensor (NaN where the lens images nothing), the image's
+    geometry on the sensor, info): what :func:`run_correction` needs."""
     sim = core("render.simulate")
     plan = core("render.request").RenderRequest(lens, labels=PANEL_LABELS).plan(image.shape[0], image.shape[1],
                                                                                "the render")
@@ -246,7 +249,7 @@ def run_simulation(image, depth, lens, *, noise: bool = False, seed: int = 0, pr
     res = simulator(image, depth, noise={} if noise else None, seed=int(seed) if noise else None)
     info = dict(res.info, lens=lens.id, pixel_pitch_mm=float(geom.pixel_pitch_mm), psf_source=src.kind,
                 psf_source_message=src.message)
-    return res.image.astype(np.float32), res.depth.astype(np.float32), info
+    return res.image.astype(np.float32), res.depth.astype(np.float32), geom, info
 
 
 def torch_install_command(python: str | None = None) -> str:
@@ -265,8 +268,8 @@ def torch_missing() -> str | None:
 
 
 def _torch_message(detail: str = "") -> str:
-    return (f"Correct needs PyTorch in Blender's Python, which has none{detail}: install it with "
-            f"{torch_install_command()} and restart Blender")
+    return (f"Correct's Network method needs PyTorch in Blender's Python, which has none{detail}: install it "
+            f"with {torch_install_command()} and restart Blender (Deconvolution runs without it)")
 
 
 def correction_model_path(lens_id: str, given: str = "") -> Path:
@@ -308,10 +311,105 @@ def load_dacn_cached(path: Path):
     return _DACN_CACHE[key]
 
 
-def run_correction(image, depth_m, lens_id: str, model_path: Path, *, pixel_pitch_mm: float, progress=None,
-                   cancelled=None):
+# ------------------------------------------------------------------ Correct Simulation
+# what Correct can run: the lens's blur undone with its own PSFs (numpy, every
+# Python), or a trained DACN (torch); Auto asks the engine's rule
+METHODS = ("auto", "deconvolution", "network")
+METHOD_NAMES = {"auto": "Auto", "deconvolution": "Deconvolution", "network": "Network"}
+# the engine's names of the two corrections (pipeline.choose_correction), and the panel's words for its options
+ENGINE_METHODS = {"deconv": "deconvolution", "dacn": "network"}
+CORRECTION_LABELS = {"method": "Method", "model": "Correction Model", "lens": "Lens"}
+# the sensor Simulate's Sensor Noise adds (render.noise.add_sensor_noise's defaults), electrons
+SENSOR_FULL_WELL_E = 10000.0
+SENSOR_READ_NOISE_E = 3.0
+
+
+@dataclass(frozen=True)
+class CorrectionChoice:
+    """What Correct runs: ``method`` ('deconvolution' or 'network'), why
+    (``reason``, for the panel and the report), and the network's file."""
+
+    method: str
+    reason: str
+    model_path: Path | None = None
+
+
+def choose_correction(requested: str, lens_id: str, pixel_pitch_mm: float, given_model: str = "") -> CorrectionChoice:
+    """The method for ``requested`` ('auto', 'deconvolution' or 'network')
+    on a simulation of ``lens_id`` at ``pixel_pitch_mm`` (mm per pixel on
+    the sensor), with the panel's Correction Model file ``given_model`` (''
+    for the lens's shipped network). Network asked for explicitly needs
+    torch and a network (the messages say what to install, or which lenses
+    have one). Auto is the engine's rule (``pipeline.choose_correction``:
+    the network given, or the lens's shipped one where it is recorded
+    better than the deconvolution and learned this pixel pitch; else the
+    deconvolution), with the deconvolution where the rule picks a network
+    and torch does not import: Auto never fails for want of torch."""
+    if requested not in METHODS:
+        raise BokehInputError(f"correction method {requested!r}: allowed {', '.join(METHODS)}")
+    if requested == "deconvolution":
+        return CorrectionChoice("deconvolution", "chosen in the panel")
+    if requested == "network":
+        why = torch_missing()
+        if why:
+            raise BokehInputError(why)
+        return CorrectionChoice("network", "chosen in the panel", correction_model_path(lens_id, given_model))
+    given = correction_model_path(lens_id, given_model) if given_model else None
+    chosen, reason = core("pipeline").choose_correction(lens_id, pixel_pitch_mm, "auto", given,
+                                                        labels=CORRECTION_LABELS)
+    if ENGINE_METHODS[chosen] == "network":
+        if torch_missing():
+            return CorrectionChoice("deconvolution", f"{reason}; but this Python has no PyTorch for it")
+        return CorrectionChoice("network", reason, given or correction_model_path(lens_id))
+    return CorrectionChoice("deconvolution", reason)
+
+
+def run_correction(image, depth_m, lens, choice: CorrectionChoice, *, geometry, sensor_noise: bool = False,
+                   progress=None, cancelled=None):
+    """Correct a simulated capture (H, W, 3) linear of ``lens`` with its
+    depth on the sensor (H, W) metres and its ``geometry`` (what
+    :func:`run_simulation` returns) by ``choice``. Returns (image, info:
+    method, reason, seconds, notes, and the method's own details)."""
+    if choice.method == "deconvolution":
+        out, info = run_deconvolution(image, depth_m, lens, geometry, sensor_noise=sensor_noise, progress=progress,
+                                      cancelled=cancelled)
+    else:
+        out, info = run_network(image, depth_m, lens.id, choice.model_path, pixel_pitch_mm=geometry.pixel_pitch_mm,
+                                progress=progress, cancelled=cancelled)
+    return out, dict(info, method=choice.method, reason=choice.reason)
+
+
+def run_deconvolution(image, depth_m, lens, geometry, *, sensor_noise: bool = False, progress=None, cancelled=None):
+    """``dcdi_core.correct.deconvolve`` (numpy only: no torch) of a
+    simulated capture with the simulation's PSF source (the shipped OLF
+    where it covers the lens, else traced and cached) and its geometry; the
+    prior's weight from the sensor's noise model when Sensor Noise made the
+    capture, else from the noise estimated on it. ``progress`` / ``cancelled``
+    as :func:`run_bokeh`. Returns (image, info)."""
+    correct = core("correct")
+    report = _psf_progress(progress, cancelled)
+    src = core("models.runtime.library").psf_source(lens, pixel_pitch_mm=geometry.pixel_pitch_mm)
+    lib = src.library or core("render.simulate").open_library(lens, geometry, fit_depth_m=depth_m, progress=report)
+    _check_cancel(cancelled)
+    noise = correct.NoiseModel.sensor(SENSOR_FULL_WELL_E, SENSOR_READ_NOISE_E) if sensor_noise else None
+
+    def windows(done, total):
+        _check_cancel(cancelled)
+        if progress is not None:
+            progress("deconvolving", done / max(total, 1))
+
+    res = correct.deconvolve(image, depth_m, lens, correct.DeconvOptions(noise=noise), geometry=geometry,
+                             library=lib, progress=windows)
+    info = dict(res.info, notes=[], seconds=res.info["seconds"]["total"], psf_source=src.kind,
+                psf_source_message=src.message,
+                noise_model="the sensor's (Sensor Noise)" if sensor_noise else "estimated from the image")
+    return res.image, info
+
+
+def run_network(image, depth_m, lens_id: str, model_path: Path, *, pixel_pitch_mm: float, progress=None,
+                cancelled=None):
     """The DACN of ``model_path`` on a simulated capture of ``lens_id`` with
-    its depth on the sensor: ``models.pipeline.recover`` (the CLI's stage 2,
+    its depth on the sensor: ``pipeline.recover`` (the CLI's stage 2,
     tiled). Returns (image, info: the model, the lens it was trained for,
     notes (another lens, another pixel pitch), seconds)."""
     _check_cancel(cancelled)
@@ -323,10 +421,16 @@ def run_correction(image, depth_m, lens_id: str, model_path: Path, *, pixel_pitc
         progress("correcting", 0.5)
     notes, seconds = [], {}
     out, _, _ = core("pipeline").recover(image, camera_pitch_mm=pixel_pitch_mm, depth_m=depth_m,
-                                                corrector=model, corrector_info=minfo, seconds=seconds,
-                                                notes=notes)
+                                         corrector=model, corrector_info=minfo, seconds=seconds, notes=notes)
     trained_for = (minfo.get("meta") or {}).get("lens") or (minfo.get("da2t") or {}).get("lens")
     if trained_for and trained_for != lens_id:
         notes.append(f"the network was trained for lens {trained_for!r}, the simulation is of {lens_id!r}")
     return out.astype(np.float32), {"model": str(model_path), "trained_for": trained_for, "notes": notes,
                                     "seconds": seconds.get("correction", 0.0)}
+
+
+def correction_line(info: dict, seconds: float) -> str:
+    """What the panel and the report say about a finished Correct:
+    '<Method> (<why>), <time>' (and the network's file)."""
+    used = f" with {Path(info['model']).name}" if info.get("model") else ""
+    return f"{METHOD_NAMES[info['method']]}{used} ({info['reason']}), {seconds:.1f} s"

@@ -12,10 +12,12 @@ synchronously.
 
 Simulate Minimalist Lens renders the same way and shows the render as the
 chosen lens (as prescribed) would have taken it ("Lens Simulation",
-dcdi_core's depth-aware simulation); Correct Simulation runs the lens's
-shipped DACN (torch) on that image with the render's depth on the sensor
-("Lens Corrected"). Both run as Apply Lens Bokeh does (worker thread,
-progress, Esc), and one job runs at a time.
+dcdi_core's depth-aware simulation); Correct Simulation undoes the lens's
+blur on that image with the render's depth on the sensor ("Lens
+Corrected"): by deconvolution with the lens's own PSFs (numpy, no torch
+needed) or with a trained DACN where torch imports (the panel's Method;
+Auto follows the engine's rule). Both run as Apply Lens Bokeh does
+(worker thread, progress, Esc), and one job runs at a time.
 """
 import os
 import threading
@@ -270,8 +272,9 @@ class DCDI_OT_apply_lens_bokeh(_JobOperator, bpy.types.Operator):
 # ------------------------------------------------------------------ the DCDI round trip
 SIMULATION_IMAGE = "Lens Simulation"
 CORRECTED_IMAGE = "Lens Corrected"
-# the last simulation (render, simulated image, depth on the sensor, lens),
-# which Correct works on; in memory only, dropped at unregister
+# the last simulation (render, simulated image, depth and geometry on the
+# sensor, lens, whether it has sensor noise), which Correct works on; in
+# memory only, dropped at unregister
 _SIMULATION: dict = {}
 
 
@@ -299,12 +302,15 @@ class DCDI_OT_simulate_lens(_JobOperator, bpy.types.Operator):
         return logic.run_simulation(job["rgb"], job["depth"], job["lens"], noise=job["noise"], **kw)
 
     def finish(self, context, job, result, seconds):
-        out, sensor_depth, info = result
+        out, sensor_depth, geometry, info = result
         _SIMULATION.clear()
         _SIMULATION.update(rgb=job["rgb"], depth=job["depth"], image=out, sensor_depth=sensor_depth,
-                           lens_id=job["lens"].id, pixel_pitch_mm=info["pixel_pitch_mm"])
+                           geometry=geometry, lens=job["lens"], lens_id=job["lens"].id,
+                           pixel_pitch_mm=info["pixel_pitch_mm"], sensor_noise=job["noise"])
         bpy_render.show_in_image_editor(context, bpy_render.put_image(SIMULATION_IMAGE, out))
-        context.window_manager.dcdi_lens_bokeh_status.psf_source = info["psf_source_message"]
+        st = context.window_manager.dcdi_lens_bokeh_status
+        st.psf_source = info["psf_source_message"]
+        st.correction = ""                   # the last correction was of another simulation
         h, w = out.shape[:2]
         noise = ", sensor noise" if job["noise"] else ""
         self.report({"INFO"}, f"Lens Simulation: {job['lens'].id}, {w} x {h} px{noise}, render "
@@ -312,30 +318,40 @@ class DCDI_OT_simulate_lens(_JobOperator, bpy.types.Operator):
 
 
 def correction_blocker(context) -> str | None:
-    """Why Correct cannot run now (no simulation yet, no torch), or None."""
+    """Why Correct cannot run now (no simulation yet; Network chosen and no
+    torch), or None."""
     if not _SIMULATION:
         return f"run {DCDI_OT_simulate_lens.bl_label} first: Correct works on its image"
-    return logic.torch_missing()
+    if context.scene.dcdi_lens_bokeh.correction_method == "NETWORK":
+        return logic.torch_missing()
+    return None
+
+
+def correction_choice(context) -> "logic.CorrectionChoice":
+    """The method Correct runs on the last simulation, and why (the panel's
+    Correction Method; Auto by the engine's rule)."""
+    s = context.scene.dcdi_lens_bokeh
+    given = bpy.path.abspath(s.correction_model) if s.correction_model else ""
+    return logic.choose_correction(s.correction_method.lower(), _SIMULATION["lens_id"],
+                                   _SIMULATION["pixel_pitch_mm"], given)
 
 
 def prepare_correction(context):
-    """The last simulation and the DACN file to correct it with."""
+    """The last simulation and how to correct it."""
     why = correction_blocker(context)
     if why:
         raise logic.BokehInputError(why)
-    given = context.scene.dcdi_lens_bokeh.correction_model
-    path = logic.correction_model_path(_SIMULATION["lens_id"], bpy.path.abspath(given) if given else "")
-    return dict(_SIMULATION, model_path=path, render_s=0.0)
+    return dict(_SIMULATION, choice=correction_choice(context), render_s=0.0)
 
 
 class DCDI_OT_correct_simulation(_JobOperator, bpy.types.Operator):
-    """Correct the last Lens Simulation with the lens's shipped DACN (or the Correction Model file), using the render's true depth on the sensor; needs PyTorch in Blender's Python"""
+    """Correct the last Lens Simulation with the render's true depth on the sensor: deconvolution with the lens's own PSFs (no PyTorch needed), or the lens's shipped DACN (or the Correction Model file) where PyTorch is installed; Auto picks by the engine's rule"""
 
     bl_idname = "dcdi.correct_lens_simulation"
     bl_label = "Correct Simulation"
     bl_options = {"REGISTER"}
     job_label = "Lens Correction"
-    first_message = "loading the network..."
+    first_message = "correcting..."
 
     @classmethod
     def poll(cls, context):
@@ -350,16 +366,18 @@ class DCDI_OT_correct_simulation(_JobOperator, bpy.types.Operator):
         return prepare_correction(context)
 
     def compute(self, job, **kw):
-        return logic.run_correction(job["image"], job["sensor_depth"], job["lens_id"], job["model_path"],
-                                    pixel_pitch_mm=job["pixel_pitch_mm"], **kw)
+        return logic.run_correction(job["image"], job["sensor_depth"], job["lens"], job["choice"],
+                                    geometry=job["geometry"], sensor_noise=job["sensor_noise"], **kw)
 
     def finish(self, context, job, result, seconds):
         out, info = result
         bpy_render.show_in_image_editor(context, bpy_render.put_image(CORRECTED_IMAGE, out))
+        line = logic.correction_line(info, seconds)
+        context.window_manager.dcdi_lens_bokeh_status.correction = line
         h, w = out.shape[:2]
         notes = "".join(f"; {n}" for n in info["notes"])
-        self.report({"INFO"}, f"Lens Corrected: {w} x {h} px with {os.path.basename(info['model'])}, "
-                              f"{seconds:.1f} s{notes}")
+        source = f"; {info['psf_source_message']}" if info.get("psf_source_message") else ""
+        self.report({"INFO"}, f"Correct Simulation: {line}; {w} x {h} px{notes}{source}")
 
 
 def _redraw(context):

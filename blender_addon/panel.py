@@ -94,27 +94,37 @@ def draw_lens_bokeh(layout, context):
         layout.label(text=st.message)
     if not st.running and st.psf_source:
         layout.label(text=st.psf_source[:72], icon="INFO")
-    _draw_round_trip(layout.box(), s)
+    _draw_round_trip(layout.box(), context, s, st)
 
 
-def _draw_round_trip(layout, s):
+def _draw_round_trip(layout, context, s, status):
     """Simulate Minimalist Lens and Correct Simulation: the DCDI round trip."""
     from . import operators
     layout.label(text="DCDI round trip (the chosen lens as prescribed)")
     layout.prop(s, "sensor_noise")
     layout.operator("dcdi.simulate_lens", icon="SHADERFX")
-    layout.prop(s, "correction_model")
+    layout.prop(s, "correction_method")
+    if s.correction_method != "DECONVOLUTION":
+        layout.prop(s, "correction_model")
     layout.operator("dcdi.correct_lens_simulation", icon="BRUSH_DATA")
-    why = logic.torch_missing()
+    why = logic.torch_missing() if s.correction_method == "NETWORK" else None
     if why:
-        for i in range(0, min(len(why), 288), 48):        # the install command, wrapped
-            layout.label(text=why[i:i + 48], icon="ERROR" if i == 0 else "BLANK1")
-    elif operators._SIMULATION and not s.correction_model:
+        _wrapped(layout, why, 400, "ERROR")               # the install command
+    elif operators._SIMULATION:
         try:
-            path = logic.correction_model_path(operators._SIMULATION["lens_id"])
-            layout.label(text=f"Network: {path.name}", icon="INFO")
-        except logic.BokehInputError as e:
-            layout.label(text=str(e)[:72], icon="ERROR")
+            choice = operators.correction_choice(context)
+            used = f" with {choice.model_path.name}" if choice.model_path else ""
+            _wrapped(layout, f"{logic.METHOD_NAMES[choice.method]}{used}: {choice.reason}", 240, "INFO")
+        except (logic.BokehInputError, core("errors").DcdiError, OSError) as e:
+            _wrapped(layout, str(e), 144, "ERROR")
+    if not status.running and status.correction:
+        _wrapped(layout, f"Last Correct: {status.correction}", 240, "CHECKMARK")
+
+
+def _wrapped(layout, text: str, limit: int, icon: str, width: int = 48):
+    """``text`` (at most ``limit`` characters) over lines of ``width``, the icon on the first."""
+    for i in range(0, min(len(text), limit), width):
+        layout.label(text=text[i:i + width], icon=icon if i == 0 else "BLANK1")
 
 
 class _LensBokehPanel:

@@ -73,10 +73,19 @@ class DCDI_LensBokehSettings(bpy.types.PropertyGroup):
     sensor_noise: BoolProperty(name="Sensor Noise", default=False,
                                description="Simulate Minimalist Lens: also add the engine's sensor noise (shot "
                                            "and read noise, 10000 e- full well, 3 e- read noise, seed 0)")
+    correction_method: EnumProperty(name="Method", default="AUTO", items=[
+        ("AUTO", "Auto", "The engine's rule: the Correction Model file if one is given, else the lens's "
+                         "shipped network where it is recorded better than the deconvolution and learned this "
+                         "pixel pitch; else (and where PyTorch is missing) the deconvolution"),
+        ("DECONVOLUTION", "Deconvolution", "Undo the blur with the lens's own PSFs at the render's depth (numpy: "
+                                           "needs no PyTorch, no training)"),
+        ("NETWORK", "Network", "The lens's shipped correction network (DACN), or the Correction Model file; "
+                               "needs PyTorch in Blender's Python")],
+        description="Correct Simulation: how the lens's blur is undone")
     correction_model: StringProperty(name="Correction Model", default="", subtype="FILE_PATH",
-                                     description="Correct Simulation: a DACN exported with `dcdi dacn export` "
-                                                 "(.npz) or a training run folder; empty: the lens's shipped "
-                                                 "network")
+                                     description="Correct Simulation's network: a DACN exported with `dcdi dacn "
+                                                 "export` (.npz) or a training run folder; empty: the lens's "
+                                                 "shipped network")
 
 
 class DCDI_LensBokehStatus(bpy.types.PropertyGroup):
@@ -86,6 +95,8 @@ class DCDI_LensBokehStatus(bpy.types.PropertyGroup):
     progress: FloatProperty(name="Progress", default=0.0, min=0.0, max=100.0, subtype="PERCENTAGE")
     message: StringProperty(default="")
     psf_source: StringProperty(default="", description="Where the last bokeh's PSFs came from, and why")
+    correction: StringProperty(default="", description="The method the last Correct Simulation ran, why, and "
+                                                      "its time")
 
 
 CLASSES = (DCDI_LensBokehSettings, DCDI_LensBokehStatus)

@@ -1,9 +1,11 @@
 """Run by tests/addon/test_addon.py in a fresh interpreter, like addon_headless.py:
 installs the built zip, then on the same small scene runs Simulate
 Minimalist Lens and Correct Simulation (the DCDI round trip), first with
-torch blocked by an import hook (Correct refuses, saying what to install),
-then with torch and a tiny exported DACN as the lens's shipped network;
-writes what it saw to a JSON file (pixels as .npy beside it).
+torch blocked by an import hook (Network refuses, saying what to install;
+Auto and Deconvolution run the numpy deconvolution), then with torch and a
+tiny exported DACN as the lens's shipped network (Network, and Auto by the
+engine's rule), then with Sensor Noise; writes what it saw to a JSON file
+(pixels as .npy beside it).
 
     python tests/addon/addon_headless_roundtrip.py ZIP OUT_DIR DACN_NPZ LENS
 """
@@ -70,6 +72,23 @@ def draw_panel():
 
 # Correct before any simulation: disabled, and says why
 res["correct_first"] = error_of(lambda: bpy.ops.dcdi.correct_lens_simulation())
+st = bpy.context.window_manager.dcdi_lens_bokeh_status
+
+
+def choice(method="auto"):
+    c = logic.choose_correction(method, LENS, sim["pixel_pitch_mm"])
+    return [c.method, c.reason]
+
+
+def correct(method, key):
+    """Correct Simulation with ``method``: its result, the panel's last-method line, the image."""
+    s.correction_method = method
+    t = time.perf_counter()
+    res[key] = sorted(bpy.ops.dcdi.correct_lens_simulation())
+    res[f"{key}_s"] = time.perf_counter() - t
+    res[f"{key}_line"] = st.correction
+    save("Lens Corrected", f"rt-{key}")
+
 
 # ------------------------------------------------------------ torch blocked
 hook = NoTorch()
@@ -78,18 +97,27 @@ before, counts, imgs = state(), data_counts(), images()
 t = time.perf_counter()
 res["simulate"] = sorted(bpy.ops.dcdi.simulate_lens())
 res["simulate_s"] = time.perf_counter() - t
-res["simulate_report_status"] = bpy.context.window_manager.dcdi_lens_bokeh_status.psf_source
+res["simulate_report_status"] = st.psf_source
 res["images_after_simulate"] = images()
 after_sim, imgs_sim = state(), images()
+s.correction_method = "NETWORK"
 res["no_torch_error"] = error_of(lambda: bpy.ops.dcdi.correct_lens_simulation())
 sim = ops_mod._SIMULATION
 try:                                    # the worker's path (execute after poll) says the same
-    logic.run_correction(sim["image"], sim["sensor_depth"], LENS, DACN, pixel_pitch_mm=sim["pixel_pitch_mm"])
+    logic.choose_correction("network", LENS, sim["pixel_pitch_mm"])
     res["no_torch_run"] = None
 except logic.BokehInputError as e:
     res["no_torch_run"] = str(e)
 res["panel_no_torch"] = draw_panel()
+s.correction_method = "AUTO"
 res["no_torch_changed"] = diff(after_sim, state()) + ([] if images() == imgs_sim else [f"images: {images()}"])
+res["auto_choice_no_torch"] = choice()
+correct("AUTO", "deconv_auto")                   # no torch: the deconvolution
+res["panel_after_deconv"] = draw_panel()
+correct("DECONVOLUTION", "deconv")
+s.correction_model = str(DACN)           # a network given: Auto's rule picks it, but there is no torch
+correct("AUTO", "deconv_auto_given")
+s.correction_model = ""
 res["torch_imported_while_blocked"] = "torch" in sys.modules
 res["install_command"] = logic.torch_install_command()
 sys.meta_path.remove(hook)
@@ -98,6 +126,8 @@ for k, v in (("rgb", sim["rgb"]), ("depth", sim["depth"]), ("sim", sim["image"])
     np.save(OUT / f"rt-{k}.npy", v)
 save("Lens Simulation", "rt-sim-image")
 res["pixel_pitch_mm"] = sim["pixel_pitch_mm"]
+res["geometry"] = {"height": sim["geometry"].height, "width": sim["geometry"].width,
+                   "pixel_pitch_mm": sim["geometry"].pixel_pitch_mm}
 
 # ------------------------------------------------------------ torch, the tiny DACN as the shipped one
 empty, shipped = OUT / "no-weights", OUT / "weights"
@@ -106,30 +136,39 @@ shipped.mkdir()
 shutil.copy(DACN, shipped / f"dacn-{LENS}.npz")
 real_weights = registry.WEIGHTS_DIR
 registry.WEIGHTS_DIR = empty
+s.correction_method = "NETWORK"
 res["no_shipped_error"] = error_of(lambda: bpy.ops.dcdi.correct_lens_simulation())
+res["auto_choice_no_network"] = choice()
 registry.WEIGHTS_DIR = shipped
 for run in ("cold", "warm"):
-    t = time.perf_counter()
-    res[f"correct_{run}"] = sorted(bpy.ops.dcdi.correct_lens_simulation())
-    res[f"correct_{run}_s"] = time.perf_counter() - t
-save("Lens Corrected", "rt-corrected")
+    correct("NETWORK", f"correct_{run}")
 res["panel_with_torch"] = draw_panel()
+res["auto_choice_with_torch"] = choice()
+correct("AUTO", "auto_with_torch")
 registry.WEIGHTS_DIR = empty
 s.correction_model = str(DACN)           # a user's own file, no shipped one
-res["correct_model_file"] = sorted(bpy.ops.dcdi.correct_lens_simulation())
+correct("NETWORK", "correct_model_file")
+correct("AUTO", "auto_given")            # with torch, Auto runs the network given
 s.correction_model = str(OUT / "missing.npz")
 res["missing_model_error"] = error_of(lambda: bpy.ops.dcdi.correct_lens_simulation())
 s.correction_model = ""
+s.correction_method = "AUTO"
 registry.WEIGHTS_DIR = real_weights
 res["round_trip_diff"] = diff(before, state())
 res["new_data"] = {k: v - counts[k] for k, v in data_counts().items() if v != counts[k]}
 res["images_before"], res["images"] = imgs, images()
 
 # sensor noise (off by default) changes the simulation; settings again as they were
+# and Correct then weighs the prior by the sensor's noise model
 s.sensor_noise = True
 res["simulate_noise"] = sorted(bpy.ops.dcdi.simulate_lens())
+res["line_after_new_simulation"] = st.correction
 save("Lens Simulation", "rt-sim-noise")
+for k in ("rgb", "depth", "sensor_depth"):
+    np.save(OUT / f"rt-noise-{k}.npy", ops_mod._SIMULATION[k])
+correct("DECONVOLUTION", "deconv_noise")
 s.sensor_noise = False
+s.correction_method = "AUTO"
 
 # disable: nothing of the add-on stays registered, the last simulation is dropped
 res["disable"] = sorted(bpy.ops.preferences.addon_disable(module=MODULE))
