@@ -85,41 +85,69 @@ def kernel_spectra(kernels: np.ndarray, f: int, be: str) -> np.ndarray:
     return fft.rfft2(grid, (f, f), be)
 
 
-def deconvolve_windows(padded: np.ndarray, origins: np.ndarray, kernels: np.ndarray, lam: np.ndarray,
-                       lay: WindowLayout, be: str) -> np.ndarray:
-    """Wiener-deconvolved cores (n, C, 2m, 2m) of the windows whose top-left
-    corners in ``padded`` (H', W', C) are ``origins`` (n, 2), each with its
-    kernel (n, C, k, k) and weight ``lam`` (n, C)."""
-    L, f, p = lay.size, lay.fft_size, lay.pad
+@dataclass
+class _Windows:
+    """Windows of a chunk in the Fourier domain, and what their filters need."""
+
+    spec: np.ndarray         # (n, C, f, f//2+1) the tapered windows, means taken out
+    k_spec: np.ndarray       # (n, C, f, f//2+1) their kernels
+    mean: np.ndarray         # (n, C, 1, 1)
+    lam: np.ndarray          # (n, C, 1, 1) the prior's weight
+    d2: np.ndarray           # (f, f//2+1) |D|^2
+
+
+def _windows(padded, origins, kernels, var, weight: float, adaptive: bool, lay: WindowLayout, be: str) -> _Windows:
+    """The chunk's windows, kernels and lambda. ``var`` (n, C): the noise
+    variance at each window's brightness. lambda = weight x var / A, A the
+    image's gradient power: measured in the window when ``adaptive`` (the
+    capture's gradient energy less the noise's, over the kernel's: textures
+    differ by orders of magnitude between scenes), else 1."""
+    L, f = lay.size, lay.fft_size
     ramp = _ramp(L, lay.taper).astype(np.float32)
     taper2d = ramp[:, None] * ramp[None, :]
     rows = origins[:, 0, None] + np.arange(L)[None, :]
     cols = origins[:, 1, None] + np.arange(L)[None, :]
-    win = padded[rows[:, :, None], cols[:, None, :]]                  # (n, L, L, C)
-    win = np.moveaxis(win, -1, 1).astype(np.float32)                  # (n, C, L, L)
+    win = np.moveaxis(padded[rows[:, :, None], cols[:, None, :]], -1, 1).astype(np.float32)   # (n, C, L, L)
     mean = win.mean(axis=(-2, -1), keepdims=True)
     spec = fft.rfft2((win - mean) * taper2d, (f, f), be)
     k_spec = kernel_spectra(kernels, f, be)
     d2 = gradient_power(f)
-    filt = np.conj(k_spec) / (np.abs(k_spec) ** 2 + lam[:, :, None, None].astype(np.float32) * d2)
-    out = fft.irfft2(spec * filt, (f, f), be)[..., p:p + lay.core, p:p + lay.core]
-    return (out + mean).astype(np.float32)
+    var = np.asarray(var, np.float32)[:, :, None, None]
+    if adaptive:
+        n_eff = float((taper2d ** 2).sum())
+        grad = (np.abs(spec) ** 2 * d2).sum(axis=(-2, -1), keepdims=True) / n_eff
+        power = np.maximum(grad - var * d2.sum(), 0.0) / (np.abs(k_spec) ** 2).sum(axis=(-2, -1), keepdims=True)
+        lam = weight * var / np.maximum(power, 1e-12)
+    else:
+        lam = weight * var
+    return _Windows(spec, k_spec, mean, lam.astype(np.float32), d2)
 
 
-def deconvolve_all(padded, origins, kernels, lam, lay: WindowLayout, be: str, chunk: int = 64,
-                   on_chunk=None, iterations: int = 0) -> np.ndarray:
-    """``deconvolve_windows`` (``iterations`` 0) or ``hqs_windows`` over
-    chunks of windows on the shared pool; ``on_chunk(done, total)`` after each."""
+def _cores(x_spec, w: _Windows, lay: WindowLayout, be: str) -> np.ndarray:
+    f, p = lay.fft_size, lay.pad
+    out = fft.irfft2(x_spec, (f, f), be)[..., p:p + lay.core, p:p + lay.core]
+    return (out + w.mean).astype(np.float32)
+
+
+def deconvolve_windows(w: _Windows, lay: WindowLayout, be: str) -> np.ndarray:
+    """Wiener-deconvolved cores (n, C, 2m, 2m)."""
+    filt = np.conj(w.k_spec) / (np.abs(w.k_spec) ** 2 + w.lam * w.d2)
+    return _cores(w.spec * filt, w, lay, be)
+
+
+def deconvolve_all(padded, origins, kernels, var, lay: WindowLayout, be: str, *, weight: float, adaptive: bool,
+                   chunk: int = 64, on_chunk=None, iterations: int = 0) -> np.ndarray:
+    """Cores (n, C, 2m, 2m) of every window: Wiener (``iterations`` 0) or
+    ``hqs_windows``, chunks of windows on the shared pool;
+    ``on_chunk(done, total)`` after each."""
     n = len(origins)
     out = np.empty((n, padded.shape[-1], lay.core, lay.core), np.float32)
     starts = list(range(0, n, chunk))
 
     def work(s):
         sl = slice(s, min(s + chunk, n))
-        if iterations:
-            out[sl] = hqs_windows(padded, origins[sl], kernels[sl], lam[sl], lay, be, iterations)
-        else:
-            out[sl] = deconvolve_windows(padded, origins[sl], kernels[sl], lam[sl], lay, be)
+        w = _windows(padded, origins[sl], kernels[sl], var[sl], weight, adaptive, lay, be)
+        out[sl] = hqs_windows(w, lay, be, iterations) if iterations else deconvolve_windows(w, lay, be)
         return sl.stop - sl.start
 
     done = 0
@@ -136,42 +164,26 @@ def deconvolve_all(padded, origins, kernels, lam, lay: WindowLayout, be: str, ch
     return out
 
 
-def _spatial(spec: np.ndarray, f: int, be: str) -> np.ndarray:
-    return fft.irfft2(spec, (f, f), be)
-
-
-def hqs_windows(padded: np.ndarray, origins: np.ndarray, kernels: np.ndarray, lam: np.ndarray,
-                lay: WindowLayout, be: str, iterations: int = 4, beta0: float = 4.0) -> np.ndarray:
+def hqs_windows(w: _Windows, lay: WindowLayout, be: str, iterations: int = 4, beta0: float = 4.0) -> np.ndarray:
     """Cores (n, C, 2m, 2m) restored by half-quadratic splitting with a
     total-variation prior (anisotropic L1 of the gradients): the Wiener step
     alternated with soft thresholding of the gradients, the splitting weight
     doubling from ``beta0`` x lambda. The prior keeps edges the quadratic
     one blurs; each iteration costs three FFTs of the window."""
-    L, f, p = lay.size, lay.fft_size, lay.pad
-    ramp = _ramp(L, lay.taper).astype(np.float32)
-    taper2d = ramp[:, None] * ramp[None, :]
-    rows = origins[:, 0, None] + np.arange(L)[None, :]
-    cols = origins[:, 1, None] + np.arange(L)[None, :]
-    win = np.moveaxis(padded[rows[:, :, None], cols[:, None, :]], -1, 1).astype(np.float32)
-    mean = win.mean(axis=(-2, -1), keepdims=True)
-    spec = fft.rfft2((win - mean) * taper2d, (f, f), be)
-    k_spec = kernel_spectra(kernels, f, be)
+    f = lay.fft_size
     wy = 2 * np.pi * np.fft.fftfreq(f)[:, None]
     wx = 2 * np.pi * np.fft.rfftfreq(f)[None, :]
     dy, dx = (np.exp(1j * wy) - 1).astype(np.complex64), (np.exp(1j * wx) - 1).astype(np.complex64)
-    d2 = (np.abs(dy) ** 2 + np.abs(dx) ** 2).astype(np.float32)
-    lam4 = lam[:, :, None, None].astype(np.float32)
-    kty, k2 = np.conj(k_spec) * spec, np.abs(k_spec) ** 2
-    x_spec = kty / (k2 + lam4 * d2)                                   # the Wiener start
-    beta = beta0 * lam4
+    kty, k2 = np.conj(w.k_spec) * w.spec, np.abs(w.k_spec) ** 2
+    x_spec = kty / (k2 + w.lam * w.d2)                                # the Wiener start
+    beta = beta0 * w.lam
     for _ in range(iterations):
-        x = _spatial(x_spec, f, be)
+        x = fft.irfft2(x_spec, (f, f), be)
         gy, gx = np.roll(x, -1, axis=-2) - x, np.roll(x, -1, axis=-1) - x   # the gradients D applies
-        t = TV_SCALE * lam4 / beta
+        t = TV_SCALE * w.lam / beta
         zy = np.sign(gy) * np.maximum(np.abs(gy) - t, 0.0)
         zx = np.sign(gx) * np.maximum(np.abs(gx) - t, 0.0)
         rhs = kty + beta * (np.conj(dy) * fft.rfft2(zy, (f, f), be) + np.conj(dx) * fft.rfft2(zx, (f, f), be))
-        x_spec = rhs / (k2 + beta * d2)
+        x_spec = rhs / (k2 + beta * w.d2)
         beta = beta * 2.0
-    out = _spatial(x_spec, f, be)[..., p:p + lay.core, p:p + lay.core]
-    return (out + mean).astype(np.float32)
+    return _cores(x_spec, w, lay, be)

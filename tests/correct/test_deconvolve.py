@@ -157,7 +157,7 @@ def test_noise_estimate_finds_the_sensor_model():
                                       ({"weight": math.nan}, "weight"), ({"layer_step_diopters": 0.0}, "layer_step"),
                                       ({"one_depth_m": -1.0}, "one_depth_m"), ({"clip_level": 0.0}, "clip_level"),
                                       ({"pad": 1}, "pad"), ({"method": "rl"}, "method"),
-                                      ({"iterations": 0}, "iterations")])
+                                      ({"iterations": 0}, "iterations"), ({"prior": "flat"}, "prior")])
 def test_bad_options_are_refused_by_name(kw, name):
     with pytest.raises(InputRangeError, match=name):
         DeconvOptions(**kw)
