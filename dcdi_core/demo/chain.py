@@ -8,7 +8,9 @@ correction and depth -> another lens's depth of field, each beside its truth.
    the lens at this pixel pitch, else traced. Its truth: the sharp frame and
    the depth on the same sensor (distorted alike, NaN where nothing is
    imaged), what the network was trained to recover;
-2. correction and depth: ``pipeline.dof`` with the camera lens's shipped DACN
+2. correction and depth: ``pipeline.dof`` with the engine's rule (the
+   deconvolution with the camera lens's own PSFs, or the shipped DACN where
+   it is recorded better)
    and depth network renders the target lens's depth of field (focused at
    ``focus_m``) on the corrected image with the estimated depth;
 3. the same bokeh of the uncorrected capture with the same estimated depth,
@@ -123,6 +125,7 @@ class ChainResult:
     seconds: dict
     notes: list = field(default_factory=list)
     picture: Path | None = None
+    correction: dict = field(default_factory=dict)   # which method corrected, and why (pipeline.choose_correction)
 
 
 def simulate_capture(scene: Scene, nets: Networks, seed: int) -> Capture:
@@ -174,7 +177,9 @@ def run_chain(scene: Scene, nets: Networks, settings: ChainSettings, out: Path, 
     # the target lens's frame lies where the camera's did, at the same pitch
     target_geometry = ImageGeometry.from_pixel_pitch(nets.target, h, w, g.pixel_pitch_mm, center_px=g.center_px)
     common = {"focus_m": settings.focus_m, "geometry": target_geometry}
-    r = dof(cap.image, nets.target, estimator=nets.estimator, corrector=nets.dacn, corrector_info=nets.dacn_info,
+    # the correction by the engine's rule (dcdi correct --method auto): the deconvolution with the camera's
+    # own PSFs unless a shipped network is recorded better; the depth is the estimated one, as a user has
+    r = dof(cap.image, nets.target, estimator=nets.estimator, correction="auto", camera=nets.camera,
             camera_pitch_mm=g.pixel_pitch_mm, **common)
     seconds.update(r.seconds)
     log(f"  {scene.key}: depth {r.seconds.get('depth', 0):.1f} s, correction {r.seconds.get('correction', 0):.1f} s, "
@@ -185,7 +190,7 @@ def run_chain(scene: Scene, nets: Networks, settings: ChainSettings, out: Path, 
     seconds["references"] = time.perf_counter() - t0
     scores = chain_scores(cap, r.corrected, r.depth_m, r.image, uncorrected, ideal)
     result = ChainResult(scene.key, scene.title, cap, r.corrected, r.depth_m, r.image, uncorrected, ideal,
-                         r.psf_message, scores, seconds, list(r.notes))
+                         r.psf_message, scores, seconds, list(r.notes), correction=dict(r.correction))
     result.picture = write_strip(result, out)
     log(f"  {scene.key}: PSNR capture {scores['capture_psnr']:.2f} dB -> corrected {scores['corrected_psnr']:.2f} dB; "
         f"depth of field: pipeline {scores['dof_psnr']:.2f} dB, uncorrected {scores['dof_uncorrected_psnr']:.2f} dB "

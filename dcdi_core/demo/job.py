@@ -58,15 +58,24 @@ def _db(x: float) -> str:
     return f"{x:.2f}"
 
 
+def _method(results, nets: Networks, cfg: dict) -> str:
+    """What corrected the captures, as `dcdi correct --method auto` chose it."""
+    rec = results[0].correction if results else {}
+    if rec.get("method") == "dacn":
+        return (f"the shipped DACN (`{nets.dacn_file.name}`: configuration {cfg.get('config', '?')}, "
+                f"{cfg.get('iters', '?')} training iterations; {rec.get('reason', '')})")
+    return (f"the deconvolution with {nets.camera.id}'s own PSFs at the estimated depth (`dcdi correct --method "
+            f"auto`: {rec.get('reason', 'the engine rule')})")
+
+
 def dcdi_section(results, nets: Networks, settings: ChainSettings, factory_missing: str | None) -> list[str]:
     """The report's DCDI section: what was done, the table, the verdicts."""
     cfg = nets.dacn_info.get("config") or {}
     cam, tgt = nets.camera.id, nets.target.id
     lines = [f"## DCDI: a {cam} capture -> the {tgt} lens's depth of field", "",
              f"Each scene through the camera lens {cam} (depth-aware aberrations and distortion, sensor noise as "
-             f"in the correction network's training pairs), corrected by the shipped DACN "
-             f"(`{nets.dacn_file.name}`: configuration {cfg.get('config', '?')}, {cfg.get('iters', '?')} "
-             f"training iterations), its depth estimated by the shipped depth network (`{nets.depth_file.name}`), "
+             f"in the correction network's training pairs), corrected by {_method(results, nets, cfg)}, "
+             f"its depth estimated by the shipped depth network (`{nets.depth_file.name}`), "
              f"then the {tgt} lens's depth of field focused at {settings.focus_m:g} m rendered on the corrected "
              "image with the estimated depth (`dcdi_core.pipeline.dof`). The *ideal* is the same bokeh of the "
              "true sharp frame with the true depth; the truth of the capture is the sharp frame on the same "
