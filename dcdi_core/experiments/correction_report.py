@@ -63,6 +63,7 @@ NOISE = {"full_well_electrons": 10000.0, "read_noise_electrons": 3.0}
 CLIP_LEVEL = 0.98
 VIEWS = ("linear", "sRGB", "linear, highlights masked", "sRGB, highlights masked")
 CROPS, FULL = "12.2 um crops", "full sensor"
+FIXED_PRIOR_WEIGHT = 60.0     # the deconvolution's default weight when its prior was one image statistic
 
 
 @dataclass(frozen=True)
@@ -382,6 +383,7 @@ def methods(lens, model, traced: bool) -> list[Method]:
     rows = [Method("capture", lambda f: f.capture, timed=False),
             Method("deconvolution, depth per patch", _deconv(lens, DeconvOptions())),
             Method("deconvolution, depth layers 0.1 D", _deconv(lens, DeconvOptions(layer_step_diopters=0.1))),
+            Method("deconvolution, HQS (iterative)", _deconv(lens, DeconvOptions(method="hqs"))),
             Method("deconvolution, one depth 2 m", _deconv(lens, DeconvOptions(one_depth_m=2.0))),
             Method("deconvolution, one depth infinity", _deconv(lens, DeconvOptions(one_depth_m=math.inf)))]
     if traced:
@@ -446,13 +448,19 @@ def variants(kernel_size: int, traced: bool) -> list[tuple[str, DeconvOptions, b
     default, then one setting changed at a time."""
     base = DeconvOptions()
     pad = layout_for(base.patch, kernel_size, None).pad
-    default = (f"default: patch {base.patch}, pad {pad} px, weight {base.weight:g}, "
+    default = (f"default: {base.method}, prior {base.prior}, patch {base.patch}, pad {pad} px, weight {base.weight:g}, "
                + ("one depth a patch" if base.layer_step_diopters is None else f"layers {base.layer_step_diopters:g} D")
                + (", noise estimated" if base.noise is None else ", noise given") + ", the OLF's PSFs")
     out = [(default, base, False), ("patch 32", dataclasses.replace(base, patch=32), False),
            (f"pad {max(2, pad // 2)} px", dataclasses.replace(base, pad=max(2, pad // 2)), False),
            (f"pad {2 * pad} px", dataclasses.replace(base, pad=min(2 * pad, 512)), False)]
-    out += [(f"weight {w:g}", dataclasses.replace(base, weight=w), False) for w in (30.0, 100.0, 300.0, 1000.0)]
+    out += [(f"weight {w:g}", dataclasses.replace(base, weight=w), False)
+            for w in (base.weight / 3, base.weight * 3, base.weight * 10)]
+    other = "hqs" if base.method == "wiener" else "wiener"
+    out.append((f"method {other}", dataclasses.replace(base, method=other), False))
+    if base.prior == "adaptive":       # the fixed prior's weight is on another scale: its former default
+        out.append((f"prior fixed, weight {FIXED_PRIOR_WEIGHT:g}",
+                    dataclasses.replace(base, prior="fixed", weight=FIXED_PRIOR_WEIGHT), False))
     out += [(f"layers {s:g} D", dataclasses.replace(base, layer_step_diopters=s), False) for s in (0.1, 0.2)]
     out.append(("noise given (the sensor's model)", dataclasses.replace(base, noise=NoiseModel.sensor(
         NOISE["full_well_electrons"], NOISE["read_noise_electrons"])), False))

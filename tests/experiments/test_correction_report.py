@@ -46,6 +46,7 @@ def test_quick_report_scores_are_finite_and_in_range(quick_report):
     rows = res["rows"][cr.SYNTHETIC]
     assert set(rows) == {"12.2 um, centre", "12.2 um, mid-field", "12.2 um, edge", cr.CROPS, cr.FULL}
     want = {"capture", "deconvolution, depth per patch", "deconvolution, depth layers 0.1 D",
+            "deconvolution, HQS (iterative)",
             "deconvolution, one depth 2 m", "deconvolution, one depth infinity"}
     for case, methods in rows.items():
         assert want <= set(methods), case
