@@ -32,9 +32,10 @@ def test_demo_writes_the_strip_the_side_pictures_and_the_table(demo_out):
         assert (demo_out / name).stat().st_size > 1000
     report = (demo_out / "report.md").read_text()
     rows = [line for line in report.splitlines() if line.startswith("| synthetic |")]
-    assert len(rows) == 1
+    assert len(rows) == 2                                       # estimated depth, then the true depth
     cells = [c.strip() for c in rows[0].strip("|").split("|")]
     assert all(math.isfinite(float(c)) for c in cells[1:5])
+    assert all(math.isfinite(float(c)) for c in rows[1].strip("|").split("|")[1:])
     assert "no factory scene: no Blender in this test" in report
     assert "dcdi_synthetic.png" in report and "Omni-Lens-Field" in report
     assert "## The lenses" not in report                      # lenses=False
@@ -42,7 +43,8 @@ def test_demo_writes_the_strip_the_side_pictures_and_the_table(demo_out):
 
 def test_demo_scores_are_finite_and_measure_the_chain(demo_out):
     s = json.loads((demo_out / "dcdi_scores.json").read_text())["synthetic"]
-    for k in ("capture_psnr", "corrected_psnr", "dof_uncorrected_psnr", "dof_psnr", "depth_abs_rel", "depth_delta1"):
+    for k in ("capture_psnr", "corrected_psnr", "dof_uncorrected_psnr", "dof_psnr", "depth_abs_rel", "depth_delta1",
+              "true_depth_corrected_psnr", "true_depth_dof_psnr", "true_depth_dof_uncorrected_psnr"):
         assert math.isfinite(s[k]), k
     # the capture is aberrated and noisy: far from its sharp truth, not identical to it
     assert 10 < s["capture_psnr"] < 45

@@ -160,6 +160,17 @@ def chain_scores(capture: Capture, corrected, depth_m, dof, dof_uncorrected, ide
             "depth_abs_rel": depth["abs_rel"], "depth_delta1": depth["delta1"]}
 
 
+def true_depth_scores(capture: Capture, corrected, dof, dof_uncorrected, ideal) -> dict:
+    """PSNRs (dB) of the chain given the true depth (no estimate)."""
+    from ..models.dacn.evaluate import image_scores
+
+    def db(image, target):
+        return image_scores(image, target, capture.depth_m)["psnr"]
+    ideal = np.clip(ideal, 0.0, 1.0)
+    return {"true_depth_corrected_psnr": db(corrected, capture.truth), "true_depth_dof_psnr": db(dof, ideal),
+            "true_depth_dof_uncorrected_psnr": db(dof_uncorrected, ideal)}
+
+
 def run_chain(scene: Scene, nets: Networks, settings: ChainSettings, out: Path, log=print) -> ChainResult:
     """The chain on one scene (module docstring); writes its picture
     ``dcdi_<scene key>.png`` to ``out``: capture | corrected | estimated
@@ -187,8 +198,13 @@ def run_chain(scene: Scene, nets: Networks, settings: ChainSettings, out: Path, 
     t0 = time.perf_counter()
     uncorrected = dof(cap.image, nets.target, depth_m=r.depth_m, **common).image
     ideal = dof(cap.truth, nets.target, depth_m=cap.depth_m, **common).image
+    # with the true depth (an RGB-D camera's): the correction and the bokeh both use it
+    known = dof(cap.image, nets.target, depth_m=cap.depth_m, correction="auto", camera=nets.camera,
+                camera_pitch_mm=g.pixel_pitch_mm, **common)
+    known_uncorrected = dof(cap.image, nets.target, depth_m=cap.depth_m, **common).image
     seconds["references"] = time.perf_counter() - t0
     scores = chain_scores(cap, r.corrected, r.depth_m, r.image, uncorrected, ideal)
+    scores.update(true_depth_scores(cap, known.corrected, known.image, known_uncorrected, ideal))
     result = ChainResult(scene.key, scene.title, cap, r.corrected, r.depth_m, r.image, uncorrected, ideal,
                          r.psf_message, scores, seconds, list(r.notes), correction=dict(r.correction))
     result.picture = write_strip(result, out)

@@ -93,6 +93,14 @@ def dcdi_section(results, nets: Networks, settings: ChainSettings, factory_missi
               f"{DEPTH_SCORED_BELOW_M:g} m. The uncorrected capture's depth of field uses the same estimated "
               "depth, so the two DoF columns differ by the correction alone.", ""]
     lines += [f"- {verdict(r)}" for r in results]
+    lines += ["", "With the true depth (an RGB-D camera's) for the correction and both bokehs:", "",
+              f"| scene | corrected vs truth, dB | {tgt} DoF of the uncorrected capture vs ideal, dB | "
+              f"pipeline's {tgt} DoF vs ideal, dB |", "|---|---|---|---|"]
+    for r in results:
+        s = r.scores
+        if "true_depth_dof_psnr" in s:
+            lines.append(f"| {r.key} | {_db(s['true_depth_corrected_psnr'])} | "
+                         f"{_db(s['true_depth_dof_uncorrected_psnr'])} | {_db(s['true_depth_dof_psnr'])} |")
     lines += ["", "Pictures, one strip per scene: capture | corrected | estimated depth | true depth | "
               f"pipeline's {tgt} depth of field | ideal (depth: near bright, far dark, log scale 0.5-20 m; "
               "grey: not imaged)", ""]
