@@ -50,6 +50,7 @@ from ..correct.wiener import layout_for
 from ..errors import InputRangeError
 from ..io.images import linear_to_srgb
 from ..models.common.metrics import WINDOW, ssim_map
+from ..models.dacn.evaluate import BandSums
 from ..render.geometry import ImageGeometry
 from ..render.simulate import LensSimulator, check_within_sensor, open_library
 from ..render.synthetic import synthetic_rgbd
@@ -245,29 +246,19 @@ def all_frames(lens, libs: Libraries, options: ReportOptions, data_scenes, log) 
 
 
 # ------------------------------------------------------------------ scores
-@dataclass
-class Sums:
-    """Pooled sums of one region: squared error and its count (pixels x
-    channels), SSIM map values and their count."""
+class Sums(BandSums):
+    """Pooled sums of one region (``models.dacn.evaluate.BandSums``), added
+    from an error map, an SSIM map and the region's pixels; scores JSON-safe."""
 
-    sse: float = 0.0
-    n: int = 0
-    ssim_sum: float = 0.0
-    ssim_n: int = 0
-
-    def add(self, err: np.ndarray, smap: np.ndarray, sel: np.ndarray) -> None:
-        self.sse += float(err[sel].sum())
-        self.n += 3 * int(sel.sum())
+    def add_region(self, err: np.ndarray, smap: np.ndarray, sel: np.ndarray) -> None:
         s = smap[sel]
         s = s[np.isfinite(s)]
-        self.ssim_sum += float(s.sum())
-        self.ssim_n += int(s.size)
+        self.add(float(err[sel].sum()), 3 * int(sel.sum()), float(s.sum()), int(s.size))
 
     def scores(self) -> dict:
-        mse = self.sse / self.n if self.n else math.nan
-        return {"psnr": _finite(10.0 * math.log10(1.0 / mse) if mse > 0 else math.inf),
-                "ssim": _finite(self.ssim_sum / self.ssim_n if self.ssim_n else math.nan),
-                "pixels": self.n // 3}
+        base = super().scores()
+        return {"psnr": _finite(base.get("psnr", math.nan)), "ssim": _finite(base.get("ssim", math.nan)),
+                "pixels": base["pixels"]}
 
 
 def _finite(v: float):
@@ -334,8 +325,8 @@ class Scores:
             err, smap = error_maps(out, frame.sharp, srgb)
             space = "sRGB" if srgb else "linear"
             for region, sel in masks.items():
-                self.sums.setdefault((space, region), Sums()).add(err, smap, sel)
-                self.sums.setdefault((space + ", highlights masked", region), Sums()).add(err, smap, sel & ~hi)
+                self.sums.setdefault((space, region), Sums()).add_region(err, smap, sel)
+                self.sums.setdefault((space + ", highlights masked", region), Sums()).add_region(err, smap, sel & ~hi)
         self.wall += seconds[0]
         self.cpu += seconds[1]
         self.megapixels += frame.megapixels

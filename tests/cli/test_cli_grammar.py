@@ -12,6 +12,7 @@ import pytest
 from conftest import write_rgbd_scene
 
 from dcdi_core.cli import build_parser, main
+from support.cli import run_cli
 from dcdi_core.io.images import write_depth, write_image
 from dcdi_core.models.registry import network
 
@@ -19,13 +20,7 @@ FAST = ["--rays", "16", "--wavelengths", "3", "--kernel", "15"]
 WEIGHTS = Path(__file__).resolve().parents[2] / "dcdi_core" / "models" / "weights"
 
 
-def _cli(capsys, *argv):
-    try:
-        code = main([str(a) for a in argv])
-    except SystemExit as e:                  # argparse's own refusals
-        code = e.code
-    cap = capsys.readouterr()
-    return code, cap.out, cap.err
+_cli = run_cli
 
 
 def _one_error_line(code, err, *says):

@@ -10,7 +10,7 @@ import pytest
 
 from conftest import write_rgbd_scene
 
-from dcdi_core.cli import main
+from support.cli import run_cli
 from dcdi_core.io.images import read_image
 
 # tiny traced PSFs, the same for the simulated capture and its correction
@@ -18,19 +18,10 @@ FAST = ["--rays", "16", "--wavelengths", "3", "--kernel", "15", "--psf-source", 
 # the 6P at 50 um pixels: a blur of a few pixels on a 48 x 64 image
 PITCH = ["--image-pixel-pitch", "0.05"]
 
-
-def _cli(capsys, *argv):
-    try:
-        code = main([str(a) for a in argv])
-    except SystemExit as e:                  # argparse's own refusals
-        code = e.code
-    cap = capsys.readouterr()
-    return code, cap.out, cap.err
-
+_cli = run_cli
 
 def _psnr(a, b) -> float:
     return float(-10 * np.log10(np.mean((np.clip(a, 0, 1) - np.clip(b, 0, 1)) ** 2)))
-
 
 @pytest.fixture
 def capture(tmp_path, monkeypatch, capsys):
@@ -43,10 +34,8 @@ def capture(tmp_path, monkeypatch, capsys):
     assert code == 0, err
     return tmp_path
 
-
 def _correct(capsys, d, *extra, out="out.exr"):
     return _cli(capsys, "correct", "--image", d / "cap.exr", "-o", d / out, *extra)
-
 
 def test_correct_deconvolves_a_lens_without_a_network_and_gains_psnr(capture, capsys):
     d = capture
@@ -62,7 +51,6 @@ def test_correct_deconvolves_a_lens_without_a_network_and_gains_psnr(capture, ca
     # most of this 48 x 64 frame lies within a kernel radius of its edge, where the result fades to the capture
     assert after > before + 1.0, (before, after)
 
-
 def test_auto_picks_the_deconvolution_over_a_shipped_network_and_says_why(capture, capsys):
     from dcdi_core.models.registry import network
     if "mos-s1" not in network("dacn").shipped_keys():
@@ -77,7 +65,6 @@ def test_auto_picks_the_deconvolution_over_a_shipped_network_and_says_why(captur
     assert [x for x in err.splitlines() if x.startswith("dcdi: correction by")] == \
         [f"dcdi: correction by the deconvolution: {c['reason']}"]
 
-
 def test_the_one_depth_baseline_needs_no_depth_map(capture, capsys):
     d = capture
     code, out, err = _correct(capsys, d, "--lens", "6p", "--one-depth", "3", "--method", "deconv", *PITCH, *FAST)
@@ -89,7 +76,6 @@ def test_the_one_depth_baseline_needs_no_depth_map(capture, capsys):
     # one depth for the whole image is not the depth-aware result
     assert not np.array_equal(read_image(d / "out.exr"), read_image(d / "aware.exr"))
 
-
 def test_given_noise_and_weight_reach_the_deconvolution(capture, capsys):
     d = capture
     code, out, err = _correct(capsys, d, "--depth", d / "depth.exr", "--lens", "6p", "--noise-full-well", "5000",
@@ -98,7 +84,6 @@ def test_given_noise_and_weight_reach_the_deconvolution(capture, capsys):
     c = json.loads(out)["correction"]
     assert c["weight"] == 7.0 and c["noise"]["given"]
     assert c["noise"]["gain"] == pytest.approx(1 / 5000) and c["noise"]["floor"] == pytest.approx((3 / 5000) ** 2)
-
 
 @pytest.mark.parametrize("extra, says", [
     (["--lens", "6p", "--method", "dacn"], ["no shipped DACN for lens 6p", "--model", "--method deconv"]),
@@ -123,7 +108,6 @@ def test_what_cannot_run_is_refused_in_one_line_before_any_work(capture, capsys,
         assert s in lines[0], lines[0]
     assert not (d / "x.exr").exists() and not any((d / "cache").iterdir())
 
-
 def test_dacn_correct_is_the_network_alone(capture, capsys):
     d = capture
     code, _, err = _cli(capsys, "dacn", "correct", "--image", d / "cap.exr", "--depth", d / "depth.exr", "--lens", "6p",
@@ -132,7 +116,6 @@ def test_dacn_correct_is_the_network_alone(capture, capsys):
     code, _, err = _cli(capsys, "dacn", "correct", "--image", d / "cap.exr", "--depth", d / "depth.exr", "--lens", "6p",
                         "--method", "deconv", "-o", d / "x.exr")
     assert code == 2 and "unrecognized arguments: --method" in err
-
 
 def test_dof_corrects_with_the_same_deconvolution_as_correct(capture, capsys):
     d = capture

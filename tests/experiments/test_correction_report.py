@@ -86,7 +86,7 @@ def test_highlight_mask_reaches_the_radius_and_no_further():
 def test_pooled_sums_score_by_hand():
     s = cr.Sums()
     err = np.array([[0.03, 0.0], [0.0, 0.0]])       # summed over 3 channels: MSE 0.01 on one pixel
-    s.add(err, np.array([[0.5, np.nan], [1.0, 1.0]]), np.array([[True, True], [False, False]]))
+    s.add_region(err, np.array([[0.5, np.nan], [1.0, 1.0]]), np.array([[True, True], [False, False]]))
     sc = s.scores()
     assert sc["pixels"] == 2 and sc["psnr"] == pytest.approx(10 * math.log10(1 / 0.005), abs=1e-3)
     assert sc["ssim"] == pytest.approx(0.5)
