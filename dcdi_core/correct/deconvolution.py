@@ -162,7 +162,8 @@ def deconvolve(capture, depth_m, lens, options: DeconvOptions = DeconvOptions(),
     out, n_windows = _blend_windows(y, plan, noise, lay, options, progress)
     reach = int(base.kernels.shape[-1] // 2)
     out = _keep_clipped(y, _fade_to_border(y, out, reach), options.clip_level, reach)
-    info = {"method": "deconvolution", "algorithm": options.method, "patch": m, "windows": n_windows, "patches": int(base.identity.size),
+    info = {"method": "deconvolution", "algorithm": options.method, "patch": m, "windows": n_windows,
+            "patches": int(base.identity.size),
             "layer_step_diopters": None if options.one_depth_m is not None else options.layer_step_diopters,
             "one_depth_m": options.one_depth_m, "weight": options.weight, "prior": options.prior,
             "noise": {"gain": noise.gain, "floor": noise.floor, "given": options.noise is not None},
