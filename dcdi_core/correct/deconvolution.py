@@ -254,8 +254,8 @@ def _blend_windows(y: np.ndarray, plan: _Plan, noise: NoiseModel, lay: WindowLay
         acc[i * m:i * m + 2 * m, j * m:j * m + 2 * m] += np.moveaxis(cores[n], 0, -1) * wgt[:, :, None]
         wsum[i * m:i * m + 2 * m, j * m:j * m + 2 * m] += wgt
     for i, j in np.argwhere(plan.identity):              # no depth known: the capture as it is
-        acc[i * m:i * m + 2 * m, j * m:j * m + 2 * m] += padded[lay.pad + i * m:lay.pad + i * m + 2 * m,
-                                                                lay.pad + j * m:lay.pad + j * m + 2 * m] * tent2[..., None]
+        r0, c0 = lay.pad + i * m, lay.pad + j * m
+        acc[i * m:i * m + 2 * m, j * m:j * m + 2 * m] += padded[r0:r0 + 2 * m, c0:c0 + 2 * m] * tent2[..., None]
         wsum[i * m:i * m + 2 * m, j * m:j * m + 2 * m] += tent2
     return acc[b:b + h, b:b + w] / wsum[b:b + h, b:b + w, None], len(plan.patch_ij)
 
