@@ -18,7 +18,10 @@ costs one window per depth layer it holds.
 Regularisation: lambda = ``weight`` x the noise variance at the window's
 mean brightness (``noise``: the sensor model, or estimated from the capture)
 over the image's gradient power, measured in each window from the capture
-(its gradient energy less the noise's, over the kernel's): a factory room's
+(its gradient energy less the noise's, over the kernel's) on the pixels at
+the window's own depth (a window on a near object would otherwise take the
+sharper wall behind it for its own texture, and ring: a factory room's near
+pillar, MOS-S2 at 12.2 um, 19.1 dB against 23.5 dB): a factory room's
 smooth walls and a photograph's texture need priors orders of magnitude
 apart, and one fixed weight served one of them at the other's expense
 (MOS-S1 at 12.2 um: synthetic scene 23.7 dB either way, factory room 31.5 dB
@@ -159,7 +162,10 @@ def deconvolve(capture, depth_m, lens, options: DeconvOptions = DeconvOptions(),
     noise = options.noise if options.noise is not None else estimate_noise(y)
     plan = _layer_plan(d, base, library, geometry, options)
     lay = layout_for(m, base.kernels.shape[-1], options.pad)
-    out, n_windows = _blend_windows(y, plan, noise, lay, options, progress)
+    # the adaptive prior's image statistic from each window's own depth (one depth for all: the whole window)
+    own = options.prior == "adaptive" and options.one_depth_m is None
+    grad_px = _own_depth_gradients(y, d, base, plan, m, library.grid.far_m) if own else None
+    out, n_windows = _blend_windows(y, plan, noise, lay, options, progress, grad_px)
     reach = int(base.kernels.shape[-1] // 2)
     out = _keep_clipped(y, _fade_to_border(y, out, reach), options.clip_level, reach)
     info = {"method": "deconvolution", "algorithm": options.method, "patch": m, "windows": n_windows,
@@ -229,8 +235,35 @@ def _layer_plan(d, base: PSFMap, library, geometry, options: DeconvOptions) -> _
 
 
 # ------------------------------------------------------------------ the windows and their blend
+def _own_depth_gradients(y, d, base: PSFMap, plan: _Plan, m: int, far_m: float, tol: float = 0.1) -> np.ndarray:
+    """(n, C): the capture's mean squared gradient over the pixels of each
+    window's core that lie within ``tol`` diopters of its patch's depth (the
+    image statistic its prior needs; a near object's window must not take
+    the sharper detail of the wall behind it for its own)."""
+    h, w = d.shape
+    nph, npw = plan.identity.shape
+    b = m // 2
+    gy = np.zeros_like(y)
+    gx = np.zeros_like(y)
+    gy[:-1] = y[1:] - y[:-1]
+    gx[:, :-1] = y[:, 1:] - y[:, :-1]
+    g2 = (gy ** 2 + gx ** 2).astype(np.float32)
+    full = np.pad(g2, ((b, nph * m - h + b), (b, npw * m - w + b), (0, 0)))
+    win = np.lib.stride_tricks.sliding_window_view(full, (2 * m, 2 * m), axis=(0, 1))[::m, ::m][:nph, :npw]
+    core = _core_inverse_depth(d, m, nph, npw, far_m)
+    own = np.where(np.isfinite(base.depth_m), 1.0 / np.where(np.isfinite(base.depth_m), base.depth_m, 1.0), 0.0)
+    own = np.where(base.depth_m >= far_m, 0.0, own)
+    near = np.abs(core - own[:, :, None, None]) <= tol            # NaN depth: False
+    i, j = plan.patch_ij[:, 0], plan.patch_ij[:, 1]
+    sel = near[i, j].astype(np.float32)                          # (n, 2m, 2m)
+    g = win[i, j]                                                  # (n, C, 2m, 2m)
+    cnt = sel.sum(axis=(1, 2))
+    tot = np.einsum("ncxy,nxy->nc", g, sel)
+    return np.where(cnt[:, None] > 0, tot / np.maximum(cnt, 1)[:, None], g.mean(axis=(2, 3))).astype(np.float32)
+
+
 def _blend_windows(y: np.ndarray, plan: _Plan, noise: NoiseModel, lay: WindowLayout, options: DeconvOptions,
-                   progress):
+                   progress, grad_px=None):
     from ..render.convolve import blend_window
 
     m, b = options.patch, options.patch // 2
@@ -243,7 +276,7 @@ def _blend_windows(y: np.ndarray, plan: _Plan, noise: NoiseModel, lay: WindowLay
     be = fft.backend(options.fft_backend)
     cores = deconvolve_all(padded, origins, plan.kernels, var, lay, be, weight=options.weight,
                            adaptive=options.prior == "adaptive", chunk=options.chunk, on_chunk=progress,
-                           iterations=options.iterations if options.method == "hqs" else 0)
+                           iterations=options.iterations if options.method == "hqs" else 0, grad_px=grad_px)
     tent = blend_window(m, b).astype(np.float32)
     tent2 = tent[:, None] * tent[None, :]
     acc = np.zeros((nph * m + 2 * b, npw * m + 2 * b, c), np.float32)

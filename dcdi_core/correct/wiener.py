@@ -94,7 +94,8 @@ class _Windows:
     d2: np.ndarray           # (f, f//2+1) |D|^2
 
 
-def _windows(padded, origins, kernels, var, weight: float, adaptive: bool, lay: WindowLayout, be: str) -> _Windows:
+def _windows(padded, origins, kernels, var, weight: float, adaptive: bool, lay: WindowLayout, be: str,
+             grad_px=None) -> _Windows:
     """The chunk's windows, kernels and lambda. ``var`` (n, C): the noise
     variance at each window's brightness. lambda = weight x var / A, A the
     image's gradient power: measured in the window when ``adaptive`` (the
@@ -112,9 +113,13 @@ def _windows(padded, origins, kernels, var, weight: float, adaptive: bool, lay: 
     d2 = gradient_power(f)
     var = np.asarray(var, np.float32)[:, :, None, None]
     if adaptive:
-        n_eff = float((taper2d ** 2).sum())
-        grad = (np.abs(spec) ** 2 * d2).sum(axis=(-2, -1), keepdims=True) / n_eff
-        power = np.maximum(grad - var * d2.sum(), 0.0) / (np.abs(k_spec) ** 2).sum(axis=(-2, -1), keepdims=True)
+        if grad_px is None:
+            n_eff = float((taper2d ** 2).sum())
+            grad = (np.abs(spec) ** 2 * d2).sum(axis=(-2, -1), keepdims=True) / n_eff
+            power = np.maximum(grad - var * d2.sum(), 0.0) / (np.abs(k_spec) ** 2).sum(axis=(-2, -1), keepdims=True)
+        else:      # per pixel (Parseval): E|grad y|^2 = A mean|K|^2 + var mean|D|^2
+            g = np.asarray(grad_px, np.float32)[:, :, None, None]
+            power = np.maximum(g - var * d2.mean(), 0.0) / (np.abs(k_spec) ** 2).mean(axis=(-2, -1), keepdims=True)
         lam = weight * var / np.maximum(power, 1e-12)
     else:
         lam = weight * var
@@ -134,7 +139,7 @@ def deconvolve_windows(w: _Windows, lay: WindowLayout, be: str) -> np.ndarray:
 
 
 def deconvolve_all(padded, origins, kernels, var, lay: WindowLayout, be: str, *, weight: float, adaptive: bool,
-                   chunk: int = 64, on_chunk=None, iterations: int = 0) -> np.ndarray:
+                   chunk: int = 64, on_chunk=None, iterations: int = 0, grad_px=None) -> np.ndarray:
     """Cores (n, C, 2m, 2m) of every window: Wiener (``iterations`` 0) or
     ``hqs_windows``, chunks of windows on the shared pool;
     ``on_chunk(done, total)`` after each."""
@@ -144,7 +149,8 @@ def deconvolve_all(padded, origins, kernels, var, lay: WindowLayout, be: str, *,
 
     def work(s):
         sl = slice(s, min(s + chunk, n))
-        w = _windows(padded, origins[sl], kernels[sl], var[sl], weight, adaptive, lay, be)
+        w = _windows(padded, origins[sl], kernels[sl], var[sl], weight, adaptive, lay, be,
+                     None if grad_px is None else grad_px[sl])
         out[sl] = hqs_windows(w, lay, be, iterations) if iterations else deconvolve_windows(w, lay, be)
         return sl.stop - sl.start
 
