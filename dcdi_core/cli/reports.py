@@ -103,6 +103,15 @@ def cmd_report_correction(args) -> int:
     return 0
 
 
+def cmd_report_dataset(args) -> int:
+    from ..experiments.dataset_report import DatasetReportOptions, run_report
+    options = DatasetReportOptions(lenses=tuple(args.lens or ("mos-s1", "mos-s2")), frames=args.frames,
+                                   seed=args.seed)
+    run_report(args.dirs, options, args.out, log=lambda t: print(t, file=sys.stderr, flush=True))
+    print((Path(args.out) / "report.md").read_text(encoding="utf-8"), end="")
+    return 0
+
+
 def cmd_bench(args) -> int:
     from ..experiments import bench
     return bench.run(args.what, args)
@@ -170,6 +179,20 @@ def add_commands(sub) -> None:
     r.add_argument("--out", default="out/report", help="folder for report.md, results.json and the pictures")
     r.add_argument("--quick", action="store_true", help="small frames, one seed, no traced PSFs (for tests)")
     r.set_defaults(func=cmd_report_correction)
+
+    r = rsub.add_parser("dataset", help="what factory frames hold, per recipe: texture (high-frequency share), "
+                                        "depth mix, clipping, and the share of 128 px crops whose capture through "
+                                        "a lens is already above 40 dB")
+    r.add_argument("dirs", nargs="+", metavar="DIR", help="one or more factory folders (frames grouped by recipe "
+                                                          "across them)")
+    r.add_argument("--lens", action="append", default=None, metavar="LENS",
+                   help="a lens id for the blur measure (repeat for several; default mos-s1 and mos-s2)")
+    r.add_argument("--frames", type=positive_int, default=None,
+                   help="at most this many frames per recipe, chosen evenly (default all)")
+    r.add_argument("--seed", type=int, default=0, help="the frames' random places on the sensor (default 0)")
+    r.add_argument("--out", default="out/dataset-report", help="folder for report.md, results.json and a picture "
+                                                               "per recipe (default out/dataset-report)")
+    r.set_defaults(func=cmd_report_dataset)
 
     r = _network_report(rsub, "pipeline", "DCDI end to end on held-out factory pairs against the ideal; stage times")
     r.add_argument("--target", default="6p", help="the target lens (default 6p)")
