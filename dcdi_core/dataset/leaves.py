@@ -490,7 +490,7 @@ def _tile(kind, rng, noise: _Noise) -> np.ndarray:
         v = 0.5 + 0.5 * np.sin(base + rng.uniform(1.0, 6.0) * noise.field(1.4))
     else:
         raise ValueError(kind)
-    grain = rng.uniform(0.05, 0.3)
+    grain = rng.uniform(0.1, 0.4)
     v = (1 - grain) * v + grain * (0.5 + 0.3 * noise.field(rng.uniform(0.4, 1.0)))
     return np.clip(v, 0.0, 1.0).astype(np.float32)
 
