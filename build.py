@@ -6,7 +6,7 @@
     python build.py test              # make .venv/, install, run the fast test suite
     python build.py test-slow         # the tests marked slow
     python build.py bench ARGS        # `dcdi bench ARGS` inside the environment
-    python build.py bench factory [--quick]   # the dataset factory's samples per hour
+    python build.py bench factory [--quick] [--recipe R]  # the dataset factory's samples per hour
     python build.py bench render [--quick]    # `dcdi bench render`, then the lens bokeh beside
                                               # Blender's Defocus node (time, memory, distance)
     python build.py addon             # the Blender extension zip dist/<id>-<version>.zip
@@ -251,53 +251,77 @@ def factory_demo(py: Path, out: Path) -> int:
     return _run(args)
 
 
-def bench_factory(py: Path, quick: bool = False) -> int:
-    """Samples per hour of the dataset factory at 480 x 640 (room recipe,
-    default render settings, MOS-S1 simulation included), with the time of
-    each stage from its manifest (seconds per sample). The PSF library is
-    built (or read) by a warm-up run before the timed one; the timed run's
-    wall time includes its process start. CPU seconds and the load average
-    show whether other jobs shared the machine (wall times then grow)."""
+def bench_factory(py: Path, quick: bool = False, recipes=("room", "leaves")) -> int:
+    """Samples per hour of the dataset factory at 480 x 640 (default render
+    settings, MOS-S1 simulation included), per recipe, with the time of each
+    stage from its manifest (seconds per sample). A Blender recipe runs one
+    process (Cycles keeps every core busy); the numpy recipe runs one shard
+    per core, as a user fills a machine with it. The PSF library is built
+    (or read) by a warm-up run before the timed one; the timed run's wall
+    time includes its process start. CPU seconds and the load average show
+    whether other jobs shared the machine (wall times then grow)."""
+    for recipe in recipes:
+        code = _bench_factory_recipe(py, recipe, quick)
+        if code:
+            return code
+    return 0
+
+
+def _bench_factory_recipe(py: Path, recipe: str, quick: bool) -> int:
     import json
     import math
     import tempfile
     import time
 
-    h, w, n = (120, 160, 2) if quick else (480, 640, 6)
+    ncpu = os.cpu_count() or 1
+    blender = recipe != "leaves"
+    shards = 1 if blender else ncpu
+    h, w = (120, 160) if quick else (480, 640)
+    n = (2 if quick else 6) if blender else (8 if quick else 40) * shards
     with tempfile.TemporaryDirectory() as d:
-        args = [str(py), "-m", "blender_addon.factory", "--recipe", "room", "--lens", "mos-s1",
-                "--out", d, "--seed", "0", "--resolution", str(h), str(w)]
+        def args(shard: int, folder: str):
+            return [str(py), "-m", "blender_addon.factory", "--recipe", recipe, "--lens", "mos-s1", "--out", folder,
+                    "--seed", "0", "--resolution", str(h), str(w), "--shard", f"{shard}/{shards}"]
         # one warm-up sample builds (or reads) the PSF library for this pixel pitch
-        subprocess.run(args + ["--count", "1"], check=True, capture_output=True, cwd=ROOT)
+        subprocess.run(args(0, os.path.join(d, "warm")) + ["--count", "1"], check=True, capture_output=True,
+                       cwd=ROOT)
+        folders = [os.path.join(d, f"shard{i}") for i in range(shards)]
         load0 = os.getloadavg()[0]
         t = time.perf_counter()
-        subprocess.run(args + ["--count", str(n + 1)], check=True, capture_output=True, cwd=ROOT)
+        procs = [subprocess.Popen(args(i, f) + ["--count", str(n)], stdout=subprocess.DEVNULL,
+                                  stderr=subprocess.PIPE, cwd=ROOT) for i, f in enumerate(folders)]
+        for p in procs:
+            _, err = p.communicate()
+            if p.returncode:
+                print(err.decode(errors="replace"), file=sys.stderr)
+                return p.returncode
         wall = time.perf_counter() - t
         load1 = os.getloadavg()[0]
-        with open(os.path.join(d, "manifest.jsonl")) as f:
-            recs = [json.loads(x) for x in f if x.strip()][1:]
+        recs = []
+        for f in folders:
+            with open(os.path.join(f, "manifest.jsonl")) as fh:
+                recs += [json.loads(x) for x in fh if x.strip()]
 
     def mean(f):
         return sum(f(r) for r in recs) / len(recs)
     stages = ("scene", "render", "read", "write", "simulate")
     st = {k: mean(lambda r, k=k: r["stage_seconds"].get(k, 0.0)) for k in stages}
-    setup = sum(r["stage_seconds"].get("setup", 0.0) for r in recs)
     steady = mean(lambda r: r["seconds"] - r["stage_seconds"].get("setup", 0.0))
     cpu = mean(lambda r: r["cpu_seconds"])
     per = wall / len(recs)
     r0 = recs[0]["render"]
-    ncpu = os.cpu_count() or 1
-    print(f"bench factory: {h} x {w}, room, {r0['samples']} samples/pixel, denoiser "
-          f"{r0['denoising_quality'] if r0['denoise'] else 'off'}/{r0['denoising_prefilter']}, MOS-S1 simulation "
-          f"(depth-aware + baseline), {len(recs)} samples, {ncpu} CPU(s), load average {load0:.1f} -> {load1:.1f}")
+    how = (f"Cycles {r0['samples']} samples/pixel, denoiser "
+           f"{r0['denoising_quality'] if r0['denoise'] else 'off'}/{r0['denoising_prefilter']}" if blender
+           else f"numpy, {shards} shard processes")
+    print(f"bench factory: {recipe}, {h} x {w}, {how}, MOS-S1 simulation (depth-aware + baseline), "
+          f"{len(recs)} samples, {ncpu} CPU(s), load average {load0:.1f} -> {load1:.1f}")
     cst = {k: mean(lambda r, k=k: r["stage_seconds"].get("cpu_" + k, math.nan)) for k in stages}
     print("  per sample, wall (CPU) seconds: "
           + ", ".join(f"{k} {v:.2f}" + ("" if math.isnan(cst[k]) else f" ({cst[k]:.2f})") for k, v in st.items())
-          + f"; {steady:.2f} s in all ({cpu:.1f} CPU s: {cpu / ncpu:.2f} s if this process had all {ncpu} cores)")
-    print(f"  once per run: process start, PSF library, distortion table and baseline map "
-          f"{wall - steady * len(recs):.1f} s (of which simulator set-up {setup:.1f} s)")
-    print(f"  {per:.2f} s per sample with the process start = {3600 / per:.0f} samples per hour "
-          f"({3600 / steady:.0f} per hour in a long run; goal 600)")
+          + f"; {steady:.2f} s in all, {cpu:.2f} CPU s")
+    goal = 600 if blender else 6000
+    print(f"  {wall:.1f} s for {len(recs)} samples with the process start = {3600 / per:.0f} samples per hour "
+          f"on {ncpu} cores (goal {goal})")
     if load0 > 1.5 * ncpu / 2 or load1 > ncpu + 0.5:
         print(f"  note: other jobs shared the {ncpu} cores (load average {load0:.1f} -> {load1:.1f}): "
               "wall times are longer than on an idle machine; CPU seconds are not")
@@ -358,7 +382,8 @@ def main(argv: list[str]) -> int:
         return cmd_test(py, "slow")
     if command == "bench":
         if rest[:1] == ["factory"]:
-            return bench_factory(py, quick="--quick" in rest)
+            picked = [rest[i + 1] for i, x in enumerate(rest[:-1]) if x == "--recipe"]
+            return bench_factory(py, quick="--quick" in rest, recipes=picked or ("room", "leaves"))
         code = _run([py, "-m", "dcdi_core", "bench", *rest])
         if code != 0 or rest[:1] != ["render"]:
             return code

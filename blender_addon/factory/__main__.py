@@ -1,8 +1,8 @@
-"""``python -m blender_addon.factory ...``: the dataset factory (see ``batch``)."""
+"""``python -m blender_addon.factory ...``: the dataset factory (see ``batch``).
+Blender is checked once the recipe is known: the numpy recipe and the merge
+of shard folders need none."""
 import sys
 
-from .batch import check_blender, run
+from .batch import run
 
-if sys.argv[1:2] != ["merge"]:          # the merge of shard folders needs no Blender
-    check_blender()
 sys.exit(run())

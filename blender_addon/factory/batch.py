@@ -85,7 +85,8 @@ def sample_seed(seed: int, index: int) -> int:
 
 def parse(argv):
     p = argparse.ArgumentParser(prog="factory", description=__doc__.split("\n\n")[0])
-    p.add_argument("--recipe", required=True, help="scene recipe: room, tabletop, street (or plane)")
+    p.add_argument("--recipe", required=True,
+                   help="scene recipe: room, tabletop, street (Blender), leaves (numpy, no Blender), or plane")
     p.add_argument("--count", type=int, required=True, metavar="N",
                    help="images in the whole dataset: indices 0 .. N-1 over all shards (a resume may raise it)")
     p.add_argument("--lens", action="append", default=[], help="lens id or .toml path (repeat for several; "
@@ -114,6 +115,12 @@ def parse(argv):
                    choices=["NONE", "FAST", "ACCURATE"], help="prefilter of the denoiser's albedo and normal guides")
     p.add_argument("--diffuse-bounces", type=int, default=RenderSettings.diffuse_bounces,
                    help="diffuse light-path bounces (>= 0)")
+    p.add_argument("--textures", metavar="DIR", default=None,
+                   help="a folder of PNG, JPEG or EXR images (photographs, or CC0 material sets with colour, "
+                        "normal and roughness maps) mapped onto a share of the surfaces, seeded")
+    p.add_argument("--exposure", choices=["auto", "off"], default="auto",
+                   help="auto (default): one gain per frame puts its mean at mid grey with at most 0.3 %% of "
+                        "the pixels above 1.0 (a camera's meter); off: the render's values as they are")
     p.add_argument("--baseline-depth", type=float, default=2.0, help="depth of the depth-unaware baseline, m")
     p.add_argument("--psf-rays", type=int, default=None, help="PSF pupil grid (default: the library default)")
     p.add_argument("--psf-wavelengths", type=int, default=None, help="PSF wavelengths (default: the library default)")
@@ -135,6 +142,12 @@ def check_arguments(a):
 
     if a.recipe not in RECIPES:
         raise InputRangeError("--recipe", a.recipe, ", ".join(RECIPES))
+    if RECIPES[a.recipe].build is not None:
+        check_blender()
+    from dcdi_core.dataset.exposure import ExposureOptions
+    from dcdi_core.dataset.textures import TextureLibrary
+    a.textures = TextureLibrary.from_folder(a.textures) if a.textures is not None else None
+    a.exposure_options = ExposureOptions() if a.exposure == "auto" else None
     if a.shard.strip().lower().startswith("auto"):
         a.shard = "{}/{}".format(*shard_from_environment(a.shard))      # recorded as resolved
     try:
@@ -231,7 +244,12 @@ OPTION_OF = {"recipe": "--recipe", "seed": "--seed", "shard": "--shard", "resolu
              "render.samples": "--cycles-samples", "render.denoise": "--no-denoise",
              "render.denoising_quality": "--denoise-quality", "render.denoising_prefilter": "--denoise-prefilter",
              "render.diffuse_bounces": "--diffuse-bounces",
-             "psf_settings.pupil_samples": "--psf-rays", "psf_settings.n_wavelengths": "--psf-wavelengths"}
+             "psf_settings.pupil_samples": "--psf-rays", "psf_settings.n_wavelengths": "--psf-wavelengths",
+             "scene.textures": "--textures", "scene.exposure": "--exposure",
+             "scene.recipes_version": "the factory's version (its scene recipes changed)"}
+
+# raised whenever a recipe's scenes change: a folder of older scenes is not resumed with newer ones
+RECIPES_VERSION = 2
 
 
 def run_settings(a) -> dict:
@@ -242,7 +260,18 @@ def run_settings(a) -> dict:
                               lenses=[lens.id for lens in a.lenses],
                               lens_fingerprints={lens.id: lens_fingerprint(lens) for lens in a.lenses},
                               baseline_depth_m=a.baseline_depth, render=a.render.as_dict(),
-                              psf_settings=a.psf_settings.as_dict())
+                              psf_settings=a.psf_settings.as_dict(), scene=scene_settings(a))
+
+
+def scene_settings(a) -> dict:
+    """What shapes the frames besides the recipe and seed: the recipes'
+    version, the texture folder (its path and a hash of its files' names and
+    sizes), the exposure."""
+    tex, exp = a.textures, a.exposure_options
+    return {"recipes_version": RECIPES_VERSION,
+            "textures": "none" if tex is None else f"{tex.folder} (files {tex.fingerprint()})",
+            "exposure": "off" if exp is None else (f"auto (mean luminance {exp.mean_luminance}, at most "
+                                                   f"{exp.max_clipped} clipped, gain <= {exp.max_gain})")}
 
 
 def settings_differences(have: dict, want: dict) -> list[str]:
@@ -250,6 +279,8 @@ def settings_differences(have: dict, want: dict) -> list[str]:
     (settings the folder does not record are not compared)."""
     a, b = ff.flat_settings(have), ff.flat_settings(want)
     diffs = []
+    if any(k.startswith("scene.") for k in b) and not any(k.startswith("scene.") for k in a):
+        diffs.append("the scene recipes: the folder was made by an older factory, before its scenes changed")
     for key in sorted(set(a) & set(b)):
         if key == "format" or a[key] == b[key]:
             continue
@@ -424,23 +455,28 @@ def setup_render(scene, lens, height: int, width: int, render: RenderSettings, s
 
 
 def render_rgbd(recipe: str, lens, seed: int, height: int, width: int, render: RenderSettings, tmp: Path,
-                timings: dict | None = None):
+                timings: dict | None = None, *, textures=None, scene_info: dict | None = None):
     """Build the scene, render; returns (image (H, W, 3) float32 linear,
     depth (H, W) float32 metres from the lens's first vertex, inf = background).
     ``timings``, if given, receives the wall seconds of each stage: "scene"
     (reset and recipe), "render" (Cycles: sync, BVH, path tracing, denoising,
     the EXR hand-over file), "read" (reading that file back), and their CPU
-    seconds as "cpu_scene", "cpu_render", "cpu_read"."""
+    seconds as "cpu_scene", "cpu_render", "cpu_read". ``textures``: a
+    TextureLibrary for a share of the surfaces; ``scene_info``, if given,
+    receives what the scene holds (objects placed, materials by kind, the
+    texture sets used)."""
     import bpy
 
     from dcdi_core.io.images import read_depth, read_image
     from dcdi_core.render.camera import depth_from_planar_z
-    from scenes.recipes import RECIPES
+    from scenes.recipes import build
 
     t, c = [time.perf_counter()], [_cpu_s()]
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
-    RECIPES[recipe](np.random.default_rng(seed))
+    builder = build(recipe, np.random.default_rng(seed), textures)
+    if scene_info is not None:
+        scene_info.update(scene_summary(builder))
     pinhole = setup_render(scene, lens, height, width, render, seed)
     scene.render.filepath = str(tmp)
     t.append(time.perf_counter()), c.append(_cpu_s())
@@ -454,6 +490,39 @@ def render_rgbd(recipe: str, lens, seed: int, height: int, width: int, render: R
         timings.update(scene=t[1] - t[0], render=t[2] - t[1], read=t[3] - t[2])
         timings.update({"cpu_" + k: c[i + 1] - c[i] for i, k in enumerate(("scene", "render", "read"))})
     return img, depth_from_planar_z(z, pinhole.entrance_pupil_mm)
+
+
+def scene_summary(builder) -> dict:
+    """The manifest's short account of a built scene."""
+    kinds: dict[str, int] = {}
+    for r in builder.records:
+        kinds[r.get("kind", "?")] = kinds.get(r.get("kind", "?"), 0) + 1
+    sets = sorted({r["set"] for r in builder.records if "set" in r})
+    return {"objects": builder.objects, "materials": dict(sorted(kinds.items())), "texture_sets": sets}
+
+
+def frame(a, lens, seed: int, tmp: Path, stages: dict):
+    """One all-in-focus frame of the run's recipe, exposed: (image, depth,
+    scene record). Blender renders its recipes; ``leaves`` is drawn in numpy."""
+    from dcdi_core.dataset.exposure import expose
+    from dcdi_core.dataset.statistics import clipped_fraction
+    from scenes.recipes import RECIPES
+
+    h, w = a.resolution
+    info: dict = {}
+    if RECIPES[a.recipe].build is None:
+        from dcdi_core.dataset.leaves import leaves_rgbd
+        t, c = time.perf_counter(), _cpu_s()
+        img, depth, info = leaves_rgbd(seed, h, w, textures=a.textures)
+        stages.update(scene=time.perf_counter() - t, cpu_scene=_cpu_s() - c)
+    else:
+        img, depth = render_rgbd(a.recipe, lens, seed, h, w, a.render, tmp, stages, textures=a.textures,
+                                 scene_info=info)
+    if a.exposure_options is not None:
+        img, info["exposure"] = expose(img, a.exposure_options)
+    else:
+        info["exposure"] = {"gain": 1.0, "clipped": round(clipped_fraction(img), 6)}
+    return img, depth, info
 
 
 def run(argv=None) -> int:
@@ -506,6 +575,7 @@ def _run(a, out: Path) -> int:
     from dcdi_core.progress import psf_progress
     from dcdi_core.render.geometry import ImageGeometry
     from dcdi_core.render.simulate import LensSimulator
+    from scenes.recipes import RECIPES
 
     layout = ff.FolderLayout(out)
     lenses = a.lenses
@@ -529,7 +599,7 @@ def _run(a, out: Path) -> int:
         seed = sample_seed(a.seed, i)
         t0, c0 = time.perf_counter(), _cpu_s()
         stages = {}
-        img, depth = render_rgbd(a.recipe, lenses[0], seed, h, w, render, layout.render_handover(sid), stages)
+        img, depth, scene_info = frame(a, lenses[0], seed, layout.render_handover(sid), stages)
         t_render = time.perf_counter() - t0
         t1 = time.perf_counter()
         ff.write_rgbd(layout, sid, img, depth)
@@ -555,7 +625,10 @@ def _run(a, out: Path) -> int:
         finite = depth[np.isfinite(depth)]
         record = {"id": sid, "index": i, "recipe": a.recipe, "seed": seed, "dataset_seed": a.seed,
                   "resolution": [h, w], "camera_lens": lenses[0].id,
-                  "render": {"engine": "CYCLES", "device": "CPU", **render.as_dict(), "seconds": round(t_render, 3)},
+                  "render": ({"engine": "CYCLES", "device": "CPU", **render.as_dict(), "seconds": round(t_render, 3)}
+                             if RECIPES[a.recipe].build is not None else
+                             {"engine": "numpy", "seconds": round(t_render, 3)}),
+                  "scene": scene_info,
                   "depth_m": {"min": float(finite.min()) if finite.size else None,
                               "max": float(finite.max()) if finite.size else None,
                               "infinite_fraction": float(np.isinf(depth).mean())},
@@ -601,10 +674,13 @@ def add_lenses(out: Path, records: list[dict], lenses, a, settings: dict) -> Non
 def _versions() -> dict:
     import platform
 
-    import bpy
-
     import dcdi_core
-    return {"blender": bpy.app.version_string, "dcdi": dcdi_core.__version__, "numpy": np.__version__,
+    try:
+        import bpy
+        blender = bpy.app.version_string
+    except ImportError:               # the numpy recipe runs without Blender
+        blender = None
+    return {"blender": blender, "dcdi": dcdi_core.__version__, "numpy": np.__version__,
             "python": platform.python_version()}
 
 

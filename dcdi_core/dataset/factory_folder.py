@@ -212,16 +212,20 @@ def write_manifest(manifest, records) -> None:
 
 # ------------------------------------------------------------------ the settings record
 def settings_record(*, recipe: str, seed: int, shard: str, resolution, lenses, lens_fingerprints: dict,
-                    baseline_depth_m: float, render: dict, psf_settings: dict) -> dict:
+                    baseline_depth_m: float, render: dict, psf_settings: dict, scene: dict | None = None) -> dict:
     """dataset.json's content: what defines a folder's samples (the count
     may grow, all else must stay). ``resolution`` (rows, cols) pixels;
     ``lenses`` the lens ids in order (the first one's camera renders);
     ``lens_fingerprints`` {id: hash of its optics}; ``baseline_depth_m``
     metres; ``render`` and ``psf_settings`` the renderer's and the PSFs'
-    settings as dicts."""
-    return {"format": SETTINGS_FORMAT, "recipe": recipe, "seed": seed, "shard": shard,
-            "resolution": list(resolution), "lenses": list(lenses), "lens_fingerprints": dict(lens_fingerprints),
-            "baseline_depth_m": baseline_depth_m, "render": dict(render), "psf_settings": dict(psf_settings)}
+    settings as dicts; ``scene`` what else shapes the frames (the recipes'
+    version, the texture folder's fingerprint, the exposure)."""
+    record = {"format": SETTINGS_FORMAT, "recipe": recipe, "seed": seed, "shard": shard,
+              "resolution": list(resolution), "lenses": list(lenses), "lens_fingerprints": dict(lens_fingerprints),
+              "baseline_depth_m": baseline_depth_m, "render": dict(render), "psf_settings": dict(psf_settings)}
+    if scene is not None:
+        record["scene"] = dict(scene)
+    return record
 
 
 def read_settings(root, *, advice: str = "") -> dict | None:

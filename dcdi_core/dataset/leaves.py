@@ -71,7 +71,10 @@ class LeavesOptions:
     size_exponent: float = 3.0          # 1: p(r) ~ r ** -size_exponent of the image radius; 3 = scale-invariant
     min_radius_px: float = 2.5          # px: the smallest shape's radius at the reference depth
     max_radius_frac: float = 0.6        # 1: the largest radius over the frame's shorter side
-    perspective_exponent: float = 0.25  # 1: image radius ~ depth ** -perspective_exponent (1: physical sizes)
+    # image radius ~ depth ** -perspective_exponent (1: physical sizes). 0 (classic dead leaves, sizes
+    # independent of depth) puts 28/42/18/8/5 % of the pixels at 0.7-1/1-2/2-5/5-10/10 m; 0.25 gave
+    # 43/39/11/4/4 %: occlusion already favours near layers, so 0 spreads the depths best
+    perspective_exponent: float = 0.0
     thin_share: float = 0.15            # 1: share of the shapes that are bars or lines
     line_width_px: tuple[float, float] = (1.0, 2.5)    # px: a line's width, uniform in it
     texel_per_px: tuple[float, float] = (0.5, 2.0)     # texels per px: texture scale, log-uniform in it
