@@ -22,6 +22,8 @@ import numpy as np
 
 # objects a recipe places, the room's walls, floor and ceiling not counted
 MAX_OBJECTS = 60
+# materials drawn per size class (a factor of two in size) before objects share them
+MATERIALS_PER_SIZE = 4
 
 
 def _bpy():
@@ -72,6 +74,7 @@ class Builder:
     textures: object = None                 # a dcdi_core.dataset.textures.TextureLibrary, or None
     records: list = field(default_factory=list)
     objects: int = 0
+    pool: dict = field(default_factory=dict)    # size class -> [(material, record)] shared by objects
 
     def full(self, n: int = 1) -> bool:
         """Would ``n`` more objects pass MAX_OBJECTS?"""
@@ -85,7 +88,18 @@ class Builder:
         if kind is None and prefer:
             use_image = self.textures is not None and self.rng.random() < 0.5
             kind = "image" if use_image else str(self.rng.choice(prefer))
+        if kind is None:
+            # objects of one size class share up to MATERIALS_PER_SIZE materials: building a material's
+            # nodes costs ~15 ms, and the patterns lie in world metres, so two objects sharing one still
+            # show different texture
+            shared = self.pool.setdefault(round(math.log2(size_m)), [])
+            if len(shared) >= MATERIALS_PER_SIZE:
+                mat, record = shared[int(self.rng.integers(len(shared)))]
+                self.records.append({"surface": name, **record})
+                return mat
         mat, record = surface_material(name, self.rng, kind=kind, textures=self.textures, size_m=size_m)
+        if kind is None:
+            shared.append((mat, record))
         self.records.append({"surface": name, **record})
         return mat
 
@@ -132,12 +146,42 @@ def add_light(kind: str, location, energy: float, rotation=(0.0, 0.0, 0.0), size
     return obj
 
 
-def world(colour, strength: float = 1.0):
+def world(colour, strength: float = 1.0, clouds_rng=None):
+    """The background at infinity: a plain colour, or with ``clouds_rng`` a
+    sky of multi-octave clouds (noise over the view direction, features
+    from a tenth of the sky down to below a pixel's angle)."""
     bpy = _bpy()
     w = bpy.data.worlds.new("world")
-    bg = next(n for n in w.node_tree.nodes if n.bl_idname == "ShaderNodeBackground")
+    nt = w.node_tree
+    bg = next(n for n in nt.nodes if n.bl_idname == "ShaderNodeBackground")
     bg.inputs["Color"].default_value = (*colour, 1.0)
     bg.inputs["Strength"].default_value = float(strength)
+    if clouds_rng is not None:
+        coords = nt.nodes.new("ShaderNodeTexCoord")
+        noise = nt.nodes.new("ShaderNodeTexNoise")
+        noise.inputs["Scale"].default_value = float(clouds_rng.uniform(3.0, 8.0))
+        noise.inputs["Detail"].default_value = 7.0        # 2^7 finer than the clouds: below a pixel's angle
+        noise.inputs["Roughness"].default_value = float(clouds_rng.uniform(0.55, 0.7))
+        ramp = nt.nodes.new("ShaderNodeValToRGB")
+        ramp.color_ramp.elements[0].position = float(clouds_rng.uniform(0.35, 0.5))
+        ramp.color_ramp.elements[0].color = (*colour, 1.0)
+        ramp.color_ramp.elements[1].position = float(clouds_rng.uniform(0.6, 0.8))
+        ramp.color_ramp.elements[1].color = (*(np.full(3, clouds_rng.uniform(0.7, 0.95))), 1.0)
+        nt.links.new(coords.outputs["Generated"], noise.inputs["Vector"])
+        nt.links.new(noise.outputs["Fac"], ramp.inputs["Fac"])
+        # only camera rays see the clouds: light that bounces (and the world's importance map) sees the
+        # plain sky, which kept the render time (clouds for every ray: twice the street's render)
+        path = nt.nodes.new("ShaderNodeLightPath")
+        mix = nt.nodes.new("ShaderNodeMix")
+        mix.data_type = "RGBA"
+        mix.inputs["A"].default_value = (*colour, 1.0)
+        nt.links.new(path.outputs["Is Camera Ray"], mix.inputs["Factor"])
+        nt.links.new(ramp.outputs["Color"], mix.inputs["B"])
+        nt.links.new(mix.outputs["Result"], bg.inputs["Color"])
+        # the light the sky sheds is the plain colour: a coarse importance map suffices (the default map,
+        # 1024 px, is built by evaluating the clouds' nodes and doubled the render time)
+        w.cycles.sampling_method = "MANUAL"
+        w.cycles.sample_map_resolution = 16
     bpy.context.scene.world = w
 
 
@@ -399,20 +443,21 @@ def tabletop(b: Builder) -> None:
     world((0.6, 0.6, 0.65), 0.3)
 
 
-FACADES = ("bricks", "tiles", "plaster", "stones")
-PAVING = ("stones", "tiles", "noise")
+FACADES = ("bricks", "tiles", "stones")      # structured: plaster and plain noise look flat beyond 10 m
+PAVING = ("stones", "tiles", "bricks")
 
 
 def street(b: Builder) -> None:
-    """Outdoor: a street between rows of buildings (facades from 9 m on,
-    a building across its end at 60-90 m), pavements, parked cars at
-    5-25 m, trees, lamp posts, signs, bins and bollards at 3-25 m, a sky
-    at infinity above."""
+    """Outdoor: a street between rows of buildings, the camera off its
+    centre (one row of facades from 4-8 m on), a building across its end
+    at 25-45 m, pavements, parked cars at 4-18 m, trees, lamp posts,
+    signs, bins, benches and bollards at 3-20 m, a cloudy sky at infinity
+    above."""
     rng = b.rng
     ground = -rng.uniform(1.4, 1.8)
-    road = rng.uniform(3.0, 5.0)                       # half width of the road, m
-    walk = rng.uniform(2.0, 3.5)                       # pavement width, m
-    end = rng.uniform(60.0, 90.0)
+    road = rng.uniform(3.0, 4.5)                       # half width of the road, m
+    walk = rng.uniform(1.5, 3.0)                       # pavement width, m
+    end = rng.uniform(25.0, 45.0)
     b.box("road", (0, ground - 0.01, -end / 2), (road + walk + 1, 0.01, end / 2 + 1), prefer=PAVING, shell=True)
     for side in (-1.0, 1.0):
         b.box("pavement", (side * (road + walk / 2), ground + 0.07, -end / 2), (walk / 2, 0.08, end / 2),
@@ -425,9 +470,11 @@ def street(b: Builder) -> None:
             b.box("building", (side * (front + depth), ground + h / 2, z - length / 2), (depth, h / 2, length / 2),
                   prefer=FACADES)
             z -= length + (rng.uniform(1.0, 6.0) if rng.random() < 0.3 else 0.0)
-    b.box("building-across", (0, ground + 15, -end - 5), (road + walk + 20, 15, 5), prefer=FACADES, shell=True)
-    for i in range(int(rng.integers(2, 6))):
-        car(b, rng.choice([-1.0, 1.0]) * (road - rng.uniform(0.9, 1.3)), ground, -rng.uniform(5.0, 25.0))
+    across = rng.uniform(8.0, 20.0)                   # low enough to leave a strip of sky above the street's end
+    b.box("building-across", (0, ground + across / 2, -end - 5), (road + walk + 20, across / 2, 5), prefer=FACADES,
+          shell=True)
+    for i in range(int(rng.integers(3, 7))):
+        car(b, rng.choice([-1.0, 1.0]) * (road - rng.uniform(0.9, 1.3)), ground, -rng.uniform(4.0, 18.0))
     for i in range(int(rng.integers(2, 6))):
         if b.full(5):
             break
@@ -437,7 +484,7 @@ def street(b: Builder) -> None:
             r = rng.uniform(0.6, 1.5)
             b.add("sphere", "crown", (x + rng.uniform(-0.8, 0.8), ground + rng.uniform(2.5, 4.0), z + rng.uniform(-0.8, 0.8)),
                   (r, r * rng.uniform(0.7, 1.1), r))
-    for i in range(int(rng.integers(6, 16))):
+    for i in range(int(rng.integers(10, 24))):
         if b.full(2):
             break
         z, x = -rng.uniform(3.0, 20.0), rng.choice([-1.0, 1.0]) * (road + rng.uniform(0.3, walk - 0.2))
@@ -455,8 +502,12 @@ def street(b: Builder) -> None:
             b.box("bench-back", (x + 0.2 * np.sign(x), ground + 0.7, z), (0.03, 0.25, 0.9))
         else:
             b.upright("cylinder", "bollard", (x, ground, z), 0.08, 0.9)
+    # the camera stands off the street's centre: one row of facades comes near
+    shift = rng.choice([-1.0, 1.0]) * rng.uniform(1.0, road + walk * 0.5)
+    for obj in _bpy().context.scene.objects:
+        obj.location.x += shift
     add_light("SUN", (0, 10, 0), rng.uniform(2.0, 4.0), rotation=(rng.uniform(0.6, 1.1), 0.1, rng.uniform(-0.6, 0.6)))
-    world((0.45, 0.6, 0.9), 1.0)
+    world((0.45, 0.6, 0.9), 1.0, clouds_rng=rng)
 
 
 def car(b: Builder, x: float, ground: float, z: float):
@@ -496,7 +547,7 @@ class Recipe:
 RECIPES = {r.name: r for r in (
     Recipe("room", room, True, "a furnished room 3.4-5 m deep, 20-60 objects at 0.75-5 m"),
     Recipe("tabletop", tabletop, True, "a desk's clutter at 0.75-1.7 m before a wall at 1.7-2.8 m"),
-    Recipe("street", street, False, "buildings, cars, trees, posts at 3-40 m, sky at infinity"),
+    Recipe("street", street, False, "a street: facades, cars, trees, posts at 3-45 m, a cloudy sky"),
     Recipe("leaves", None, False, "dead leaves in numpy: textured shapes at log-uniform 0.7-10 m"),
     Recipe("plane", plane_at, False, "a fronto-parallel plane at 2.5 m (for checks)"),
 )}

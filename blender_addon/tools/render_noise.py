@@ -92,16 +92,41 @@ def render_noise_report(recipes=("room",), height: int = 240, width: int = 320, 
     return out
 
 
+def parse_row(text: str) -> tuple:
+    """'8:BALANCED:FAST' -> (8, True, 'BALANCED', 'FAST', 2); '8:OFF' -> no denoiser."""
+    from dcdi_core.errors import InputRangeError
+    parts = text.upper().split(":")
+    try:
+        samples = int(parts[0])
+        if parts[1:2] == ["OFF"] and len(parts) == 2:
+            return samples, False, None, None, RenderSettings.diffuse_bounces
+        quality, prefilter = parts[1], parts[2]
+        RenderSettings(samples=samples, denoising_quality=quality, denoising_prefilter=prefilter)
+    except (ValueError, IndexError):
+        raise InputRangeError("--row", text, "SPP:QUALITY:PREFILTER (QUALITY HIGH, BALANCED or FAST; PREFILTER "
+                              "NONE, FAST or ACCURATE), or SPP:OFF") from None
+    return samples, True, quality, prefilter, RenderSettings.diffuse_bounces
+
+
 def main(argv=None) -> int:
+    from dcdi_core.errors import DcdiError
     p = argparse.ArgumentParser(prog="python -m blender_addon.tools.render_noise",
                                 description=__doc__.split("\n\n")[0])
     p.add_argument("--recipe", action="append", default=None, help="scene recipe (repeat for several; default room)")
     p.add_argument("--resolution", type=int, nargs=2, default=[240, 320], metavar=("H", "W"))
     p.add_argument("--reference", type=int, default=256, help="samples of the reference render")
     p.add_argument("--seed", type=int, default=0, help="scene seed")
+    p.add_argument("--row", action="append", default=None, metavar="SPP:QUALITY:PREFILTER",
+                   help="one setting to measure, e.g. 8:BALANCED:FAST (repeat; default: the full table); "
+                        "QUALITY HIGH, BALANCED, FAST or OFF (no denoiser)")
     a = p.parse_args(argv)
     recipes = a.recipe or ["room"]
-    rows = render_noise_report(recipes, *a.resolution, reference=a.reference, seed=a.seed)
+    try:
+        rows = None if a.row is None else [parse_row(x) for x in a.row]
+    except DcdiError as e:
+        print(f"render_noise: error: {e}", file=sys.stderr)
+        return 2
+    rows = render_noise_report(recipes, *a.resolution, rows=rows, reference=a.reference, seed=a.seed)
     print(f"render error against time: {', '.join(recipes)}, {a.resolution[0]} x {a.resolution[1]}, "
           f"seed {a.seed}, {os.cpu_count()} CPU(s)")
     print(f"| samples | denoised | quality | prefilter | diffuse bounces | PSNR dB vs {a.reference} samples "
