@@ -470,7 +470,9 @@ def street(b: Builder) -> None:
             b.box("building", (side * (front + depth), ground + h / 2, z - length / 2), (depth, h / 2, length / 2),
                   prefer=FACADES)
             z -= length + (rng.uniform(1.0, 6.0) if rng.random() < 0.3 else 0.0)
-    across = rng.uniform(8.0, 20.0)                   # low enough to leave a strip of sky above the street's end
+    # tall: sky shows only above low buildings (a strip of soft sky at the end put a fifth of the crops
+    # above 40 dB and lowered the fine-texture share from 8.4 to 6.8 %)
+    across = rng.uniform(24.0, 36.0)
     b.box("building-across", (0, ground + across / 2, -end - 5), (road + walk + 20, across / 2, 5), prefer=FACADES,
           shell=True)
     for i in range(int(rng.integers(3, 7))):
