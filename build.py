@@ -229,16 +229,12 @@ def factory_demo(py: Path, out: Path) -> int:
     print(f"factory: one room sample at {h} x {w} (Blender Cycles; MOS-S1) in {folder}", flush=True)
     t0 = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
-    with open(log, "w") as f, subprocess.Popen(
-            [str(py), "-m", "blender_addon.factory", "--recipe", "room", "--count", "1", "--lens", "mos-s1",
-             "--out", str(folder), "--seed", "0", "--resolution", str(h), str(w)],
-            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, errors="replace") as job:
-        for line in job.stdout:
-            f.write(line)
-            # the factory's own progress; Blender's timestamped log lines stay in the log
-            if line.strip() and not line[:1].isdigit():
-                print("  " + line.strip(), flush=True)
-    code = job.returncode
+    code = _factory_sample(py, folder, log, h, w)
+    if code == 2 and "Rerun with the folder's settings" in log.read_text(errors="replace"):
+        # the demo's own sample, made by an older factory (its scenes or settings changed): make it anew
+        print(f"  factory: {folder} holds a sample of other settings; making it anew", flush=True)
+        shutil.rmtree(folder)
+        code = _factory_sample(py, folder, log, h, w)
     args = [str(py), "-m", "dcdi_core.demo", "--out", str(out)]
     if code == 0:
         print(f"  factory: done in {time.perf_counter() - t0:.1f} s (its log: {log})", flush=True)
@@ -249,6 +245,21 @@ def factory_demo(py: Path, out: Path) -> int:
         print(f"  {why}; the demo goes on with the synthetic scene alone", flush=True)
         args += ["--factory-error", why]
     return _run(args)
+
+
+def _factory_sample(py: Path, folder: Path, log: Path, h: int, w: int) -> int:
+    """Run the factory for the demo's one room sample; its output to ``log``,
+    its progress lines shown. Returns its exit status."""
+    with open(log, "w") as f, subprocess.Popen(
+            [str(py), "-m", "blender_addon.factory", "--recipe", "room", "--count", "1", "--lens", "mos-s1",
+             "--out", str(folder), "--seed", "0", "--resolution", str(h), str(w)],
+            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, errors="replace") as job:
+        for line in job.stdout:
+            f.write(line)
+            # the factory's own progress; Blender's timestamped log lines stay in the log
+            if line.strip() and not line[:1].isdigit():
+                print("  " + line.strip(), flush=True)
+    return job.returncode
 
 
 def bench_factory(py: Path, quick: bool = False, recipes=("room", "leaves")) -> int:
