@@ -21,7 +21,8 @@ def cmd_dacn_pairs(args) -> int:
     config = DA2TConfig(lens=args.lens, perturb_fraction=args.perturb, noise=noise,
                         baseline_depth_m=args.baseline_depth, sensor_px=args.sensor_px, pupil_samples=args.rays,
                         n_wavelengths=args.wavelengths, n_fields=args.fields, n_depths=args.depths,
-                        lens_pool=args.lens_pool, saturate=not args.no_saturate, seed=args.seed)
+                        lens_pool=args.lens_pool, saturate=not args.no_saturate, seed=args.seed,
+                        refocus=not args.no_refocus)
     t0 = time.perf_counter()
     done = build_pairs(source, args.output, config, variants=args.variants, shard=args.shard,
                        log=lambda t: print(t, file=sys.stderr))
@@ -214,6 +215,9 @@ def add_commands(sub) -> None:
     t.add_argument("-o", "--output", required=True, help="pairs folder")
     t.add_argument("--variants", type=positive_int, default=1, help="perturbed lenses per frame (default 1)")
     t.add_argument("--perturb", type=float, default=0.10, help="perturbation fraction (default 0.10 = +-10 %%)")
+    t.add_argument("--no-refocus", action="store_true",
+                   help="keep each perturbed lens's sensor where its perturbed thickness puts it (default: moved "
+                        "back to the nominal focus, as a focus compensator does)")
     t.add_argument("--lens-pool", type=int, default=0,
                    help="K perturbed lenses shared by all frames (0: a new one per frame; each costs a PSF library)")
     t.add_argument("--baseline-depth", type=float, default=2.0, help="the depth-unaware baseline's depth, m")

@@ -29,7 +29,7 @@ _COLUMNS = ("radius_mm", "thickness_mm", "semi_diameter_mm", "material.nd", "mat
 
 def perturb_lens(lens: Lens, *, seed: int, fraction: float = 0.10, radii: bool = True,
                  thicknesses: bool = True, semi_diameters: bool = False,
-                 model_glass: bool = False) -> tuple[Lens, dict]:
+                 model_glass: bool = False, refocus: bool = False) -> tuple[Lens, dict]:
     """A randomly perturbed copy of ``lens`` and the record of what changed.
 
     radii: every finite, non-zero radius (mm) scaled (plane surfaces stay
@@ -38,7 +38,13 @@ def perturb_lens(lens: Lens, *, seed: int, fraction: float = 0.10, radii: bool =
     semi_diameters: every semi-diameter (mm), the stop's included (otherwise
     none changes, so the F-number's stop stays as designed). model_glass:
     for ``{nd, vd}`` model glasses, nd - 1 and vd scaled (catalogue glasses
-    are never changed).
+    are never changed). refocus: then the sensor is moved (the last
+    thickness set) so that the perturbed lens's paraxial focus is the
+    nominal lens's, as tolerance analysis does with a focus compensator:
+    without it a perturbed thickness to the sensor defocuses the lens by
+    far more than the other errors blur it (MOS-S2, +-10 %: on-axis RMS
+    blur 4-51 px at 12.2 um over eight draws, the nominal lens 5-10 px;
+    refocused 4.4-13.9 px, with the nominal trend over depth).
 
     Returns ``(lens, record)`` with record = ``{"lens": id, "seed", "fraction",
     "selected": {...}, "changes": [{"surface": 1-based, "field", "from",
@@ -89,10 +95,18 @@ def perturb_lens(lens: Lens, *, seed: int, fraction: float = 0.10, radii: bool =
                 f"{s2.semi_diameter_mm:.6g} mm no longer fits on the perturbed surface (radius "
                 f"{s2.radius_mm:.6g} mm, conic {s2.conic:g}); draw another seed")
         surfaces.append(s2)
+    out = lens.with_surfaces(surfaces)
+    if refocus:
+        from .paraxial import prescribed_focus_diopters, refocused_at_diopters
+        sensor_before = out.surfaces[-1].thickness_mm
+        out = refocused_at_diopters(out, prescribed_focus_diopters(lens))
+        changes.append({"surface": len(surfaces), "field": "thickness_mm (refocused)", "from": float(sensor_before),
+                        "to": float(out.surfaces[-1].thickness_mm)})
     record = {
         "lens": lens.id, "seed": seed, "fraction": fraction,
         "selected": {"radii": bool(radii), "thicknesses": bool(thicknesses),
                      "semi_diameters": bool(semi_diameters), "model_glass": bool(model_glass)},
+        "refocused": bool(refocus),
         "changes": changes,
     }
-    return lens.with_surfaces(surfaces), record
+    return out, record

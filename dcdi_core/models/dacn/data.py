@@ -69,6 +69,9 @@ class DA2TConfig:
 
     lens: str = "mos-s2"
     perturb_fraction: float = 0.10
+    # the perturbed lens's sensor moved back to the nominal focus (optics.perturb); False in configs
+    # written before this setting existed (their pairs were made without it)
+    refocus: bool = True
     noise: dict | None = field(default_factory=_default_noise)     # add_sensor_noise kwargs; None: none
     baseline_depth_m: float = 2.0
     patch: int = 16
@@ -100,7 +103,7 @@ class DA2TConfig:
         unknown = set(d) - names
         if unknown:
             raise InputRangeError("DA2T setting", sorted(unknown), ", ".join(sorted(names)))
-        return cls(**d)
+        return cls(**{"refocus": False, **d})
 
 
 @dataclass
@@ -126,7 +129,7 @@ def _seeds(config: DA2TConfig, frame_id: str, variant: int):
     return s[:3]
 
 
-def perturbed(lens, fraction: float, seed: int):
+def perturbed(lens, fraction: float, seed: int, refocus: bool = True):
     """(lens, record): the first seed from ``seed`` on whose draw fits."""
     from ...optics.perturb import perturb_lens
 
@@ -135,7 +138,7 @@ def perturbed(lens, fraction: float, seed: int):
     errors = []
     for k in range(PERTURB_TRIES):
         try:
-            plens, rec = perturb_lens(lens, seed=seed + k, fraction=fraction)
+            plens, rec = perturb_lens(lens, seed=seed + k, fraction=fraction, refocus=refocus)
             rec["rejected_seeds"] = errors
             return plens, rec
         except OpticsError:
@@ -168,7 +171,7 @@ def degrade(frame, config: DA2TConfig, variant: int = 0, *, lens=None, simulator
 
     base = lens if lens is not None else load_lens(config.lens)
     s_perturb, s_noise, s_base = _seeds(config, frame.id, variant)
-    plens, prec = perturbed(base, config.perturb_fraction, s_perturb)
+    plens, prec = perturbed(base, config.perturb_fraction, s_perturb, config.refocus)
     h, w = frame.depth.shape
     geom = frame_geometry(plens, h, w, config.sensor_px)
     reuse = config.perturb_fraction == 0 or config.lens_pool > 0    # else: a lens never met again
