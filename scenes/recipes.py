@@ -451,8 +451,8 @@ def street(b: Builder) -> None:
     """Outdoor: a street between rows of buildings, the camera off its
     centre (one row of facades from 4-8 m on), a building across its end
     at 25-45 m, pavements, parked cars at 4-18 m, trees, lamp posts,
-    signs, bins, benches and bollards at 3-20 m, a cloudy sky at infinity
-    above."""
+    signs, bins, benches and bollards at 3-20 m; a cloudy sky at infinity
+    shows over the lower roofs."""
     rng = b.rng
     ground = -rng.uniform(1.4, 1.8)
     road = rng.uniform(3.0, 4.5)                       # half width of the road, m
@@ -549,7 +549,7 @@ class Recipe:
 RECIPES = {r.name: r for r in (
     Recipe("room", room, True, "a furnished room 3.4-5 m deep, 20-60 objects at 0.75-5 m"),
     Recipe("tabletop", tabletop, True, "a desk's clutter at 0.75-1.7 m before a wall at 1.7-2.8 m"),
-    Recipe("street", street, False, "a street: facades, cars, trees, posts at 3-45 m, a cloudy sky"),
+    Recipe("street", street, False, "facades, parked cars, trees, posts at 3-45 m, sky over low roofs"),
     Recipe("leaves", None, False, "dead leaves in numpy: textured shapes at log-uniform 0.7-10 m"),
     Recipe("plane", plane_at, False, "a fronto-parallel plane at 2.5 m (for checks)"),
 )}

@@ -85,8 +85,9 @@ def sample_seed(seed: int, index: int) -> int:
 
 def parse(argv):
     p = argparse.ArgumentParser(prog="factory", description=__doc__.split("\n\n")[0])
+    from scenes.recipes import RECIPES
     p.add_argument("--recipe", required=True,
-                   help="scene recipe: room, tabletop, street (Blender), leaves (numpy, no Blender), or plane")
+                   help="scene recipe: " + "; ".join(f"{r.name}: {r.summary}" for r in RECIPES.values()))
     p.add_argument("--count", type=int, required=True, metavar="N",
                    help="images in the whole dataset: indices 0 .. N-1 over all shards (a resume may raise it)")
     p.add_argument("--lens", action="append", default=[], help="lens id or .toml path (repeat for several; "

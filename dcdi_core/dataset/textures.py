@@ -148,8 +148,3 @@ class TextureLibrary:
             for f in s.files:
                 h.update(f"{f.relative_to(self.folder)}\0{f.stat().st_size}\0".encode())
         return h.hexdigest()[:16]
-
-    def read_colour(self, s: TextureSet):
-        """The set's colour map as float32 (H, W, 3) linear RGB."""
-        from ..io.images import read_image
-        return read_image(s.colour)
