@@ -6,6 +6,7 @@ needs it.
 """
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 
@@ -22,7 +23,8 @@ def cmd_dacn_pairs(args) -> int:
                         baseline_depth_m=args.baseline_depth, sensor_px=args.sensor_px, pupil_samples=args.rays,
                         n_wavelengths=args.wavelengths, n_fields=args.fields, n_depths=args.depths,
                         lens_pool=args.lens_pool, saturate=not args.no_saturate, seed=args.seed,
-                        refocus=not args.no_refocus)
+                        refocus=not args.no_refocus, placement=args.placement,
+                        deconvolved=not args.no_deconvolved)
     t0 = time.perf_counter()
     done = build_pairs(source, args.output, config, variants=args.variants, shard=args.shard,
                        log=lambda t: print(t, file=sys.stderr))
@@ -40,13 +42,14 @@ def cmd_dacn_train(args) -> int:
         arch["rdicab"] = False
     if args.no_d2cb:
         arch["d2cb"] = False
-    for k in ("racm", "depth_encoding", "channels", "groups", "blocks"):
+    for k in ("racm", "depth_encoding", "channels", "groups", "blocks", "condition", "refine"):
         if getattr(args, k) is not None:
             arch[k] = getattr(args, k)
     config = DACNTrainConfig(data=args.data, config=args.config, arch=arch, input=args.input, iters=args.iters,
                              batch=args.batch, crop=args.crop, lr=args.lr, seed=args.seed, threads=args.threads,
                              checkpoint_every=args.checkpoint_every, validate_every=args.validate_every,
-                             train_scenes=args.train_scenes)
+                             train_scenes=args.train_scenes, schedule=args.schedule, warmup=args.warmup,
+                             loss=args.loss, crop_choice=args.crop_choice)
     from ..models.dacn.train import train_dacn       # torch from here on
     run = Path(args.output)
     result = run_training("dacn train", run, lambda **kw: train_dacn(config, run, device=args.device, **kw),
@@ -145,12 +148,21 @@ def train_parser(subparsers, name: str, **kw):
                                           "the same command again resumes a killed run and ends where an "
                                           "uninterrupted one would.")
     t.add_argument("--data", required=True, help="pairs folder (dcdi dacn pairs)")
-    t.add_argument("--config", default="tiny", help="named configuration: tiny, tiny-rb, demo, paper")
+    t.add_argument("--config", default="refine",
+                   help="named configuration: refine (default), tiny, tiny-rb, demo, paper (docs/dacn.md)")
     t.add_argument("--iters", type=positive_int, default=1000, help="iterations (the paper: 200000)")
     t.add_argument("-o", "--output", required=True, help="run folder")
     t.add_argument("--batch", type=positive_int, default=4, help="batch (default 4; the paper 8)")
     t.add_argument("--crop", type=positive_int, default=128, help="crop size (default 128; the paper 256)")
-    t.add_argument("--lr", type=float, default=2e-4, help="initial learning rate (halved at 50/80/90/95 %%)")
+    t.add_argument("--lr", type=float, default=2e-4, help="peak learning rate")
+    t.add_argument("--schedule", choices=["cosine", "steps"], default="cosine",
+                   help="cosine (default: warm-up, then down to lr / 100) or steps (halved at 50/80/90/95 %%, the "
+                        "paper's release)")
+    t.add_argument("--warmup", type=float, default=0.03, help="warm-up, a fraction of the iterations (cosine)")
+    t.add_argument("--loss", choices=["srgb_l1", "l1"], default="srgb_l1",
+                   help="L1 of the sRGB-encoded images (default) or of the linear ones")
+    t.add_argument("--crop-choice", type=positive_int, default=2,
+                   help="each crop is the worst-captured of this many imaged places (1: uniform)")
     t.add_argument("--seed", type=int, default=0, help="seed of weights and crops")
     t.add_argument("--threads", type=positive_int, default=1, help="torch threads (default 1)")
     add_device_option(t, torchrun=True)
@@ -162,6 +174,11 @@ def train_parser(subparsers, name: str, **kw):
     t.add_argument("--no-d2cb", action="store_true", help="ablation: without D2CB")
     t.add_argument("--racm", choices=["rb", "rstb"], default=None, help="replace the blocks (EDSR or Swin)")
     t.add_argument("--depth-encoding", choices=["minmax", "diopter"], default=None, help="depth at the input")
+    t.add_argument("--condition", action=argparse.BooleanOptionalAction, default=None,
+                   help="depth and field maps as input channels (default: the config's)")
+    t.add_argument("--refine", action=argparse.BooleanOptionalAction, default=None,
+                   help="refine the deconvolved capture (an input, and the base of the output) (default: the "
+                        "config's)")
     t.add_argument("--channels", type=positive_int, default=None, help="override C")
     t.add_argument("--groups", type=positive_int, default=None, help="override G")
     t.add_argument("--blocks", type=positive_int, default=None, help="override B")
@@ -214,7 +231,8 @@ def add_commands(sub) -> None:
     t.add_argument("--lens", required=True, help="lens id")
     t.add_argument("-o", "--output", required=True, help="pairs folder")
     t.add_argument("--variants", type=positive_int, default=1, help="perturbed lenses per frame (default 1)")
-    t.add_argument("--perturb", type=float, default=0.10, help="perturbation fraction (default 0.10 = +-10 %%)")
+    t.add_argument("--perturb", type=float, default=0.05,
+                   help="perturbation fraction (default 0.05 = +-5 %%, refocused; the paper: within 10 %%)")
     t.add_argument("--no-refocus", action="store_true",
                    help="keep each perturbed lens's sensor where its perturbed thickness puts it (default: moved "
                         "back to the nominal focus, as a focus compensator does)")
@@ -227,8 +245,16 @@ def add_commands(sub) -> None:
                         "records them)")
     t.add_argument("--full-well", type=float, default=10000.0, help="full well, electrons")
     t.add_argument("--read-noise", type=float, default=3.0, help="read noise, electrons RMS")
-    t.add_argument("--sensor-px", type=int, nargs=2, default=None, metavar=("ROWS", "COLS"),
-                   help="frames are the centre of a sensor of this many pixels (the paper: 1280 1920)")
+    t.add_argument("--sensor-px", type=int, nargs=2, default=(1280, 1920), metavar=("ROWS", "COLS"),
+                   help="frames are crops of a sensor of this many pixels, at its pitch (default: the paper's "
+                        "1280 1920, 12.2 um for the MOS lenses)")
+    t.add_argument("--full-sensor", dest="sensor_px", action="store_const", const=None,
+                   help="frames span the whole sensor instead (480 x 640: 35.2 um)")
+    t.add_argument("--placement", choices=["random", "centre"], default="random",
+                   help="where a frame lies on the sensor: a seeded place per frame and variant (default; every "
+                        "field is reached) or the centre")
+    t.add_argument("--no-deconvolved", action="store_true",
+                   help="skip the capture's deconvolution with the nominal lens (what a refining network reads)")
     t.add_argument("--rays", type=positive_int, default=64, help="pupil samples per side (PSF settings)")
     t.add_argument("--wavelengths", type=positive_int, default=31, help="wavelengths per PSF")
     t.add_argument("--fields", type=positive_int, default=64, help="library fields")

@@ -26,7 +26,7 @@ def _count(spec):
 
 
 def test_named_configs_and_the_papers_parameter_count():
-    assert list(CONFIGS) == ["tiny", "tiny-rb", "demo", "paper"]
+    assert list(CONFIGS) == ["tiny", "tiny-rb", "refine", "demo", "paper"]
     # the released configuration (C = 180, 6 x 6 RSTB, SwinIR's tail): 14.7 M
     assert _count(CONFIGS["paper"]) == 14_664_265
     assert _count(CONFIGS["demo"]) == 1_515_331                # the demo's 1.5 M

@@ -272,6 +272,7 @@ def test_a_lens_pool_reuses_a_few_perturbed_lenses():
     sims = {}
     recs = [degrade(_frame(fid=f"f{k}"), cfg, 0, simulators=sims).record for k in range(5)]
     seeds = {r["perturbation"]["seed"] for r in recs}
-    assert len(seeds) == 2 and len(sims) == 2                    # two lenses, each simulator built once
+    # two lenses, each library made once, and the nominal lens's (the deconvolution's)
+    assert len(seeds) == 2 and len(sims) == 3 and sum(k[0] == "nominal" for k in sims) == 1
     again = degrade(_frame(fid="f3"), cfg, 0)                      # the same draw without the shared dict
     assert again.record == recs[3]

@@ -1,6 +1,7 @@
 """DACN training (seeded, kill-and-resume equals uninterrupted, the test
 split never read), tiled correction, and the commands."""
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -28,7 +29,16 @@ def test_kill_and_resume_gives_the_uninterrupted_weights(pairs, tmp_path):
         train_dacn(dacn_config(pairs, lr=5e-4), tmp_path / "full")
     from dcdi_core.models.dacn.config import DACNTrainConfig
     assert DACNTrainConfig.from_json(dacn_config(pairs).to_json()) == dacn_config(pairs)
-    assert [dacn_config(pairs, iters=100).lr_at(s) for s in (0, 49, 50, 80, 95)] == [1e-3, 1e-3, 5e-4, 2.5e-4, 6.25e-5]
+    steps = dacn_config(pairs, iters=100, schedule="steps")
+    assert [steps.lr_at(s) for s in (0, 49, 50, 80, 95)] == [1e-3, 1e-3, 5e-4, 2.5e-4, 6.25e-5]
+    # cosine: linear warm-up over 10 % of the iterations, lr at its end, lr / 100 at the last
+    cos = dacn_config(pairs, iters=100, warmup=0.1)
+    assert cos.lr_at(0) == pytest.approx(1e-4) and cos.lr_at(9) == pytest.approx(1e-3)
+    assert cos.lr_at(10) == pytest.approx(1e-3) and cos.lr_at(100) == pytest.approx(1e-5)
+    assert cos.lr_at(55) == pytest.approx(1e-3 * (0.01 + 0.99 * 0.5))
+    # a config written before the schedule existed trained with the steps
+    old = {k: v for k, v in steps.as_dict().items() if k not in ("schedule", "warmup", "loss", "crop_choice")}
+    assert DACNTrainConfig.from_dict(old) == replace(steps, loss="l1", crop_choice=1, warmup=0.0)
 
 
 def test_the_test_split_never_meets_training(pairs, tmp_path, monkeypatch):
@@ -37,9 +47,9 @@ def test_the_test_split_never_meets_training(pairs, tmp_path, monkeypatch):
     read = []
     real = da2t.load_pair
 
-    def spy(path):
+    def spy(path, record=None):
         read.append(str(path))
-        return real(path)
+        return real(path, record)
     monkeypatch.setattr(da2t, "load_pair", spy)
     monkeypatch.setattr(dacn_loop, "load_pair", spy)
     result = dacn_loop.train_dacn(dacn_config(pairs, iters=4, checkpoint_every=4), tmp_path / "run")

@@ -70,8 +70,8 @@ class DACN(nn.Module):
         self.spec = spec
         c = spec.channels
         self.unshuffle = nn.PixelUnshuffle(SCALE)
-        self.conv_first = nn.Conv2d(3 * SCALE * SCALE, c, 3, padding=1)
-        self.conv_depth = nn.Conv2d(SCALE * SCALE, c, 3, padding=1)
+        self.conv_first = nn.Conv2d(spec.input_channels * SCALE * SCALE, c, 3, padding=1)
+        self.conv_depth = nn.Conv2d(SCALE * SCALE, c, 3, padding=1) if spec.depth_branch else None
         self.rdicab = RDICAB(c, heads_dividing(c, spec.rdicab_heads), spec.rdicab_mlp_ratio) if spec.rdicab else None
         self.norm_in = LayerNorm2d(c) if spec.racm == "rstb" else None     # SwinIR's patch norm
         self.groups = nn.ModuleList(ResidualGroup(spec) for _ in range(spec.groups))
@@ -88,14 +88,25 @@ class DACN(nn.Module):
         nn.init.zeros_(last.weight)
         nn.init.zeros_(last.bias)
 
-    def forward(self, image, depth):
-        if image.ndim != 4 or image.shape[1] != 3 or depth.shape != (image.shape[0], 1, *image.shape[2:]):
-            raise ValueError(f"image {tuple(image.shape)} and depth {tuple(depth.shape)}: "
-                             "expected (N, 3, H, W) and (N, 1, H, W)")
-        h, w = image.shape[-2:]
+    def forward(self, image, depth, deconvolved=None, field=None):
+        """image (N, 3, H, W) linear; depth (N, 1, H, W) encoded; with
+        ``spec.refine`` the deconvolved image (N, 3, H, W), with
+        ``spec.condition`` the field maps (N, 2, H, W)."""
+        n, _, h, w = image.shape if image.ndim == 4 else (0, 0, 0, 0)
+        want = {"image": (image, 3), "depth": (depth, 1)}
+        if self.spec.refine:
+            want["deconvolved"] = (deconvolved, 3)
+        if self.spec.condition:
+            want["field"] = (field, 2)
+        for name, (t, c) in want.items():
+            if t is None or image.ndim != 4 or tuple(t.shape) != (n, c, h, w):
+                raise ValueError(f"{name} {None if t is None else tuple(t.shape)}: expected (N, {c}, H, W) with "
+                                 f"the image's N, H, W ({tuple(image.shape)}; the spec's refine={self.spec.refine}, "
+                                 f"condition={self.spec.condition})")
         m = self.spec.multiple
-        x = self.unshuffle(pad_to_multiple(image, m))
-        d = self.conv_depth(self.unshuffle(pad_to_multiple(depth, m)))
+        parts = [image] + ([deconvolved] if self.spec.refine else []) + ([depth, field] if self.spec.condition else [])
+        x = self.unshuffle(pad_to_multiple(torch.cat(parts, 1) if len(parts) > 1 else image, m))
+        d = self.conv_depth(self.unshuffle(pad_to_multiple(depth, m))) if self.conv_depth is not None else None
         first = self.conv_first(x)
         f = self.rdicab(first, d) if self.rdicab is not None else first
         if self.norm_in is not None:
@@ -103,7 +114,8 @@ class DACN(nn.Module):
         for g in self.groups:
             f = g(f, d)
         f = self.conv_after_body(self.norm_out(f)) + first
-        return self.tail(f)[..., :h, :w] + image
+        base = deconvolved if self.spec.refine else image
+        return self.tail(f)[..., :h, :w] + base
 
 
 def _init(m):

@@ -7,6 +7,7 @@ rotations) at this machine's scale (batch 4 of 128^2 instead of 8 of
 256^2)."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, fields
 
 from ...errors import InputRangeError
@@ -16,6 +17,10 @@ from ..common.config import JSONConfig
 # data: where the pre-built pairs are (they may move; what they hold is keyed)
 OPERATIONAL = ("data", "checkpoint_every", "validate_every")
 INPUTS = ("capture", "baseline")
+SCHEDULES = ("cosine", "steps")
+LOSSES = ("srgb_l1", "l1")
+# what configs written before these settings existed trained with
+BEFORE = {"schedule": "steps", "warmup": 0.0, "loss": "l1", "crop_choice": 1}
 
 
 @dataclass(frozen=True)
@@ -29,8 +34,16 @@ class DACNTrainConfig(JSONConfig):
     crop: int = 128
     lr: float = 2e-4
     betas: tuple = (0.9, 0.99)
+    # cosine: a linear warm-up over the first ``warmup`` of the iterations, then a cosine from lr down to
+    # lr / 100; steps: the learning rate times gamma at each milestone (the paper's release)
+    schedule: str = "cosine"
+    warmup: float = 0.03
     milestones: tuple = (0.5, 0.8, 0.9, 0.95)  # fractions of iters where the learning rate is multiplied by gamma
     gamma: float = 0.5
+    # srgb_l1: L1 of the sRGB-encoded images (errors weighted as a viewer sees them: the linear L1 lets the
+    # bright pixels dominate and leaves the shadows' noise) plus the linear excess outside [0, 1]; l1: linear
+    loss: str = "srgb_l1"
+    crop_choice: int = 2                       # a crop's place: the worst captured of this many (data.PairCrops)
     ema_decay: float = 0.999
     augment: bool = True
     val_fraction: float = 0.1                  # the split by scene, if the data has none recorded
@@ -52,6 +65,14 @@ class DACNTrainConfig(JSONConfig):
             raise InputRangeError("config", self.config, ", ".join(CONFIGS))
         if self.input not in INPUTS:
             raise InputRangeError("input", self.input, " or ".join(INPUTS))
+        if self.schedule not in SCHEDULES:
+            raise InputRangeError("schedule", self.schedule, " or ".join(SCHEDULES))
+        if self.loss not in LOSSES:
+            raise InputRangeError("loss", self.loss, " or ".join(LOSSES))
+        if not 0.0 <= self.warmup < 1.0:
+            raise InputRangeError("warmup", self.warmup, "[0, 1) of the iterations")
+        if self.crop_choice < 1:
+            raise InputRangeError("crop_choice", self.crop_choice, ">= 1 (1: uniform places)")
         if self.train_scenes < 0:
             raise InputRangeError("train_scenes", self.train_scenes, ">= 0 (0: all training scenes)")
         for name in ("iters", "batch", "crop", "threads", "checkpoint_every", "val_size"):
@@ -69,8 +90,18 @@ class DACNTrainConfig(JSONConfig):
     def spec(self) -> DACNSpec:
         return named(self.config, **self.arch)
 
+    @classmethod
+    def from_dict(cls, d: dict) -> "DACNTrainConfig":
+        return cls(**{**BEFORE, **d})
+
     def lr_at(self, step: int) -> float:
         """Learning rate of update ``step`` (0-based)."""
+        if self.schedule == "cosine":
+            warm = round(self.warmup * self.iters)
+            if step < warm:
+                return self.lr * (step + 1) / warm
+            t = (step - warm) / max(1, self.iters - warm)
+            return self.lr * (0.01 + 0.99 * 0.5 * (1.0 + math.cos(math.pi * min(t, 1.0))))
         k = sum(step >= round(m * self.iters) for m in self.milestones)
         return self.lr * self.gamma ** k
 

@@ -85,31 +85,64 @@ def _starts(size: int, tile: int, step: int) -> list[int]:
     return sorted(set(s))
 
 
-def correct(model, image, depth_m, *, tile: int = 256, overlap: int = 32, progress=None) -> np.ndarray:
-    """The corrected (H, W, 3) float32 image of ``image`` (H, W, 3) linear
-    with metric ``depth_m`` (H, W). progress(done, total) after each tile."""
+def network_inputs(spec, image, depth_m, *, deconvolved=None, geometry=None, field=None) -> list:
+    """The arrays (C, H, W) float32 a network of ``spec`` reads, in its
+    forward's order (image, encoded depth[, deconvolved][, field]), for a
+    whole image: depth encoded once over the image (minmax: its own range),
+    the field maps of the image's pixels from ``geometry``
+    (``render.geometry.ImageGeometry``; or ``field`` maps given). Training
+    crops get the same from ``data.PairCrops`` (tested equal)."""
     img = np.asarray(image, dtype=np.float32)
     if img.ndim != 3 or img.shape[2] != 3:
         raise InputRangeError("image shape", img.shape, "(H, W, 3)")
     d = np.asarray(depth_m)
     if d.shape != img.shape[:2]:
         raise InputRangeError("depth map shape", d.shape, f"{img.shape[:2]}, the image's")
+    enc = spec.depth_encoding
+    out = [img.transpose(2, 0, 1), encode_depth(d, enc, stats=minmax_stats(d) if enc == "minmax" else None)[None]]
+    if spec.refine:
+        if deconvolved is None or np.shape(deconvolved) != img.shape:
+            raise InputRangeError("deconvolved image", None if deconvolved is None else np.shape(deconvolved),
+                                  f"{img.shape}: this network refines the deconvolution (correct.deconvolution)")
+        out.append(np.asarray(deconvolved, np.float32).transpose(2, 0, 1))
+    if spec.condition:
+        if field is None:
+            if geometry is None:
+                raise InputRangeError("geometry", None, "where the image lies on the sensor: this network is "
+                                      "told each pixel's field")
+            if (geometry.height, geometry.width) != img.shape[:2]:
+                raise InputRangeError("geometry size", (geometry.height, geometry.width), f"{img.shape[:2]}")
+            from ..runtime.conditioning import geometry_field_maps
+            field = geometry_field_maps(geometry)
+        if np.shape(field) != (2, *img.shape[:2]):
+            raise InputRangeError("field maps", np.shape(field), f"(2, {img.shape[0]}, {img.shape[1]})")
+        out.append(np.asarray(field, np.float32))
+    return out
+
+
+def correct(model, image, depth_m, *, deconvolved=None, geometry=None, field=None, tile: int = 256,
+            overlap: int = 32, progress=None) -> np.ndarray:
+    """The corrected (H, W, 3) float32 image of ``image`` (H, W, 3) linear
+    with metric ``depth_m`` (H, W); a refining network also reads the
+    ``deconvolved`` image, a conditioned one the field of each pixel
+    (``geometry``: where the image lies on the sensor; see
+    ``network_inputs``). progress(done, total) after each tile."""
     if tile < 8 or not 0 <= overlap < tile // 2 + 1:
         raise InputRangeError("tile, overlap", (tile, overlap), "tile >= 8, 0 <= overlap <= tile / 2")
-    enc = model.spec.depth_encoding
-    stats = minmax_stats(d) if enc == "minmax" else None
-    dep = encode_depth(d, enc, stats=stats)
-    h, w = d.shape
+    inputs = network_inputs(model.spec, image, depth_m, deconvolved=deconvolved, geometry=geometry, field=field)
+    h, w = inputs[0].shape[1:]
     rows, cols = _starts(h, tile, tile - overlap), _starts(w, tile, tile - overlap)
     total = len(rows) * len(cols)
-
     device = next(model.parameters()).device
+    names = ["image", "depth"] + (["deconvolved"] if model.spec.refine else []) + (
+        ["field"] if model.spec.condition else [])
 
     def run(r, c, th, tw):
-        x = torch.from_numpy(np.ascontiguousarray(img[r:r + th, c:c + tw].transpose(2, 0, 1)))[None]
-        z = torch.from_numpy(np.ascontiguousarray(dep[r:r + th, c:c + tw]))[None, None]
+        t = {n: torch.from_numpy(np.ascontiguousarray(a[:, r:r + th, c:c + tw]))[None].to(device)
+             for n, a in zip(names, inputs)}
         with torch.no_grad():
-            return model(x.to(device), z.to(device))[0].cpu().numpy().transpose(1, 2, 0)
+            return model(t["image"], t["depth"], t.get("deconvolved"), t.get("field"))[0].cpu().numpy().transpose(
+                1, 2, 0)
 
     if total == 1:
         out = run(0, 0, h, w)

@@ -56,6 +56,7 @@ from ..errors import ModelError, ModelFileError
 from ..runtime.depth_encoding import encode_depth
 
 PERTURB_TRIES = 10
+PLACEMENTS = ("random", "centre")
 
 
 def _default_noise():
@@ -76,6 +77,12 @@ class DA2TConfig:
     baseline_depth_m: float = 2.0
     patch: int = 16
     sensor_px: tuple | None = None
+    # with sensor_px: 'random' places each frame and variant at a seeded spot of the sensor (every field
+    # reached), 'centre' at its centre; 'centre' in configs written before this setting existed
+    placement: str = "random"
+    # the capture's deconvolution with the *nominal* lens's PSFs (correct.deconvolution, its defaults, the
+    # noise estimated from the capture: what `dcdi correct` feeds a refining network), stored with the pair
+    deconvolved: bool = True
     pupil_samples: int = 64
     n_wavelengths: int = 31
     n_fields: int = 64
@@ -91,6 +98,8 @@ class DA2TConfig:
             raise InputRangeError("perturb_fraction", self.perturb_fraction, "[0, 0.5] (0.1 = +-10 %)")
         if self.lens_pool < 0:
             raise InputRangeError("lens_pool", self.lens_pool, ">= 0 (0: a new lens per frame)")
+        if self.placement not in PLACEMENTS:
+            raise InputRangeError("placement", self.placement, " or ".join(PLACEMENTS))
 
     def as_dict(self) -> dict:
         d = asdict(self)
@@ -103,7 +112,7 @@ class DA2TConfig:
         unknown = set(d) - names
         if unknown:
             raise InputRangeError("DA2T setting", sorted(unknown), ", ".join(sorted(names)))
-        return cls(**{"refocus": False, **d})
+        return cls(**{"refocus": False, "placement": "centre", "deconvolved": False, **d})
 
 
 @dataclass
@@ -115,18 +124,27 @@ class DA2TPair:
     baseline: np.ndarray         # (H, W, 3) float32: depth-unaware aberrated, noisy
     depth: np.ndarray            # (H, W) float32 metres on the sensor (NaN: nothing imaged)
     record: dict = field(default_factory=dict)
+    deconvolved: np.ndarray | None = None    # (H, W, 3) float32: the capture deconvolved with the nominal lens
+
+    def geometry(self) -> tuple:
+        """(center_px, pixel_pitch_mm, semi_diagonal_mm) of the frame on the sensor (its record's)."""
+        g = self.record.get("geometry")
+        if not g:
+            raise ModelError(f"pair {self.id}: no geometry in its record (pairs built before it was recorded; "
+                             "build them again for field conditioning)")
+        return tuple(g["center_px"]), g["pixel_pitch_mm"], g["semi_diagonal_mm"]
 
 
 def _seeds(config: DA2TConfig, frame_id: str, variant: int):
-    """(perturbation, capture noise, baseline noise) seeds of one frame and
-    variant; with a lens pool the perturbation seed is that of the pool's
-    lens the frame draws."""
+    """(perturbation, capture noise, baseline noise, placement) seeds of one
+    frame and variant; with a lens pool the perturbation seed is that of the
+    pool's lens the frame draws."""
     key = [config.seed, variant] + list(frame_id.encode())
-    s = [int(v) for v in np.random.SeedSequence(key).generate_state(4, dtype=np.uint32)]
+    s = [int(v) for v in np.random.SeedSequence(key).generate_state(5, dtype=np.uint32)]
     if config.lens_pool:
         member = s[3] % config.lens_pool
         s[0] = int(np.random.SeedSequence([config.seed, 1 << 20, member]).generate_state(1, dtype=np.uint32)[0])
-    return s[:3]
+    return s[0], s[1], s[2], s[4]
 
 
 def perturbed(lens, fraction: float, seed: int, refocus: bool = True):
@@ -147,65 +165,103 @@ def perturbed(lens, fraction: float, seed: int, refocus: bool = True):
                      f"({PERTURB_TRIES} draws); lower perturb_fraction")
 
 
-def frame_geometry(lens, h: int, w: int, sensor_px=None):
+def frame_top_left(h: int, w: int, sensor_px, placement: str, seed: int) -> tuple[int, int]:
+    """(top row, left column) of an h x w frame on a ``sensor_px`` sensor:
+    its centre ('centre'), or uniform over the places it fits ('random',
+    seeded)."""
+    rows, cols = sensor_px
+    if h > rows or w > cols:
+        raise InputRangeError("frame size", (h, w), f"within the sensor_px {tuple(sensor_px)}")
+    if placement == "centre":
+        return (rows - h) // 2, (cols - w) // 2
+    rng = np.random.default_rng(seed)
+    return int(rng.integers(0, rows - h + 1)), int(rng.integers(0, cols - w + 1))
+
+
+def frame_geometry(lens, h: int, w: int, sensor_px=None, top_left=None):
+    """The frame's ``ImageGeometry``: spanning the sensor's diagonal
+    (``sensor_px`` None), or an h x w crop of a ``sensor_px`` sensor at that
+    sensor's pitch whose top-left pixel is sensor pixel ``top_left``
+    (default: centred)."""
     from ...render.geometry import ImageGeometry
 
     if sensor_px is None:
         return ImageGeometry.full_sensor(lens, h, w)
     rows, cols = sensor_px
-    if h > rows or w > cols:
-        raise InputRangeError("frame size", (h, w), f"within the sensor_px {tuple(sensor_px)}")
+    r0, c0 = frame_top_left(h, w, sensor_px, "centre", 0) if top_left is None else top_left
+    if h > rows or w > cols or not (0 <= r0 <= rows - h and 0 <= c0 <= cols - w):
+        raise InputRangeError("frame size and place", (h, w, r0, c0), f"within the sensor_px {tuple(sensor_px)}")
     pitch = ImageGeometry.full_sensor(lens, rows, cols).pixel_pitch_mm
-    return ImageGeometry.from_pixel_pitch(lens, h, w, pitch)
+    return ImageGeometry.from_pixel_pitch(lens, h, w, pitch, center_px=((rows - 1) / 2 - r0, (cols - 1) / 2 - c0))
+
+
+def _library(lens, key, geom, config: DA2TConfig, libraries: dict | None, reuse: bool):
+    """The PSF library of ``lens`` at ``geom``'s pitch, kept in ``libraries``
+    under ``key`` when ``reuse``: it holds the whole depth range (grown past
+    41 px if a fast lens needs it), not fitted to one frame's depths, so
+    every frame of a lens is blurred alike, wherever it lies on the sensor."""
+    from ...psf.compute import PSFSettings
+    from ...psf.library import LibraryGrid
+    from ...render.simulate import open_library
+
+    lib = libraries.get(key) if libraries is not None and reuse else None
+    if lib is None:
+        grid = LibraryGrid(n_fields=config.n_fields, n_depths=config.n_depths)
+        lib = open_library(lens, geom, PSFSettings(pupil_samples=config.pupil_samples,
+                                                   n_wavelengths=config.n_wavelengths),
+                           grid, cache=reuse, fit_depth_m=np.array([[grid.near_m, grid.far_m, np.inf]]))
+        if libraries is not None and reuse:
+            libraries[key] = lib
+    return lib
 
 
 def degrade(frame, config: DA2TConfig, variant: int = 0, *, lens=None, simulators: dict | None = None) -> DA2TPair:
     """One frame (``rgbd.RGBDFrame``) through the DA2T degradation (module
-    docstring). ``simulators``: a dict kept by the caller in which a lens
-    pool's simulators are reused across frames of one size."""
+    docstring). ``simulators``: a dict kept by the caller in which PSF
+    libraries are reused across frames (a lens pool's, the nominal lens's)."""
     from ...optics.lens import load_lens
-    from ...psf.compute import PSFSettings
-    from ...psf.library import LibraryGrid
     from ...render.noise import add_sensor_noise
     from ...render.simulate import LensSimulator
 
     base = lens if lens is not None else load_lens(config.lens)
-    s_perturb, s_noise, s_base = _seeds(config, frame.id, variant)
+    s_perturb, s_noise, s_base, s_place = _seeds(config, frame.id, variant)
     plens, prec = perturbed(base, config.perturb_fraction, s_perturb, config.refocus)
     h, w = frame.depth.shape
-    geom = frame_geometry(plens, h, w, config.sensor_px)
+    top_left = None if config.sensor_px is None else frame_top_left(h, w, config.sensor_px, config.placement,
+                                                                     s_place)
+    geom = frame_geometry(plens, h, w, config.sensor_px, top_left)
     reuse = config.perturb_fraction == 0 or config.lens_pool > 0    # else: a lens never met again
-    key = (prec["seed"], h, w)
-    sim = simulators.get(key) if simulators is not None and reuse else None
-    if sim is None:
-        # the kernel holds the PSFs of the whole depth range (grown past 41 px if a fast lens needs it),
-        # not fitted to one frame's depths: every frame of a lens is blurred alike
-        grid = LibraryGrid(n_fields=config.n_fields, n_depths=config.n_depths)
-        sim = LensSimulator(plens, geom, settings=PSFSettings(pupil_samples=config.pupil_samples,
-                                                              n_wavelengths=config.n_wavelengths),
-                            grid=grid, patch=config.patch, baseline_depth_m=config.baseline_depth_m, cache=reuse,
-                            fit_depth_m=np.array([[grid.near_m, grid.far_m, np.inf]]))
-        if simulators is not None and reuse:
-            simulators[key] = sim
+    lib = _library(plens, (prec["seed"], geom.pixel_pitch_mm), geom, config, simulators, reuse)
+    sim = LensSimulator(plens, geom, library=lib, patch=config.patch, baseline_depth_m=config.baseline_depth_m)
     noise = config.noise
     r = sim(frame.image, frame.depth, noise=noise, seed=s_noise if noise is not None else None)
     baseline = r.baseline if noise is None else add_sensor_noise(r.baseline, seed=s_base, **noise)
     capture, target = r.image, r.sharp
     if config.saturate:
         capture, target, baseline = (np.clip(a, 0.0, 1.0) for a in (capture, target, baseline))
+    deconvolved = None
+    if config.deconvolved:
+        from ...correct.deconvolution import deconvolve
+        ngeom = frame_geometry(base, h, w, config.sensor_px, top_left)
+        nlib = _library(base, ("nominal", ngeom.pixel_pitch_mm), ngeom, config, simulators, True)
+        deconvolved = deconvolve(capture, r.depth, base, geometry=ngeom, library=nlib).image.astype(np.float32)
     record = {"id": f"{frame.id}~{variant}", "frame": frame.id, "scene": frame.scene, "variant": variant,
               "source": frame.source, "lens": base.id, "perturbation": prec,
               "noise": None if noise is None else dict(noise, seed=s_noise, baseline_seed=s_base),
               "baseline_depth_m": config.baseline_depth_m, "sensor_px": config.as_dict()["sensor_px"],
-              "pixel_pitch_mm": geom.pixel_pitch_mm, "kernel_size": sim.library.kernel_size,
+              "top_left": None if top_left is None else list(top_left),
+              "geometry": {"center_px": list(geom.center_px), "pixel_pitch_mm": geom.pixel_pitch_mm,
+                           "semi_diagonal_mm": geom.semi_diagonal_mm},
+              "pixel_pitch_mm": geom.pixel_pitch_mm, "kernel_size": lib.kernel_size,
+              "deconvolved": deconvolved is not None,
               "not_imaged_pixels": int(np.isnan(r.depth).sum()), "shape": [h, w]}
     return DA2TPair(record["id"], frame.scene, capture.astype(np.float32), target.astype(np.float32),
-                    baseline.astype(np.float32),
-                    r.depth.astype(np.float32), record)
+                    baseline.astype(np.float32), r.depth.astype(np.float32), record, deconvolved)
 
 
 # --------------------------------------------------------------- on disk
 CHANNELS = {"capture": slice(0, 3), "target": slice(3, 6), "baseline": slice(6, 9), "depth": 9}
+DECONVOLVED = slice(10, 13)
 
 
 def pair_path(root, pair_id: str) -> Path:
@@ -213,9 +269,13 @@ def pair_path(root, pair_id: str) -> Path:
 
 
 def save_pair(root, pair: DA2TPair) -> Path:
-    """pairs/<id>.npy: (H, W, 10) float32, capture | target | baseline | depth."""
+    """pairs/<id>.npy: (H, W, 10) float32, capture | target | baseline |
+    depth, then the deconvolved capture if the pair has one (13)."""
     path = pair_path(root, pair.id)
-    stack = np.concatenate([pair.capture, pair.target, pair.baseline, pair.depth[..., None]], axis=2)
+    parts = [pair.capture, pair.target, pair.baseline, pair.depth[..., None]]
+    if pair.deconvolved is not None:
+        parts.append(pair.deconvolved)
+    stack = np.concatenate(parts, axis=2)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             np.save(f, np.ascontiguousarray(stack, dtype=np.float32), allow_pickle=False)
@@ -229,10 +289,12 @@ def load_pair(path, record: dict | None = None) -> DA2TPair:
         a = np.load(path, mmap_mode="r", allow_pickle=False)
     except (OSError, ValueError) as e:
         raise ModelFileError(path, f"not a DA2T pair ({e})") from None
-    if a.ndim != 3 or a.shape[2] != 10 or a.dtype != np.float32:
-        raise ModelFileError(path, f"array {a.shape} {a.dtype}, expected (H, W, 10) float32")
+    if a.ndim != 3 or a.shape[2] not in (10, 13) or a.dtype != np.float32:
+        raise ModelFileError(path, f"array {a.shape} {a.dtype}, expected (H, W, 10 or 13) float32")
     rec = record or {}
-    return DA2TPair(path.stem, rec.get("scene", ""), record=rec, **{k: a[..., c] for k, c in CHANNELS.items()})
+    dec = a[..., DECONVOLVED] if a.shape[2] == 13 else None
+    return DA2TPair(path.stem, rec.get("scene", ""), record=rec, deconvolved=dec,
+                    **{k: a[..., c] for k, c in CHANNELS.items()})
 
 
 def finished_pairs(root) -> dict:
@@ -314,41 +376,77 @@ def augment(arrays, k: int):
 
 class PairCrops:
     """Training crops from pre-built pairs: ``sample(rng, batch, size)`` ->
-    (input, target, encoded depth) arrays (B, C, size, size), float32:
-    crops within the imaged area, flips and rotations, depth encoded per
-    crop (``encoding``). ``input`` 'capture' (DA2T) or
+    (input, target, encoded depth[, extras]) arrays (B, C, size, size),
+    float32: crops within the imaged area, flips and rotations, depth
+    encoded per crop (``encoding``). ``input`` 'capture' (DA2T) or
     'baseline' (the depth-unaware training set) picks what the network is
-    fed: both come from the same frames."""
+    fed: both come from the same frames. ``extras``: 'deconvolved' (the
+    pair's deconvolved capture, turned with the crop) and 'field'
+    (``runtime.conditioning``'s maps of the crop's own sensor pixels, turned
+    as a rotated field position is; needs the pairs' records).
 
-    def __init__(self, paths, encoding: str, *, augment: bool = True, cache: bool = True):
+    choose: of this many imaged candidate places, the crop is taken where
+    the capture is furthest from the target (mean absolute difference):
+    crops are drawn where there is something to learn, yet every place
+    keeps a chance (1: uniform)."""
+
+    def __init__(self, paths, encoding: str, *, augment: bool = True, cache: bool = True, records=None,
+                 choose: int = 1):
         # cache: keep each pair's memory map open (the OS pages in what crops read)
         self.paths = [Path(p) for p in paths]
         if not self.paths:
             raise ModelError("no training pairs (build them first: models.dacn.data.build_pairs)")
-        self.encoding, self.augment = encoding, augment
+        if choose < 1:
+            raise InputRangeError("crop choice", choose, ">= 1 candidate place (1: uniform)")
+        self.encoding, self.augment, self.choose = encoding, augment, int(choose)
+        self.records = records or {}
         self._cache = {} if cache else None
 
     def pair(self, i: int) -> DA2TPair:
         if self._cache is None:
-            return load_pair(self.paths[i])
+            return load_pair(self.paths[i], self.records.get(self.paths[i].stem))
         if i not in self._cache:
-            self._cache[i] = load_pair(self.paths[i])
+            self._cache[i] = load_pair(self.paths[i], self.records.get(self.paths[i].stem))
         return self._cache[i]
 
-    def crop(self, pair: DA2TPair, size: int, rng, *, input: str = "capture"):
+    def _place(self, pair: DA2TPair, size: int, rng) -> tuple[int, int]:
         valid = ~np.isnan(pair.depth)
-        r, c = crop_position(valid, size, rng)
-        sl = (slice(r, r + size), slice(c, c + size))
-        x, y, d = (np.array(a[sl]) for a in (getattr(pair, input), pair.target, pair.depth))
-        if self.augment:
-            x, y, d = augment((x, y, d), int(rng.integers(0, 8)))
-        return x, y, encode_depth(d, self.encoding)
+        places = [crop_position(valid, size, rng) for _ in range(self.choose)]
+        if len(places) == 1:
+            return places[0]
+        err = [float(np.abs(np.asarray(pair.capture[r:r + size, c:c + size])
+                            - np.asarray(pair.target[r:r + size, c:c + size])).mean()) for r, c in places]
+        return places[int(np.argmax(err))]
 
-    def sample(self, rng, batch: int, size: int, *, input: str = "capture"):
-        xs, ys, ds = [], [], []
+    def crop(self, pair: DA2TPair, size: int, rng, *, input: str = "capture", extras=()):
+        r, c = self._place(pair, size, rng)
+        sl = (slice(r, r + size), slice(c, c + size))
+        arrays = [np.array(a[sl]) for a in (getattr(pair, input), pair.target, pair.depth)]
+        if "deconvolved" in extras:
+            if pair.deconvolved is None:
+                raise ModelError(f"pair {pair.id}: no deconvolved capture (pairs built with deconvolved = False)")
+            arrays.append(np.array(pair.deconvolved[sl]))
+        k = int(rng.integers(0, 8)) if self.augment else 0
+        if k:
+            arrays = augment(arrays, k)
+        x, y, d = arrays[:3]
+        out = [x, y, encode_depth(d, self.encoding)]
+        if "deconvolved" in extras:
+            out.append(arrays[3])
+        if "field" in extras:
+            from ..runtime.conditioning import augment_field, field_maps
+            centre, pitch, sd = pair.geometry()
+            maps = field_maps(centre, pitch, sd, np.arange(r, r + size), np.arange(c, c + size))
+            out.append(augment_field(maps, k).transpose(1, 2, 0))
+        return tuple(out)
+
+    def sample(self, rng, batch: int, size: int, *, input: str = "capture", extras=()):
+        """Stacked crops (B, C, size, size): input, target, depth (1 channel),
+        then the ``extras`` in their order."""
+        cols = None
         for _ in range(batch):
-            x, y, d = self.crop(self.pair(int(rng.integers(0, len(self.paths)))), size, rng, input=input)
-            xs.append(x.transpose(2, 0, 1))
-            ys.append(y.transpose(2, 0, 1))
-            ds.append(d[None])
-        return np.stack(xs), np.stack(ys), np.stack(ds)
+            got = self.crop(self.pair(int(rng.integers(0, len(self.paths)))), size, rng, input=input,
+                            extras=extras)
+            got = [a[None] if a.ndim == 2 else a.transpose(2, 0, 1) for a in got]
+            cols = [[g] for g in got] if cols is None else [col + [g] for col, g in zip(cols, got)]
+        return tuple(np.stack(col) for col in cols)

@@ -29,6 +29,18 @@ from ..errors import ModelError
 from ..common.metrics import WINDOW, psnr, ssim_map
 
 DEPTH_BANDS_M = ((0.0, 0.7), (0.7, 1.0), (1.0, 2.0), (2.0, 5.0), (5.0, 10.0), (10.0, math.inf))
+# field bands (image height over the sensor's semi-diagonal)
+FIELD_BANDS = ((0.0, 0.3), (0.3, 0.6), (0.6, 1.01))
+
+
+def field_band_name(lo: float, hi: float) -> str:
+    return f"field {lo:g}-{min(hi, 1.0):g}"
+
+
+def srgb_encode(x: np.ndarray) -> np.ndarray:
+    """sRGB encoding (IEC 61966-2-1) of linear values, clipped to [0, 1] first."""
+    x = np.clip(x, 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(np.maximum(x, 0.0031308), 1 / 2.4) - 0.055)
 
 
 def band_name(lo: float, hi: float) -> str:
@@ -64,10 +76,13 @@ class BandSums:
         return out
 
 
-def image_scores(out: np.ndarray, target: np.ndarray, depth_m: np.ndarray, bands=DEPTH_BANDS_M) -> dict:
+def image_scores(out: np.ndarray, target: np.ndarray, depth_m: np.ndarray, bands=DEPTH_BANDS_M,
+                 field=None) -> dict:
     """Scores of one (H, W, 3) image against its target over the imaged
-    pixels (finite or infinite ``depth_m``; NaN: not imaged): 'psnr', 'ssim'
-    and 'bands' {name: (sse, n, ssim_sum, ssim_n)} for pooling."""
+    pixels (finite or infinite ``depth_m``; NaN: not imaged): 'psnr', 'ssim',
+    'psnr_srgb' (of the sRGB-encoded images), 'psnr_unmasked' (every pixel,
+    linear), 'bands' {name: (sse, n, ssim_sum, ssim_n)} for pooling, and
+    with ``field`` (H, W) each pixel's field, 'fields' alike per field band."""
     out = np.clip(np.asarray(out, np.float64), 0.0, 1.0)
     target = np.asarray(target, np.float64)
     if out.shape != target.shape or out.shape[:2] != depth_m.shape or out.ndim != 3:
@@ -86,7 +101,16 @@ def image_scores(out: np.ndarray, target: np.ndarray, depth_m: np.ndarray, bands
     d = np.where(imaged, depth_m, np.nan)
     rec = {"psnr": float(psnr(out[imaged], target[imaged], 1.0)),
            "ssim": float(full_ssim[imaged & inner].mean()) if (imaged & inner).any() else float("nan"),
-           "bands": {}}
+           "psnr_srgb": float(psnr(srgb_encode(out[imaged]), srgb_encode(target[imaged]), 1.0)),
+           "psnr_unmasked": float(psnr(out, np.clip(target, 0.0, 1.0), 1.0)),
+           "bands": {}, "fields": {}}
+    if field is not None:
+        for lo, hi in FIELD_BANDS:
+            sel = imaged & (field >= lo) & (field < hi)
+            if sel.any():
+                s_sel = sel & inner
+                rec["fields"][field_band_name(lo, hi)] = (float(err[sel].sum()), int(sel.sum()) * 3,
+                                                          float(full_ssim[s_sel].sum()), int(s_sel.sum()))
     with np.errstate(invalid="ignore"):
         for lo, hi in bands:
             sel = imaged & (d >= lo) & ((d < hi) | (np.isinf(hi) & np.isinf(d)))
@@ -120,10 +144,12 @@ class Evaluation:
     names: list                                 # 'capture' (uncorrected), then the models
     pairs: list = field(default_factory=list)   # per pair {id, scene, <name>: {psnr, ssim}}
     bands: dict = field(default_factory=dict)   # name -> band -> BandSums
+    fields: dict = field(default_factory=dict)  # name -> field band -> BandSums
     seconds: dict = field(default_factory=dict)  # name -> inference seconds in all
 
     def keys(self) -> list:
-        return [k for k in ("psnr", "ssim", "lpips") if self.pairs and k in self.pairs[0][self.names[0]]]
+        return [k for k in ("psnr", "ssim", "psnr_srgb", "psnr_unmasked", "lpips")
+                if self.pairs and k in self.pairs[0][self.names[0]]]
 
     def per_scene(self) -> dict:
         out = {}
@@ -138,48 +164,75 @@ class Evaluation:
     def band_scores(self) -> dict:
         return {n: {b: s.scores() for b, s in self.bands[n].items()} for n in self.names}
 
+    def field_scores(self) -> dict:
+        return {n: {b: s.scores() for b, s in self.fields.get(n, {}).items()} for n in self.names}
+
     def as_dict(self) -> dict:
-        return {"names": self.names, "mean": self.mean(), "bands": self.band_scores(),
+        return {"names": self.names, "mean": self.mean(), "bands": self.band_scores(), "fields": self.field_scores(),
                 "scenes": self.per_scene(), "pairs": self.pairs, "seconds": self.seconds}
+
+
+def pair_geometry(record: dict, h: int, w: int):
+    """The ``ImageGeometry`` a pair's record states (None for pairs built
+    before it was recorded)."""
+    from ...render.geometry import ImageGeometry
+    g = record.get("geometry")
+    if not g:
+        return None
+    return ImageGeometry(h, w, g["pixel_pitch_mm"], tuple(g["center_px"]), g["semi_diagonal_mm"])
 
 
 def evaluate_models(models: dict, data_root, *, ids=None, correct_fn=None, tile: int = 256, overlap: int = 32,
                     progress=None, keep_outputs: int = 0, lpips=None) -> tuple[Evaluation, list]:
     """Score ``models`` {name: model} on the held-out pairs ``ids`` of
-    ``data_root`` (default: all finished pairs). Returns (Evaluation,
-    outputs) with outputs the first ``keep_outputs`` pairs' (id, capture,
-    {name: corrected}, target, depth) for pictures. ``correct_fn``: the
-    tiled inference (default ``models.correct.correct``); ``lpips``: an
+    ``data_root`` (default: all finished pairs), beside the capture and,
+    where the pairs hold it, the deconvolution alone ('deconvolution').
+    Returns (Evaluation, outputs) with outputs the first ``keep_outputs``
+    pairs' (id, capture, {name: corrected}, target, depth) for pictures.
+    ``correct_fn``: the tiled inference (default ``models.correct.correct``;
+    it is given the pair's deconvolution and geometry); ``lpips``: an
     ``models.lpips.LPIPS`` to add that score (over the imaged pixels)."""
     if correct_fn is None:
         from .correct import correct as correct_fn
-    if "capture" in models:
-        raise InputRangeError("model name", "capture", "any other name ('capture' is the uncorrected input)")
+    for taken in ("capture", "deconvolution"):
+        if taken in models:
+            raise InputRangeError("model name", taken, "any other name (capture and deconvolution are the "
+                                  "uncorrected input and the physics alone)")
     pairs = finished_pairs(data_root)
     ids = sorted(pairs) if ids is None else list(ids)
-    names = ["capture"] + list(models)
-    ev = Evaluation(names, bands={n: {} for n in names}, seconds={n: 0.0 for n in models})
+    has_dec = bool(ids) and all(pairs[p].get("deconvolved") for p in ids)
+    names = ["capture"] + (["deconvolution"] if has_dec else []) + list(models)
+    ev = Evaluation(names, bands={n: {} for n in names}, fields={n: {} for n in names},
+                    seconds={n: 0.0 for n in models})
     kept = []
     for i, pid in enumerate(ids):
-        p = load_pair(pair_path(data_root, pid))
+        p = load_pair(pair_path(data_root, pid), pairs[pid])
         capture, target, depth = np.array(p.capture), np.array(p.target), np.array(p.depth)
+        dec = np.array(p.deconvolved) if has_dec else None
+        geom = pair_geometry(pairs[pid], *depth.shape)
+        fld = None if geom is None else geom.field(*np.indices(depth.shape))
         row = {"id": pid, "scene": pairs[pid]["scene"]}
         outs = {}
         for name in names:
             if name == "capture":
                 out = capture
+            elif name == "deconvolution":
+                out = dec
             else:
                 t0 = time.perf_counter()
-                out = correct_fn(models[name], capture, depth, tile=tile, overlap=overlap)
+                out = correct_fn(models[name], capture, depth, deconvolved=dec, geometry=geom, tile=tile,
+                                 overlap=overlap)
                 ev.seconds[name] += time.perf_counter() - t0
                 outs[name] = out
-            sc = image_scores(out, target, depth)
-            row[name] = {"psnr": sc["psnr"], "ssim": sc["ssim"]}
+            sc = image_scores(out, target, depth, field=fld)
+            row[name] = {k: sc[k] for k in ("psnr", "ssim", "psnr_srgb", "psnr_unmasked")}
             if lpips is not None:
                 from ..common.lpips import lpips_score
                 row[name]["lpips"] = lpips_score(lpips, out, target, ~np.isnan(depth))
             for b, sums in sc["bands"].items():
                 ev.bands[name].setdefault(b, BandSums()).add(*sums)
+            for b, sums in sc["fields"].items():
+                ev.fields[name].setdefault(b, BandSums()).add(*sums)
         ev.pairs.append(row)
         if i < keep_outputs:
             kept.append((pid, capture, outs, target, depth))
@@ -187,27 +240,41 @@ def evaluate_models(models: dict, data_root, *, ids=None, correct_fn=None, tile:
             progress(i + 1, len(ids))
     order = [band_name(lo, hi) for lo, hi in DEPTH_BANDS_M]
     ev.bands = {n: dict(sorted(b.items(), key=lambda kv: order.index(kv[0]))) for n, b in ev.bands.items()}
+    forder = [field_band_name(lo, hi) for lo, hi in FIELD_BANDS]
+    ev.fields = {n: dict(sorted(b.items(), key=lambda kv: forder.index(kv[0]))) for n, b in ev.fields.items()}
     return ev, kept
 
 
 def markdown_tables(ev: Evaluation) -> str:
-    """The mean and per-band table (PSNR dB / SSIM) as Markdown."""
-    bands = [b for b in (band_name(lo, hi) for lo, hi in DEPTH_BANDS_M) if any(b in ev.bands[n] for n in ev.names)]
+    """The mean table (linear PSNR / SSIM over the imaged pixels, sRGB PSNR,
+    PSNR over every pixel) and the per depth and field band tables (PSNR dB
+    / SSIM, pooled) as Markdown."""
     mean = ev.mean()
-    sc = ev.band_scores()
     lp = "lpips" in ev.keys()
-    head = "| | all (PSNR / SSIM" + (" / LPIPS" if lp else "") + ") | " + " | ".join(bands) + " |"
-    lines = [head, "|" + "---|" * (len(bands) + 2)]
+    lines = ["| | PSNR / SSIM (imaged) | PSNR sRGB | PSNR every pixel" + (" | LPIPS" if lp else "") + " |",
+             "|---|---|---|---|" + ("---|" if lp else "")]
     for n in ev.names:
-        cells = [f"{mean[n]['psnr']:.2f} / {mean[n]['ssim']:.4f}" + (f" / {mean[n]['lpips']:.4f}" if lp else "")]
-        for b in bands:
-            s = sc[n].get(b, {})
-            cells.append(f"{s['psnr']:.2f} / {s.get('ssim', float('nan')):.4f}" if "psnr" in s else "-")
-        lines.append(f"| {n} | " + " | ".join(cells) + " |")
-    px = {b: sc[ev.names[0]].get(b, {}).get("pixels", 0) for b in bands}
-    total = max(sum(px.values()), 1)
-    lines.append("| share of pixels | | " + " | ".join(f"{100 * px[b] / total:.1f} %" for b in bands) + " |")
-    return "\n".join(lines) + "\n"
+        m = mean[n]
+        lines.append(f"| {n} | {m['psnr']:.2f} / {m['ssim']:.4f} | {m['psnr_srgb']:.2f} | {m['psnr_unmasked']:.2f}"
+                     + (f" | {m['lpips']:.4f}" if lp else "") + " |")
+    out = "\n".join(lines) + "\n\n"
+    for kind, scores, order in (("depth", ev.band_scores(), [band_name(lo, hi) for lo, hi in DEPTH_BANDS_M]),
+                                ("field", ev.field_scores(), [field_band_name(lo, hi) for lo, hi in FIELD_BANDS])):
+        bands = [b for b in order if any(b in scores[n] for n in ev.names)]
+        if not bands:
+            continue
+        rows = ["| " + kind + " band | " + " | ".join(bands) + " |", "|" + "---|" * (len(bands) + 1)]
+        for n in ev.names:
+            cells = []
+            for b in bands:
+                s = scores[n].get(b, {})
+                cells.append(f"{s['psnr']:.2f} / {s.get('ssim', float('nan')):.4f}" if "psnr" in s else "-")
+            rows.append(f"| {n} | " + " | ".join(cells) + " |")
+        px = {b: scores[ev.names[0]].get(b, {}).get("pixels", 0) for b in bands}
+        total = max(sum(px.values()), 1)
+        rows.append("| share of pixels | " + " | ".join(f"{100 * px[b] / total:.1f} %" for b in bands) + " |")
+        out += "\n".join(rows) + "\n\n"
+    return out
 
 
 def panel_strip(panels, gap: int = 4) -> np.ndarray:

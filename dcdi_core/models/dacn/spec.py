@@ -46,6 +46,11 @@ class DACNSpec:
     res_scale: float = 1.0             # RB residual scaling
     tail: str = "direct"
     depth_encoding: str = "minmax"     # how the trainer / inference encode depth for this network
+    # the encoded depth and the field maps (runtime.conditioning) as input channels beside the image
+    condition: bool = False
+    # physics in front: the deconvolved capture is an input too, and the network adds its correction to
+    # that instead of to the capture
+    refine: bool = False
 
     def __post_init__(self):
         for name in ("channels", "groups", "blocks", "window", "heads", "rdicab_heads"):
@@ -58,9 +63,24 @@ class DACNSpec:
             raise InputRangeError("tail", self.tail, " or ".join(TAILS))
         if self.depth_encoding not in DEPTH_ENCODINGS:
             raise InputRangeError("depth_encoding", self.depth_encoding, " or ".join(DEPTH_ENCODINGS))
+        for name in ("rdicab", "d2cb", "condition", "refine"):
+            if not isinstance(getattr(self, name), bool):
+                raise InputRangeError(name, getattr(self, name), "true or false")
         if not (self.mlp_ratio > 0 and self.rdicab_mlp_ratio > 0 and self.res_scale > 0):
             raise InputRangeError("mlp_ratio, rdicab_mlp_ratio, res_scale",
                                   (self.mlp_ratio, self.rdicab_mlp_ratio, self.res_scale), "> 0")
+
+    @property
+    def input_channels(self) -> int:
+        """Channels before the unshuffle: the image, the deconvolved image
+        (refine), encoded depth and the two field maps (condition)."""
+        return 3 + 3 * self.refine + 3 * self.condition
+
+    @property
+    def depth_branch(self) -> bool:
+        """The depth feature branch that RDICAB and D2CB read (networks made
+        before conditioning carry it even with both off)."""
+        return self.rdicab or self.d2cb or not self.condition
 
     @property
     def multiple(self) -> int:
@@ -80,6 +100,10 @@ CONFIGS = {
     "tiny": DACNSpec(channels=48, groups=2, blocks=2, racm="rstb"),
     # the ablation's RACM (the paper's tables: RB), at tiny cost
     "tiny-rb": DACNSpec(channels=48, groups=2, blocks=2, racm="rb"),
+    # what this machine trains well: plain 3 x 3 convs at a quarter resolution, the depth and field as
+    # input channels, refining the deconvolution (models/dacn's study chose it by held-out PSNR per CPU-hour)
+    "refine": DACNSpec(channels=64, groups=3, blocks=2, racm="rb", rdicab=False, d2cb=False,
+                       depth_encoding="diopter", condition=True, refine=True),
     # the released code's demo configuration (C = 60, 4 x 6)
     "demo": DACNSpec(channels=60, groups=4, blocks=6, racm="rstb", tail="paper"),
     # the released configuration (C = 180, 6 x 6)

@@ -121,39 +121,62 @@ def centre_crop(a, size: int):
     return a[r:r + s_h, c:c + s_w]
 
 
+def extras_of(spec) -> tuple:
+    """What a network of ``spec`` reads besides the input and depth (the
+    order of its forward's arguments)."""
+    return (("deconvolved",) if spec.refine else ()) + (("field",) if spec.condition else ())
+
+
 def evaluate(model, data: DACNData, config: DACNTrainConfig, ids=None) -> dict:
     """PSNR / SSIM (``models.metrics``, data range 1, output clipped to [0, 1])
     of the network's correction and of its input, on the centre crops of the
-    validation pairs (``ids``: others), mean over pairs."""
+    validation pairs (``ids``: others), mean over pairs; the crops' depth,
+    deconvolution and field as inference prepares them (``correct``)."""
+    from ..runtime.conditioning import field_maps
+    from .correct import correct
     spec = model.spec
     ids = data.val if ids is None else ids
     if not ids:
         return {}
+    records = finished_pairs(data.root)
     rows = []
-    device = next(model.parameters()).device
     model.eval()
-    with torch.no_grad():
-        for pid in ids:
-            p = load_pair(pair_path(data.root, pid))
-            x = centre_crop(getattr(p, config.input), config.val_size)
-            y = centre_crop(p.target, config.val_size).transpose(2, 0, 1)
-            d = encode_depth(centre_crop(p.depth, config.val_size), spec.depth_encoding)
-            out = model(_tensor(x.transpose(2, 0, 1))[None].to(device),
-                        _tensor(d)[None, None].to(device))[0].cpu().numpy()
-            out = np.clip(out, 0.0, 1.0)
-            xin = np.clip(x.transpose(2, 0, 1), 0.0, 1.0)
-            row = {"id": pid, "psnr": float(psnr(out, y, 1.0)), "psnr_input": float(psnr(xin, y, 1.0))}
-            if min(y.shape[-2:]) >= 11:
-                row["ssim"], row["ssim_input"] = float(ssim(out, y, 1.0)), float(ssim(xin, y, 1.0))
-            rows.append(row)
+    for pid in ids:
+        p = load_pair(pair_path(data.root, pid), records.get(pid))
+        h, w = p.depth.shape
+        s_h, s_w = min(config.val_size, h), min(config.val_size, w)
+        r0, c0 = (h - s_h) // 2, (w - s_w) // 2
+        x = centre_crop(getattr(p, config.input), config.val_size)
+        y = centre_crop(p.target, config.val_size).transpose(2, 0, 1)
+        dec = centre_crop(p.deconvolved, config.val_size) if spec.refine else None
+        fm = None
+        if spec.condition:
+            centre, pitch, sd = p.geometry()
+            fm = field_maps(centre, pitch, sd, np.arange(r0, r0 + s_h), np.arange(c0, c0 + s_w))
+        out = correct(model, x, centre_crop(p.depth, config.val_size), deconvolved=dec, field=fm,
+                      tile=max(s_h, s_w), overlap=0)
+        out = np.clip(out, 0.0, 1.0).transpose(2, 0, 1)
+        xin = np.clip(x.transpose(2, 0, 1), 0.0, 1.0)
+        row = {"id": pid, "psnr": float(psnr(out, y, 1.0)), "psnr_input": float(psnr(xin, y, 1.0))}
+        if min(y.shape[-2:]) >= 11:
+            row["ssim"], row["ssim_input"] = float(ssim(out, y, 1.0)), float(ssim(xin, y, 1.0))
+        rows.append(row)
     model.train()
     mean = {k: float(np.mean([r[k] for r in rows])) for k in rows[0] if k != "id"}
     return {"mean": mean, "pairs": rows}
 
 
-def l1_loss(model, x, y, d):
-    """Mean absolute difference of the network's correction of ``x`` from ``y``."""
-    return (model(x, d) - y).abs().mean()
+def srgb(x):
+    """sRGB encoding of linear values in [0, 1] (torch; IEC 61966-2-1)."""
+    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp(min=0.0031308) ** (1 / 2.4) - 0.055)
+
+
+def correction_loss(kind: str, out, y):
+    """``DACNTrainConfig.loss`` of the network's output against the target."""
+    if kind == "l1":
+        return (out - y).abs().mean()
+    inside = out.clamp(0.0, 1.0)
+    return (srgb(inside) - srgb(y.clamp(0.0, 1.0))).abs().mean() + (out - inside).abs().mean()
 
 
 class PairTraining(Network):
@@ -184,11 +207,15 @@ class PairTraining(Network):
 
     def batches(self, data: DACNData):
         c = self.config
-        crops = PairCrops([pair_path(data.root, p) for p in data.train], self.encoding, augment=c.augment)
+        crops = PairCrops([pair_path(data.root, p) for p in data.train], self.encoding, augment=c.augment,
+                          records=finished_pairs(data.root), choose=getattr(c, "crop_choice", 1))
+        extras = self.extras
 
         def draw(rng, rows, device):
-            return self.tensors(crops.sample(rng, c.batch, c.crop, input=c.input), rows, device)
+            return self.tensors(crops.sample(rng, c.batch, c.crop, input=c.input, extras=extras), rows, device)
         return draw
+
+    extras: tuple = ()
 
     def tensors(self, batch: tuple, rows: slice, device) -> tuple:
         """The loss's arguments from this rank's ``rows`` of the global batch
@@ -209,11 +236,15 @@ class DACNTraining(PairTraining):
     def encoding(self) -> str:
         return self.config.spec().depth_encoding
 
+    @property
+    def extras(self) -> tuple:
+        return extras_of(self.config.spec())
+
     def build(self, data: DACNData):
         return DACN(self.config.spec())
 
-    def loss(self, model, x, y, d):
-        return l1_loss(model, x, y, d)
+    def loss(self, model, x, y, d, *extras):
+        return correction_loss(self.config.loss, model(x, d, **dict(zip(self.extras, extras))), y)
 
     def validate(self, model, ema, data: DACNData) -> dict:
         return {"val_ema": evaluate(ema, data, self.config).get("mean")}
