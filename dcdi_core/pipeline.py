@@ -213,23 +213,43 @@ class Deconvolution:
 class NetworkCorrection:
     """A DACN (``models.dacn.correct.load_dacn``'s model and info) run tiled
     (``tile``, ``overlap`` px) on a capture clipped to [0, 1], the range it
-    learned. reason: why it was chosen."""
+    learned. A refining network (its spec's ``refine``) reads the capture's
+    ``deconvolution`` too, run first; a conditioned one the field of each
+    pixel, from ``geometry`` (None: the capture spans the sensor's diagonal).
+    reason: why it was chosen."""
 
     model: object
     info: dict
     tile: int = 256
     overlap: int = 32
     reason: str = ""
+    deconvolution: Deconvolution | None = None
+    geometry: object = None
 
     method = "dacn"
 
     def run(self, capture, depth_m, progress=None) -> tuple[np.ndarray, dict]:
         from .models.dacn.correct import correct
-        out = correct(self.model, np.clip(capture, 0.0, 1.0), depth_m, tile=self.tile, overlap=self.overlap,
-                      progress=progress)
-        return np.clip(out, 0.0, None).astype(np.float32), {
-            "model": self.info.get("checkpoint"), "trained_for": trained_lens(self.info),
-            "pixel_pitch_mm": (self.info.get("meta") or {}).get("pixel_pitch_mm"), "device": self.info.get("device")}
+        spec = self.model.spec
+        capture = np.clip(capture, 0.0, 1.0)
+        geometry, dec, dec_info = self.geometry, None, None
+        if spec.refine or spec.condition:
+            if self.deconvolution is None:
+                raise ModelError(f"{self.info.get('checkpoint')}: this network refines the deconvolution with the "
+                                 "capture's lens; name the lens (--lens)")
+            if geometry is None:
+                from .render.geometry import ImageGeometry
+                geometry = ImageGeometry.full_sensor(self.deconvolution.lens, *np.shape(capture)[:2])
+        if spec.refine:
+            dec, dec_info = replace(self.deconvolution, geometry=geometry).run(capture, depth_m)
+        out = correct(self.model, capture, depth_m, deconvolved=dec, geometry=geometry, tile=self.tile,
+                      overlap=self.overlap, progress=progress)
+        info = {"model": self.info.get("checkpoint"), "trained_for": trained_lens(self.info),
+                "pixel_pitch_mm": (self.info.get("meta") or {}).get("pixel_pitch_mm"),
+                "device": self.info.get("device")}
+        if dec_info is not None:
+            info["deconvolution"] = dec_info
+        return np.clip(out, 0.0, None).astype(np.float32), info
 
 
 def trained_lens(info: dict) -> str | None:
@@ -263,7 +283,11 @@ def correction_for(camera, geometry, method: str = "auto", model=None, *, deconv
     if chosen == "deconv":
         return replace(deconvolution or Deconvolution(camera), lens=camera, geometry=geometry, reason=reason)
     path = model if model is not None else NETWORKS["dacn"].shipped_file(lens_id)
-    return load_network(path, lens_id, weights=weights, device=device, tile=tile, overlap=overlap, reason=reason)
+    net = load_network(path, lens_id, weights=weights, device=device, tile=tile, overlap=overlap, reason=reason)
+    if camera is None:
+        return net
+    return replace(net, deconvolution=replace(deconvolution or Deconvolution(camera), lens=camera, geometry=geometry),
+                   geometry=geometry)
 
 
 # ------------------------------------------------------------------ the stages

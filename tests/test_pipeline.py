@@ -112,7 +112,9 @@ def test_what_is_missing_is_said_before_any_work(scene, networks, capsys):
     cases = [(["--camera", "6p", "--method", "dacn", "--depth", str(d / "depth.exr")], "no shipped DACN for lens 6p"),
              (["--camera", "none"], "no depth map"),
              (["--camera", "mos-s1", "--dacn", str(networks / "dacn.npz"), "--depth", str(d / "depth.exr")],
-              "trained for lens mos-s2")]
+              "trained for lens mos-s2"),
+             # a shipped depth network not recorded better than a constant depth is not used unasked
+             (["--camera", "mos-s2", "--method", "deconv"], "not recorded 30 % better than a constant depth")]
     for extra, says in cases:
         assert main(["dof", *_args(d, *extra, "-o", str(d / "p.exr"))]) != 0
         assert says in capsys.readouterr().err

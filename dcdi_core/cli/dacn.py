@@ -38,11 +38,7 @@ def cmd_dacn_train(args) -> int:
 
     from ..models.dacn.config import DACNTrainConfig
     arch = {}
-    if args.no_rdicab:
-        arch["rdicab"] = False
-    if args.no_d2cb:
-        arch["d2cb"] = False
-    for k in ("racm", "depth_encoding", "channels", "groups", "blocks", "condition", "refine"):
+    for k in ("rdicab", "d2cb", "racm", "depth_encoding", "channels", "groups", "blocks", "condition", "refine"):
         if getattr(args, k) is not None:
             arch[k] = getattr(args, k)
     config = DACNTrainConfig(data=args.data, config=args.config, arch=arch, input=args.input, iters=args.iters,
@@ -170,8 +166,10 @@ def train_parser(subparsers, name: str, **kw):
     t.add_argument("--validate-every", type=int, default=0, help="iterations between validations (0: at the end)")
     t.add_argument("--input", choices=["capture", "baseline"], default="capture",
                    help="train on the depth-aware capture (DA2T) or the depth-unaware baseline")
-    t.add_argument("--no-rdicab", action="store_true", help="ablation: without RDICAB")
-    t.add_argument("--no-d2cb", action="store_true", help="ablation: without D2CB")
+    t.add_argument("--rdicab", action=argparse.BooleanOptionalAction, default=None,
+                   help="the paper's image x depth cross-attention (default: the config's)")
+    t.add_argument("--d2cb", action=argparse.BooleanOptionalAction, default=None,
+                   help="the paper's depth-steered deformable conv (default: the config's)")
     t.add_argument("--racm", choices=["rb", "rstb"], default=None, help="replace the blocks (EDSR or Swin)")
     t.add_argument("--depth-encoding", choices=["minmax", "diopter"], default=None, help="depth at the input")
     t.add_argument("--condition", action=argparse.BooleanOptionalAction, default=None,

@@ -188,12 +188,20 @@ def _dof_estimator(args, camera):
     from ..models.errors import ModelError
     ck = args.depth_checkpoint
     if ck is None and args.depth_backend == "dcdi":
-        ck = _shipped("depth", camera.id if camera is not None else None)
+        from ..models.registry import network
+        lens_id = camera.id if camera is not None else None
+        ck = _shipped("depth", lens_id)
         if ck is None:
             raise ModelError("no depth map (--depth) and no shipped depth network for "
                              f"{'a sharp image (--camera none)' if camera is None else camera.id} (shipped: "
                              f"{_shipped_for('depth')}); give --depth, or --depth-backend with "
                              "--depth-checkpoint")
+        if lens_id not in network("depth").beats_constant_depth:
+            # a guess worse than one number for the whole frame would blur the wrong things: ask instead
+            raise ModelError(f"no depth map (--depth): the shipped depth network of {lens_id} is not recorded 30 % "
+                             "better than a constant depth on held-out scenes (`dcdi report depth`); give --depth "
+                             "DEPTH.exr, or a public estimator (--depth-backend unidepth, depth-anything-v2 or "
+                             "depth-pro), or your own network (--depth-checkpoint)")
     from ..models.depth.estimators import load_estimator
     opts = {"threads": args.threads} if args.depth_backend == "dcdi" else {}
     return load_estimator(args.depth_backend, ck, **opts)

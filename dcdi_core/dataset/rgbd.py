@@ -136,6 +136,12 @@ class FactoryFolder(RGBDSource):
     def ids(self):
         return list(self._ids)
 
+    def scene(self, id):
+        """The frame's id and its scene seed: two factory folders (other
+        dataset seeds) reuse the ids, never the scenes."""
+        seed = self.records[id].get("seed")
+        return id if seed is None else f"{id}#{seed}"
+
     def load(self, id):
         img, dep = ff.read_rgbd(self.layout, id)
         return RGBDFrame(id, self.scene(id), img, dep, self.name, {"manifest": self.records[id]})

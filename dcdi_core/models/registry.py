@@ -26,6 +26,10 @@ class Network:
     # decides it; `pipeline.choose_correction` runs a network in 'auto' only
     # for these lenses
     beats_deconvolution: tuple[str, ...] = ()
+    # lens ids whose shipped depth network beat a constant depth (the training
+    # set's median) by at least 30 % in AbsRel on held-out scenes (`dcdi report
+    # depth`); `dcdi dof` estimates depth with no other network unasked
+    beats_constant_depth: tuple[str, ...] = ()
 
     def shipped_files(self) -> list[Path]:
         return sorted(WEIGHTS_DIR.glob(f"{self.weights_prefix}*.npz")) if WEIGHTS_DIR.is_dir() else []

@@ -59,7 +59,9 @@ def test_eval_scores_only_held_out_pairs_and_exports_round_trip(pairs, tmp_path,
     ev = json.loads((tmp_path / "ev.json").read_text())
     assert sorted(r["id"].split("~")[0] for r in ev["pairs"]) == test_ids
     assert ev["mean"]["dacn"] == ev["mean"]["same"] and ev["mean"]["capture"]["lpips"] > 0
-    assert "/ LPIPS)" in out
+    assert "| LPIPS |" in out and "| deconvolution |" in out and "field band" in out and "depth band" in out
+    assert ev["mean"]["deconvolution"]["psnr"] > 0 and set(ev["fields"]["dacn"]) <= {"field 0-0.3", "field 0.3-0.6",
+                                                                                       "field 0.6-1"}
     assert len(list((tmp_path / "pics").glob("*.png"))) == len(test_ids)
     # the shipped form: float16 npz, read without pickle, the same network to float16 precision
     assert main(["dacn", "export", str(tmp_path / "run"), "-o", str(tmp_path / "m.npz")]) == 0
@@ -87,25 +89,27 @@ def test_train_scenes_takes_a_nested_subset(pairs, tmp_path):  # noqa: F811
         open_data(_config(pairs, train_scenes=4))
 
 
-def test_study_trains_every_row_at_equal_budget_and_tabulates(pairs, tmp_path):  # noqa: F811
+def test_study_trains_every_row_and_seed_at_equal_budget_and_tabulates(pairs, tmp_path):  # noqa: F811
     from dcdi_core.experiments import dacn_study
-    assert dacn_study.run_flags("scenes=2") == ["--input", "capture", "--train-scenes", "2"]
-    for bad in ("scenes=0", "nothing"):
-        with pytest.raises(SystemExit, match="unknown run"):
-            dacn_study.run_flags(bad)
+    assert dacn_study.run_flags("refine")[:2] == ["--input", "capture"]
+    with pytest.raises(SystemExit, match="unknown row"):
+        dacn_study.run_flags("nothing")
     out = tmp_path / "study"
-    argv = [str(out), "--pairs", f"mos-s2={pairs}", "--runs", "baseline,dacn", "--config", "tiny", "--iters", "2",
-            "--batch", "1", "--crop", "16", "--jobs", "2"]
+    argv = [str(out), "--lens", "mos-s2", "--train", str(pairs), "--test", str(pairs), "--runs", "baseline,refine",
+            "--seeds", "0,1", "--iters", "2", "--batch", "1", "--crop", "16", "--validate-every", "1", "--jobs", "2"]
     assert dacn_study.main(argv) == 0
-    for row in ("baseline", "dacn"):
-        cfg = json.loads((out / "mos-s2" / row / "config.json").read_text())
-        assert (cfg["iters"], cfg["seed"], cfg["batch"]) == (2, 0, 1)
-    assert json.loads((out / "mos-s2" / "baseline" / "config.json").read_text())["input"] == "baseline"
+    for row in ("baseline", "refine"):
+        for seed in (0, 1):
+            cfg = json.loads((out / "mos-s2" / f"{row}-s{seed}" / "config.json").read_text())
+            assert (cfg["iters"], cfg["seed"], cfg["batch"], cfg["config"]) == (2, seed, 1, "refine")
+    assert json.loads((out / "mos-s2" / "baseline-s0" / "config.json").read_text())["input"] == "baseline"
+    assert json.loads((out / "mos-s2" / "baseline-s0" / "config.json").read_text())["arch"]["refine"] is False
     text = (out / "mos-s2" / "table.md").read_text()
-    assert "| baseline |" in text and "| dacn |" in text and "| capture (uncorrected) |" in text
-    mtime = (out / "mos-s2" / "dacn" / "checkpoint.pt").stat().st_mtime
+    assert "| baseline |" in text and "| refine |" in text and "| capture |" in text and "| deconvolution |" in text
+    assert (out / "mos-s2" / "curves.png").stat().st_size > 0 and "RMS blur" in (out / "mos-s2" / "data.md").read_text()
+    mtime = (out / "mos-s2" / "refine-s1" / "checkpoint.pt").stat().st_mtime
     assert dacn_study.main(argv) == 0                       # finished runs are not trained again
-    assert (out / "mos-s2" / "dacn" / "checkpoint.pt").stat().st_mtime == mtime
+    assert (out / "mos-s2" / "refine-s1" / "checkpoint.pt").stat().st_mtime == mtime
 
 
 def test_bench_dacn_quick(capsys):

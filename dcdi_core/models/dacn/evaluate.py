@@ -123,14 +123,15 @@ def image_scores(out: np.ndarray, target: np.ndarray, depth_m: np.ndarray, bands
 
 def held_out_pairs(data_root, run_splits: list) -> tuple[list, dict]:
     """(pair ids to score, {pair id: record}) of ``data_root``: pairs whose
-    frame no run trained or validated on (in every run's recorded split, the
-    frame is 'test' or unknown). A folder with none is an error."""
+    scene no run trained or validated on (in every run's recorded split, the
+    scene is 'test' or unknown). A folder with none is an error."""
     pairs = finished_pairs(data_root)
     if not pairs:
         raise ModelError(f"{data_root}: no DA2T pairs (pairs.jsonl); build them with dcdi dacn pairs")
     keep = []
     for pid, rec in sorted(pairs.items()):
-        seen = any(rec["frame"] in sp.ids and sp.part(rec["frame"]) != "test" for sp in run_splits)
+        # by scene: frames of other folders may reuse a trained frame's id (a factory's index), not its scene
+        seen = any(sp.scenes.get(rec["scene"], "test") != "test" for sp in run_splits)
         if not seen:
             keep.append(pid)
     if not keep:
