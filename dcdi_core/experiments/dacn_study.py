@@ -65,6 +65,7 @@ def train_command(data: str, folder: Path, name: str, seed: int, args) -> list:
             "--iters", str(args.iters), "-o", str(folder), "--seed", str(seed), "--threads", "1",
             "--batch", str(args.batch), "--crop", str(args.crop), "--lr", str(args.lr),
             "--validate-every", str(args.validate_every), "--checkpoint-every", str(args.validate_every),
+            "--ema-decay", str(args.ema_decay),
             *run_flags(name)]
 
 
@@ -129,7 +130,7 @@ def table(lens: str, ev: dict, out: Path, names: list, seeds: list, args) -> str
     mean = ev["mean"]
     n_pairs = len(ev["pairs"])
     lines = [f"{lens}: `{args.config}` design, {args.iters} iterations of batch {args.batch} x {args.crop}^2, lr "
-             f"{args.lr:g} (cosine), {args.weights} weights; seeds {', '.join(map(str, seeds))}; {n_pairs} held-out "
+             f"{args.lr:g} (cosine), {args.weights} weights (EMA {args.ema_decay:g}); seeds {', '.join(map(str, seeds))}; {n_pairs} held-out "
              "pairs; PSNR dB.\n",
              "| row | PSNR imaged | each seed | SSIM | PSNR sRGB | PSNR every pixel | vs capture | vs deconvolution "
              "| training min (1 core) |",
@@ -270,6 +271,8 @@ def main(argv=None) -> int:
     ap.add_argument("--crop", type=int, default=128)
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--validate-every", type=int, default=250)
+    ap.add_argument("--ema-decay", type=float, default=0.995,
+                    help="weights' EMA (default 0.995: a time constant of 200 iterations)")
     ap.add_argument("--jobs", type=int, default=2, help="trainings at a time (one core each)")
     ap.add_argument("--weights", choices=["ema", "model"], default="ema")
     args = ap.parse_args(argv)
