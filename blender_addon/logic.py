@@ -182,7 +182,9 @@ def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], 
     called while the PSF bins the scene needs are built (traced ones cached in
     ~/.cache/dcdi, or $DCDI_CACHE_DIR) and before the convolution;
     ``cancelled()`` returning True stops the PSF build or the convolution
-    (between its layers) with :class:`Cancelled`. Returns (image, info)."""
+    (between its layers) with :class:`Cancelled`. A focus where nothing in
+    view lies blurs everything; info's ``focus_note`` says so ('' otherwise).
+    Returns (image, info)."""
     sim = core("render.simulate")
     settings = replace(core("psf.compute").PSFSettings(), focus_distance_m=float(focus_m) if refocus else None)
     # the same checked request as `dcdi bokeh` builds; messages name the panel's settings
@@ -191,10 +193,12 @@ def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], 
     geom = plan.geometry
     finite = depth[np.isfinite(depth) & (depth > 0)]
     kept = int(((depth >= keep[0]) & (depth <= keep[1])).sum())
+    # a camera may focus on empty space: then everything in view is out of focus
+    focus_note = ""
     if kept == 0:
         seen = (f"{finite.min():.2f}-{finite.max():.2f} m" if finite.size else "only background (infinity)")
-        raise BokehInputError(f"nothing in view lies in the kept range {keep[0]:.2f}-{keep[1]:.2f} m "
-                              f"(depths in view: {seen}); move the focus or widen the range")
+        focus_note = (f"nothing in view lies in the kept range {keep[0]:.2f}-{keep[1]:.2f} m (depths in view: "
+                      f"{seen}): everything is out of focus")
     report = _psf_progress(progress, cancelled)
 
     # The PSFs the scene needs are built first, so that progress and Esc work
@@ -220,7 +224,8 @@ def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], 
     except sim.Cancelled:
         raise Cancelled() from None
     info = dict(res.info, focus_m=float(focus_m), keep_m=[float(keep[0]), float(keep[1])], refocus=bool(refocus),
-                pixel_pitch_mm=float(geom.pixel_pitch_mm), psf_source=src.kind, psf_source_message=src.message)
+                pixel_pitch_mm=float(geom.pixel_pitch_mm), psf_source=src.kind, psf_source_message=src.message,
+                focus_note=focus_note)
     return res.image.astype(np.float32), info
 
 

@@ -124,9 +124,10 @@ def finish(op, context, job, out, info, seconds: float, store_inputs: bool):
     bpy_render.show_in_image_editor(context, img)
     h, w = out.shape[:2]
     context.window_manager.dcdi_lens_bokeh_status.psf_source = info["psf_source_message"]
+    note = f"; {info['focus_note']}" if info.get("focus_note") else ""
     op.report({"INFO"}, f"Lens Bokeh: {w} x {h} px, kept sharp {job['keep'][0]:.2f}-{job['keep'][1]:.2f} m "
                         f"({info['kept_pixels']} px), render {job['render_s']:.1f} s, bokeh {seconds:.1f} s; "
-                        f"{info['psf_source_message']}")
+                        f"{info['psf_source_message']}{note}")
 
 
 class _Worker:

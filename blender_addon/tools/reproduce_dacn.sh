@@ -1,39 +1,50 @@
 #!/bin/bash
-# Reproduce the shipped DACN and depth networks of MOS-S1 and MOS-S2 and the README's DACN tables:
+# Reproduce the DACN study and the shipped DACNs of MOS-S1 and MOS-S2 (docs/correction.md):
 #
 #     bash blender_addon/tools/reproduce_dacn.sh OUT
 #
-# 1. the factory data set: 170 seeded scenes at 480 x 640 (room 100, tabletop 40, street 30; seed 0);
-# 2. DA2T pairs of every scene for each lens (8 perturbed lenses in a pool, noise, seed 0);
-# 3. the equal-budget study (tiny-rb, 2000 iterations, batch 4 of 128^2, lr 5e-4, seed 0), its tables and
-#    pictures in OUT/study/<lens>/ (table.md, eval.json, pictures/);
-# 4. the depth networks (1500 iterations, seed 0);
-# 5. the exports that ship in dcdi_core/models/weights/ (dacn-<lens>.npz: the study's `dacn` row,
-#    depth-<lens>.npz), written to OUT/weights/.
+# 1. factory frames at 480 x 640: training scenes (seed 1: leaves 200, room 36, tabletop 36) and held-out
+#    scenes (seed 0: room, tabletop, street 12 each, leaves 40);
+# 2. DA2T pairs at the paper's pitch (each frame a crop of the 1280 x 1920 sensor at a seeded place, 12.2 um
+#    pixels), sensor noise, the nominal lens's deconvolution stored: training pairs through a pool of 4 lenses
+#    perturbed within +-5 % and refocused (room and tabletop twice, at two places), test pairs through the
+#    nominal lens (seed 7);
+# 3. the MOS-S2 study (rows baseline, da2t, refine, refine+mech; seeds 0 and 1; 1200 iterations of batch 8 at
+#    128^2, lr 5e-4, cosine): OUT/study/mos-s2/{data.md,table.md,curves.png,eval.json};
+# 4. the MOS-S1 refine network (seed 0, the same recipe) and its evaluation;
+# 5. the exports that ship in dcdi_core/models/weights/ (dacn-<lens>.npz, the refine row's seed 0), written to
+#    OUT/weights/.
 # Every step resumes where a killed run stopped; run it again with the same OUT.
 set -euo pipefail
 OUT=${1:?usage: reproduce_dacn.sh OUT}
 PY=${PYTHON:-.venv/bin/python}
+ITERS=${ITERS:-1200}
 mkdir -p "$OUT"
-for spec in "room 100" "tabletop 40" "street 30"; do
+for spec in "leaves 200" "room 36" "tabletop 36"; do
   set -- $spec
-  "$PY" -m blender_addon.factory --recipe "$1" --count "$2" --lens mos-s1 --out "$OUT/factory-$1" --seed 0
+  "$PY" -m blender_addon.factory --recipe "$1" --count "$2" --lens mos-s1 --out "$OUT/train-$1" --seed 1
+done
+for spec in "room 12" "tabletop 12" "street 12" "leaves 40"; do
+  set -- $spec
+  "$PY" -m blender_addon.factory --recipe "$1" --count "$2" --lens mos-s1 --out "$OUT/test-$1" --seed 0
 done
 for lens in mos-s1 mos-s2; do
-  for recipe in room tabletop street; do
-    "$PY" -m dcdi_core dacn pairs "$OUT/factory-$recipe" --lens "$lens" -o "$OUT/pairs-$lens" --lens-pool 8 --seed 0
+  "$PY" -m dcdi_core dacn pairs "$OUT/train-leaves" --lens "$lens" -o "$OUT/pairs-$lens-train" --lens-pool 4
+  for recipe in room tabletop; do
+    "$PY" -m dcdi_core dacn pairs "$OUT/train-$recipe" --lens "$lens" -o "$OUT/pairs-$lens-train" --lens-pool 4 \
+        --variants 2
+  done
+  for recipe in room tabletop street leaves; do
+    "$PY" -m dcdi_core dacn pairs "$OUT/test-$recipe" --lens "$lens" -o "$OUT/pairs-$lens-test" --perturb 0 --seed 7
   done
 done
-"$PY" -m dcdi_core.experiments.dacn_study "$OUT/study" --pairs "mos-s1=$OUT/pairs-mos-s1" \
-    --pairs "mos-s2=$OUT/pairs-mos-s2" --runs baseline,da2t,dacn --config tiny-rb --iters 2000 --lr 5e-4 --jobs 2
-"$PY" -m dcdi_core.experiments.dacn_study "$OUT/study" --pairs "mos-s2=$OUT/pairs-mos-s2" \
-    --runs baseline,da2t,dacn,dacn-diopter,scenes=34,scenes=68 --config tiny-rb --iters 2000 --lr 5e-4 --jobs 2
-# the study scores the raw weights (--weights model, its default): at 2000 iterations the EMA (0.999) still holds
-# 13.5 % of the initial network; the shipped files are the raw weights too
+"$PY" -m dcdi_core.experiments.dacn_study "$OUT/study" --lens mos-s2 --train "$OUT/pairs-mos-s2-train" \
+    --test "$OUT/pairs-mos-s2-test" --runs baseline,da2t,refine,refine+mech --seeds 0,1 --iters "$ITERS" \
+    --lr 5e-4 --jobs 2
+"$PY" -m dcdi_core.experiments.dacn_study "$OUT/study" --lens mos-s1 --train "$OUT/pairs-mos-s1-train" \
+    --test "$OUT/pairs-mos-s1-test" --runs refine --seeds 0 --iters "$ITERS" --lr 5e-4 --jobs 1
 mkdir -p "$OUT/weights"
 for lens in mos-s1 mos-s2; do
-  "$PY" -m dcdi_core train depth --data "$OUT/pairs-$lens" --iters 1500 --seed 0 -o "$OUT/depth-$lens"
-  "$PY" -m dcdi_core depth export "$OUT/depth-$lens" --weights model -o "$OUT/weights/depth-$lens.npz"
-  "$PY" -m dcdi_core dacn export "$OUT/study/$lens/dacn" --weights model -o "$OUT/weights/dacn-$lens.npz"
+  "$PY" -m dcdi_core dacn export "$OUT/study/$lens/refine-s0" --weights ema -o "$OUT/weights/dacn-$lens.npz"
 done
 echo "done: $OUT/weights (copy into dcdi_core/models/weights/), tables in $OUT/study/*/table.md"

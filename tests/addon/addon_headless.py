@@ -118,10 +118,15 @@ for m, fn in tracers.items():
 s.refocus = True
 s.lens = "6p"
 
-# what cannot work gives a clear message
+# a focus on empty space: nothing between 3.7 and 4.3 m (the cube is nearer,
+# the wall farther), so everything is out of focus
 s.focus_mode = "DISTANCE"
-s.focus_distance = 4.0          # nothing between 3.7 and 4.3 m: the cube is nearer, the wall farther
-check("nothing_kept", lambda: bpy.ops.dcdi.apply_lens_bokeh())
+s.focus_distance = 4.0
+res["empty_focus"] = sorted(bpy.ops.dcdi.apply_lens_bokeh(store_inputs=True))
+np.save(OUT / "empty-focus.npy", bpy_render.get_image("Lens Bokeh"))
+np.save(OUT / "empty-focus-aif.npy", bpy_render.get_image("Lens Bokeh AiF"))
+
+# what cannot work gives a clear message
 broken = OUT / "lenses" / "broken-lens.toml"
 broken.parent.mkdir(exist_ok=True)
 broken.write_text(Path(res["lenses"]["6p"]).read_text().replace("semi_diameter_mm", "semi_diameter_mmm", 1))
