@@ -380,9 +380,21 @@ def methods(lens, model, traced: bool) -> list[Method]:
     if traced:
         rows.append(Method("deconvolution, traced PSFs", _deconv(lens, DeconvOptions(), traced=True)))
     if model is not None:
-        from ..models.dacn.correct import correct
-        rows.append(Method("DACN (shipped)", lambda f: correct(model, f.capture, f.depth)))
+        rows.append(Method("DACN (shipped)", _network(lens, model)))
     return rows
+
+
+def _network(lens, model) -> Callable:
+    """The shipped network as `dcdi correct` runs it: a refining one after
+    the default deconvolution (its time included), told where the frame
+    lies on the sensor."""
+    from ..models.dacn.correct import correct
+    first = _deconv(lens, DeconvOptions()) if model.spec.refine else None
+
+    def run(frame: Frame):
+        return correct(model, frame.capture, frame.depth, geometry=frame.geometry,
+                       deconvolved=first(frame) if first else None)
+    return run
 
 
 def timed(fn, frame: Frame):

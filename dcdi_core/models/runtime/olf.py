@@ -304,7 +304,11 @@ class OmniLensField:
         fdio = self._focus_diopters(lens.id, entry, focus_m, f)
         x = encode_radial(self.spec, li, field, dio, fdio)
         k = self.spec["kernel_sizes"][li]
-        return self.forward(x, li, dtype).reshape(shape + (3, k, k))
+        # equal inputs (depths at and beyond the far limit, repeated fields) give bit-equal PSFs: a BLAS
+        # product may round a row differently by its place in the batch; and each is computed once
+        x = np.asarray(x).reshape(-1, np.shape(x)[-1])
+        unique, back = np.unique(x, axis=0, return_inverse=True)
+        return self.forward(unique, li, dtype)[back.reshape(-1)].reshape(shape + (3, k, k))
 
     def patch_psf(self, lens, row, col, depth_m, *, peak_scale: bool = False, dtype=np.float32) -> np.ndarray:
         """Paper OLF: PSFs (..., 3, k, k) of patches (row, col) of the paper's
