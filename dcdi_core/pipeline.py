@@ -80,7 +80,7 @@ METHODS = ("auto", "deconv", "dacn")
 # (`dcdi dof` passes its own, the add-on its panel's words)
 CORRECTION_LABELS = MappingProxyType({"method": "--method", "model": "--model", "lens": "--lens"})
 
-REPORT = "`dcdi report correction`"
+REPORT = "the DACN study (docs/correction.md)"
 
 
 def trained_pitch_mm(path) -> float | None:

@@ -136,32 +136,47 @@ def test_pipeline_and_depth_reports_on_held_out_pairs(pairs, networks, tmp_path,
 
 
 # ------------------------------------------------------------------ the one rule
-def test_auto_picks_the_deconvolution_for_every_lens_today():
+def _registry_with(monkeypatch, beats: tuple):
+    """The registry as if the DACN study had found the shipped DACNs of ``beats`` better."""
+    from dcdi_core.models import registry
+    nets = dict(registry.NETWORKS)
+    nets["dacn"] = replace(nets["dacn"], beats_deconvolution=tuple(beats))
+    monkeypatch.setattr(registry, "NETWORKS", nets)
+    import dcdi_core.pipeline as pipeline
+    monkeypatch.setattr(pipeline, "NETWORKS", nets)
+    return nets
+
+
+def test_auto_picks_the_network_only_where_it_is_recorded_better_at_its_pitch(monkeypatch):
+    from dcdi_core.models.registry import network
     from dcdi_core.optics.lens import load_lens
-    from dcdi_core.pipeline import choose_correction
+    from dcdi_core.pipeline import choose_correction, trained_pitch_mm
     from dcdi_core.render.geometry import ImageGeometry
+    dacn = network("dacn")
     for lens_id in ("mos-s1", "mos-s2", "double-gauss", "6p"):
         pitch = ImageGeometry.full_sensor(load_lens(lens_id), 480, 640).pixel_pitch_mm
         method, why = choose_correction(lens_id, pitch)
-        assert method == "deconv", (lens_id, why)
-    from dcdi_core.models.registry import network
-    for lens_id in network("dacn").shipped_keys():
+        learned = trained_pitch_mm(dacn.shipped_file(lens_id)) if dacn.shipped_file(lens_id) else None
+        # the shipped networks learned the paper's 12.2 um: a full-sensor frame (35.2 um) is deconvolved
+        assert method == "deconv" and (learned is None or abs(learned - pitch) > 0.01), (lens_id, why)
+    for lens_id in dacn.beats_deconvolution:
+        method, why = choose_correction(lens_id, trained_pitch_mm(dacn.shipped_file(lens_id)))
+        assert method == "dacn" and "recorded better" in why, (lens_id, why)
+    _registry_with(monkeypatch, ())
+    for lens_id in dacn.shipped_keys():
         method, why = choose_correction(lens_id, 0.0122)
-        assert why == (f"the shipped DACN of {lens_id} is not recorded better than the deconvolution on held-out "
-                       "captures, `dcdi report correction`")
+        assert method == "deconv" and why == (
+            f"the shipped DACN of {lens_id} is not recorded better than the deconvolution on held-out "
+            "captures, the DACN study (docs/correction.md)")
 
 
 @pytest.fixture
 def recorded_better(monkeypatch):
-    """The registry as if `dcdi report correction` had found the shipped DACN of mos-s1 better."""
+    """The registry as if the DACN study had found the shipped DACN of mos-s1 (only) better."""
     from dcdi_core.models import registry
     if registry.NETWORKS["dacn"].shipped_file("mos-s1") is None:
         pytest.skip("no shipped DACN of mos-s1")
-    nets = dict(registry.NETWORKS)
-    nets["dacn"] = replace(nets["dacn"], beats_deconvolution=("mos-s1",))
-    monkeypatch.setattr(registry, "NETWORKS", nets)
-    import dcdi_core.pipeline as pipeline
-    monkeypatch.setattr(pipeline, "NETWORKS", nets)
+    nets = _registry_with(monkeypatch, ("mos-s1",))
     from dcdi_core.pipeline import trained_pitch_mm
     return trained_pitch_mm(nets["dacn"].shipped_file("mos-s1"))
 

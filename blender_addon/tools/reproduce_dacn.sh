@@ -7,9 +7,9 @@
 #    scenes (seed 0: room, tabletop, street 12 each, leaves 40);
 # 2. DA2T pairs at the paper's pitch (each frame a crop of the 1280 x 1920 sensor at a seeded place, 12.2 um
 #    pixels), sensor noise, the nominal lens's deconvolution stored: training pairs through a pool of 4 lenses
-#    perturbed within +-5 % and refocused (room and tabletop twice, at two places), test pairs through the
-#    nominal lens (seed 7);
-# 3. the MOS-S2 study (rows baseline, da2t, refine, refine+mech; seeds 0 and 1; 1200 iterations of batch 8 at
+#    perturbed within +-5 % and refocused (MOS-S2: room and tabletop twice, at two places), test pairs through
+#    the nominal lens (seed 7);
+# 3. the MOS-S2 study (rows baseline, da2t, refine, refine+mech; seeds 0 and 1; 4800 iterations of batch 8 at
 #    128^2, lr 5e-4, cosine): OUT/study/mos-s2/{data.md,table.md,curves.png,eval.json};
 # 4. the MOS-S1 refine network (seed 0, the same recipe) and its evaluation;
 # 5. the exports that ship in dcdi_core/models/weights/ (dacn-<lens>.npz, the refine row's seed 0), written to
@@ -18,7 +18,7 @@
 set -euo pipefail
 OUT=${1:?usage: reproduce_dacn.sh OUT}
 PY=${PYTHON:-.venv/bin/python}
-ITERS=${ITERS:-1200}
+ITERS=${ITERS:-4800}
 mkdir -p "$OUT"
 for spec in "leaves 200" "room 36" "tabletop 36"; do
   set -- $spec
@@ -30,9 +30,11 @@ for spec in "room 12" "tabletop 12" "street 12" "leaves 40"; do
 done
 for lens in mos-s1 mos-s2; do
   "$PY" -m dcdi_core dacn pairs "$OUT/train-leaves" --lens "$lens" -o "$OUT/pairs-$lens-train" --lens-pool 4
+  variants=1
+  if [ "$lens" = mos-s2 ]; then variants=2; fi    # the study's lens: rooms and desks at two places each
   for recipe in room tabletop; do
     "$PY" -m dcdi_core dacn pairs "$OUT/train-$recipe" --lens "$lens" -o "$OUT/pairs-$lens-train" --lens-pool 4 \
-        --variants 2
+        --variants "$variants"
   done
   for recipe in room tabletop street leaves; do
     "$PY" -m dcdi_core dacn pairs "$OUT/test-$recipe" --lens "$lens" -o "$OUT/pairs-$lens-test" --perturb 0 --seed 7

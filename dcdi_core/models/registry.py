@@ -22,9 +22,9 @@ class Network:
     addon_package: bool       # the add-on bundles the package (runs where torch exists)
     addon_weights: bool       # the add-on bundles the shipped weights
     # lens ids whose shipped network scored better than the deconvolution
-    # (dcdi_core.correct) on held-out captures: `dcdi report correction`
-    # decides it; `pipeline.choose_correction` runs a network in 'auto' only
-    # for these lenses
+    # (dcdi_core.correct) on held-out captures: the DACN study
+    # (experiments/dacn_study.py) decides it; `pipeline.choose_correction`
+    # runs a network in 'auto' only for these lenses
     beats_deconvolution: tuple[str, ...] = ()
     # lens ids whose shipped depth network beat a constant depth (the training
     # set's median) by at least 30 % in AbsRel on held-out scenes (`dcdi report
@@ -46,11 +46,11 @@ class Network:
 NETWORKS = {
     "olf": Network("olf", "Omni-Lens-Field: an MLP of a lens's PSFs over field, depth and focus", "olf",
                    "olf-", addon_package=False, addon_weights=True),      # runtime/olf.py runs it in numpy
-    # the shipped DACNs gain 0.2-0.6 dB over the capture, the deconvolution
-    # several dB: none is recorded better (beats_deconvolution empty)
+    # the shipped refining DACNs, on held-out captures at 12.2 um with noise (the DACN study,
+    # docs/correction.md): MOS-S1 +1.37 dB over the deconvolution, MOS-S2 +2.26 dB
     "dacn": Network("dacn", "depth-aware correction network (DA2T-trained), per lens", "dacn",
                     "dacn-", addon_package=True, addon_weights=True,      # Correct Simulation with torch
-                    beats_deconvolution=()),
+                    beats_deconvolution=("mos-s1", "mos-s2")),
     "depth": Network("depth", "small metric-depth network on a lens's captures", "depth",
                      "depth-", addon_package=False, addon_weights=False),  # Blender gives exact depth
 }

@@ -51,17 +51,24 @@ def test_correct_deconvolves_a_lens_without_a_network_and_gains_psnr(capture, ca
     # most of this 48 x 64 frame lies within a kernel radius of its edge, where the result fades to the capture
     assert after > before + 1.0, (before, after)
 
-def test_auto_picks_the_deconvolution_over_a_shipped_network_and_says_why(capture, capsys):
-    from dcdi_core.models.registry import network
-    if "mos-s1" not in network("dacn").shipped_keys():
+def test_auto_picks_the_deconvolution_over_a_shipped_network_and_says_why(capture, capsys, monkeypatch):
+    from dataclasses import replace
+
+    import dcdi_core.pipeline as pipeline
+    from dcdi_core.models import registry
+    if "mos-s1" not in registry.network("dacn").shipped_keys():
         pytest.skip("no shipped DACN of mos-s1")
+    # as if the study had not found it better
+    nets = dict(registry.NETWORKS, dacn=replace(registry.NETWORKS["dacn"], beats_deconvolution=()))
+    monkeypatch.setattr(registry, "NETWORKS", nets)
+    monkeypatch.setattr(pipeline, "NETWORKS", nets)
     d = capture
     code, out, err = _correct(capsys, d, "--depth", d / "depth.exr", "--lens", "mos-s1", *FAST)
     assert code == 0, err
     c = json.loads(out)["correction"]
     assert c["method"] == "deconv"
     assert "the shipped DACN of mos-s1 is not recorded better than the deconvolution" in c["reason"]
-    assert "`dcdi report correction`" in c["reason"]
+    assert "the DACN study (docs/correction.md)" in c["reason"]
     assert [x for x in err.splitlines() if x.startswith("dcdi: correction by")] == \
         [f"dcdi: correction by the deconvolution: {c['reason']}"]
 
