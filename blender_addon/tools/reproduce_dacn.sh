@@ -11,7 +11,7 @@
 #    the nominal lens (seed 7);
 # 3. the MOS-S2 study (rows baseline, da2t, refine, refine+mech; seeds 0 and 1; 4800 iterations of batch 8 at
 #    128^2, lr 5e-4, cosine): OUT/study/mos-s2/{data.md,table.md,curves.png,eval.json};
-# 4. the MOS-S1 refine network (seed 0, the same recipe) and its evaluation;
+# 4. the baseline at 2 m against infinity (1600 iterations); the MOS-S1 refine network (seed 0, the same recipe) and its evaluation;
 # 5. the exports that ship in dcdi_core/models/weights/ (dacn-<lens>.npz, the refine row's seed 0), written to
 #    OUT/weights/.
 # Every step resumes where a killed run stopped; run it again with the same OUT.
@@ -45,6 +45,17 @@ done
     --lr 5e-4 --jobs 2
 "$PY" -m dcdi_core.experiments.dacn_study "$OUT/study" --lens mos-s1 --train "$OUT/pairs-mos-s1-train" \
     --test "$OUT/pairs-mos-s1-test" --runs refine --seeds 0 --iters "$ITERS" --lr 5e-4 --jobs 1
+# the baseline's depth, 2 m against infinity (MOS-S2, seed 0, 1600 iterations, the same frames, lenses and places)
+for recipe in leaves room tabletop; do
+  v=2; if [ "$recipe" = leaves ]; then v=1; fi
+  "$PY" -m dcdi_core dacn pairs "$OUT/train-$recipe" --lens mos-s2 -o "$OUT/pairs-mos-s2-train-inf" --lens-pool 4 \
+      --variants "$v" --baseline-depth inf
+done
+for spec in "2m pairs-mos-s2-train" "inf pairs-mos-s2-train-inf"; do
+  set -- $spec
+  "$PY" -m dcdi_core.experiments.dacn_study "$OUT/study-baseline-$1" --lens mos-s2 --train "$OUT/$2" \
+      --test "$OUT/pairs-mos-s2-test" --runs baseline --seeds 0 --iters 1600 --lr 5e-4 --jobs 1
+done
 mkdir -p "$OUT/weights"
 for lens in mos-s1 mos-s2; do
   "$PY" -m dcdi_core dacn export "$OUT/study/$lens/refine-s0" --weights ema -o "$OUT/weights/dacn-$lens.npz"
