@@ -3,7 +3,6 @@ backend, and with a sharp input, --camera none and the true depth, exactly
 `dcdi bokeh`; the one rule that chooses the correction (choose_correction),
 the deconvolution and the network through recover() and dof()."""
 import json
-from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -13,6 +12,7 @@ from conftest import dacn_config as _config
 
 from dcdi_core.cli import main
 from dcdi_core.io.images import read_image
+from support.registry import dacn_recorded_better
 
 FAST = ["--rays", "16", "--wavelengths", "3", "--kernel", "15", "--psf-source", "trace"]
 
@@ -136,17 +136,6 @@ def test_pipeline_and_depth_reports_on_held_out_pairs(pairs, networks, tmp_path,
 
 
 # ------------------------------------------------------------------ the one rule
-def _registry_with(monkeypatch, beats: tuple):
-    """The registry as if the DACN study had found the shipped DACNs of ``beats`` better."""
-    from dcdi_core.models import registry
-    nets = dict(registry.NETWORKS)
-    nets["dacn"] = replace(nets["dacn"], beats_deconvolution=tuple(beats))
-    monkeypatch.setattr(registry, "NETWORKS", nets)
-    import dcdi_core.pipeline as pipeline
-    monkeypatch.setattr(pipeline, "NETWORKS", nets)
-    return nets
-
-
 def test_auto_picks_the_network_only_where_it_is_recorded_better_at_its_pitch(monkeypatch):
     from dcdi_core.models.registry import network
     from dcdi_core.optics.lens import load_lens
@@ -162,7 +151,7 @@ def test_auto_picks_the_network_only_where_it_is_recorded_better_at_its_pitch(mo
     for lens_id in dacn.beats_deconvolution:
         method, why = choose_correction(lens_id, trained_pitch_mm(dacn.shipped_file(lens_id)))
         assert method == "dacn" and "recorded better" in why, (lens_id, why)
-    _registry_with(monkeypatch, ())
+    dacn_recorded_better(monkeypatch, ())
     for lens_id in dacn.shipped_keys():
         method, why = choose_correction(lens_id, 0.0122)
         assert method == "deconv" and why == (
@@ -176,7 +165,7 @@ def recorded_better(monkeypatch):
     from dcdi_core.models import registry
     if registry.NETWORKS["dacn"].shipped_file("mos-s1") is None:
         pytest.skip("no shipped DACN of mos-s1")
-    nets = _registry_with(monkeypatch, ("mos-s1",))
+    nets = dacn_recorded_better(monkeypatch, ("mos-s1",))
     from dcdi_core.pipeline import trained_pitch_mm
     return trained_pitch_mm(nets["dacn"].shipped_file("mos-s1"))
 

@@ -11,7 +11,8 @@
 #    the nominal lens (seed 7);
 # 3. the MOS-S2 study (rows baseline, da2t, refine, refine+mech; seeds 0 and 1; 4800 iterations of batch 8 at
 #    128^2, lr 5e-4, cosine): OUT/study/mos-s2/{data.md,table.md,curves.png,eval.json};
-# 4. the baseline at 2 m against infinity (1600 iterations); the MOS-S1 refine network (seed 0, the same recipe) and its evaluation;
+# 4. the MOS-S1 refine network (seed 0, the same recipe) and its evaluation; the baseline at 2 m against
+#    infinity (1600 iterations);
 # 5. the exports that ship in dcdi_core/models/weights/ (dacn-<lens>.npz, the refine row's seed 0), written to
 #    OUT/weights/.
 # Every step resumes where a killed run stopped; run it again with the same OUT.
@@ -28,14 +29,19 @@ for spec in "room 12" "tabletop 12" "street 12" "leaves 40"; do
   set -- $spec
   "$PY" -m blender_addon.factory --recipe "$1" --count "$2" --lens mos-s1 --out "$OUT/test-$1" --seed 0
 done
-for lens in mos-s1 mos-s2; do
-  "$PY" -m dcdi_core dacn pairs "$OUT/train-leaves" --lens "$lens" -o "$OUT/pairs-$lens-train" --lens-pool 4
-  variants=1
-  if [ "$lens" = mos-s2 ]; then variants=2; fi    # the study's lens: rooms and desks at two places each
-  for recipe in room tabletop; do
-    "$PY" -m dcdi_core dacn pairs "$OUT/train-$recipe" --lens "$lens" -o "$OUT/pairs-$lens-train" --lens-pool 4 \
-        --variants "$variants"
+# training pairs of LENS into OUT/FOLDER: the leaves once, the rooms and desks VARIANTS times, a pool of 4 lenses
+train_pairs() {
+  local lens=$1 folder=$2 variants=$3; shift 3
+  for recipe in leaves room tabletop; do
+    local v=$variants
+    if [ "$recipe" = leaves ]; then v=1; fi
+    "$PY" -m dcdi_core dacn pairs "$OUT/train-$recipe" --lens "$lens" -o "$OUT/$folder" --lens-pool 4 \
+        --variants "$v" "$@"
   done
+}
+train_pairs mos-s1 pairs-mos-s1-train 1
+train_pairs mos-s2 pairs-mos-s2-train 2          # the study's lens: rooms and desks at two places each
+for lens in mos-s1 mos-s2; do
   for recipe in room tabletop street leaves; do
     "$PY" -m dcdi_core dacn pairs "$OUT/test-$recipe" --lens "$lens" -o "$OUT/pairs-$lens-test" --perturb 0 --seed 7
   done
@@ -46,11 +52,7 @@ done
 "$PY" -m dcdi_core.experiments.dacn_study "$OUT/study" --lens mos-s1 --train "$OUT/pairs-mos-s1-train" \
     --test "$OUT/pairs-mos-s1-test" --runs refine --seeds 0 --iters "$ITERS" --lr 5e-4 --jobs 1
 # the baseline's depth, 2 m against infinity (MOS-S2, seed 0, 1600 iterations, the same frames, lenses and places)
-for recipe in leaves room tabletop; do
-  v=2; if [ "$recipe" = leaves ]; then v=1; fi
-  "$PY" -m dcdi_core dacn pairs "$OUT/train-$recipe" --lens mos-s2 -o "$OUT/pairs-mos-s2-train-inf" --lens-pool 4 \
-      --variants "$v" --baseline-depth inf
-done
+train_pairs mos-s2 pairs-mos-s2-train-inf 2 --baseline-depth inf
 for spec in "2m pairs-mos-s2-train" "inf pairs-mos-s2-train-inf"; do
   set -- $spec
   "$PY" -m dcdi_core.experiments.dacn_study "$OUT/study-baseline-$1" --lens mos-s2 --train "$OUT/$2" \

@@ -11,6 +11,7 @@ import pytest
 from conftest import write_rgbd_scene
 
 from support.cli import run_cli
+from support.registry import dacn_recorded_better
 from dcdi_core.io.images import read_image
 
 # tiny traced PSFs, the same for the simulated capture and its correction
@@ -52,16 +53,10 @@ def test_correct_deconvolves_a_lens_without_a_network_and_gains_psnr(capture, ca
     assert after > before + 1.0, (before, after)
 
 def test_auto_picks_the_deconvolution_over_a_shipped_network_and_says_why(capture, capsys, monkeypatch):
-    from dataclasses import replace
-
-    import dcdi_core.pipeline as pipeline
-    from dcdi_core.models import registry
-    if "mos-s1" not in registry.network("dacn").shipped_keys():
+    from dcdi_core.models.registry import network
+    if "mos-s1" not in network("dacn").shipped_keys():
         pytest.skip("no shipped DACN of mos-s1")
-    # as if the study had not found it better
-    nets = dict(registry.NETWORKS, dacn=replace(registry.NETWORKS["dacn"], beats_deconvolution=()))
-    monkeypatch.setattr(registry, "NETWORKS", nets)
-    monkeypatch.setattr(pipeline, "NETWORKS", nets)
+    dacn_recorded_better(monkeypatch, ())          # as if the study had not found it better
     d = capture
     code, out, err = _correct(capsys, d, "--depth", d / "depth.exr", "--lens", "mos-s1", *FAST)
     assert code == 0, err
