@@ -352,8 +352,8 @@ def dof(capture, target_lens, *, keep=None, focus_m=None, depth_m=None, estimato
         camera=None, corrector=None, corrector_info=None, camera_pitch_mm=None, psf_source=None, olf_file=None,
         settings=None, geometry=None, tile: int = 256, **bokeh_kw) -> DofResult:
     """The whole pipeline (module docstring). ``target_lens``: a Lens;
-    ``keep`` (near, far) m or ``focus_m`` (m or 'prescribed') as
-    ``render.simulate.bokeh``. The correction: ``correction`` a prepared one
+    ``keep`` (near, far) m and/or ``focus_m`` (m or 'prescribed') as
+    ``render.simulate.BokehOptions``. The correction: ``correction`` a prepared one
     (:func:`correction_for`), or a method ('auto', 'deconv', 'dacn') for the
     lens ``camera`` (the rule of :func:`choose_correction`; the capture at
     ``camera_pitch_mm``, default: it spans the camera's sensor diagonal), or
@@ -365,8 +365,6 @@ def dof(capture, target_lens, *, keep=None, focus_m=None, depth_m=None, estimato
     from .models.runtime.library import psf_source as choose_source
     from .render.geometry import ImageGeometry
     from .render.simulate import BokehOptions, bokeh
-    if (keep is None) == (focus_m is None):
-        raise InputRangeError("keep / focus", (keep, focus_m), "exactly one of them")
     options = BokehOptions(keep=keep, focus_m=focus_m, settings=settings, geometry=geometry, **bokeh_kw)
     h, w = np.shape(capture)[:2]
     if isinstance(correction, str):

@@ -46,10 +46,11 @@ def add_rgbd_options(q, *, sensor_focus: bool, depth_required: bool = True,
 
 
 def add_focus_options(q, focus_help: str) -> None:
-    """--keep NEAR FAR or --focus D (one of them): bokeh's and dof's depth of field."""
-    g = q.add_mutually_exclusive_group(required=True)
-    g.add_argument("--keep", type=float, nargs=2, metavar=("NEAR", "FAR"), help="depth range kept sharp, metres")
-    g.add_argument("--focus", type=focus_value, metavar="D", help=focus_help)
+    """--keep NEAR FAR and/or --focus D (at least one): bokeh's and dof's depth
+    of field (checked by BokehOptions)."""
+    q.add_argument("--keep", type=float, nargs=2, metavar=("NEAR", "FAR"),
+                   help="depth range kept sharp, metres (with --focus: the lens focused there, this range sharp)")
+    q.add_argument("--focus", type=focus_value, metavar="D", help=focus_help)
 
 
 def read_rgbd(args, *, check_depth: bool = True):
@@ -181,8 +182,9 @@ def cmd_bokeh(args) -> int:
     write_image(args.output, r.image)
     if args.side_by_side:
         from ..render.pictures import side_by_side
-        what = (f"keep {keep[0]:g}-{keep[1]:g} m" if keep else
-                "as prescribed" if args.focus == "prescribed" else f"focus {args.focus:g} m")
+        focus = (None if args.focus is None else "as prescribed" if args.focus == "prescribed"
+                 else f"focus {args.focus:g} m")
+        what = ", ".join(w for w in (focus, f"keep {keep[0]:g}-{keep[1]:g} m" if keep else None) if w)
         side_by_side(args.side_by_side, img if r.sharp is None else r.sharp,
                      depth if r.depth is None else r.depth, r.image, f"{lens.name}: {what}")
     steps.done()

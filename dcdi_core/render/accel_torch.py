@@ -77,15 +77,13 @@ def rotate_flat(src, outward, k: int, target_sum):
     return acc
 
 
-def rotated_patch_kernels(library, field, depth, outward, kernels_flat, where, eps):
+def rotated_patch_kernels(plan, outward, kernels_flat, where):
     """``psfmap._rotated_patch_kernels`` in torch (same arguments, writes
     kernels_flat[where]); returns the half-widths computed."""
-    from .psfmap import kernel_plan
-
     torch = _torch()
-    entry, weight, target, half, psf = kernel_plan(library, field, depth, eps)
-    k = psf.shape[-1]
-    r = k // 2
+    entry, weight, target, half, psf = plan
+    r = psf.shape[-1] // 2
+    ro = kernels_flat.shape[-1] // 2
     psf_t = torch.from_numpy(np.ascontiguousarray(psf, dtype=np.float32))
     out_t = torch.from_numpy(np.ascontiguousarray(outward, dtype=np.float32))
     w_t, tgt_t = torch.from_numpy(weight), torch.from_numpy(target.astype(np.float32))
@@ -96,7 +94,7 @@ def rotated_patch_kernels(library, field, depth, outward, kernels_flat, where, e
         g = psf_t[:, :, r - h:r + h + 1, r - h:r + h + 1][torch.from_numpy(entry[sel])]   # (n, 4, C, kc, kc)
         blend = torch.einsum("nq,nqx->nx", w_t[sel_t], g.reshape(len(sel), 4, -1)).reshape(len(sel), 3, kc * kc)
         rot = rotate_flat(blend, out_t[sel_t], kc, tgt_t[sel_t])
-        kernels_flat[where[sel], :, r - h:r + h + 1, r - h:r + h + 1] = rot.reshape(len(sel), 3, kc, kc).numpy()
+        kernels_flat[where[sel], :, ro - h:ro + h + 1, ro - h:ro + h + 1] = rot.reshape(len(sel), 3, kc, kc).numpy()
     return half
 
 

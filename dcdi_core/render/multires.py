@@ -290,7 +290,7 @@ def grouped_blur(x: np.ndarray, depth: np.ndarray, valid: np.ndarray, ident: np.
         ys, xs = _box(per_pixel == 0, m, grow)
         sub = _box_geometry(geometry, ys, xs)
         pm0 = psf_map(library, sub, np.where(valid[ys, xs] & (per_pixel[ys, xs] == 0), depth[ys, xs], np.nan), m,
-                      keep_range_m=keep_range_m)
+                      keep_range_m=keep_range_m, crop=True)
         out[ys, xs] = patch_convolve(x[ys, xs], pm0.kernels, m, ConvolveOptions(fft_backend=fft_backend),
                                      identity=pm0.identity, pairs=pairs)
     for s in range(1, max_level + 1):

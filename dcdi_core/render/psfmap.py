@@ -191,19 +191,21 @@ def kernel_plan(library, field, depth, eps):
     return entry, weight, target, half, psf
 
 
-def _rotated_patch_kernels(library, field, depth, outward, kernels_flat, where, eps, chunk=256, fast=True):
-    """Write into kernels_flat[where] (n, C, k, k) the library's kernels at
-    ``field`` and ``depth`` (n,), interpolated linearly in field and inverse
-    depth and rotated to ``outward``, each computed only over the centred
-    square its energy needs (support_radius + 1): the cost of a small PSF is
-    that of its support, not of the library's kernel size. fast: the
-    rotation by ``_rotate_flat_fast`` (equal to float32 rounding), else
-    ``_rotate_flat``. Returns the half-widths (n,) of the squares computed."""
+def _rotated_patch_kernels(plan, outward, kernels_flat, where, chunk=256, fast=True):
+    """Write into kernels_flat[where] (n, C, k, k) the kernels of ``plan``
+    (``kernel_plan`` at the patches' field and depth (n,)): the library's
+    kernels interpolated linearly in field and inverse depth and rotated to
+    ``outward``, each computed only over the centred square its energy needs
+    (support_radius + 1): the cost of a small PSF is that of its support,
+    not of the library's kernel size; k may be smaller than the library's
+    (at least the largest square). fast: the rotation by
+    ``_rotate_flat_fast`` (equal to float32 rounding), else ``_rotate_flat``.
+    Returns the half-widths (n,) of the squares computed."""
     from ..parallel import thread_pool
 
-    entry, weight, target, half, psf = kernel_plan(library, field, depth, eps)
-    k = library.kernel_size
-    r = k // 2
+    entry, weight, target, half, psf = plan
+    r = psf.shape[-1] // 2
+    ro = kernels_flat.shape[-1] // 2
 
     def work(sel, h):
         crop = psf[:, :, r - h:r + h + 1, r - h:r + h + 1]
@@ -211,7 +213,7 @@ def _rotated_patch_kernels(library, field, depth, outward, kernels_flat, where, 
         g = crop[entry[sel]].reshape(len(sel), 4, 3 * kc * kc)          # (n, 4, C kc^2)
         blend = np.matmul(weight[sel, None, :], g).reshape(len(sel), 3, kc * kc)
         rot = (_rotate_flat_fast if fast else _rotate_flat)(blend, outward[sel], kc, target[sel])
-        kernels_flat[where[sel], :, r - h:r + h + 1, r - h:r + h + 1] = rot.reshape(len(sel), 3, kc, kc)
+        kernels_flat[where[sel], :, ro - h:ro + h + 1, ro - h:ro + h + 1] = rot.reshape(len(sel), 3, kc, kc)
 
     jobs = []
     for h in np.unique(half):
@@ -243,7 +245,7 @@ def identity_kernel(k: int) -> np.ndarray:
 def psf_map(library, geometry, depth: np.ndarray, m: int = 16, *, fixed_depth_m: float | None = None,
             keep_range_m: tuple[float, float] | None = None, clamp_near: bool = True,
             support_eps: float = 1e-3, clamp_field: bool = False, method: str = "fast",
-            accelerator: str | None = None) -> PSFMap:
+            accelerator: str | None = None, crop: bool = False) -> PSFMap:
     """Kernels for every m x m patch of an image of ``geometry`` with ``depth``.
 
     fixed_depth_m: one depth for every patch (the paper's depth-unaware
@@ -257,7 +259,10 @@ def psf_map(library, geometry, depth: np.ndarray, m: int = 16, *, fixed_depth_m:
     (for a margin that only feeds the frame's border). method: 'fast' (the
     rotation laid out for speed) or 'exact' (the former layout; both give
     the same kernels to float32 rounding, tested). accelerator: None
-    (numpy) or 'torch' (``accel_torch.py``: the same kernels in torch)."""
+    (numpy) or 'torch' (``accel_torch.py``: the same kernels in torch).
+    crop: the kernels' size is the largest square any patch's energy needs
+    (2 max(support) + 1, at least 1) instead of the library's: the same
+    kernels' centres, less memory and convolution where the blur is small."""
     if method not in ("fast", "exact"):
         raise InputRangeError("psf_map method", method, "'fast' or 'exact'")
     if accelerator not in (None, "torch"):
@@ -299,17 +304,23 @@ def psf_map(library, geometry, depth: np.ndarray, m: int = 16, *, fixed_depth_m:
         lo, hi = keep_range_m
         keep = has & (d >= lo) & (d <= hi)
     ident = ~has | keep
+    todo = ~ident
     k = library.kernel_size
+    plan = None
+    if todo.any():
+        plan = kernel_plan(library, field[todo], np.where(np.isfinite(d[todo]), d[todo], np.inf), support_eps)
+        if crop:
+            k = 2 * int(plan[3].max()) + 1
+    elif crop:
+        k = 1
     kernels = np.zeros((nph, npw, 3, k, k), np.float32)
     kernels[ident] = identity_kernel(k)
-    todo = ~ident
     support = np.zeros((nph, npw), np.int64)
-    if todo.any():
+    if plan is not None:
         vec = np.stack([rr[todo] - geometry.center_px[0], cc[todo] - geometry.center_px[1]], -1)
         norm = np.hypot(vec[:, 0], vec[:, 1])
         outward = np.where(norm[:, None] > 1e-9, vec / np.maximum(norm, 1e-12)[:, None], [1.0, 0.0])
-        args = (library, field[todo], np.where(np.isfinite(d[todo]), d[todo], np.inf), outward,
-                kernels.reshape(nph * npw, 3, k, k), np.flatnonzero(todo), support_eps)
+        args = (plan, outward, kernels.reshape(nph * npw, 3, k, k), np.flatnonzero(todo))
         if accelerator == "torch":
             from .accel_torch import rotated_patch_kernels
             support[todo] = rotated_patch_kernels(*args)

@@ -380,12 +380,13 @@ def _check_flag(name: str, value) -> None:
 class BokehOptions:
     """What :func:`bokeh` renders, checked when made (before any work).
 
-    What is sharp, exactly one of: ``keep`` (near, far) metres, 0 < near <=
-    far, kept sharp (the paper's mask: identity PSF inside it), or
+    What is sharp, at least one of: ``keep`` (near, far) metres, 0 < near <=
+    far, kept sharp (the paper's mask: identity PSF inside it), and
     ``focus_m``: the lens focused at this distance (metres, > 0, or inf), or
     :data:`PRESCRIBED` ('prescribed', the lens as its prescription stands:
-    full physical defocus everywhere). Invalid depths (NaN, 0, negative)
-    are left sharp.
+    full physical defocus everywhere). Both: the lens focused at ``focus_m``
+    and the range ``keep`` exactly sharp (the add-on's Kept Sharp). Invalid
+    depths (NaN, 0, negative) are left sharp.
 
     geometry: the output frame on the sensor (default: the image spans the
     sensor's diagonal); source_geometry: the input's frame if it differs (as
@@ -465,9 +466,10 @@ class BokehOptions:
 
     def _check_sharpness(self) -> None:
         keep, focus_m = self.keep, self.focus_m
-        if (keep is None) == (focus_m is None):
+        if keep is None and focus_m is None:
             raise InputRangeError("keep / focus", (keep, focus_m),
-                                  f"exactly one of a keep range, a focus distance or focus {PRESCRIBED!r}")
+                                  f"a keep range, a focus distance or focus {PRESCRIBED!r} (or a keep range "
+                                  "and a focus)")
         if keep is not None:
             if not (isinstance(keep, (tuple, list, np.ndarray)) and len(keep) == 2 and 0 < keep[0] <= keep[1]):
                 raise InputRangeError("keep (--keep)", keep, "(near, far) with 0 < near <= far metres")
@@ -694,7 +696,12 @@ def _blur_layer(sc: _BokehScene, options: BokehOptions, mask, ys: slice, xs: sli
     sub = _box_geometry(sc.geometry, ys, xs)
     m = options.patch
     if options.multires is None:
-        pm = psf_map(sc.library, sub, d_layer, m)
+        # a patch whose window (the patch and its blend margin) lies beyond
+        # the kernel's reach of every layer pixel gathers nothing whatever its
+        # kernel: it gets none (NaN depth: the identity, copying zeros)
+        reach = sc.library.kernel_size // 2 + options.convolve_options().blend_px(m)
+        d_layer[~_within_reach(mask[ys, xs], m, reach)] = np.nan
+        pm = psf_map(sc.library, sub, d_layer, m, crop=True)
         blurred = patch_convolve(layer, pm.kernels, m, options.convolve_options(), identity=pm.identity,
                                  pairs=LAYER_PAIRS)
         return blurred, None
@@ -703,6 +710,26 @@ def _blur_layer(sc: _BokehScene, options: BokehOptions, mask, ys: slice, xs: sli
     return mr.grouped_blur(layer, d_layer, every, no_copy, sc.library, sub, m, options.multires, options.max_level,
                            options.coarse_patch, sc.grow, pairs=LAYER_PAIRS, table=table,
                            fft_backend=options.fft_backend)
+
+
+def _within_reach(mask: np.ndarray, m: int, reach_px: int) -> np.ndarray:
+    """(H, W) bool: the pixels of the m-px patches that lie within
+    ``reach_px`` of a pixel of ``mask`` (H, W), dilated at patch level
+    (a square of patches, so it holds every pixel within the reach)."""
+    h, w = mask.shape
+    nph, npw = math.ceil(h / m), math.ceil(w / m)
+    has = np.pad(mask, ((0, nph * m - h), (0, npw * m - w))).reshape(nph, m, npw, m).any(axis=(1, 3))
+    n = math.ceil(reach_px / m)
+    grown = has.copy()
+    for axis, size in ((0, nph), (1, npw)):
+        src = grown.copy()
+        for s_ in range(1, min(n, size - 1) + 1):
+            lo = [slice(None)] * 2
+            hi = [slice(None)] * 2
+            lo[axis], hi[axis] = slice(s_, None), slice(None, -s_)
+            grown[tuple(lo)] |= src[tuple(hi)]
+            grown[tuple(hi)] |= src[tuple(lo)]
+    return np.repeat(np.repeat(grown, m, axis=0), m, axis=1)[:h, :w]
 
 
 def _clamp_overshoot(blurred: np.ndarray, top: np.ndarray) -> None:

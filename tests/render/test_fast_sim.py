@@ -112,6 +112,23 @@ def test_fast_psf_map_equals_exact(scene):
         assert not got.kernels[i, j][:, ring].any()
 
 
+def test_cropped_psf_map_is_the_full_maps_centre(scene):
+    lens, geom, lib, img, depth = scene
+    for far in (False, True):        # the near depths' wide kernels, and a far plane's narrow ones
+        d = np.full_like(depth, 30.0) if far else depth
+        full = psf_map(lib, geom, d, 8)
+        got = psf_map(lib, geom, d, 8, crop=True)
+        k, r = got.kernels.shape[-1], lib.kernel_size // 2
+        assert k == 2 * int(got.support_px.max()) + 1 and k <= lib.kernel_size and (k < lib.kernel_size or not far)
+        h = k // 2
+        assert np.array_equal(got.kernels, full.kernels[..., r - h:r + h + 1, r - h:r + h + 1])
+        outside = np.ones((lib.kernel_size,) * 2, bool)
+        outside[r - h:r + h + 1, r - h:r + h + 1] = False
+        assert not full.kernels[..., outside].any()                  # nothing was cut off
+    none = psf_map(lib, geom, np.full_like(depth, np.nan), 8, crop=True)     # nothing to blur: 1 x 1 identities
+    assert none.kernels.shape[-1] == 1 and (none.kernels == 1).all()
+
+
 def test_simulate_fast_default_equals_windows(scene):
     lens, geom, lib, img, depth = scene
     want = simulate(img, depth, lens, geometry=geom, library=lib, distortion=False, convolution="windows").image

@@ -53,7 +53,9 @@ def test_narrow_kernels_give_the_exact_path(case):
     ex = bokeh(img, depth, lens, BokehOptions(keep=(1.1, 1.3), geometry=geom, convolution="windows"), library=lib)
     mres = bokeh(img, depth, lens, BokehOptions(keep=(1.1, 1.3), geometry=geom, multires=1000.0), library=lib)
     assert all(sum(lv[1:]) == 0 for lv in mres.info["layer_levels"])
-    assert np.array_equal(ex.image, mres.image)
+    # equal to float32 rounding: the exact path skips the patches beyond every
+    # kernel's reach of a layer and sizes its kernels to their support
+    assert np.abs(ex.image - mres.image).max() <= 1e-6 * max(1.0, float(np.abs(ex.image).max()))
 
 
 def test_upsample_keeps_constants_and_places_samples_at_block_centres():
@@ -184,7 +186,7 @@ def test_narrow_kernels_at_a_coarse_pitch_stay_at_full_resolution():
                         library=lib)
             levels = res.info["layer_levels"] if occ else [res.info["multires_patches_per_level"]]
             assert all(sum(lv[1:]) == 0 for lv in levels)
-            assert np.array_equal(res.image, ex.image)
+            assert np.abs(res.image - ex.image).max() <= 1e-6 * float(np.abs(ex.image).max())   # float32 rounding
 
 
 def test_cubic_from_block_means_is_closer_than_bilinear_on_a_blurred_image():
