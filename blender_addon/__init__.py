@@ -30,17 +30,20 @@ def _classes():
 def register():
     import bpy
 
-    from . import props
+    from . import props, render_hook
     for cls in _classes():
         bpy.utils.register_class(cls)
     props.register_properties()
+    render_hook.register()
 
 
 def unregister():
     import bpy
 
-    from . import operators, props
+    from . import logic, operators, props, render_hook
+    render_hook.unregister()
     operators.cancel_running_jobs()
+    logic.clear_psf_sources()
     props.unregister_properties()
     for cls in reversed(_classes()):
         bpy.utils.unregister_class(cls)

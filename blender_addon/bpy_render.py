@@ -23,6 +23,7 @@ import numpy as np
 from .core import core
 
 RESULT_IMAGE = "Lens Bokeh"
+RESULT_IMAGE_RENDER = "Lens Render"     # a rendered frame through the lens (Lens in Renders)
 
 
 def set_light_paths(cycles, max_bounces: int = 4, diffuse: int = 2, glossy: int = 2, transmission: int = 2) -> None:
@@ -157,6 +158,14 @@ def put_image(name: str, rgb: np.ndarray):
     img.pixels.foreach_set(rgba.ravel())
     img.update()
     return img
+
+
+def save_as_frame(rgb: np.ndarray, path: str, scene) -> None:
+    """Write (H, W, 3) float32 linear RGB to ``path`` as Blender writes a
+    rendered frame of ``scene``: its output format, colour depth and colour
+    management (through the image "Lens Render")."""
+    img = put_image(RESULT_IMAGE_RENDER, rgb)
+    img.save_render(filepath=path, scene=scene)
 
 
 def get_image(name: str) -> np.ndarray:

@@ -16,6 +16,7 @@ import os
 import sys
 import tomllib
 import zlib
+from collections import OrderedDict
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -208,8 +209,7 @@ def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], 
     # single pixel touches: every bin between the nearest and farthest is built.
     blurred = depth[np.isfinite(depth) & (depth > 0) & ~((depth >= keep[0]) & (depth <= keep[1]))]
     blurred = np.concatenate([blurred, depth[np.isinf(depth) & (depth > 0)][:1]])
-    src = core("models.runtime.library").psf_source(lens, pixel_pitch_mm=geom.pixel_pitch_mm, settings=settings,
-                                                     focus_m=settings.focus_distance_m)
+    src = cached_psf_source(lens, geom.pixel_pitch_mm, settings)
     lib = src.library or sim.open_library(lens, geom, settings, fit_depth_m=blurred if blurred.size else None,
                                           progress=report)
     if blurred.size:
@@ -229,10 +229,91 @@ def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], 
     return res.image.astype(np.float32), info
 
 
+# ------------------------------------------------------------------ PSFs kept between jobs
+# The PSF sources of the last few (lens file, pixel pitch, focus) requests:
+# an Omni-Lens-Field library keeps the bins it computed, so the frames of an
+# animation with one focus, or a preview refreshed after a change elsewhere,
+# pay the PSFs once. Traced libraries live in the disk cache instead.
+_SOURCES: "OrderedDict" = OrderedDict()
+SOURCE_CACHE_SIZE = 6
+
+
+def cached_psf_source(lens, pixel_pitch_mm: float, settings):
+    """``runtime.library.psf_source`` for ``lens`` at ``pixel_pitch_mm`` (mm)
+    with ``settings`` (their focus_distance_m the focus, None: as
+    prescribed), kept for the next call with the same lens file (path and
+    modification time), pitch and focus."""
+    path = str(getattr(lens, "path", "") or "")
+    mtime = os.stat(path).st_mtime_ns if path and os.path.exists(path) else None
+    key = (lens.id, path, mtime, round(float(pixel_pitch_mm), 12), settings.focus_distance_m)
+    if key in _SOURCES:
+        _SOURCES.move_to_end(key)
+        return _SOURCES[key]
+    src = core("models.runtime.library").psf_source(lens, pixel_pitch_mm=pixel_pitch_mm, settings=settings,
+                                                     focus_m=settings.focus_distance_m)
+    _SOURCES[key] = src
+    while len(_SOURCES) > SOURCE_CACHE_SIZE:
+        _SOURCES.popitem(last=False)
+    return src
+
+
+def clear_psf_sources() -> None:
+    """Drop the kept PSF sources (unregister)."""
+    _SOURCES.clear()
+
+
+# ------------------------------------------------------------------ Lens in Renders
+# what a rendered frame gets: the depth of field (the bokeh, the panel's
+# focus and kept range), or the whole lens (aberrations, distortion and
+# defocus: the simulation focused at the focus distance)
+RENDER_EFFECTS = ("dof", "lens")
+
+
+@dataclass(frozen=True)
+class FrameRequest:
+    """What one rendered frame gets: ``effect`` (one of RENDER_EFFECTS), the
+    focus (m from the lens's first vertex), the kept range (m) and whether
+    the lens is refocused (the bokeh's), the lens's entrance pupil (mm
+    behind its first vertex) and the scene's metres per unit (the Z pass's
+    conversion)."""
+
+    effect: str
+    focus_m: float
+    keep: tuple[float, float]
+    refocus: bool
+    entrance_pupil_mm: float
+    metres_per_unit: float = 1.0
+
+    def __post_init__(self):
+        if self.effect not in RENDER_EFFECTS:
+            raise BokehInputError(f"render effect {self.effect!r}: allowed {', '.join(RENDER_EFFECTS)}")
+        keep_range(self.focus_m, 0.0, 0.0)           # the focus's own check
+        if not (self.metres_per_unit > 0 and math.isfinite(self.metres_per_unit)):
+            raise BokehInputError(f"unit scale {self.metres_per_unit}: it must be positive and finite")
+
+
+def lens_frame(rgb, z, lens, request: FrameRequest, *, progress=None, cancelled=None):
+    """A rendered frame through ``lens``: its Combined pass ``rgb`` (H, W, 3)
+    float32 linear and planar Z pass ``z`` (H, W) scene units (Blender's
+    1e10 for the background), as ``request`` says. Returns (image, depth
+    metres from the lens's first vertex, info: the job's, with 'effect')."""
+    depth = core("render.camera").depth_from_planar_z(z, request.entrance_pupil_mm, request.metres_per_unit)
+    rgb = np.nan_to_num(np.asarray(rgb, np.float32)[..., :3], nan=0.0, posinf=0.0, neginf=0.0)
+    if request.effect == "dof":
+        out, info = run_bokeh(rgb, depth, lens, focus_m=request.focus_m, keep=request.keep,
+                              refocus=request.refocus, progress=progress, cancelled=cancelled)
+    else:
+        out, _, _, info = run_simulation(rgb, depth, lens, focus_m=request.focus_m, progress=progress,
+                                         cancelled=cancelled)
+    return out, depth, dict(info, effect=request.effect)
+
+
 # ------------------------------------------------------------------ the DCDI round trip
-def run_simulation(image, depth, lens, *, noise: bool = False, seed: int = 0, progress=None, cancelled=None):
+def run_simulation(image, depth, lens, *, noise: bool = False, seed: int = 0, focus_m: float | None = None,
+                   progress=None, cancelled=None):
     """The all-in-focus (H, W, 3) render with depth (H, W) metres as ``lens``
-    (as prescribed, no refocus) would have taken it: dcdi_core's depth-aware
+    (as prescribed, or with ``focus_m`` its sensor moved to focus there: `dcdi
+    simulate --focus`) would have taken it: dcdi_core's depth-aware
     simulation (``render.simulate``: distortion, then patch-wise PSFs of
     field and depth; sensor noise if ``noise``, seeded by ``seed``), with
     PSFs from the shipped Omni-Lens-Field where it covers the lens, else
@@ -241,11 +322,12 @@ def run_simulation(image, depth, lens, *, noise: bool = False, seed: int = 0, pr
     depth on the sensor (NaN where the lens images nothing), the image's
     geometry on the sensor, info): what :func:`run_correction` needs."""
     sim = core("render.simulate")
-    plan = core("render.request").RenderRequest(lens, labels=PANEL_LABELS).plan(image.shape[0], image.shape[1],
-                                                                               "the render")
+    settings = replace(core("psf.compute").PSFSettings(), focus_distance_m=None if focus_m is None else float(focus_m))
+    plan = core("render.request").RenderRequest(lens, psf=settings, labels=PANEL_LABELS).plan(
+        image.shape[0], image.shape[1], "the render")
     geom = plan.geometry
-    src = core("models.runtime.library").psf_source(lens, pixel_pitch_mm=geom.pixel_pitch_mm)
-    simulator = sim.LensSimulator(lens, geom, library=src.library,
+    src = cached_psf_source(lens, geom.pixel_pitch_mm, plan.settings)
+    simulator = sim.LensSimulator(lens, geom, library=src.library, settings=plan.settings,
                                   fit_depth_m=depth if src.library is None else None,
                                   progress=_psf_progress(progress, cancelled))
     _check_cancel(cancelled)

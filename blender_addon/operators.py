@@ -70,14 +70,29 @@ def chosen_lens(settings):
         raise logic.BokehInputError(f"the lens file is broken: {e}") from None
 
 
-def focus_metres(scene, cam, settings, entrance_pupil_mm: float) -> float:
-    """Focus distance in metres from the lens's first vertex."""
+def focus_metres(scene, cam, settings, entrance_pupil_mm: float, depsgraph=None) -> float:
+    """Focus distance in metres from the lens's first vertex: the panel's
+    distance, its focus object's origin, or the camera's own depth-of-field
+    focus (its focus object, else its focus distance). ``depsgraph``: read
+    the values it evaluated (a frame of an animation render), else the
+    scene as it stands."""
+    if depsgraph is not None:
+        settings = scene.evaluated_get(depsgraph).dcdi_lens_bokeh
+        cam = cam.evaluated_get(depsgraph)
     mpu = _metres_per_unit(scene)
     if settings.focus_mode == "DISTANCE":
         return settings.focus_distance * mpu
-    obj = settings.focus_object
-    if obj is None:
-        raise logic.BokehInputError("focus is set to Object but no focus object is chosen")
+    if settings.focus_mode == "CAMERA":
+        dof = cam.data.dof
+        obj = dof.focus_object
+        if obj is None:            # the camera's distance runs from the camera, i.e. the entrance pupil
+            return core("render.camera").planar_depth_m(-dof.focus_distance, entrance_pupil_mm, mpu)
+    else:
+        obj = settings.focus_object
+        if obj is None:
+            raise logic.BokehInputError("focus is set to Object but no focus object is chosen")
+    if depsgraph is not None:
+        obj = obj.evaluated_get(depsgraph)
     z = (cam.matrix_world.inverted() @ obj.matrix_world.translation).z      # the origin in camera space
     return core("render.camera").planar_depth_m(z, entrance_pupil_mm, mpu)
 

@@ -62,8 +62,13 @@ def draw_lens_bokeh(layout, context):
     col.prop(s, "focus_mode", expand=True)
     if s.focus_mode == "DISTANCE":
         col.prop(s, "focus_distance", text="Distance")
-    else:
+    elif s.focus_mode == "OBJECT":
         col.prop(s, "focus_object", text="Object")
+    elif scene.camera is not None and scene.camera.type == "CAMERA":
+        dof = scene.camera.data.dof
+        col.prop(dof, "focus_object", text="Camera Object")
+        if dof.focus_object is None:
+            col.prop(dof, "focus_distance", text="Camera Distance")
     col.prop(s, "refocus")
     col = layout.column(align=True, heading="Kept Sharp")
     col.prop(s, "keep_front")
@@ -94,7 +99,22 @@ def draw_lens_bokeh(layout, context):
         layout.label(text=st.message)
     if not st.running and st.psf_source:
         layout.label(text=st.psf_source[:72], icon="INFO")
+    _draw_renders(layout.box(), scene, s, st)
     _draw_round_trip(layout.box(), context, s, st)
+
+
+def _draw_renders(layout, scene, s, status):
+    """Lens in Renders: F12 and animations through the lens."""
+    from . import render_hook
+    layout.prop(s, "lens_in_renders", icon="RENDER_ANIMATION")
+    if not s.lens_in_renders:
+        return
+    layout.prop(s, "render_effect")
+    why = render_hook.blocker(scene)
+    if why:
+        _wrapped(layout, why, 240, "ERROR")
+    if status.render_message:
+        _wrapped(layout, status.render_message, 192, "INFO")
 
 
 def _draw_round_trip(layout, context, s, status):

@@ -49,7 +49,9 @@ class DCDI_LensBokehSettings(bpy.types.PropertyGroup):
                        items=_lens_items, default=logic.lens_number(DEFAULT_LENS))
     focus_mode: EnumProperty(name="Focus", items=[
         ("DISTANCE", "Distance", "Focus at a distance from the lens"),
-        ("OBJECT", "Object", "Focus on an object's origin (its depth along the camera's view axis)")],
+        ("OBJECT", "Object", "Focus on an object's origin (its depth along the camera's view axis)"),
+        ("CAMERA", "Camera", "The active camera's own Depth of Field focus: its Focus Object, else its Focus "
+                             "Distance (animated with the camera)")],
         default="DISTANCE")
     focus_distance: FloatProperty(name="Focus Distance", description="Distance from the lens's first vertex, "
                                   "in scene units (metres at unit scale 1)", default=2.0, min=0.01, soft_max=50.0,
@@ -70,6 +72,17 @@ class DCDI_LensBokehSettings(bpy.types.PropertyGroup):
                               "time", default=320, min=16, soft_max=1920, max=8192, subtype="PIXEL")
     samples: IntProperty(name="Samples", description="Cycles samples per pixel of the all-in-focus render "
                          "(denoised)", default=16, min=1, soft_max=256, max=16384)
+    lens_in_renders: BoolProperty(name="Lens in Renders", default=False,
+                                  description="Every rendered frame (F12, animations, command-line renders) gets "
+                                              "the lens, from the frame's Combined and Z passes; the result is "
+                                              "written where Blender writes the frame (image outputs) and shown as "
+                                              "the image \"Lens Render\". Focus and kept range follow their "
+                                              "animation frame by frame")
+    render_effect: EnumProperty(name="Effect", default="DOF", items=[
+        ("DOF", "Depth of Field", "The lens's depth of field (as Apply Lens Bokeh: focus, kept range, refocus)"),
+        ("LENS", "Whole Lens", "The lens focused at the focus distance with its aberrations and distortion "
+                               "(as `dcdi simulate --focus`)")],
+        description="What Lens in Renders applies to each frame")
     sensor_noise: BoolProperty(name="Sensor Noise", default=False,
                                description="Simulate Minimalist Lens: also add the engine's sensor noise (shot "
                                            "and read noise, 10000 e- full well, 3 e- read noise, seed 0)")
@@ -97,6 +110,7 @@ class DCDI_LensBokehStatus(bpy.types.PropertyGroup):
     psf_source: StringProperty(default="", description="Where the last bokeh's PSFs came from, and why")
     correction: StringProperty(default="", description="The method the last Correct Simulation ran, why, and "
                                                       "its time")
+    render_message: StringProperty(default="", description="What Lens in Renders did in the last render")
 
 
 CLASSES = (DCDI_LensBokehSettings, DCDI_LensBokehStatus)

@@ -1,0 +1,337 @@
+"""Lens in Renders: every frame Blender renders (F12, an animation, `blender
+--background -f / -a`) through the chosen lens, from the frame's Combined
+and Z passes.
+
+How a frame gets the lens, in the handlers' order:
+
+- ``render_init``: the settings the lens needs are set for this render and
+  their former values kept: the Z pass on every view layer, the cameras'
+  own depth of field off (the lens adds the blur), the interface locked
+  (the handlers read the scene while Blender renders), and a compositor of
+  ours in place of the scene's, which writes Combined and Depth to a
+  32-bit EXR in a temporary folder and passes Combined through unchanged.
+- ``frame_change_post`` (animations): the frame's focus from the render's
+  own evaluated data, so an animated focus distance, focus object or
+  camera is followed frame by frame.
+- ``render_post``: the lens on the passes (``logic.lens_frame``: the
+  bokeh, or the whole lens), the PSFs kept for the next frame with the same
+  focus; a still's result goes to the image "Lens Render".
+- ``render_write``: the lens's frame written over the file Blender just
+  wrote, in the scene's format and colour management.
+- ``render_complete`` / ``render_cancel``: every changed setting restored,
+  our compositor and temporary files removed.
+
+Movie outputs are refused (Blender streams those frames as it renders):
+the status line says to render an image sequence. Compositor effects of
+the scene's own node tree are not applied on top of the lens.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import bpy
+import numpy as np
+from bpy.app.handlers import persistent
+
+from . import bpy_render, logic
+from .core import core
+
+RESULT_IMAGE = bpy_render.RESULT_IMAGE_RENDER
+GROUP = "dcdi-lens-passes"
+MIN_BLENDER = (5, 0, 0)          # scene.compositing_node_group, File Output's file_output_items
+
+
+class _LensRender:
+    """One render through the lens: what was changed (to restore), where
+    the passes land, the focus of each frame, and what was done."""
+
+    def __init__(self, scene):
+        self.scene_name = scene.name
+        self.started_ns = time.time_ns() - 2_000_000_000      # files written from here on (coarse mtimes)
+        self.saved: list = []                 # (owner, attribute, former value)
+        self.group = None
+        self.passes_dir = Path(tempfile.mkdtemp(prefix="dcdi-lens-render-"))
+        self.focus_by_frame: dict[int, float] = {}
+        self.results: dict[int, np.ndarray] = {}
+        self.frames: list[dict] = []          # per frame: frame, focus, keep, seconds, PSF source
+        self.error: str | None = None
+        self.lens = self.lens_path = None
+
+    def set(self, owner, attribute: str, value) -> None:
+        """``owner.attribute = value``, the former value kept for restore()."""
+        self.saved.append((owner, attribute, getattr(owner, attribute)))
+        setattr(owner, attribute, value)
+
+    def restore(self) -> None:
+        for owner, attribute, value in reversed(self.saved):
+            try:
+                setattr(owner, attribute, value)
+            except (ReferenceError, AttributeError, TypeError):
+                pass                          # the owner was deleted during the render
+        self.saved.clear()
+        if self.group is not None:
+            try:
+                bpy.data.node_groups.remove(self.group)
+            except ReferenceError:
+                pass
+            self.group = None
+        shutil.rmtree(self.passes_dir, ignore_errors=True)
+
+
+# the render in progress (one at a time, as Blender renders one at a time)
+_RUN: dict[str, _LensRender] = {}
+# what the last render through the lens did, for the panel and for scripts
+LAST: dict = {}
+
+
+def _status(text: str) -> None:
+    wm = bpy.context.window_manager if bpy.context else None
+    st = getattr(wm, "dcdi_lens_bokeh_status", None)
+    if st is not None:
+        st.render_message = text[:400]
+
+
+def blocker(scene) -> str | None:
+    """Why a render of ``scene`` cannot get the lens, or None."""
+    if tuple(bpy.app.version) < MIN_BLENDER:
+        return (f"Lens in Renders needs Blender {'.'.join(map(str, MIN_BLENDER))} or newer "
+                f"(this is {bpy.app.version_string})")
+    if scene.render.is_movie_format:
+        return ("Lens in Renders writes image files: choose an image sequence output (EXR, PNG, ...) and "
+                "encode the movie afterwards (Blender streams movie frames as it renders)")
+    from . import operators
+    try:
+        operators._camera(scene)
+        operators.chosen_lens(scene.dcdi_lens_bokeh)
+    except (logic.BokehInputError, core("errors").DcdiError) as e:
+        return str(e)
+    return None
+
+
+# ------------------------------------------------------------------ set-up and restore
+def _passes_compositor(run: _LensRender, scene) -> None:
+    """A compositor of ours for this render: Render Layers -> File Output
+    (Combined + Depth, 32-bit uncompressed EXR in the run's folder) and
+    Combined -> Group Output (the frame Blender writes, replaced later)."""
+    g = bpy.data.node_groups.new(GROUP, "CompositorNodeTree")
+    run.group = g
+    rl = g.nodes.new("CompositorNodeRLayers")
+    rl.scene = scene
+    layer = bpy.context.view_layer if bpy.context.view_layer in tuple(scene.view_layers) else None
+    rl.layer = (layer or next((v for v in scene.view_layers if v.use), scene.view_layers[0])).name
+    fo = g.nodes.new("CompositorNodeOutputFile")
+    fo.directory = str(run.passes_dir) + os.sep
+    fo.file_name = "passes"
+    bpy_render.set_multilayer_exr(fo.format)
+    fo.file_output_items.clear()
+    fo.file_output_items.new("RGBA", "Image")
+    fo.file_output_items.new("FLOAT", "Depth")
+    g.links.new(rl.outputs["Image"], fo.inputs["Image"])
+    g.links.new(rl.outputs["Depth"], fo.inputs["Depth"])
+    g.interface.new_socket("Image", in_out="OUTPUT", socket_type="NodeSocketColor")
+    out = g.nodes.new("NodeGroupOutput")
+    g.links.new(rl.outputs["Image"], out.inputs[0])
+    run.set(scene, "compositing_node_group", g)
+    run.set(scene.render, "use_compositing", True)
+
+
+def _start(scene) -> _LensRender:
+    run = _LensRender(scene)
+    try:
+        from . import operators
+        run.lens, run.lens_path = operators.chosen_lens(scene.dcdi_lens_bokeh)
+        for vl in scene.view_layers:
+            run.set(vl, "use_pass_z", True)
+        for cam in {o.data for o in scene.objects if o.type == "CAMERA"}:
+            run.set(cam.dof, "use_dof", False)
+        run.set(scene.render, "use_lock_interface", True)
+        _passes_compositor(run, scene)
+        run.focus_by_frame[scene.frame_current] = _focus_m(scene, run, None)
+    except BaseException:
+        run.restore()
+        raise
+    return run
+
+
+def _focus_m(scene, run: _LensRender, depsgraph) -> float:
+    """The focus (m from the lens's first vertex) of the frame ``depsgraph``
+    evaluates (None: the scene as it stands)."""
+    from . import operators
+    ep = logic.lens_readout(run.lens_path)["entrance_pupil_mm"]
+    return operators.focus_metres(scene, operators._camera(scene), scene.dcdi_lens_bokeh, ep, depsgraph)
+
+
+def _request(scene, run: _LensRender, frame: int) -> logic.FrameRequest:
+    s = scene.dcdi_lens_bokeh
+    mpu = float(scene.unit_settings.scale_length)
+    focus = run.focus_by_frame.get(frame)
+    if focus is None:
+        focus = _focus_m(scene, run, None)
+    keep = logic.keep_range(focus, s.keep_front * mpu, s.keep_behind * mpu)
+    return logic.FrameRequest(s.render_effect.lower(), focus, keep, bool(s.refocus),
+                              logic.lens_readout(run.lens_path)["entrance_pupil_mm"], mpu)
+
+
+def _read_passes(run: _LensRender):
+    """(rgb, z) of the EXR our compositor wrote for this frame (then removed)."""
+    files = sorted(run.passes_dir.glob("*.exr"), key=lambda p: p.stat().st_mtime_ns)
+    if not files:
+        raise RuntimeError("the compositor wrote no passes for this frame (is compositing disabled by "
+                           "the command line, or the render cancelled?)")
+    try:
+        ch = core("io.rawexr").read_exr_channels(files[-1])
+    finally:
+        for p in files:
+            p.unlink(missing_ok=True)
+    if "Image.R" not in ch or "Depth.V" not in ch:
+        raise RuntimeError(f"the passes file has no Image and Depth (channels: {sorted(ch)[:8]})")
+    rgb = np.stack([ch[f"Image.{c}"] for c in "RGB"], axis=-1).astype(np.float32)
+    return rgb, ch["Depth.V"].astype(np.float32)
+
+
+# ------------------------------------------------------------------ the handlers
+@persistent
+def on_render_init(scene, *_):
+    _RUN.clear()
+    s = getattr(scene, "dcdi_lens_bokeh", None)
+    if s is None or not s.lens_in_renders:
+        return
+    why = blocker(scene)
+    if why:
+        LAST.clear()
+        LAST.update(error=why, frames=[])
+        _status(f"Lens in Renders not applied: {why}")
+        print(f"dcdi: Lens in Renders not applied: {why}")
+        return
+    try:
+        _RUN["run"] = _start(scene)
+    except (logic.BokehInputError, core("errors").DcdiError, RuntimeError, ValueError, OSError) as e:
+        LAST.clear()
+        LAST.update(error=str(e), frames=[])
+        _status(f"Lens in Renders not applied: {e}")
+        print(f"dcdi: Lens in Renders not applied: {e}")
+        return
+    _status("Lens in Renders: rendering...")
+
+
+@persistent
+def on_frame_change(scene, depsgraph=None):
+    run = _RUN.get("run")
+    if run is None or depsgraph is None or depsgraph.mode != "RENDER" or scene.name != run.scene_name:
+        return
+    try:
+        run.focus_by_frame[scene.frame_current] = _focus_m(scene, run, depsgraph)
+    except (logic.BokehInputError, core("errors").DcdiError) as e:
+        run.error = str(e)
+
+
+@persistent
+def on_render_post(scene, *_):
+    run = _RUN.get("run")
+    if run is None or scene.name != run.scene_name:
+        return
+    frame = scene.frame_current
+    t0 = time.perf_counter()
+    try:
+        rgb, z = _read_passes(run)
+        req = _request(scene, run, frame)
+        out, _, info = logic.lens_frame(rgb, z, run.lens, req)
+    except (logic.BokehInputError, core("errors").DcdiError, RuntimeError, ValueError, OSError) as e:
+        run.error = f"frame {frame}: {e}"
+        print(f"dcdi: Lens in Renders: {run.error}; the frame is left as rendered")
+        _status(f"Lens in Renders failed: {run.error}")
+        return
+    seconds = time.perf_counter() - t0
+    run.results = {frame: out}               # one frame held at a time
+    run.frames.append({"frame": frame, "focus_m": req.focus_m, "keep_m": list(req.keep), "effect": req.effect,
+                       "seconds": seconds, "psf_source": info.get("psf_source"),
+                       "focus_note": info.get("focus_note", "")})
+    LAST.clear()
+    LAST.update(frames=run.frames, error=run.error, last_image=out, last_passes=(rgb, z))
+    _status(f"Lens in Renders: frame {frame}, focus {req.focus_m:.2f} m, lens {seconds:.1f} s")
+    if bpy.app.background:
+        bpy_render.put_image(RESULT_IMAGE, out)
+    else:                                    # images are made on the main thread
+        bpy.app.timers.register(lambda out=out: _show(out), first_interval=0.0)
+
+
+def _show(out):
+    img = bpy_render.put_image(RESULT_IMAGE, out)
+    bpy_render.show_in_image_editor(bpy.context, img)
+    return None
+
+
+@persistent
+def on_render_write(scene, *_):
+    run = _RUN.get("run")
+    if run is None or scene.name != run.scene_name:
+        return
+    out = run.results.pop(scene.frame_current, None)
+    if out is None:
+        return                               # the lens failed on this frame: left as rendered
+    path = _written_path(scene, run)
+    if path is None:
+        run.error = f"frame {scene.frame_current}: cannot find the file Blender wrote"
+        print(f"dcdi: Lens in Renders: {run.error}")
+        return
+    try:
+        bpy_render.save_as_frame(out, path, scene)
+    except (RuntimeError, OSError) as e:
+        run.error = f"frame {scene.frame_current}: cannot write {path}: {e}"
+        print(f"dcdi: Lens in Renders: {run.error}")
+
+
+def _written_path(scene, run: _LensRender) -> str | None:
+    """The file Blender wrote for this frame: an animation's frame path, or
+    a still's output path (no frame number); the one written during this
+    render, the newest if both were."""
+    r = scene.render
+    still = bpy.path.abspath(r.filepath)
+    if r.use_file_extension and not still.lower().endswith(r.file_extension.lower()):
+        still += r.file_extension
+    found = [(os.stat(p).st_mtime_ns, p) for p in {r.frame_path(frame=scene.frame_current), still}
+             if os.path.isfile(p) and os.stat(p).st_mtime_ns >= run.started_ns]
+    return max(found)[1] if found else None
+
+
+@persistent
+def on_render_end(scene, *_):
+    run = _RUN.pop("run", None)
+    if run is None:
+        return
+    run.restore()
+    n = len(run.frames)
+    if run.error:
+        _status(f"Lens in Renders: {n} frame(s), last error: {run.error}")
+    elif n:
+        total = sum(f["seconds"] for f in run.frames)
+        _status(f"Lens in Renders: {n} frame(s), lens {total:.1f} s in all")
+
+
+HANDLERS = (("render_init", on_render_init), ("frame_change_post", on_frame_change),
+            ("render_post", on_render_post), ("render_write", on_render_write),
+            ("render_complete", on_render_end), ("render_cancel", on_render_end))
+
+
+def register() -> None:
+    for name, fn in HANDLERS:
+        handlers = getattr(bpy.app.handlers, name)
+        if fn not in handlers:
+            handlers.append(fn)
+
+
+def unregister() -> None:
+    run = _RUN.pop("run", None)
+    if run is not None:
+        run.restore()
+    for name, fn in HANDLERS:
+        handlers = getattr(bpy.app.handlers, name)
+        # a reloaded module's functions are new objects: remove ours by name too
+        for h in [h for h in handlers if h is fn or getattr(h, "__qualname__", "") == fn.__qualname__
+                  and getattr(h, "__module__", "") == fn.__module__]:
+            handlers.remove(h)
+    LAST.clear()

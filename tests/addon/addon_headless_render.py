@@ -1,0 +1,124 @@
+"""Run by tests/addon/test_render_hook.py in a fresh interpreter with the pip
+bpy module: installs the built extension zip, turns on Lens in Renders and
+renders a still and two short animations (Cycles, 160 x 120), writing what
+it saw to OUT_DIR/result.json (the still's passes as .npy beside it).
+
+    python tests/addon/addon_headless_render.py ZIP OUT_DIR
+"""
+import importlib
+import json
+import os
+import sys
+from pathlib import Path
+
+ZIP, OUT = Path(sys.argv[1]), Path(sys.argv[2])
+os.environ["BLENDER_USER_RESOURCES"] = str(OUT / "blender-user")
+for name in ("OpenImageIO", "OpenEXR", "matplotlib", "torch"):
+    sys.modules[name] = None
+
+import bpy  # noqa: E402
+import numpy as np  # noqa: E402
+from addon_scene import MODULE, build_scene, data_counts, diff, install, snapshot  # noqa: E402
+
+res: dict = {}
+scene, cam, cube = build_scene()
+res["install"], _ = install(ZIP)
+logic = sys.modules[f"{MODULE}.logic"]
+hook = sys.modules[f"{MODULE}.render_hook"]
+operators = sys.modules[f"{MODULE}.operators"]
+runtime = importlib.import_module(f"{MODULE}.dcdi_core.models.runtime.library")
+res["handlers_registered"] = sorted(n for n, fn in hook.HANDLERS if fn in getattr(bpy.app.handlers, n))
+
+# count the PSF sources built (one per lens, pitch and focus)
+builds = []
+_psf_source = runtime.psf_source
+
+
+def counting(*a, **k):
+    builds.append(k.get("focus_m"))
+    return _psf_source(*a, **k)
+
+
+runtime.psf_source = counting
+
+r = scene.render
+r.engine = "CYCLES"
+scene.cycles.samples = 4
+scene.cycles.use_denoising = False
+r.resolution_x, r.resolution_y, r.resolution_percentage = 160, 120, 100
+cam.data.dof.use_dof = True                       # the user's own DoF: off during the render, then back
+cam.data.dof.aperture_fstop = 2.0
+s = scene.dcdi_lens_bokeh
+s.lens = "6p"
+s.focus_mode = "OBJECT"
+s.focus_object = cube
+s.keep_front, s.keep_behind = 0.05, 0.05
+r.image_settings.file_format = "OPEN_EXR"
+r.image_settings.color_depth = "32"
+
+s.lens_in_renders = True
+r.filepath = str(OUT / "still.exr")
+watched = {"scene": scene, "render": r, "camera_data": cam.data}
+before = {k: snapshot(v) for k, v in watched.items()}
+before["view_layers"] = [snapshot(v) for v in scene.view_layers]
+counts0 = data_counts()
+
+# 1. a still, written (as `blender -b -f`)
+bpy.ops.render.render(write_still=True)
+res["still"] = {"frames": hook.LAST.get("frames"), "error": hook.LAST.get("error"),
+                "builds": list(builds), "image": hook.RESULT_IMAGE in bpy.data.images}
+rgb, z = hook.LAST["last_passes"]
+np.save(OUT / "still_rgb.npy", rgb)
+np.save(OUT / "still_z.npy", z)
+res["entrance_pupil_mm"] = logic.lens_readout(operators.chosen_lens(s)[1])["entrance_pupil_mm"]
+
+after = {k: snapshot(v) for k, v in watched.items()}
+after["view_layers"] = [snapshot(v) for v in scene.view_layers]
+res["settings_diff"] = diff(before, after)
+counts1 = data_counts()
+res["new_data"] = {k: counts1[k] - counts0.get(k, 0) for k in counts1 if counts1[k] != counts0.get(k, 0)}
+res["images"] = sorted(i.name for i in bpy.data.images)
+
+# 2. an animation whose focus object moves: each frame its own focus
+builds.clear()
+scene.frame_start, scene.frame_end = 1, 3
+for f, zpos in ((1, -1.0), (3, -2.0)):
+    scene.frame_set(f)
+    cube.location.z = zpos
+    cube.keyframe_insert("location", index=2)
+want = {}
+for f in (1, 2, 3):
+    scene.frame_set(f)
+    want[f] = operators.focus_metres(scene, cam, s, res["entrance_pupil_mm"])
+scene.frame_set(1)
+r.filepath = str(OUT / "moving" / "f_")
+bpy.ops.render.render(animation=True)
+res["moving"] = {"frames": hook.LAST.get("frames"), "error": hook.LAST.get("error"), "want_focus": want,
+                 "builds": list(builds), "files": sorted(p.name for p in (OUT / "moving").glob("*.exr"))}
+
+# 3. a fixed focus: the PSFs once for every frame
+builds.clear()
+s.focus_mode = "DISTANCE"
+s.focus_distance = 1.0
+r.filepath = str(OUT / "fixed" / "f_")
+bpy.ops.render.render(animation=True)
+res["fixed"] = {"frames": hook.LAST.get("frames"), "error": hook.LAST.get("error"), "builds": list(builds)}
+
+# 4. a movie output is refused before any work, the render left as it is
+try:
+    r.image_settings.media_type = "VIDEO"          # Blender 5 groups formats by media type
+    r.image_settings.file_format = "FFMPEG"
+    res["movie_blocker"] = hook.blocker(scene)
+except TypeError as e:                                # a build without FFmpeg
+    res["movie_blocker"] = f"no movie format in this build: {e}"
+r.image_settings.media_type = "IMAGE"
+r.image_settings.file_format = "OPEN_EXR"
+
+# 5. disabling the add-on removes the handlers
+bpy.ops.preferences.addon_disable(module=MODULE)
+res["handlers_after_disable"] = sorted(
+    f"{n}:{getattr(fn, '__module__', '')}" for n in ("render_init", "render_post", "render_write", "render_complete",
+                                                     "render_cancel", "frame_change_post")
+    for fn in getattr(bpy.app.handlers, n) if "dcdi" in getattr(fn, "__module__", ""))
+
+(OUT / "result.json").write_text(json.dumps(res, indent=1, default=str))

@@ -1,0 +1,93 @@
+"""Lens in Renders under the pip bpy module (in a subprocess): a rendered
+frame equals `dcdi bokeh` of the same passes, an animation's frames follow
+their focus, a fixed focus builds its PSFs once, the scene's settings are
+left as they were, movie outputs are refused, and disabling the add-on
+removes the handlers."""
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from test_addon import ROOT, addon_zip  # noqa: F401  (the zip fixture)
+
+
+@pytest.fixture(scope="module")
+def rendered(addon_zip, tmp_path_factory):  # noqa: F811
+    pytest.importorskip("bpy")
+    out = tmp_path_factory.mktemp("render-hook")
+    env = dict(os.environ, DCDI_CACHE_DIR=str(out / "psf-cache"))
+    env.pop("DCDI_LENS_PATH", None)
+    p = subprocess.run([sys.executable, str(ROOT / "tests" / "addon" / "addon_headless_render.py"), str(addon_zip),
+                        str(out)], capture_output=True, text=True, env=env, timeout=600, cwd=ROOT / "tests" / "addon")
+    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
+    res = json.loads((out / "result.json").read_text())
+    res["dir"] = out
+    return res
+
+
+def test_handlers_are_registered_with_the_add_on(rendered):
+    assert rendered["install"] == ["FINISHED"]
+    assert rendered["handlers_registered"] == sorted(["render_init", "frame_change_post", "render_post",
+                                                      "render_write", "render_complete", "render_cancel"])
+
+
+def test_a_rendered_still_equals_dcdi_bokeh_of_its_passes(rendered, tmp_path):
+    from dcdi_core.io.images import read_image, write_depth, write_image
+    from dcdi_core.render.camera import depth_from_planar_z
+    out = rendered["dir"]
+    assert rendered["still"]["error"] is None and rendered["still"]["image"]
+    (frame,) = rendered["still"]["frames"]
+    rgb, z = np.load(out / "still_rgb.npy"), np.load(out / "still_z.npy")
+    assert rgb.shape == (120, 160, 3) and np.isfinite(rgb).all() and (z > 0).all()
+    write_image(tmp_path / "aif.exr", rgb)
+    write_depth(tmp_path / "depth.exr", depth_from_planar_z(z, rendered["entrance_pupil_mm"]))
+    near, far = frame["keep_m"]
+    cmd = [sys.executable, "-m", "dcdi_core", "bokeh", "--image", str(tmp_path / "aif.exr"), "--depth",
+           str(tmp_path / "depth.exr"), "--lens", "6p", "--focus", repr(frame["focus_m"]), "--keep", repr(near),
+           repr(far), "-o", str(tmp_path / "cli.exr")]
+    p = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT,
+                       env=dict(os.environ, DCDI_CACHE_DIR=str(out / "psf-cache")))
+    assert p.returncode == 0, p.stderr[-2000:]
+    cli = read_image(tmp_path / "cli.exr")
+    hook = read_image(out / "still.exr")                 # the file Blender wrote, replaced by the lens's frame
+    assert hook.shape == cli.shape == rgb.shape
+    assert np.abs(hook - cli).max() <= 1e-5 * max(1.0, float(cli.max()))
+    # and it is a blur of the render, not the render itself
+    assert np.abs(hook - rgb).mean() > 1e-3
+
+
+def test_an_animated_focus_object_is_followed_frame_by_frame(rendered):
+    mv = rendered["moving"]
+    assert mv["error"] is None and mv["files"] == ["f_0001.exr", "f_0002.exr", "f_0003.exr"]
+    got = {f["frame"]: f["focus_m"] for f in mv["frames"]}
+    want = {int(k): v for k, v in mv["want_focus"].items()}
+    assert got.keys() == want.keys() == {1, 2, 3}
+    assert all(abs(got[f] - want[f]) < 1e-6 for f in want)
+    assert want[3] - want[1] == pytest.approx(1.0, abs=1e-6)         # the cube moved 1 m away
+    # each new focus builds its PSFs (frame 1's focus was the still's: kept)
+    assert sorted(mv["builds"]) == sorted([want[2], want[3]])
+
+
+def test_a_fixed_focus_builds_its_psfs_once_for_every_frame(rendered):
+    fx = rendered["fixed"]
+    assert fx["error"] is None and [f["frame"] for f in fx["frames"]] == [1, 2, 3]
+    assert fx["builds"] == [1.0]
+
+
+def test_the_scenes_settings_are_left_as_the_user_set_them(rendered):
+    # the Z pass, the camera's own depth of field, the compositor, lock interface: all restored
+    assert rendered["settings_diff"] == []
+    assert rendered["new_data"] == {"images": 1} and "Lens Render" in rendered["images"]
+
+
+def test_a_movie_output_is_refused_with_what_to_do(rendered):
+    msg = rendered["movie_blocker"]
+    assert "image sequence" in msg or msg.startswith("no movie format in this build")
+
+
+def test_disabling_the_add_on_removes_its_handlers(rendered):
+    assert rendered["handlers_after_disable"] == []
