@@ -40,7 +40,8 @@ def register():
 def unregister():
     import bpy
 
-    from . import logic, operators, props, render_hook
+    from . import logic, operators, props, render_hook, viewport
+    viewport.unregister()
     render_hook.unregister()
     operators.cancel_running_jobs()
     logic.clear_psf_sources()

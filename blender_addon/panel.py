@@ -92,6 +92,7 @@ def draw_lens_bokeh(layout, context):
     row = layout.row()
     row.scale_y = 1.5
     row.operator("dcdi.apply_lens_bokeh", icon="RENDER_STILL")
+    _draw_preview(layout, st)
     if st.running:
         # the status bar says "Esc cancels"; the slider keeps to stage and time
         layout.prop(st, "progress", text=(st.message or "working").split(" (")[0], slider=True)
@@ -101,6 +102,24 @@ def draw_lens_bokeh(layout, context):
         layout.label(text=st.psf_source[:72], icon="INFO")
     _draw_renders(layout.box(), scene, s, st)
     _draw_round_trip(layout.box(), context, s, st)
+
+
+def _draw_preview(layout, status):
+    """The viewport preview's toggle and what its last refresh did."""
+    from . import viewport
+    layout.prop(status, "viewport_preview", icon="HIDE_OFF" if status.viewport_preview else "HIDE_ON")
+    p = viewport.PREVIEW
+    if not p.enabled:
+        return
+    if p.error:
+        _wrapped(layout, p.error, 192, "ERROR")
+    elif p.worker is not None:
+        layout.label(text="Preview: updating...", icon="TIME")
+    elif p.result is not None:
+        r = p.result
+        what = f"render {r['render_s']:.1f} s + lens {r['lens_s']:.2f} s" if r["render_s"] else \
+            f"lens {r['lens_s']:.2f} s"
+        layout.label(text=f"Preview: {what} (camera view)", icon="INFO")
 
 
 def _draw_renders(layout, scene, s, status):

@@ -101,6 +101,11 @@ class DCDI_LensBokehSettings(bpy.types.PropertyGroup):
                                                  "shipped network")
 
 
+def _preview_toggled(status, context):
+    from . import viewport
+    viewport.toggle_update(status, context)
+
+
 class DCDI_LensBokehStatus(bpy.types.PropertyGroup):
     """What the running (or last) Apply Lens Bokeh is doing; not saved."""
 
@@ -111,6 +116,10 @@ class DCDI_LensBokehStatus(bpy.types.PropertyGroup):
     correction: StringProperty(default="", description="The method the last Correct Simulation ran, why, and "
                                                       "its time")
     render_message: StringProperty(default="", description="What Lens in Renders did in the last render")
+    viewport_preview: BoolProperty(name="Preview in Viewport", default=False, update=_preview_toggled,
+                                   description="Draw the lens's result over the 3D viewport's camera view at the "
+                                               "Preview Size, refreshed when the camera, focus, lens or scene "
+                                               "changes (a low-sample render, then the lens on a worker thread)")
 
 
 CLASSES = (DCDI_LensBokehSettings, DCDI_LensBokehStatus)

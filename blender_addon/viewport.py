@@ -1,0 +1,348 @@
+"""The viewport preview: the lens's result drawn over the 3D viewport's
+camera view, refreshed when the camera, the focus, the lens or the scene
+changes; and the focus plane drawn while the focus is adjusted.
+
+How a refresh runs (``Preview.tick``, a ``bpy.app.timers`` function on the
+main thread):
+
+- a change (``depsgraph_update_post``, or the toggle) marks the preview
+  stale; the refresh starts once changes have stopped for ``DEBOUNCE_S``;
+- the sharp image and metric depth: a low-sample Cycles render at the
+  preview size (``bpy_render.render_aif_depth``, about a second at 480 x
+  270), redone only when something other than the lens settings changed
+  (a focus or lens change reuses the last one);
+- the lens stage (``logic.run_bokeh``) on a worker thread; a newer change
+  cancels it (the worker's ``cancelled()`` compares generations) and its
+  result is dropped;
+- the result becomes a GPU texture that a ``POST_PIXEL`` draw handler
+  draws over the camera's frame.
+
+Colours: the linear result is drawn sRGB-encoded (the scene's view
+transform is not applied: a preview, not the render).
+"""
+from __future__ import annotations
+
+import threading
+import time
+
+import bpy
+import numpy as np
+
+from . import bpy_render, logic
+from .core import core
+
+DEBOUNCE_S = 0.25         # a refresh waits until changes have stopped this long
+POLL_S = 0.05             # the timer's period while a job runs
+FOCUS_PLANE_S = 2.0       # the focus plane stays drawn this long after a focus change
+# data-block types whose change needs a new sharp render (a lens or focus change does not)
+SCENE_TYPES = ("Mesh", "Material", "World", "Light", "Camera", "Curve", "Image", "NodeTree",
+               "Texture", "GreasePencil", "Volume", "PointCloud", "Curves", "MetaBall")
+
+
+class Preview:
+    """The preview's state: one per Blender session."""
+
+    def __init__(self):
+        self.enabled = False
+        self.generation = 0            # bumped by every change: older jobs are cancelled, their results dropped
+        self.changed_at: float | None = None
+        self.scene_changed = True
+        self.sharp: dict | None = None       # key, rgb, depth, seconds of the last sharp render
+        self.served: tuple | None = None     # the (sharp render, request) of the shown result
+        self.renders = 0                     # sharp renders so far
+        self.worker: threading.Thread | None = None
+        self.job: dict | None = None
+        self.result: dict | None = None      # image, info, generation, render_s, lens_s
+        self.texture = None
+        self.error = ""
+        self.focus_changed_at = 0.0
+        self.last_focus: float | None = None
+        self.log: list[dict] = []            # per refresh: render_s, lens_s, cold (for the bench and tests)
+
+    # -------------------------------------------------------------- changes
+    def changed(self, scene_changed: bool) -> None:
+        """Something the preview shows changed (``scene_changed``: more than
+        the lens settings): cancel the running job, refresh after the debounce."""
+        if not self.enabled:
+            return
+        self.generation += 1
+        self.scene_changed |= scene_changed
+        self.changed_at = time.perf_counter()
+        if not bpy.app.background and not bpy.app.timers.is_registered(_tick):
+            bpy.app.timers.register(_tick, first_interval=DEBOUNCE_S)
+
+    def stop(self) -> None:
+        self.enabled = False
+        self.generation += 1
+        self.changed_at = None
+        self.result = self.texture = self.sharp = self.served = None
+        self.error = ""
+
+    # -------------------------------------------------------------- the refresh
+    def tick(self, context=None) -> float | None:
+        """One step (the timer's body): collect a finished job, or start one
+        once the changes have settled. Returns the seconds to the next step,
+        None when there is nothing left to do."""
+        context = context or bpy.context
+        if not self.enabled:
+            return None
+        if self.worker is not None:
+            if self.worker.is_alive():
+                return POLL_S
+            self._collect()
+        if self.changed_at is None:
+            return None
+        wait = DEBOUNCE_S - (time.perf_counter() - self.changed_at)
+        if wait > 0:
+            return wait
+        self.changed_at = None
+        try:
+            self._start(context)
+        except (logic.BokehInputError, core("errors").DcdiError, RuntimeError, ValueError, OSError) as e:
+            self.error = str(e)
+            _redraw(context)
+            return None
+        return POLL_S if self.worker is not None else None
+
+    def _start(self, context) -> None:
+        a = inputs(context)
+        scene, cam, lens, ep, mpu = a["scene"], a["camera"], a["lens"], a["entrance_pupil_mm"], a["mpu"]
+        h, w, focus, keep, sharp_key, request = a["h"], a["w"], a["focus"], a["keep"], a["sharp_key"], a["request"]
+        s = scene.dcdi_lens_bokeh
+        if self.last_focus is not None and focus != self.last_focus:
+            self.focus_changed_at = time.perf_counter()
+        self.last_focus = focus
+        cold = self.sharp is None
+        render_s = 0.0
+        if self.scene_changed or self.sharp is None or self.sharp["key"] != sharp_key:
+            t0 = time.perf_counter()
+            rgb, z = bpy_render.render_aif_depth(scene, cam, h, w, s.samples, context.view_layer.name)
+            depth = core("render.camera").depth_from_planar_z(z, ep, mpu)
+            render_s = time.perf_counter() - t0
+            self.sharp = {"key": sharp_key, "rgb": rgb, "depth": depth, "version": self.renders}
+            self.renders += 1
+            self.scene_changed = False
+        served = (self.sharp["version"], request)
+        if self.served == served and self.result is not None:
+            return                                   # nothing the preview shows has changed
+        gen = self.generation
+        job = self.job = {"generation": gen, "key": served, "render_s": render_s, "cold": cold,
+                          "t0": time.perf_counter()}
+        sharp, refocus = self.sharp, bool(s.refocus)
+
+        def run():
+            try:
+                out, info = logic.run_bokeh(sharp["rgb"], sharp["depth"], lens, focus_m=focus, keep=keep,
+                                            refocus=refocus, cancelled=lambda: self.generation != gen)
+                job["out"], job["info"] = out, info
+            except logic.Cancelled:
+                job["cancelled"] = True
+            except Exception as e:               # handed to the main thread
+                job["error"] = e
+            job["lens_s"] = time.perf_counter() - job["t0"]
+
+        self.worker = threading.Thread(target=run, name="dcdi-viewport-preview", daemon=True)
+        self.worker.start()
+
+    def is_current(self, context) -> bool:
+        """Whether the shown (or running) result is of what the scene asks
+        for now, as far as the lens settings and camera go."""
+        key = self.job["key"] if self.worker is not None and self.job else self.served
+        if key is None or self.sharp is None:
+            return False
+        try:
+            a = inputs(context)
+        except (logic.BokehInputError, core("errors").DcdiError, ValueError, OSError):
+            return False
+        return a["sharp_key"] == self.sharp["key"] and key == (self.sharp["version"], a["request"])
+
+    def _collect(self) -> None:
+        job, self.worker = self.job, None
+        if job is None or job["generation"] != self.generation or job.get("cancelled"):
+            return                                   # a newer change came: its refresh is pending
+        if "error" in job:
+            self.error = str(job["error"])
+            return
+        self.error = ""
+        self.result = {"image": job["out"], "info": job["info"], "generation": job["generation"],
+                       "render_s": job["render_s"], "lens_s": job["lens_s"]}
+        self.served = job["key"]
+        self.log.append({"render_s": job["render_s"], "lens_s": job["lens_s"], "cold": job["cold"]})
+        self.texture = _texture(job["out"])
+        _redraw(bpy.context)
+
+
+PREVIEW = Preview()
+
+
+def inputs(context) -> dict:
+    """What a refresh works from: the camera, the lens, the preview's size,
+    the focus and kept range (m), and the keys that say when the sharp
+    render (``sharp_key``) or the lens stage (``request``) must be redone."""
+    from . import operators
+    scene = context.scene
+    s = scene.dcdi_lens_bokeh
+    cam = operators._camera(scene)
+    lens, path = operators.chosen_lens(s)
+    ep = logic.lens_readout(path)["entrance_pupil_mm"]
+    r = scene.render
+    h, w = logic.preview_shape(r.resolution_x, r.resolution_y, r.pixel_aspect_x, r.pixel_aspect_y, s.preview_size)
+    mpu = float(scene.unit_settings.scale_length)
+    focus = operators.focus_metres(scene, cam, s, ep)
+    keep = logic.keep_range(focus, s.keep_front * mpu, s.keep_behind * mpu)
+    d = cam.data
+    sharp_key = (cam.name, tuple(map(tuple, cam.matrix_world)), h, w, s.samples, round(ep, 9), mpu, d.lens,
+                 d.sensor_width, d.sensor_height, d.sensor_fit, d.shift_x, d.shift_y)
+    return {"scene": scene, "camera": cam, "lens": lens, "path": path, "entrance_pupil_mm": ep, "h": h, "w": w,
+            "mpu": mpu, "focus": focus, "keep": keep, "sharp_key": sharp_key,
+            "request": (lens.id, path, focus, keep, bool(s.refocus))}
+
+
+def _tick():
+    return PREVIEW.tick()
+
+
+def _texture(image: np.ndarray):
+    """A GPU texture of the linear (H, W, 3) image, sRGB-encoded; None without a GPU (background)."""
+    if bpy.app.background:
+        return None
+    import gpu
+    h, w = image.shape[:2]
+    rgba = np.ones((h, w, 4), np.float32)
+    rgba[..., :3] = core("io.images").linear_to_srgb(np.clip(image, 0.0, None))
+    buf = gpu.types.Buffer("FLOAT", h * w * 4, rgba[::-1].ravel())
+    return gpu.types.GPUTexture((w, h), format="RGBA16F", data=buf)
+
+
+def _redraw(context) -> None:
+    wm = getattr(context, "window_manager", None)
+    for window in (wm.windows if wm else ()):
+        for area in window.screen.areas:
+            if area.type in ("VIEW_3D", "PROPERTIES"):
+                area.tag_redraw()
+
+
+# ------------------------------------------------------------------ drawing
+def _camera_frame_px(context):
+    """The active camera's frame in the region's pixels (x0, y0, x1, y1), or
+    None outside the camera view."""
+    from bpy_extras.view3d_utils import location_3d_to_region_2d
+    rv3d, region, scene = context.region_data, context.region, context.scene
+    if rv3d is None or rv3d.view_perspective != "CAMERA" or scene.camera is None:
+        return None
+    cam = scene.camera
+    pts = [location_3d_to_region_2d(region, rv3d, cam.matrix_world @ p) for p in cam.data.view_frame(scene=scene)]
+    if any(p is None for p in pts):
+        return None
+    xs, ys = [p.x for p in pts], [p.y for p in pts]
+    return min(xs), min(ys), max(xs), max(ys)
+
+
+def draw_preview():
+    """POST_PIXEL: the last result over the camera's frame."""
+    if not PREVIEW.enabled or PREVIEW.texture is None:
+        return
+    frame = _camera_frame_px(bpy.context)
+    if frame is None:
+        return
+    from gpu_extras.presets import draw_texture_2d
+    x0, y0, x1, y1 = frame
+    draw_texture_2d(PREVIEW.texture, (x0, y0), x1 - x0, y1 - y0)
+
+
+def focus_plane_corners(scene, focus_m: float, entrance_pupil_mm: float):
+    """World positions of the camera frustum's section at the focus
+    (metres from the lens's first vertex): 4 corners (scene units)."""
+    cam = scene.camera
+    frame = cam.data.view_frame(scene=scene)             # camera space, on the plane z = -d
+    d = -frame[0].z
+    z = (focus_m + entrance_pupil_mm / 1000.0) / float(scene.unit_settings.scale_length)
+    return [cam.matrix_world @ (p * (z / d)) for p in frame]
+
+
+def draw_focus_plane():
+    """POST_VIEW: the focus plane, translucent, for FOCUS_PLANE_S after a focus change."""
+    if not PREVIEW.enabled or time.perf_counter() - PREVIEW.focus_changed_at > FOCUS_PLANE_S:
+        return
+    scene = bpy.context.scene
+    if scene.camera is None or PREVIEW.last_focus is None:
+        return
+    import gpu
+    from gpu_extras.batch import batch_for_shader
+    from . import operators
+    try:
+        ep = logic.lens_readout(operators.chosen_lens(scene.dcdi_lens_bokeh)[1])["entrance_pupil_mm"]
+    except (logic.BokehInputError, core("errors").DcdiError, OSError):
+        return
+    corners = [tuple(c) for c in focus_plane_corners(scene, PREVIEW.last_focus, ep)]
+    shader = gpu.shader.from_builtin("UNIFORM_COLOR")
+    batch = batch_for_shader(shader, "TRIS", {"pos": corners}, indices=((0, 1, 2), (0, 2, 3)))
+    gpu.state.blend_set("ALPHA")
+    shader.uniform_float("color", (1.0, 0.55, 0.1, 0.25))
+    batch.draw(shader)
+    gpu.state.blend_set("NONE")
+
+
+# ------------------------------------------------------------------ changes and the toggle
+def on_depsgraph_update(scene, depsgraph):
+    if not PREVIEW.enabled:
+        return
+    if any(_changes_the_render(u) for u in depsgraph.updates):
+        PREVIEW.changed(scene_changed=True)
+    elif not PREVIEW.is_current(bpy.context):
+        PREVIEW.changed(scene_changed=False)        # the lens settings, the focus, the camera, the size
+
+
+def _changes_the_render(update) -> bool:
+    """Whether a depsgraph update can change the sharp render: an object
+    moved or reshaped, or a mesh, material, light, world... edited. A
+    property of the scene (the lens settings) tags every object's shading
+    only, and the preview's own render (a temporary scene) tags the
+    collections: neither counts."""
+    kind = type(update.id).__name__
+    if kind == "Object":
+        return update.is_updated_transform or update.is_updated_geometry
+    return kind in SCENE_TYPES
+
+
+_HANDLES: list = []
+
+
+def set_enabled(enabled: bool, context=None) -> None:
+    """Turn the preview on (draw handlers, the first refresh) or off."""
+    context = context or bpy.context
+    if enabled == PREVIEW.enabled:
+        return
+    if not enabled:
+        PREVIEW.stop()
+        _remove_handlers()
+        _redraw(context)
+        return
+    PREVIEW.enabled = True
+    PREVIEW.scene_changed = True
+    if on_depsgraph_update not in bpy.app.handlers.depsgraph_update_post:
+        bpy.app.handlers.depsgraph_update_post.append(on_depsgraph_update)
+    if not bpy.app.background and not _HANDLES:
+        _HANDLES.append(bpy.types.SpaceView3D.draw_handler_add(draw_preview, (), "WINDOW", "POST_PIXEL"))
+        _HANDLES.append(bpy.types.SpaceView3D.draw_handler_add(draw_focus_plane, (), "WINDOW", "POST_VIEW"))
+    PREVIEW.changed(scene_changed=True)
+    PREVIEW.changed_at -= DEBOUNCE_S                 # the toggle's own refresh starts at once
+
+
+def _remove_handlers() -> None:
+    while _HANDLES:
+        bpy.types.SpaceView3D.draw_handler_remove(_HANDLES.pop(), "WINDOW")
+    if on_depsgraph_update in bpy.app.handlers.depsgraph_update_post:
+        bpy.app.handlers.depsgraph_update_post.remove(on_depsgraph_update)
+    if not bpy.app.background and bpy.app.timers.is_registered(_tick):
+        bpy.app.timers.unregister(_tick)
+
+
+def toggle_update(status, context) -> None:
+    """The status's ``viewport_preview`` property's update."""
+    set_enabled(bool(status.viewport_preview), context)
+
+
+def unregister() -> None:
+    PREVIEW.stop()
+    _remove_handlers()

@@ -1,0 +1,101 @@
+"""Run by tests/addon/test_viewport_preview.py in a fresh interpreter with the
+pip bpy module: installs the built zip, turns the viewport preview on and
+steps its refresh by hand (background Blender runs no timers), through a
+focus change, a scene change and a change that cancels a running job;
+writes OUT_DIR/result.json (pixels as .npy beside it).
+
+    python tests/addon/addon_headless_preview.py ZIP OUT_DIR
+"""
+import importlib
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+ZIP, OUT = Path(sys.argv[1]), Path(sys.argv[2])
+os.environ["BLENDER_USER_RESOURCES"] = str(OUT / "blender-user")
+for name in ("OpenImageIO", "OpenEXR", "matplotlib", "torch"):
+    sys.modules[name] = None
+
+import bpy  # noqa: E402
+import numpy as np  # noqa: E402
+from addon_scene import MODULE, build_scene, install  # noqa: E402
+
+res: dict = {}
+scene, cam, cube = build_scene()
+res["install"], _ = install(ZIP)
+logic = sys.modules[f"{MODULE}.logic"]
+viewport = importlib.import_module(f"{MODULE}.viewport")
+P = viewport.PREVIEW
+s = scene.dcdi_lens_bokeh
+s.lens = "6p"
+s.focus_mode = "DISTANCE"
+s.focus_distance = 1.0
+s.preview_size = 160
+s.samples = 4
+st = bpy.context.window_manager.dcdi_lens_bokeh_status
+
+
+def settle(limit_s=120.0):
+    """Step the refresh until it has nothing left to do (the debounce waited out)."""
+    t = time.perf_counter()
+    while True:
+        nxt = P.tick()
+        if nxt is None:
+            return
+        if time.perf_counter() - t > limit_s:
+            raise RuntimeError("the preview did not settle")
+        time.sleep(min(nxt, 0.05))
+
+
+def snap(name):
+    r = P.result
+    np.save(OUT / f"{name}.npy", r["image"])
+    return {"render_s": r["render_s"], "lens_s": r["lens_s"], "generation": r["generation"],
+            "focus_m": r["info"]["focus_m"], "keep_m": r["info"]["keep_m"], "error": P.error,
+            "refreshes": len(P.log)}
+
+
+st.viewport_preview = True                       # the toggle
+res["handler_on"] = viewport.on_depsgraph_update in bpy.app.handlers.depsgraph_update_post
+settle()
+res["first"] = snap("first")
+np.save(OUT / "sharp_rgb.npy", P.sharp["rgb"])
+np.save(OUT / "sharp_depth.npy", P.sharp["depth"])
+
+# a focus change: the depsgraph update marks it; only the lens stage runs
+s.focus_distance = 2.5
+bpy.context.view_layer.update()
+res["focus_pending"] = P.changed_at is not None and not P.scene_changed
+settle()
+res["focus"] = snap("focus")
+
+# nothing changed: no refresh
+bpy.context.view_layer.update()
+settle()
+res["idle_refreshes"] = len(P.log)
+
+# a scene change (the cube moves): a new sharp render
+cube.location.x += 0.2
+bpy.context.view_layer.update()
+res["scene_pending"] = P.scene_changed
+settle()
+res["scene"] = snap("scene")
+
+# a change while the lens stage runs: the running job is dropped
+s.focus_distance = 4.0
+bpy.context.view_layer.update()
+P.changed_at -= viewport.DEBOUNCE_S
+P.tick()                                          # starts the job
+started = P.job["generation"]
+s.focus_distance = 6.0
+P.changed(scene_changed=False)                   # what the depsgraph handler does on a focus change
+settle()
+res["cancel"] = snap("cancel")
+res["cancel"]["started_generation"] = started
+
+st.viewport_preview = False
+res["handler_off"] = viewport.on_depsgraph_update in bpy.app.handlers.depsgraph_update_post
+res["result_after_off"] = P.result is not None
+(OUT / "result.json").write_text(json.dumps(res, indent=1, default=str))

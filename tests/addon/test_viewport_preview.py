@@ -1,0 +1,64 @@
+"""The viewport preview under the pip bpy module (in a subprocess; its
+refresh stepped by hand, background Blender has no timers or GPU): the
+toggle's first result is the lens stage on a low-sample render, a focus
+change reruns the lens stage only, a scene change renders again, a newer
+change drops a running job, and the toggle off removes the handler. The
+GPU drawing itself needs Blender with a window (not tested here)."""
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from test_addon import ROOT, addon_zip  # noqa: F401  (the zip fixture)
+
+
+@pytest.fixture(scope="module")
+def preview(addon_zip, tmp_path_factory):  # noqa: F811
+    pytest.importorskip("bpy")
+    out = tmp_path_factory.mktemp("preview")
+    env = dict(os.environ, DCDI_CACHE_DIR=str(out / "psf-cache"))
+    env.pop("DCDI_LENS_PATH", None)
+    p = subprocess.run([sys.executable, str(ROOT / "tests" / "addon" / "addon_headless_preview.py"), str(addon_zip),
+                        str(out)], capture_output=True, text=True, env=env, timeout=600, cwd=ROOT / "tests" / "addon")
+    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
+    res = json.loads((out / "result.json").read_text())
+    res["dir"] = out
+    return res
+
+
+def test_the_first_result_is_the_lens_on_a_preview_render(preview):
+    from blender_addon import logic
+    first = preview["first"]
+    assert preview["handler_on"] and first["error"] == "" and first["render_s"] > 0 and first["refreshes"] == 1
+    img = np.load(preview["dir"] / "first.npy")
+    rgb, depth = np.load(preview["dir"] / "sharp_rgb.npy"), np.load(preview["dir"] / "sharp_depth.npy")
+    assert img.shape == rgb.shape == (120, 160, 3)             # Preview Size 160 of a 640 x 480 render
+    lens = logic.load_lens_cached(str(ROOT / "lenses" / "6p.toml"))
+    want, _ = logic.run_bokeh(rgb, depth, lens, focus_m=1.0, keep=tuple(first["keep_m"]))
+    assert np.abs(img - want).max() <= 1e-6 * max(1.0, float(want.max()))
+    assert np.abs(img - rgb).mean() > 1e-3                     # blurred, not the render
+
+
+def test_a_focus_change_reruns_the_lens_stage_only(preview):
+    f = preview["focus"]
+    assert preview["focus_pending"] and f["render_s"] == 0.0 and f["focus_m"] == 2.5 and f["refreshes"] == 2
+    assert not np.array_equal(np.load(preview["dir"] / "focus.npy"), np.load(preview["dir"] / "first.npy"))
+    assert preview["idle_refreshes"] == 2                      # an update that changes nothing: no refresh
+
+
+def test_a_scene_change_renders_again(preview):
+    sc = preview["scene"]
+    assert preview["scene_pending"] and sc["render_s"] > 0 and sc["refreshes"] == 3
+
+
+def test_a_newer_change_drops_the_running_job(preview):
+    c = preview["cancel"]
+    assert c["generation"] > c["started_generation"] and c["focus_m"] == 6.0
+    assert c["refreshes"] == 4                                # the dropped job's result was never shown
+
+
+def test_the_toggle_off_removes_the_handler_and_the_result(preview):
+    assert not preview["handler_off"] and not preview["result_after_off"]
