@@ -457,6 +457,102 @@ class DCDI_OT_import_zemax(bpy.types.Operator):
         return {"FINISHED"}
 
 
+def focus_on_point(scene, point) -> float:
+    """Set the panel's focus to the depth of the world ``point`` (scene
+    units) along the active camera's view axis: Distance mode, the distance
+    from the lens's first vertex. Returns the focus in metres."""
+    s = scene.dcdi_lens_bokeh
+    cam = _camera(scene)
+    _, path = chosen_lens(s)
+    z = (cam.matrix_world.inverted() @ point).z
+    focus = core("render.camera").planar_depth_m(z, logic.lens_readout(path)["entrance_pupil_mm"],
+                                                 _metres_per_unit(scene))
+    logic.keep_range(focus, 0.0, 0.0)              # in front of the lens, or a message saying it is not
+    s.focus_mode = "DISTANCE"
+    s.focus_distance = focus / _metres_per_unit(scene)
+    return focus
+
+
+class DCDI_OT_focus_pick(bpy.types.Operator):
+    """Focus on what is under the mouse: click in the 3D viewport (Esc or right click cancels); the focus distance becomes that point's depth along the camera's axis"""
+
+    bl_idname = "dcdi.focus_pick"
+    bl_label = "Focus on Click"
+    bl_options = {"REGISTER", "UNDO"}
+
+    location: bpy.props.FloatVectorProperty(name="Point", subtype="TRANSLATION", size=3, options={"SKIP_SAVE"},
+                                            description="World point to focus on (set by the click)")
+
+    def execute(self, context):
+        try:
+            from mathutils import Vector
+            focus = focus_on_point(context.scene, Vector(self.location))
+        except _user_errors() as e:
+            self.report({"ERROR"}, str(e))
+            return {"CANCELLED"}
+        self.report({"INFO"}, f"Lens Bokeh: focus {focus:.3f} m")
+        return {"FINISHED"}
+
+    def invoke(self, context, event):
+        if context.area is None or context.area.type != "VIEW_3D":
+            self.report({"ERROR"}, "Focus on Click works in a 3D viewport: use it from the sidebar's Lens Bokeh tab")
+            return {"CANCELLED"}
+        context.window.cursor_modal_set("EYEDROPPER")
+        context.window_manager.modal_handler_add(self)
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        if event.type in ("ESC", "RIGHTMOUSE"):
+            context.window.cursor_modal_restore()
+            return {"CANCELLED"}
+        if event.type != "LEFTMOUSE" or event.value != "PRESS":
+            return {"RUNNING_MODAL"}
+        context.window.cursor_modal_restore()
+        hit = _ray_cast(context, event)
+        if hit is None:
+            self.report({"WARNING"}, "nothing under the mouse to focus on")
+            return {"CANCELLED"}
+        self.location = hit
+        return self.execute(context)
+
+
+def _ray_cast(context, event):
+    """The first surface under the mouse in the 3D viewport (world point), or None."""
+    from bpy_extras import view3d_utils
+    for region in context.area.regions:
+        if region.type != "WINDOW":
+            continue
+        x, y = event.mouse_x - region.x, event.mouse_y - region.y
+        if not (0 <= x < region.width and 0 <= y < region.height):
+            continue
+        rv3d = region.data
+        origin = view3d_utils.region_2d_to_origin_3d(region, rv3d, (x, y))
+        direction = view3d_utils.region_2d_to_vector_3d(region, rv3d, (x, y))
+        hit, location, *_ = context.scene.ray_cast(context.evaluated_depsgraph_get(), origin, direction)
+        return location if hit else None
+    return None
+
+
+class DCDI_OT_focus_active(bpy.types.Operator):
+    """Focus on the active object (Object mode, its origin)"""
+
+    bl_idname = "dcdi.focus_active_object"
+    bl_label = "Focus on Active Object"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        ob = context.active_object
+        return ob is not None and ob is not context.scene.camera
+
+    def execute(self, context):
+        s = context.scene.dcdi_lens_bokeh
+        s.focus_mode = "OBJECT"
+        s.focus_object = context.active_object
+        self.report({"INFO"}, f"Lens Bokeh: focus on {context.active_object.name}")
+        return {"FINISHED"}
+
+
 def cancel_running_jobs():
     """Tell running workers to stop and drop the last simulation (unregister)."""
     for w in list(_JOBS):
@@ -465,4 +561,4 @@ def cancel_running_jobs():
 
 
 CLASSES = (DCDI_OT_apply_lens_bokeh, DCDI_OT_simulate_lens, DCDI_OT_correct_simulation, DCDI_OT_match_camera,
-           DCDI_OT_import_zemax)
+           DCDI_OT_import_zemax, DCDI_OT_focus_pick, DCDI_OT_focus_active)

@@ -69,6 +69,9 @@ def draw_lens_bokeh(layout, context):
         col.prop(dof, "focus_object", text="Camera Object")
         if dof.focus_object is None:
             col.prop(dof, "focus_distance", text="Camera Distance")
+    row = col.row(align=True)
+    row.operator("dcdi.focus_pick", icon="EYEDROPPER")
+    row.operator("dcdi.focus_active_object", text="Active", icon="OBJECT_DATA")
     col.prop(s, "refocus")
     col = layout.column(align=True, heading="Kept Sharp")
     col.prop(s, "keep_front")

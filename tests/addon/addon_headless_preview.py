@@ -95,6 +95,18 @@ settle()
 res["cancel"] = snap("cancel")
 res["cancel"]["started_generation"] = started
 
+# focus on a point (what a click sets) and on the active object
+res["pick"] = sorted(bpy.ops.dcdi.focus_pick(location=(0.0, 0.0, -3.0)))
+res["pick_focus"] = {"mode": s.focus_mode, "distance": s.focus_distance}
+res["pick_behind"] = None
+try:
+    bpy.ops.dcdi.focus_pick(location=(0.0, 0.0, 3.0))         # behind the camera
+except RuntimeError as e:
+    res["pick_behind"] = str(e)
+bpy.context.view_layer.objects.active = cube
+res["active"] = sorted(bpy.ops.dcdi.focus_active_object())
+res["active_focus"] = {"mode": s.focus_mode, "object": s.focus_object.name if s.focus_object else None}
+
 st.viewport_preview = False
 res["handler_off"] = viewport.on_depsgraph_update in bpy.app.handlers.depsgraph_update_post
 res["result_after_off"] = P.result is not None

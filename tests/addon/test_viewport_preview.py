@@ -62,3 +62,14 @@ def test_a_newer_change_drops_the_running_job(preview):
 
 def test_the_toggle_off_removes_the_handler_and_the_result(preview):
     assert not preview["handler_off"] and not preview["result_after_off"]
+
+
+def test_focus_on_a_clicked_point_and_on_the_active_object(preview):
+    from dcdi_core.optics.lens import load_lens
+    from dcdi_core.optics.paraxial import first_order
+    ep = first_order(load_lens("6p")).entrance_pupil_position_mm
+    # the camera looks down -Z from the origin: a point 3 m away is 3 m minus the pupil's depth from the lens
+    assert preview["pick"] == ["FINISHED"] and preview["pick_focus"]["mode"] == "DISTANCE"
+    assert preview["pick_focus"]["distance"] == pytest.approx(3.0 - ep / 1000.0, abs=1e-6)
+    assert "behind the camera" in preview["pick_behind"]
+    assert preview["active"] == ["FINISHED"] and preview["active_focus"] == {"mode": "OBJECT", "object": "Cube"}
