@@ -30,17 +30,19 @@ def _classes():
 def register():
     import bpy
 
-    from . import props, render_hook
+    from . import props, render_hook, thumbnails
     for cls in _classes():
         bpy.utils.register_class(cls)
     props.register_properties()
     render_hook.register()
+    thumbnails.register()
 
 
 def unregister():
     import bpy
 
-    from . import logic, operators, props, render_hook, viewport
+    from . import logic, operators, props, render_hook, thumbnails, viewport
+    thumbnails.unregister()
     viewport.unregister()
     render_hook.unregister()
     operators.cancel_running_jobs()

@@ -123,6 +123,38 @@ def lens_readout(path: str) -> dict:
     return _READOUT_CACHE[key]
 
 
+# the lens list's thumbnails: PSFs at these fields (rows) and depths (columns,
+# metres from the lens; inf: infinity), the lens as prescribed
+THUMBNAIL_FIELDS = (0.0, 0.5, 0.9)
+THUMBNAIL_DEPTHS_M = (1.0, 3.0, math.inf)
+THUMBNAIL_TILE_PX = 31
+
+
+def psf_thumbnail(lens, tile: int = THUMBNAIL_TILE_PX) -> np.ndarray:
+    """A grid of the lens's RGB PSFs (THUMBNAIL_FIELDS x THUMBNAIL_DEPTHS_M),
+    each tile ``tile`` px at the pixel pitch of a 600-px-diagonal image on
+    its sensor, scaled to its own peak and gamma-encoded (1/2.2) so that
+    halos show: float32 (H, W, 3) in [0, 1], rows top to bottom, 1-px
+    gaps. Quick settings (32 x 32 pupil rays, 5 wavelengths): a picture of
+    the lens's character, not its exact PSFs."""
+    compute = core("psf.compute")
+    pitch = 2.0 * lens.sensor.semi_diagonal_mm / 600.0
+    settings = compute.PSFSettings(kernel_size=tile, pupil_samples=32, n_wavelengths=5, pixel_pitch_mm=pitch)
+    nf, nd = len(THUMBNAIL_FIELDS), len(THUMBNAIL_DEPTHS_M)
+    out = np.zeros((nf * (tile + 1) - 1, nd * (tile + 1) - 1, 3), np.float32)
+    import warnings
+    for i, f in enumerate(THUMBNAIL_FIELDS):
+        for j, d in enumerate(THUMBNAIL_DEPTHS_M):
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")         # a PSF larger than the tile is clipped: a picture
+                k = compute.psf(lens, depth_m=d, field=f, settings=settings).psf
+            img = np.moveaxis(np.nan_to_num(k, nan=0.0), 0, -1)
+            peak = float(img.max())
+            tile_img = (img / peak) ** (1.0 / 2.2) if peak > 0 else img
+            out[i * (tile + 1):i * (tile + 1) + tile, j * (tile + 1):j * (tile + 1) + tile] = tile_img
+    return out
+
+
 def import_zemax(zmx_path: str, out_dir: str) -> str:
     """Convert a Zemax .zmx file to a lens TOML in ``out_dir`` (validated
     before anything is written; written atomically); returns the TOML path."""

@@ -25,6 +25,13 @@ def _readout(layout, settings):
             col.label(text=msg[i:i + 48])
         return
     fov = ro["field_of_view_deg"]
+    from . import thumbnails
+    entry = next((e for e in props.catalogue() if e.path == path), None)
+    icon = thumbnails.icon(entry) if entry is not None else 0
+    if icon:
+        row = box.row()
+        row.template_icon(icon_value=icon, scale=5.0)
+        row.label(text="PSFs: fields 0 / 0.5 / 0.9 down, 1 m / 3 m / inf across")
     col = box.column(align=True)
     col.label(text=ro["name"][:48], icon="CAMERA_DATA")
     col.label(text=f"f = {ro['focal_length_mm']:.2f} mm   F/{ro['f_number']:.2f}   "

@@ -28,8 +28,9 @@ def catalogue():
 
 
 def _lens_items(self, context):
-    items = [(e.id, e.name if len(e.name) <= 40 else e.id, f"{e.name}\n{e.path}", "CAMERA_DATA", e.number)
-             for e in catalogue()]
+    from . import thumbnails
+    items = [(e.id, e.name if len(e.name) <= 40 else e.id, f"{e.name}\n{e.path}", thumbnails.icon(e) or "CAMERA_DATA",
+              e.number) for e in catalogue()]
     if not items:
         items = [("NONE", "No lens files found", "no *.toml in the lens folders", "ERROR", 0)]
     _ITEMS[:] = items

@@ -107,6 +107,18 @@ bpy.context.view_layer.objects.active = cube
 res["active"] = sorted(bpy.ops.dcdi.focus_active_object())
 res["active_focus"] = {"mode": s.focus_mode, "object": s.focus_object.name if s.focus_object else None}
 
+# the lens list's thumbnails: made on a thread, collected on the main thread
+thumbs = importlib.import_module(f"{MODULE}.thumbnails")
+entries = logic.lens_catalogue()
+first = [thumbs.icon(e) for e in entries]
+thumbs._STATE["thread"].join(120)
+made = thumbs.collect()
+pcoll = thumbs._STATE["pcoll"]
+res["thumbnails"] = {"lenses": len(entries), "first": first, "made": made,
+                     "sizes": [tuple(pcoll[thumbs._key(e)].image_size) for e in entries if thumbs._key(e) in pcoll]}
+s.lens = "mos-s1"                                 # the enum still takes lenses by id
+res["thumbnails"]["lens_after"] = s.lens
+
 st.viewport_preview = False
 res["handler_off"] = viewport.on_depsgraph_update in bpy.app.handlers.depsgraph_update_post
 res["result_after_off"] = P.result is not None

@@ -122,7 +122,7 @@ def test_every_module_of_the_zip_imports(addon_zip, tmp_path):
     modules = sorted(n[:-3].replace("/", ".").removesuffix(".__init__") for n in names
                      if not n.endswith("/__main__.py"))
     assert len(modules) > 40 and f"{EXT_ID}.dcdi_core.render.simulate" in modules
-    bpy_only = {f"{EXT_ID}.{m}" for m in ("operators", "panel", "props", "bpy_render", "render_hook", "viewport")}
+    bpy_only = {f"{EXT_ID}.{m}" for m in ("operators", "panel", "props", "bpy_render", "render_hook", "viewport", "thumbnails")}
     bare = _import_all(tmp_path, modules, ["bpy", "torch", "scipy", "tqdm", "OpenImageIO", "OpenEXR",
                                            "matplotlib"])
     failed = {m: e for m, e in bare.items() if e}
@@ -771,3 +771,16 @@ def test_auto_runs_a_shipped_network_recorded_better_at_its_pitch(tiny_dacn, tmp
         logic.choose_correction("network", ROUND_TRIP_LENS, learned)
     with pytest.raises(logic.BokehInputError, match="allowed auto, deconvolution, network"):
         logic.choose_correction("wiener", ROUND_TRIP_LENS, learned)
+
+
+def test_psf_thumbnail_is_a_grid_of_peak_normalised_psfs():
+    lens = logic.load_lens_cached(str(ROOT / "lenses" / "mos-s1.toml"))
+    img = logic.psf_thumbnail(lens, tile=15)
+    nf, nd = len(logic.THUMBNAIL_FIELDS), len(logic.THUMBNAIL_DEPTHS_M)
+    assert img.shape == (nf * 16 - 1, nd * 16 - 1, 3) and img.dtype == np.float32
+    assert np.isfinite(img).all() and img.min() >= 0.0
+    for i in range(nf):
+        for j in range(nd):
+            tile = img[i * 16:i * 16 + 15, j * 16:j * 16 + 15]
+            assert tile.max() == pytest.approx(1.0)                 # each PSF scaled to its own peak
+    assert not img[15::16].any() and not img[:, 15::16].any()       # the gaps stay black

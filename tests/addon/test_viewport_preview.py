@@ -73,3 +73,10 @@ def test_focus_on_a_clicked_point_and_on_the_active_object(preview):
     assert preview["pick_focus"]["distance"] == pytest.approx(3.0 - ep / 1000.0, abs=1e-6)
     assert "behind the camera" in preview["pick_behind"]
     assert preview["active"] == ["FINISHED"] and preview["active_focus"] == {"mode": "OBJECT", "object": "Cube"}
+
+
+def test_every_lens_gets_a_psf_grid_thumbnail(preview):
+    t = preview["thumbnails"]
+    assert t["lenses"] >= 4 and t["first"] == [0] * t["lenses"]         # made on a thread, not while drawing
+    assert t["made"] == t["lenses"] and t["sizes"] == [[95, 95]] * t["lenses"]
+    assert t["lens_after"] == "mos-s1"

@@ -185,3 +185,12 @@ def test_bokeh_multires_flag_runs_and_refuses_a_bad_rule(scene, capsys):
     code = main(["bokeh", "--image", str(d / "aif.exr"), "--depth", str(d / "depth.exr"), "--lens", "6p",
                  "--keep", "1.1", "1.3", "-o", str(d / "bad.exr"), "--multires", "-2", *FAST])
     assert code != 0 and "multires" in capsys.readouterr().err and not (d / "bad.exr").exists()
+
+
+def test_bench_cli_quick_times_the_whole_processes(capsys):
+    from dcdi_core.cli import main
+    assert main(["bench", "cli", "--quick"]) == 0
+    out = capsys.readouterr().out
+    for job in ("dcdi --help (start-up)", "dcdi simulate", "dcdi bokeh --focus 1.5"):
+        line = next(ln for ln in out.splitlines() if ln.strip().startswith(job))
+        assert " s (" in line and "s CPU" in line
