@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 
 _POOL: ThreadPoolExecutor | None = None
 _LOCK = threading.Lock()
@@ -28,3 +29,20 @@ def thread_pool() -> ThreadPoolExecutor:
             if _POOL is None:
                 _POOL = ThreadPoolExecutor(max_workers=workers(), thread_name_prefix="dcdi")
     return _POOL
+
+
+@contextmanager
+def one_blas_thread():
+    """BLAS (numpy's matmul) on one thread inside the block: the pool's
+    threads are the parallelism there, and BLAS's own threads, started by a
+    matmul between two pool phases, keep spinning while the pool works
+    (measured: the 1280 x 1920 bokeh 6.2 s with them, 5.6 s without). Uses
+    threadpoolctl where it is installed (not in Blender's Python: there the
+    block runs as it is)."""
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:
+        yield
+        return
+    with threadpool_limits(1, user_api="blas"):
+        yield

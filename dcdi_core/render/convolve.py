@@ -183,11 +183,20 @@ def patch_convolve(image: np.ndarray, kernels: np.ndarray, m: int, options: Conv
     distinct image and kernel channel is transformed once (the bokeh blurs
     one coverage channel with the three colour PSFs this way).
     Returns float32 (H, W, len(pairs))."""
+    from ..parallel import one_blas_thread
+    with one_blas_thread():
+        return _patch_convolve(image, kernels, m, options, identity, pairs)
+
+
+def _patch_convolve(image, kernels, m, options, identity, pairs) -> np.ndarray:
     img = np.asarray(image, dtype=np.float32)
     b, pr = _check_call(img, kernels, m, options, pairs)
     h, w = img.shape[:2]
     ident = np.zeros((math.ceil(h / m), math.ceil(w / m)), bool) if identity is None else np.asarray(identity, bool)
-    support = kernel_support(kernels, options.support_eps, channels=np.unique(pr[:, 1]))
+    # an identity patch is copied: its kernel's support is never read
+    support = np.zeros(ident.shape, np.int64)
+    if (~ident).any():
+        support[~ident] = kernel_support(kernels[~ident], options.support_eps, channels=np.unique(pr[:, 1]))
     if options.method == "fast":
         return _fast_method(img, kernels, m, b, ident, support, pr, options)
     fr = _frame(img, kernels, m, b, pr, ident, support, fft.backend(options.fft_backend))
