@@ -207,3 +207,16 @@ def test_stiff_inputs_no_nan(scene, accelerator):
     for hh, ww in ((1, 1), (1, 9), (7, 1)):
         g = ImageGeometry.from_pixel_pitch(lens, hh, ww, 0.0122, center_px=(-60.0, -90.0))
         run(np.full((hh, ww, 3), 0.5, np.float32), np.full((hh, ww), 2.0), g)
+
+
+def test_blas_runs_on_one_thread_inside_the_pools_blocks():
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+    from dcdi_core.parallel import one_blas_thread
+    np.ones((4, 4)) @ np.ones((4, 4))                       # BLAS loaded
+    blas = [i for i in threadpoolctl.threadpool_info() if i["user_api"] == "blas"]
+    if not blas:
+        pytest.skip("numpy's BLAS is not visible to threadpoolctl here")
+    before = [i["num_threads"] for i in blas]
+    with one_blas_thread():
+        assert all(i["num_threads"] == 1 for i in threadpoolctl.threadpool_info() if i["user_api"] == "blas")
+    assert [i["num_threads"] for i in threadpoolctl.threadpool_info() if i["user_api"] == "blas"] == before
