@@ -151,6 +151,22 @@ def _settings_differences(entry: dict, settings: PSFSettings | None) -> list[str
     return out
 
 
+_OLF_CACHE: dict = {}
+
+
+def _load_olf(path: Path) -> OmniLensField:
+    """``OmniLensField.load``, kept for the next request of the same file
+    (path, size and modification time): a refocus, a new pixel pitch or
+    another lens opens a new source, but not the 10 MB file again (0.1-0.3 s
+    of every focus change in the add-on's preview)."""
+    st = path.stat()
+    key = (str(path.resolve()), st.st_size, st.st_mtime_ns)
+    if key not in _OLF_CACHE:
+        _OLF_CACHE.clear()                      # one file at a time: the shipped one, or the user's
+        _OLF_CACHE[key] = OmniLensField.load(path)
+    return _OLF_CACHE[key]
+
+
 def psf_source(lens, *, source: str | None = None, olf_file=None, pixel_pitch_mm: float | None = None,
                settings: PSFSettings | None = None, kernel_size: int | None = None, focus_m=None,
                custom_response: bool = False, grid: LibraryGrid | None = None,
@@ -172,7 +188,7 @@ def psf_source(lens, *, source: str | None = None, olf_file=None, pixel_pitch_mm
         reason = "no OLF file ships with this engine and none was given (--olf)"
     else:
         try:
-            olf = OmniLensField.load(path)
+            olf = _load_olf(path)
             reason = _why_not(olf, lens, pixel_pitch_mm, settings, kernel_size, focus_m, custom_response)
             if reason is None:
                 lib = OLFLibrary(olf, lens, grid, pixel_pitch_mm=pixel_pitch_mm, focus_m=focus_m)
