@@ -14,7 +14,7 @@ import numpy as np
 
 from . import logic
 
-_STATE: dict = {"pcoll": None, "ready": {}, "failed": set(), "thread": None}
+_STATE: dict = {"pcoll": None, "ready": {}, "failed": set(), "requested": set(), "thread": None}
 _LOCK = threading.Lock()
 
 
@@ -31,7 +31,8 @@ def icon(entry) -> int:
     key = _key(entry)
     if key in pcoll:
         return pcoll[key].icon_id
-    if key not in _STATE["failed"]:
+    if key not in _STATE["requested"]:        # made once: reading the lens enum calls this every time
+        _STATE["requested"].add(key)
         _make_later(entry, key)
     return 0
 
@@ -103,6 +104,6 @@ def unregister() -> None:
     if _STATE["pcoll"] is not None:
         import bpy.utils.previews
         bpy.utils.previews.remove(_STATE["pcoll"])
-    _STATE.update(pcoll=None, ready={}, failed=set(), queue={})
+    _STATE.update(pcoll=None, ready={}, failed=set(), requested=set(), queue={})
     if not bpy.app.background and bpy.app.timers.is_registered(_collect):
         bpy.app.timers.unregister(_collect)

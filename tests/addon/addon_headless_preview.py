@@ -27,6 +27,9 @@ scene, cam, cube = build_scene()
 res["install"], _ = install(ZIP)
 logic = sys.modules[f"{MODULE}.logic"]
 viewport = importlib.import_module(f"{MODULE}.viewport")
+made_calls = []                                   # the lens list's thumbnails made (asked for at every enum read)
+_thumbnail = logic.psf_thumbnail
+logic.psf_thumbnail = lambda lens, *a, **k: made_calls.append(lens.id) or _thumbnail(lens, *a, **k)
 P = viewport.PREVIEW
 s = scene.dcdi_lens_bokeh
 s.lens = "6p"
@@ -112,9 +115,13 @@ thumbs = importlib.import_module(f"{MODULE}.thumbnails")
 entries = logic.lens_catalogue()
 first = [thumbs.icon(e) for e in entries]
 thumbs._STATE["thread"].join(120)
+for _ in range(5):                                # reading the lens enum asks for the icons each time
+    _ = s.lens
+    [thumbs.icon(e) for e in entries]
+thumbs._STATE["thread"].join(120)
 made = thumbs.collect()
 pcoll = thumbs._STATE["pcoll"]
-res["thumbnails"] = {"lenses": len(entries), "first": first, "made": made,
+res["thumbnails"] = {"lenses": len(entries), "first": first, "made": made, "made_calls": sorted(made_calls),
                      "sizes": [tuple(pcoll[thumbs._key(e)].image_size) for e in entries if thumbs._key(e) in pcoll]}
 s.lens = "mos-s1"                                 # the enum still takes lenses by id
 res["thumbnails"]["lens_after"] = s.lens

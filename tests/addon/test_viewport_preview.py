@@ -79,4 +79,5 @@ def test_every_lens_gets_a_psf_grid_thumbnail(preview):
     t = preview["thumbnails"]
     assert t["lenses"] >= 4 and t["first"] == [0] * t["lenses"]         # made on a thread, not while drawing
     assert t["made"] == t["lenses"] and t["sizes"] == [[95, 95]] * t["lenses"]
+    assert len(t["made_calls"]) == t["lenses"] == len(set(t["made_calls"]))   # each made once
     assert t["lens_after"] == "mos-s1"
