@@ -139,6 +139,11 @@ def _draw_renders(layout, scene, s, status):
     if not s.lens_in_renders:
         return
     layout.prop(s, "render_effect")
+    if not scene.render.use_lock_interface:
+        # Blender reads it when F12 starts, before the add-on's handlers run
+        _wrapped(layout, "Turn Lock Interface on: the lens reads the scene while Blender renders (F12 in the "
+                         "window; command-line renders do not need it)", 192, "ERROR")
+        layout.prop(scene.render, "use_lock_interface")
     why = render_hook.blocker(scene)
     if why:
         _wrapped(layout, why, 240, "ERROR")

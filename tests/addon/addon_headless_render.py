@@ -114,7 +114,23 @@ except TypeError as e:                                # a build without FFmpeg
 r.image_settings.media_type = "IMAGE"
 r.image_settings.file_format = "OPEN_EXR"
 
-# 5. disabling the add-on removes the handlers
+# 5. the panel: the switch, the effect, and Lock Interface asked for when it is off
+panel = importlib.import_module(f"{MODULE}.panel")
+from addon_scene import StubLayout  # noqa: E402
+
+
+def draw():
+    layout = StubLayout()
+    panel.draw_lens_bokeh(layout, bpy.context)
+    return layout.log
+
+
+r.use_lock_interface = False
+res["panel_unlocked"] = draw()
+r.use_lock_interface = True
+res["panel_locked"] = draw()
+
+# 6. disabling the add-on removes the handlers
 bpy.ops.preferences.addon_disable(module=MODULE)
 res["handlers_after_disable"] = sorted(
     f"{n}:{getattr(fn, '__module__', '')}" for n in ("render_init", "render_post", "render_write", "render_complete",

@@ -47,6 +47,9 @@ class StubLayout:
     def prop(self, data, name, **k):
         self.log.append(("prop", name, None))
 
+    def template_icon(self, icon_value=0, **k):
+        self.log.append(("icon", icon_value, None))
+
 
 def snapshot(struct, depth=0, max_depth=4):
     """Every RNA property of ``struct`` (nested structs to max_depth; ID

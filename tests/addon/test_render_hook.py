@@ -91,3 +91,11 @@ def test_a_movie_output_is_refused_with_what_to_do(rendered):
 
 def test_disabling_the_add_on_removes_its_handlers(rendered):
     assert rendered["handlers_after_disable"] == []
+
+
+def test_the_panel_offers_the_switch_and_asks_for_lock_interface(rendered):
+    props = {t for kind, t, _ in rendered["panel_locked"] if kind == "prop"}
+    assert {"lens_in_renders", "render_effect"} <= props and "use_lock_interface" not in props
+    unlocked = rendered["panel_unlocked"]
+    assert any(kind == "prop" and t == "use_lock_interface" for kind, t, _ in unlocked)
+    assert any(kind == "label" and "Lock Interface" in t for kind, t, _ in unlocked)
