@@ -15,6 +15,7 @@ import math
 import os
 import sys
 import tomllib
+import warnings
 import zlib
 from collections import OrderedDict
 from dataclasses import dataclass, replace
@@ -142,7 +143,6 @@ def psf_thumbnail(lens, tile: int = THUMBNAIL_TILE_PX) -> np.ndarray:
     settings = compute.PSFSettings(kernel_size=tile, pupil_samples=32, n_wavelengths=5, pixel_pitch_mm=pitch)
     nf, nd = len(THUMBNAIL_FIELDS), len(THUMBNAIL_DEPTHS_M)
     out = np.zeros((nf * (tile + 1) - 1, nd * (tile + 1) - 1, 3), np.float32)
-    import warnings
     for i, f in enumerate(THUMBNAIL_FIELDS):
         for j, d in enumerate(THUMBNAIL_DEPTHS_M):
             with warnings.catch_warnings():

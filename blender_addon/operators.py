@@ -93,8 +93,23 @@ def focus_metres(scene, cam, settings, entrance_pupil_mm: float, depsgraph=None)
             raise logic.BokehInputError("focus is set to Object but no focus object is chosen")
     if depsgraph is not None:
         obj = obj.evaluated_get(depsgraph)
-    z = (cam.matrix_world.inverted() @ obj.matrix_world.translation).z      # the origin in camera space
-    return core("render.camera").planar_depth_m(z, entrance_pupil_mm, mpu)
+    return point_depth_m(scene, cam, obj.matrix_world.translation, entrance_pupil_mm)
+
+
+def point_depth_m(scene, cam, point, entrance_pupil_mm: float) -> float:
+    """Depth in metres from the lens's first vertex of the world ``point``
+    (scene units): its depth along the camera's view axis."""
+    z = (cam.matrix_world.inverted() @ point).z          # camera space: the camera looks down -Z
+    return core("render.camera").planar_depth_m(z, entrance_pupil_mm, _metres_per_unit(scene))
+
+
+def focus_and_keep(scene, cam, settings, entrance_pupil_mm: float, depsgraph=None):
+    """(focus, (near, far)): the focus (``focus_metres``) and the range kept
+    sharp around it, metres."""
+    focus = focus_metres(scene, cam, settings, entrance_pupil_mm, depsgraph)
+    s = scene.evaluated_get(depsgraph).dcdi_lens_bokeh if depsgraph is not None else settings
+    mpu = _metres_per_unit(scene)
+    return focus, logic.keep_range(focus, s.keep_front * mpu, s.keep_behind * mpu)
 
 
 def render_inputs(context, cam, lens_path: str):
@@ -117,9 +132,7 @@ def prepare(context):
     s = scene.dcdi_lens_bokeh
     cam = _camera(scene)
     lens, path = chosen_lens(s)
-    focus = focus_metres(scene, cam, s, logic.lens_readout(path)["entrance_pupil_mm"])
-    mpu = _metres_per_unit(scene)
-    keep = logic.keep_range(focus, s.keep_front * mpu, s.keep_behind * mpu)
+    focus, keep = focus_and_keep(scene, cam, s, logic.lens_readout(path)["entrance_pupil_mm"])
     rgb, depth, seconds = render_inputs(context, cam, path)
     return {"rgb": rgb, "depth": depth, "lens": lens, "focus_m": focus, "keep": keep, "refocus": bool(s.refocus),
             "render_s": seconds}
@@ -462,11 +475,8 @@ def focus_on_point(scene, point) -> float:
     units) along the active camera's view axis: Distance mode, the distance
     from the lens's first vertex. Returns the focus in metres."""
     s = scene.dcdi_lens_bokeh
-    cam = _camera(scene)
     _, path = chosen_lens(s)
-    z = (cam.matrix_world.inverted() @ point).z
-    focus = core("render.camera").planar_depth_m(z, logic.lens_readout(path)["entrance_pupil_mm"],
-                                                 _metres_per_unit(scene))
+    focus = point_depth_m(scene, _camera(scene), point, logic.lens_readout(path)["entrance_pupil_mm"])
     logic.keep_range(focus, 0.0, 0.0)              # in front of the lens, or a message saying it is not
     s.focus_mode = "DISTANCE"
     s.focus_distance = focus / _metres_per_unit(scene)

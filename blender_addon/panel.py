@@ -46,9 +46,7 @@ def _sharp_range(scene, s) -> str:
     try:
         cam = operators._camera(scene)
         _, path = operators.chosen_lens(s)
-        focus = operators.focus_metres(scene, cam, s, logic.lens_readout(path)["entrance_pupil_mm"])
-        mpu = scene.unit_settings.scale_length
-        near, far = logic.keep_range(focus, s.keep_front * mpu, s.keep_behind * mpu)
+        focus, (near, far) = operators.focus_and_keep(scene, cam, s, logic.lens_readout(path)["entrance_pupil_mm"])
     except (logic.BokehInputError, core("errors").DcdiError, ValueError, OSError) as e:
         return str(e)[:60]
     return f"Sharp from {near:.2f} m to {far:.2f} m (focus {focus:.2f} m)"

@@ -55,7 +55,7 @@ class _LensRender:
         self.saved: list = []                 # (owner, attribute, former value)
         self.group = None
         self.passes_dir = Path(tempfile.mkdtemp(prefix="dcdi-lens-render-"))
-        self.focus_by_frame: dict[int, float] = {}
+        self.focus_by_frame: dict[int, tuple] = {}      # frame: (focus, kept range), metres
         self.results: dict[int, np.ndarray] = {}
         self.frames: list[dict] = []          # per frame: frame, focus, keep, seconds, PSF source
         self.error: str | None = None
@@ -150,30 +150,27 @@ def _start(scene) -> _LensRender:
             run.set(cam.dof, "use_dof", False)
         run.set(scene.render, "use_lock_interface", True)
         _passes_compositor(run, scene)
-        run.focus_by_frame[scene.frame_current] = _focus_m(scene, run, None)
+        run.focus_by_frame[scene.frame_current] = _focus(scene, run, None)
     except BaseException:
         run.restore()
         raise
     return run
 
 
-def _focus_m(scene, run: _LensRender, depsgraph) -> float:
-    """The focus (m from the lens's first vertex) of the frame ``depsgraph``
-    evaluates (None: the scene as it stands)."""
+def _focus(scene, run: _LensRender, depsgraph) -> tuple[float, tuple[float, float]]:
+    """(focus, kept range), metres from the lens's first vertex, of the
+    frame ``depsgraph`` evaluates (None: the scene as it stands)."""
     from . import operators
     ep = logic.lens_readout(run.lens_path)["entrance_pupil_mm"]
-    return operators.focus_metres(scene, operators._camera(scene), scene.dcdi_lens_bokeh, ep, depsgraph)
+    return operators.focus_and_keep(scene, operators._camera(scene), scene.dcdi_lens_bokeh, ep, depsgraph)
 
 
 def _request(scene, run: _LensRender, frame: int) -> logic.FrameRequest:
     s = scene.dcdi_lens_bokeh
-    mpu = float(scene.unit_settings.scale_length)
-    focus = run.focus_by_frame.get(frame)
-    if focus is None:
-        focus = _focus_m(scene, run, None)
-    keep = logic.keep_range(focus, s.keep_front * mpu, s.keep_behind * mpu)
+    focus, keep = run.focus_by_frame.get(frame) or _focus(scene, run, None)
     return logic.FrameRequest(s.render_effect.lower(), focus, keep, bool(s.refocus),
-                              logic.lens_readout(run.lens_path)["entrance_pupil_mm"], mpu)
+                              logic.lens_readout(run.lens_path)["entrance_pupil_mm"],
+                              float(scene.unit_settings.scale_length))
 
 
 def _read_passes(run: _LensRender):
@@ -224,7 +221,7 @@ def on_frame_change(scene, depsgraph=None):
     if run is None or depsgraph is None or depsgraph.mode != "RENDER" or scene.name != run.scene_name:
         return
     try:
-        run.focus_by_frame[scene.frame_current] = _focus_m(scene, run, depsgraph)
+        run.focus_by_frame[scene.frame_current] = _focus(scene, run, depsgraph)
     except (logic.BokehInputError, core("errors").DcdiError) as e:
         run.error = str(e)
 

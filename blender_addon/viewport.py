@@ -188,8 +188,7 @@ def inputs(context) -> dict:
     r = scene.render
     h, w = logic.preview_shape(r.resolution_x, r.resolution_y, r.pixel_aspect_x, r.pixel_aspect_y, s.preview_size)
     mpu = float(scene.unit_settings.scale_length)
-    focus = operators.focus_metres(scene, cam, s, ep)
-    keep = logic.keep_range(focus, s.keep_front * mpu, s.keep_behind * mpu)
+    focus, keep = operators.focus_and_keep(scene, cam, s, ep)
     d = cam.data
     sharp_key = (cam.name, tuple(map(tuple, cam.matrix_world)), h, w, s.samples, round(ep, 9), mpu, d.lens,
                  d.sensor_width, d.sensor_height, d.sensor_fit, d.shift_x, d.shift_y)

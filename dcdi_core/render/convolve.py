@@ -131,13 +131,22 @@ def _live_windows(padded: np.ndarray, m: int, b: int, r: int) -> np.ndarray:
     """(qh, qw) bool: windows whose input (padded patches up to ceil((b + r) / m)
     away) is not all zero (a depth layer's empty part gives zero: skipped)."""
     qh, qw = padded.shape[0] // m, padded.shape[1] // m
-    reach = math.ceil((b + r) / m)
-    nonzero = np.pad(padded.reshape(qh, m, qw, m, -1).any(axis=(1, 3, 4)), reach)
-    live = np.zeros((qh, qw), bool)
-    for u in range(2 * reach + 1):
-        for v in range(2 * reach + 1):
-            live |= nonzero[u:u + qh, v:v + qw]
-    return live
+    return grow_square(padded.reshape(qh, m, qw, m, -1).any(axis=(1, 3, 4)), math.ceil((b + r) / m))
+
+
+def grow_square(mask: np.ndarray, n: int) -> np.ndarray:
+    """(h, w) bool ``mask`` dilated by a (2n + 1)^2 square (cells within n
+    rows and n columns of a True cell), as a row pass then a column pass."""
+    out = mask.copy()
+    for axis in (0, 1):
+        src = out.copy()
+        for s in range(1, min(n, out.shape[axis] - 1) + 1):
+            ahead = [slice(None)] * 2
+            behind = [slice(None)] * 2
+            ahead[axis], behind[axis] = slice(s, None), slice(None, -s)
+            out[tuple(ahead)] |= src[tuple(behind)]
+            out[tuple(behind)] |= src[tuple(ahead)]
+    return out
 
 
 def rings_needed(kernels: np.ndarray, ring: np.ndarray, eps: float, channels=None) -> np.ndarray:

@@ -29,7 +29,7 @@ import numpy as np
 from ..errors import InputRangeError
 from ..psf.compute import KernelTooSmallWarning, PSFSettings
 from ..psf.library import LibraryGrid, PSFLibrary
-from .convolve import METHODS, ConvolveOptions, patch_convolve
+from .convolve import METHODS, ConvolveOptions, grow_square, patch_convolve
 from .geometry import ImageGeometry
 from .inputs import check_rgbd
 from .psfmap import PSFMap, psf_map, valid_depth_mask
@@ -719,16 +719,7 @@ def _within_reach(mask: np.ndarray, m: int, reach_px: int) -> np.ndarray:
     h, w = mask.shape
     nph, npw = math.ceil(h / m), math.ceil(w / m)
     has = np.pad(mask, ((0, nph * m - h), (0, npw * m - w))).reshape(nph, m, npw, m).any(axis=(1, 3))
-    n = math.ceil(reach_px / m)
-    grown = has.copy()
-    for axis, size in ((0, nph), (1, npw)):
-        src = grown.copy()
-        for s_ in range(1, min(n, size - 1) + 1):
-            lo = [slice(None)] * 2
-            hi = [slice(None)] * 2
-            lo[axis], hi[axis] = slice(s_, None), slice(None, -s_)
-            grown[tuple(lo)] |= src[tuple(hi)]
-            grown[tuple(hi)] |= src[tuple(lo)]
+    grown = grow_square(has, math.ceil(reach_px / m))
     return np.repeat(np.repeat(grown, m, axis=0), m, axis=1)[:h, :w]
 
 

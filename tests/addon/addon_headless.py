@@ -11,11 +11,9 @@ import sys
 import time
 from pathlib import Path
 
-ZIP, OUT = Path(sys.argv[1]), Path(sys.argv[2])
-os.environ["BLENDER_USER_RESOURCES"] = str(OUT / "blender-user")
-# the add-on must work in Blender's own Python: none of these may be needed
-for name in ("OpenImageIO", "OpenEXR", "matplotlib", "torch"):
-    sys.modules[name] = None
+from headless_start import start
+
+ZIP, OUT = start()         # the add-on must work in Blender's own Python: none of its missing modules needed
 
 import bpy  # noqa: E402
 import numpy as np  # noqa: E402

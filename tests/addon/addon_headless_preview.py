@@ -8,15 +8,12 @@ writes OUT_DIR/result.json (pixels as .npy beside it).
 """
 import importlib
 import json
-import os
 import sys
 import time
-from pathlib import Path
 
-ZIP, OUT = Path(sys.argv[1]), Path(sys.argv[2])
-os.environ["BLENDER_USER_RESOURCES"] = str(OUT / "blender-user")
-for name in ("OpenImageIO", "OpenEXR", "matplotlib", "torch"):
-    sys.modules[name] = None
+from headless_start import start
+
+ZIP, OUT = start()
 
 import bpy  # noqa: E402
 import numpy as np  # noqa: E402

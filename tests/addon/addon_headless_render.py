@@ -7,18 +7,15 @@ it saw to OUT_DIR/result.json (the still's passes as .npy beside it).
 """
 import importlib
 import json
-import os
 import sys
-from pathlib import Path
 
-ZIP, OUT = Path(sys.argv[1]), Path(sys.argv[2])
-os.environ["BLENDER_USER_RESOURCES"] = str(OUT / "blender-user")
-for name in ("OpenImageIO", "OpenEXR", "matplotlib", "torch"):
-    sys.modules[name] = None
+from headless_start import start
+
+ZIP, OUT = start()
 
 import bpy  # noqa: E402
 import numpy as np  # noqa: E402
-from addon_scene import MODULE, build_scene, data_counts, diff, install, snapshot  # noqa: E402
+from addon_scene import MODULE, StubLayout, build_scene, data_counts, diff, install, snapshot  # noqa: E402
 
 res: dict = {}
 scene, cam, cube = build_scene()
@@ -116,7 +113,6 @@ r.image_settings.file_format = "OPEN_EXR"
 
 # 5. the panel: the switch, the effect, and Lock Interface asked for when it is off
 panel = importlib.import_module(f"{MODULE}.panel")
-from addon_scene import StubLayout  # noqa: E402
 
 
 def draw():

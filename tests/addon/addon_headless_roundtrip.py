@@ -12,16 +12,15 @@ engine's rule), then with Sensor Noise; writes what it saw to a JSON file
 import importlib
 import importlib.abc
 import json
-import os
 import shutil
 import sys
 import time
 from pathlib import Path
 
-ZIP, OUT, DACN, LENS = Path(sys.argv[1]), Path(sys.argv[2]), Path(sys.argv[3]), sys.argv[4]
-os.environ["BLENDER_USER_RESOURCES"] = str(OUT / "blender-user")
-for name in ("OpenImageIO", "OpenEXR", "matplotlib"):
-    sys.modules[name] = None
+from headless_start import BLENDERS_PYTHON_LACKS, start
+
+ZIP, OUT = start(block=[m for m in BLENDERS_PYTHON_LACKS if m != "torch"])     # torch: blocked by NoTorch below
+DACN, LENS = Path(sys.argv[3]), sys.argv[4]
 
 
 class NoTorch(importlib.abc.MetaPathFinder):

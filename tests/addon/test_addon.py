@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from blender_addon import logic
+from headless_run import run_headless
 
 ROOT = Path(__file__).resolve().parents[2]
 EXT_ID = tomllib.loads((ROOT / "blender_addon" / "blender_manifest.toml").read_text())["id"]
@@ -199,15 +200,7 @@ def test_a_focus_on_empty_space_blurs_everything():
 @pytest.fixture(scope="module")
 def headless(addon_zip, tmp_path_factory):
     pytest.importorskip("bpy")
-    out = tmp_path_factory.mktemp("addon-run")
-    env = dict(os.environ, DCDI_CACHE_DIR=str(out / "psf-cache"))
-    env.pop("DCDI_LENS_PATH", None)
-    p = subprocess.run([sys.executable, str(ROOT / "tests" / "addon" / "addon_headless.py"), str(addon_zip), str(out)],
-                       capture_output=True, text=True, env=env, timeout=600)
-    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
-    res = json.loads((out / "result.json").read_text())
-    res["dir"] = out
-    return res
+    return run_headless("addon_headless.py", addon_zip, tmp_path_factory.mktemp("addon-run"))
 
 
 def test_zip_installs_into_a_temporary_user_folder_and_enables(headless):
@@ -524,15 +517,8 @@ def tiny_dacn(tmp_path_factory):
 @pytest.fixture(scope="module")
 def round_trip(addon_zip, tiny_dacn, tmp_path_factory):
     pytest.importorskip("bpy")
-    out = tmp_path_factory.mktemp("addon-round-trip")
-    env = dict(os.environ, DCDI_CACHE_DIR=str(out / "psf-cache"))
-    env.pop("DCDI_LENS_PATH", None)
-    p = subprocess.run([sys.executable, str(ROOT / "tests" / "addon" / "addon_headless_roundtrip.py"), str(addon_zip), str(out),
-                        str(tiny_dacn), ROUND_TRIP_LENS], capture_output=True, text=True, env=env, timeout=600)
-    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
-    res = json.loads((out / "result.json").read_text())
-    res["dir"] = out
-    return res
+    return run_headless("addon_headless_roundtrip.py", addon_zip, tmp_path_factory.mktemp("addon-round-trip"),
+                        str(tiny_dacn), ROUND_TRIP_LENS)
 
 
 def test_simulate_and_correct_leave_the_scene_as_it_was(round_trip):

@@ -3,30 +3,21 @@ frame equals `dcdi bokeh` of the same passes, an animation's frames follow
 their focus, a fixed focus builds its PSFs once, the scene's settings are
 left as they were, movie outputs are refused, and disabling the add-on
 removes the handlers."""
-import json
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from headless_run import run_headless
 from test_addon import ROOT, addon_zip  # noqa: F401  (the zip fixture)
 
 
 @pytest.fixture(scope="module")
 def rendered(addon_zip, tmp_path_factory):  # noqa: F811
     pytest.importorskip("bpy")
-    out = tmp_path_factory.mktemp("render-hook")
-    env = dict(os.environ, DCDI_CACHE_DIR=str(out / "psf-cache"))
-    env.pop("DCDI_LENS_PATH", None)
-    p = subprocess.run([sys.executable, str(ROOT / "tests" / "addon" / "addon_headless_render.py"), str(addon_zip),
-                        str(out)], capture_output=True, text=True, env=env, timeout=600, cwd=ROOT / "tests" / "addon")
-    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
-    res = json.loads((out / "result.json").read_text())
-    res["dir"] = out
-    return res
+    return run_headless("addon_headless_render.py", addon_zip, tmp_path_factory.mktemp("render-hook"))
 
 
 def test_handlers_are_registered_with_the_add_on(rendered):

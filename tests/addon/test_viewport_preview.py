@@ -4,29 +4,17 @@ toggle's first result is the lens stage on a low-sample render, a focus
 change reruns the lens stage only, a scene change renders again, a newer
 change drops a running job, and the toggle off removes the handler. The
 GPU drawing itself needs Blender with a window (not tested here)."""
-import json
-import os
-import subprocess
-import sys
-
 import numpy as np
 import pytest
 
+from headless_run import run_headless
 from test_addon import ROOT, addon_zip  # noqa: F401  (the zip fixture)
 
 
 @pytest.fixture(scope="module")
 def preview(addon_zip, tmp_path_factory):  # noqa: F811
     pytest.importorskip("bpy")
-    out = tmp_path_factory.mktemp("preview")
-    env = dict(os.environ, DCDI_CACHE_DIR=str(out / "psf-cache"))
-    env.pop("DCDI_LENS_PATH", None)
-    p = subprocess.run([sys.executable, str(ROOT / "tests" / "addon" / "addon_headless_preview.py"), str(addon_zip),
-                        str(out)], capture_output=True, text=True, env=env, timeout=600, cwd=ROOT / "tests" / "addon")
-    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
-    res = json.loads((out / "result.json").read_text())
-    res["dir"] = out
-    return res
+    return run_headless("addon_headless_preview.py", addon_zip, tmp_path_factory.mktemp("preview"))
 
 
 def test_the_first_result_is_the_lens_on_a_preview_render(preview):

@@ -220,3 +220,15 @@ def test_blas_runs_on_one_thread_inside_the_pools_blocks():
     with one_blas_thread():
         assert all(i["num_threads"] == 1 for i in threadpoolctl.threadpool_info() if i["user_api"] == "blas")
     assert [i["num_threads"] for i in threadpoolctl.threadpool_info() if i["user_api"] == "blas"] == before
+
+
+def test_grow_square_is_the_square_dilation():
+    from dcdi_core.render.convolve import grow_square
+    rng = np.random.default_rng(1)
+    for n in (0, 1, 3, 20):
+        mask = rng.random((9, 13)) < 0.05
+        padded, want = np.pad(mask, n), np.zeros_like(mask)
+        for u in range(2 * n + 1):
+            for v in range(2 * n + 1):
+                want |= padded[u:u + 9, v:v + 13]
+        assert np.array_equal(grow_square(mask, n), want)

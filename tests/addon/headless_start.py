@@ -1,0 +1,18 @@
+"""The first import of a headless add-on script (before bpy): the zip and
+output folder from the command line, Blender's user folder inside the
+output, and the modules Blender's own Python lacks made unimportable."""
+import os
+import sys
+from pathlib import Path
+
+BLENDERS_PYTHON_LACKS = ("OpenImageIO", "OpenEXR", "matplotlib", "torch")
+
+
+def start(block=BLENDERS_PYTHON_LACKS) -> tuple[Path, Path]:
+    """(ZIP, OUT) of ``script ZIP OUT ...``; sets BLENDER_USER_RESOURCES
+    (it must be set before bpy is imported) and blocks ``block``."""
+    zip_path, out = Path(sys.argv[1]), Path(sys.argv[2])
+    os.environ["BLENDER_USER_RESOURCES"] = str(out / "blender-user")
+    for name in block:
+        sys.modules[name] = None
+    return zip_path, out
