@@ -47,7 +47,7 @@ class Preview:
         self.generation = 0            # bumped by every change: older jobs are cancelled, their results dropped
         self.changed_at: float | None = None
         self.scene_changed = True
-        self.sharp: dict | None = None       # key, rgb, depth, seconds of the last sharp render
+        self.sharp: dict | None = None       # key, rgb, depth, version of the last sharp render
         self.served: tuple | None = None     # the (sharp render, request) of the shown result
         self.renders = 0                     # sharp renders so far
         self.worker: threading.Thread | None = None
