@@ -155,10 +155,13 @@ def _engine_file(p: Path, registry) -> bool:
     """True for a dcdi_core file the add-on bundles: sources and data outside
     ENGINE_EXCLUDE_DIRS; of models/, its own modules, the folders the network
     registry names (the numpy runtime always; a network's package where the
-    add-on runs it) and the shipped weights it marks for the add-on."""
+    add-on runs it) and the shipped weights it marks for the add-on; the
+    shipped PSF bases (psf/data/basis/*.npz)."""
     rel = p.relative_to(ROOT / "dcdi_core").parts
     if rel[0] in ENGINE_EXCLUDE_DIRS:
         return False
+    if rel[:3] == ("psf", "data", "basis"):
+        return p.suffix == ".npz"
     if rel[0] == "models" and len(rel) > 2:
         if rel[1] == "weights":
             return p.suffix == ".npz" and p.name.startswith(registry.addon_weight_prefixes())

@@ -208,9 +208,10 @@ def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], 
     """The lens's depth of field on an all-in-focus (H, W, 3) float32 linear
     image with depth (H, W) metres: the lens focused at ``focus_m`` (or, with
     ``refocus`` False, as its prescription stands), depths in ``keep`` exactly
-    sharp. The PSFs come from the shipped Omni-Lens-Field where it covers the
-    lens and the request, else they are traced (``psf_source``, the CLI's
-    rule): info's ``psf_source`` ('olf' or 'trace') and
+    sharp. The PSFs come from the lens's shipped PSF basis or the shipped
+    Omni-Lens-Field where one covers the lens and the request, else they are
+    traced (``psf_source``, the CLI's rule): info's ``psf_source`` ('basis',
+    'olf' or 'trace') and
     ``psf_source_message`` (which and why). ``progress(stage, fraction)`` is
     called while the PSF bins the scene needs are built (traced ones cached in
     ~/.cache/dcdi, or $DCDI_CACHE_DIR) and before the convolution;

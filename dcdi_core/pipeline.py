@@ -57,7 +57,7 @@ class DofResult:
     corrected: np.ndarray               # the all-in-focus estimate I_R (the input itself for camera None)
     depth_m: np.ndarray                 # the depth used (given or estimated)
     depth_source: str                   # 'given' or the estimator's name
-    psf_source: str                     # 'olf' or 'trace'
+    psf_source: str                     # 'basis', 'olf' or 'trace'
     psf_message: str
     seconds: dict = field(default_factory=dict)
     notes: list = field(default_factory=list)
@@ -168,8 +168,9 @@ class Deconvolution:
 
     lens: the lens that took the capture. options: ``correct.DeconvOptions``
     (None: its defaults). geometry: the capture on that lens's sensor (None:
-    it spans the sensor's diagonal). psf_source ('olf', 'trace' or None: the
-    OLF where it covers the request, else traced), olf_file, kernel_size (an
+    it spans the sensor's diagonal). psf_source ('basis', 'olf', 'trace' or
+    None: the basis, else the OLF where it covers the request, else traced),
+    olf_file, basis_file, kernel_size (an
     explicit kernel, px) and response (the sensor's spectral response) as
     ``runtime.library.psf_source``; settings: the PSF settings (their pitch
     is the geometry's; None: the defaults). reason: why it was chosen."""
@@ -181,6 +182,7 @@ class Deconvolution:
     olf_file: str | None = None
     settings: object = None
     kernel_size: int | None = None
+    basis_file: str | None = None
     response: object = None
     reason: str = ""
 
@@ -197,7 +199,7 @@ class Deconvolution:
         geometry = self.geometry or ImageGeometry.full_sensor(self.lens, h, w)
         settings = replace(self.settings, pixel_pitch_mm=None) if self.settings is not None else None
         focus = settings.focus_distance_m if settings is not None else None
-        src = psf_source(self.lens, source=self.psf_source, olf_file=self.olf_file,
+        src = psf_source(self.lens, source=self.psf_source, olf_file=self.olf_file, basis_file=self.basis_file,
                          pixel_pitch_mm=geometry.pixel_pitch_mm, settings=settings, kernel_size=self.kernel_size,
                          focus_m=focus, custom_response=self.response is not None)
         library = src.library
@@ -350,7 +352,7 @@ def _depth(img, depth_m, estimator, seconds):
 
 def dof(capture, target_lens, *, keep=None, focus_m=None, depth_m=None, estimator=None, correction=None,
         camera=None, corrector=None, corrector_info=None, camera_pitch_mm=None, psf_source=None, olf_file=None,
-        settings=None, geometry=None, tile: int = 256, **bokeh_kw) -> DofResult:
+        settings=None, geometry=None, tile: int = 256, basis_file=None, **bokeh_kw) -> DofResult:
     """The whole pipeline (module docstring). ``target_lens``: a Lens;
     ``keep`` (near, far) m and/or ``focus_m`` (m or 'prescribed') as
     ``render.simulate.BokehOptions``. The correction: ``correction`` a prepared one
@@ -358,8 +360,8 @@ def dof(capture, target_lens, *, keep=None, focus_m=None, depth_m=None, estimato
     lens ``camera`` (the rule of :func:`choose_correction`; the capture at
     ``camera_pitch_mm``, default: it spans the camera's sensor diagonal), or
     ``corrector`` a loaded DACN (with ``corrector_info``), or none of them
-    for a sharp input. ``psf_source`` None / 'olf' / 'trace' and ``olf_file``
-    as ``runtime.library.psf_source`` (the target's PSFs, and the camera's
+    for a sharp input. ``psf_source`` None / 'basis' / 'olf' / 'trace',
+    ``olf_file`` and ``basis_file`` as ``runtime.library.psf_source`` (the target's PSFs, and the camera's
     for a deconvolution chosen here); the rest are fields of
     ``render.simulate.BokehOptions``."""
     from .models.runtime.library import psf_source as choose_source
@@ -373,7 +375,7 @@ def dof(capture, target_lens, *, keep=None, focus_m=None, depth_m=None, estimato
         cam_geom = (ImageGeometry.full_sensor(camera, h, w) if camera_pitch_mm is None else
                     ImageGeometry.from_pixel_pitch(camera, h, w, camera_pitch_mm))
         template = Deconvolution(camera, psf_source=psf_source, olf_file=olf_file, settings=settings,
-                                 response=bokeh_kw.get("response"))
+                                 response=bokeh_kw.get("response"), basis_file=basis_file)
         correction = correction_for(camera, cam_geom, correction, deconvolution=template, tile=tile)
         camera_pitch_mm = cam_geom.pixel_pitch_mm
     seconds, notes, record = {}, [], {}
@@ -382,7 +384,8 @@ def dof(capture, target_lens, *, keep=None, focus_m=None, depth_m=None, estimato
                                      tile=tile, seconds=seconds, notes=notes, record=record)
     geometry = geometry or ImageGeometry.full_sensor(target_lens, h, w)
     t0 = time.perf_counter()
-    src = choose_source(target_lens, source=psf_source, olf_file=olf_file, pixel_pitch_mm=geometry.pixel_pitch_mm,
+    src = choose_source(target_lens, source=psf_source, olf_file=olf_file, basis_file=basis_file,
+                        pixel_pitch_mm=geometry.pixel_pitch_mm,
                         settings=settings, focus_m=None if focus_m in (None, "prescribed") else focus_m)
     r = bokeh(corrected, depth, target_lens, replace(options, geometry=geometry), library=src.library)
     seconds["psfs and bokeh"] = time.perf_counter() - t0

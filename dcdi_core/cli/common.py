@@ -155,6 +155,9 @@ def check_olf_file(args) -> None:
     if getattr(args, "olf", None) and getattr(args, "psf_source", None) != "trace":
         from ..models.runtime.olf import read_olf_file
         read_olf_file(args.olf)
+    if getattr(args, "basis", None) and getattr(args, "psf_source", None) != "trace":
+        from ..psf.basis import open_store
+        open_store(args.basis)
 
 
 # ------------------------------------------------------------------ shared option sets
@@ -191,11 +194,15 @@ def add_psf_options(q, *, sensor_focus: bool = True, render: bool = False) -> No
 
 
 def add_psf_source_options(q) -> None:
-    q.add_argument("--psf-source", choices=["olf", "trace"], default=None,
-                   help="where the PSFs come from: the Omni-Lens-Field (an error if it cannot serve the "
-                        "request) or ray tracing; default: the OLF where it covers the lens (its learned "
-                        "prescription) and the request (depth range, pixel pitch, focus, PSF settings), "
-                        "else tracing; a line on standard error says which and why")
+    q.add_argument("--psf-source", choices=["basis", "olf", "trace"], default=None,
+                   help="where the PSFs come from: the lens's PSF basis (a compressed traced library, "
+                        "prescribed focus), the Omni-Lens-Field (each an error if it cannot serve the "
+                        "request) or ray tracing; default: the basis where it covers the lens (its "
+                        "prescription) and the request (pixel pitch, focus, PSF settings), else the OLF "
+                        "where it covers it, else tracing; a line on standard error says which and why")
+    q.add_argument("--basis", default=None, metavar="FILE.npz",
+                   help="the PSF basis file to serve PSFs from (default: the lens's shipped one in "
+                        "dcdi_core/psf/data/basis; `dcdi psflib compress` writes one)")
     q.add_argument("--olf", default=None, metavar="FILE.npz",
                    help="the OLF file to serve PSFs from (default: the one shipped in dcdi_core/models/weights)")
 

@@ -91,7 +91,7 @@ def _deconvolution(args, camera, settings, resp):
     from ..pipeline import Deconvolution
     return Deconvolution(camera, options=deconv_options(args), psf_source=getattr(args, "psf_source", None),
                          olf_file=getattr(args, "olf", None), settings=settings, kernel_size=getattr(args, "kernel", None),
-                         response=resp)
+                         response=resp, basis_file=getattr(args, "basis", None))
 
 
 # ------------------------------------------------------------------ dcdi correct
@@ -258,7 +258,8 @@ def cmd_dof(args) -> int:
     with quiet_input_warnings():
         r = dof(img, lens, keep=tuple(args.keep) if args.keep else None, focus_m=args.focus, depth_m=depth,
                 estimator=estimator, correction=correction, camera_pitch_mm=camera_pitch,
-                psf_source=args.psf_source, olf_file=args.olf, settings=plan.settings, geometry=plan.geometry,
+                psf_source=args.psf_source, olf_file=args.olf, basis_file=args.basis, settings=plan.settings,
+                geometry=plan.geometry,
                 source_geometry=plan.source_geometry, response=resp, distortion=args.distort,
                 interpolation=request.interpolation, patch=request.patch, occlusion=not args.plain,
                 fit_kernel=request.fit_kernel)

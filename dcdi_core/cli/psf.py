@@ -16,32 +16,36 @@ from .lens import add_field_options, no_ray_error
 
 def choose_psf_source(args, lens, *, pixel_pitch_mm, settings, focus_m, extra_reason=None):
     """The PSF source of a psf / simulate / bokeh request (``--psf-source``,
-    ``--olf``): the OLF where it covers the request, else tracing; says which
-    and why on standard error (one line). ``extra_reason``: why the OLF
-    cannot serve this request whatever it holds (then traced)."""
+    ``--olf``, ``--basis``): the basis, else the OLF, where it covers the
+    request, else tracing; says which and why on standard error (one line).
+    ``extra_reason``: why neither can serve this request whatever they hold
+    (then traced)."""
     from ..models.errors import ModelError
     from ..models.runtime.library import PSFSource, psf_source
     if extra_reason is not None and args.psf_source != "trace":
-        if args.psf_source == "olf":
-            raise ModelError(f"--psf-source olf: the Omni-Lens-Field cannot serve this request: {extra_reason}")
+        if args.psf_source in ("olf", "basis"):
+            raise ModelError(f"--psf-source {args.psf_source}: it cannot serve this request: {extra_reason}")
         src = PSFSource("trace", f"PSFs traced: {extra_reason}")
     else:
-        src = psf_source(lens, source=args.psf_source, olf_file=args.olf, pixel_pitch_mm=pixel_pitch_mm,
+        src = psf_source(lens, source=args.psf_source, olf_file=args.olf, basis_file=getattr(args, "basis", None),
+                         pixel_pitch_mm=pixel_pitch_mm,
                          settings=settings, kernel_size=args.kernel, focus_m=focus_m,
                          custom_response=args.response is not None)
     say(src.message)
     return src
 
 
-def _psf_from_olf(args, src):
-    """``dcdi psf`` served by the OLF: (kernel (3, k, k), pixel pitch), or
-    None where the request lies outside its ranges (then traced, said why)."""
-    from ..models.errors import ModelError, OutsideTrainedRangeError
+def _psf_from_source(args, src):
+    """``dcdi psf`` served by the basis or the OLF: (kernel (3, k, k), pixel
+    pitch), or None where the request lies outside its ranges (then traced,
+    said why)."""
+    from ..errors import InputRangeError
+    from ..models.errors import ModelError
     try:
         kernel = src.library.kernels(args.field, args.depth)     # at the request's pitch
-    except OutsideTrainedRangeError as e:
-        if args.psf_source == "olf":
-            raise ModelError(f"--psf-source olf: the Omni-Lens-Field cannot serve this request: {e}") from None
+    except InputRangeError as e:            # OutsideTrainedRangeError included
+        if args.psf_source == src.kind:
+            raise ModelError(f"--psf-source {src.kind}: it cannot serve this request: {e}") from None
         say(f"PSFs traced instead: {e}")
         return None
     return kernel.astype("float32"), src.library.pixel_pitch_mm
@@ -72,17 +76,19 @@ def cmd_psf(args) -> int:
              "visible band" if args.wavelength is not None else None)
     src = choose_psf_source(args, lens, pixel_pitch_mm=pixel_pitch_mm(lens, settings), settings=settings,
                             focus_m=settings.focus_distance_m, extra_reason=extra)
-    served = _psf_from_olf(args, src) if src.kind == "olf" else None
+    served = _psf_from_source(args, src) if src.library is not None else None
     if served is not None:
         kernel, pitch = served
         res = {"lens": lens.id, "depth_m": args.depth, "field": args.field, "kernel_size": kernel.shape[-1],
-               "pixel_pitch_mm": pitch, "psf_source": "olf", "olf_file": src.olf_file,
+               "pixel_pitch_mm": pitch, "psf_source": src.kind,
+               "olf_file": src.olf_file if src.kind == "olf" else None,
+               "basis_file": src.basis_file if src.kind == "basis" else None,
                "channel_sums": [float(v) for v in kernel.sum(axis=(-1, -2))]}
         if args.out:
             _write_kernel(args.out, kernel, pitch)
         if args.png:
             psf_grid_png(kernel[None, None], [f"field {args.field}"], [depth_label(args.depth)], args.png,
-                         f"{lens.name} (OLF)", pitch)
+                         f"{lens.name} ({'PSF basis' if src.kind == 'basis' else 'OLF'})", pitch)
         print_table_or_json(res, args.json)
         return 0
     r = psf(lens, depth_m=args.depth, field=args.field, angle_deg=args.angle, settings=settings,
@@ -132,6 +138,43 @@ def cmd_psflib_build(args) -> int:
     return 0
 
 
+def cmd_psflib_compress(args) -> int:
+    from dataclasses import replace
+
+    from ..optics.lens import load_lens
+    from ..progress import psf_progress
+    from ..psf.basis import SHIPPED_RECIPES, BasisRecipe, build_store
+    lens = load_lens(args.lens)
+    check_output(args.output, "-o", suffix=".npz")
+    check_cache(args)
+    recipe = SHIPPED_RECIPES.get(lens.id, BasisRecipe())
+    over = {name: getattr(args, name) for name in ("rank", "rays", "n_fields", "n_depths", "pitch_factor",
+                                                    "kernel_size") if getattr(args, name) is not None}
+    recipe = replace(recipe, **over)
+    t = time.perf_counter()
+    store = build_store(lens, recipe, cache_dir=False if args.no_cache else None,
+                        progress=psf_progress(f"psflib {lens.id}"), log=say)
+    store.save(args.output)
+    import os
+    print(f"wrote {args.output}: {lens.id}, rank {store.rank} of {store.kernel_size} x {store.kernel_size} px "
+          f"kernels at {store.pixel_pitch_mm * 1000:.4g} um, {recipe.n_depths + 1} depth bins x {recipe.n_fields} "
+          f"fields, {recipe.rays} rays; {os.path.getsize(args.output) / 1e6:.2f} MB; "
+          f"{time.perf_counter() - t:.1f} s")
+    return 0
+
+
+def _is_basis(path) -> bool:
+    """True for a PSF basis file (``dcdi psflib compress``), False for anything else."""
+    import json
+
+    import numpy as np
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return json.loads(str(z["meta"])).get("format") == "dcdi-psf-basis"
+    except Exception:  # noqa: BLE001 - not readable as one: PSFLibrary.load says why
+        return False
+
+
 def cmd_psflib_show(args) -> int:
     import numpy as np
 
@@ -140,7 +183,11 @@ def cmd_psflib_show(args) -> int:
     from ..psf.plots import depth_label, psf_grid_png
     from ..render.request import check_library_memory
     check_output(args.png, "--png", suffix=".png")
-    if args.library.endswith(".npz"):
+    if args.library.endswith(".npz") and _is_basis(args.library):
+        from ..psf.basis import BasisLibrary, BasisStore
+        store = BasisStore.load(args.library)
+        lib = BasisLibrary(store, load_lens(store.lens_id))
+    elif args.library.endswith(".npz"):
         lib = PSFLibrary.load(args.library)
     else:
         lens = load_lens(args.library)
@@ -183,7 +230,7 @@ def add_commands(sub) -> None:
     add_psf_source_options(q)
     q.set_defaults(func=cmd_psf)
 
-    q = sub.add_parser("psflib", help="PSF libraries (fields x depths): build, show")
+    q = sub.add_parser("psflib", help="PSF libraries (fields x depths): build, compress, show")
     psub = add_subcommands(q, "psflib_command")
     b = psub.add_parser("build", help="build a lens's PSF library and write it to a file",
                         description="Depth bins uniform in 1/depth from --near to --far, plus infinity. " + UNITS)
@@ -197,9 +244,30 @@ def add_commands(sub) -> None:
     b.add_argument("--no-cache", action="store_true", help="do not read or write the cache")
     add_psf_options(b)
     b.set_defaults(func=cmd_psflib_build)
+    c = psub.add_parser("compress", help="a lens's PSF basis: its library traced and stored as a low-rank "
+                                         "basis + coefficients",
+                        description="Traces the lens's library (or reads it from the cache) and writes its "
+                                    "kernels as a per-channel SVD basis and coefficients (float16), the PSF "
+                                    "source `--psf-source basis` serves. Defaults: the shipped recipe of the "
+                                    "lens (dcdi_core/psf/basis.py SHIPPED_RECIPES), else rank 64, 256 rays, "
+                                    "64 fields x 40 depth bins, 41 px. " + UNITS)
+    c.add_argument("lens", help="lens id or .toml path")
+    c.add_argument("-o", "--output", required=True, metavar="FILE.npz", help="the basis file to write")
+    c.add_argument("--rank", type=positive_int, default=None, help="basis vectors kept per colour channel")
+    c.add_argument("--rays", type=positive_int, default=None, metavar="N", help="pupil grid N x N of the trace")
+    c.add_argument("--fields", dest="n_fields", type=positive_int, default=None, help="fields over [0, 1]")
+    c.add_argument("--depths", dest="n_depths", type=positive_int, default=None,
+                   help="finite depth bins, uniform in 1/depth over 0.7-10 m, plus infinity")
+    c.add_argument("--pitch-factor", type=positive_int, default=None, metavar="N",
+                   help="store at N x the sensor's pixel pitch (large blurs at a reduced resolution)")
+    c.add_argument("--kernel", dest="kernel_size", type=positive_int, default=None, metavar="K",
+                   help="kernel size K x K px at the stored pitch, odd")
+    c.add_argument("--no-cache", action="store_true", help="do not read or write the PSF cache")
+    c.set_defaults(func=cmd_psflib_compress)
     s_ = psub.add_parser("show", help="a PNG grid of PSFs across field and depth")
-    s_.add_argument("library", help="a library file (.npz from psflib build: its own settings and bins) or a "
-                                    "lens id or .toml path (its library with the options below, from the cache)")
+    s_.add_argument("library", help="a library file (.npz from psflib build: its own settings and bins), a PSF "
+                                    "basis (.npz from psflib compress), or a lens id or .toml path (its library "
+                                    "with the options below, from the cache)")
     s_.add_argument("--png", required=True, metavar="FILE.png", help="the picture to write (PNG)")
     s_.add_argument("--show-fields", type=float, nargs="+", default=[0.0, 0.5, 0.7, 1.0], metavar="F",
                     help="fields to show, normalised image height in [0, 1] (default 0 0.5 0.7 1); from a "

@@ -153,7 +153,8 @@ def cmd_simulate(args) -> int:
         write_image(args.sharp_out, r.sharp)
     steps.done()
     print(dump({"output": args.output, **r.info, "perturbation": record, "psf_source": src.kind,
-                "olf_file": src.olf_file if src.kind == "olf" else None}))
+                "olf_file": src.olf_file if src.kind == "olf" else None,
+                "basis_file": src.basis_file if src.kind == "basis" else None}))
     return 0
 
 
@@ -189,7 +190,8 @@ def cmd_bokeh(args) -> int:
                      depth if r.depth is None else r.depth, r.image, f"{lens.name}: {what}")
     steps.done()
     print(dump({"output": args.output, **r.info, "psf_source": src.kind,
-                "olf_file": src.olf_file if src.kind == "olf" else None}))
+                "olf_file": src.olf_file if src.kind == "olf" else None,
+                "basis_file": src.basis_file if src.kind == "basis" else None}))
     return 0
 
 

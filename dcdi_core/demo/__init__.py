@@ -16,8 +16,9 @@ Written to one folder with a summary (report.md):
 - a report for every lens in lenses/ with its spot diagrams and PSFs
   across field and depth (``demo.lenses``).
 
-PSFs come from the shipped Omni-Lens-Field wherever it covers the request
-(``models.runtime.library.psf_source``), else they are traced (and cached).
+PSFs come from the lens's shipped PSF basis or the shipped Omni-Lens-Field
+wherever one covers the request (``models.runtime.library.psf_source``),
+else they are traced (and cached).
 ``python build.py demo`` renders the factory sample first (the Blender layer
 is started from build.py: the engine never starts it) and passes its folder,
 or why there is none, to ``python -m dcdi_core.demo``.

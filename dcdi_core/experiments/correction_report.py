@@ -201,8 +201,8 @@ class Libraries:
         if key not in self.olf:
             src = psf_source(self.lens, pixel_pitch_mm=geometry.pixel_pitch_mm)
             lib = src.library if src.library is not None else open_library(self.lens, geometry)
-            if src.kind == "olf":
-                lib.build()                  # every bin now (the network is cheap): none inside a timing
+            if src.library is not None:
+                lib.build()                  # every bin now (network or basis: cheap): none inside a timing
             self.olf[key], self.messages[key] = (lib, src.kind), src.message
         return self.olf[key]
 
@@ -228,7 +228,7 @@ def simulate_frame(lens, libs: Libraries, case, group, geometry, scene: Scene, s
     secs = (time.perf_counter() - t, time.process_time() - c)
     _ensure(lib, r.depth)
     tr = None
-    if traced and kind == "olf":
+    if traced and kind in ("olf", "basis"):
         tr = libs.trace(geometry, r.depth)
         _ensure(tr, r.depth)
     return Frame(case, group, scene.name, scene.source, r.image, r.sharp, r.depth, geometry, lib, tr, secs)

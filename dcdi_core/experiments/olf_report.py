@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import save_figure, write_text
+from . import write_report
 from ..optics.lens import load_lens
 from ..psf.compute import PSFSettings
 from ..psf.library import LibraryGrid, PSFLibrary
@@ -235,12 +236,24 @@ def _psnr_image(a, b) -> float:
     return math.inf if mse == 0 else 10.0 * math.log10(1.0 / mse)
 
 
+def timed_job(what: str, lens, geom, img, depth, library) -> tuple:
+    """(image, seconds) of a simulation (``what`` 'simulate', no distortion)
+    or an occlusion-aware bokeh at the prescribed focus of ``img`` with PSFs
+    from ``library``."""
+    from ..render.simulate import BokehOptions, LensSimulator, bokeh
+    t = time.perf_counter()
+    if what == "simulate":
+        r = LensSimulator(lens, geom, library=library, distortion=False)(img, depth)
+    else:
+        r = bokeh(img, depth, lens, BokehOptions(focus_m="prescribed", geometry=geom), library=library)
+    return r.image, time.perf_counter() - t
+
+
 def downstream(olf: OmniLensField, sim_lens, bokeh_lens, height: int, width: int, log) -> dict:
     """Simulation (``sim_lens``) and bokeh (``bokeh_lens``, prescribed focus)
     of the synthetic scene, OLF PSFs against the traced library's (image
     PSNR, peak 1), at the learned pitch."""
     from ..render.geometry import ImageGeometry
-    from ..render.simulate import BokehOptions, LensSimulator, bokeh
     from ..render.synthetic import synthetic_rgbd
     img, depth = synthetic_rgbd(height, width, seed=0)
     out = {"image": [height, width]}
@@ -254,12 +267,7 @@ def downstream(olf: OmniLensField, sim_lens, bokeh_lens, height: int, width: int
         traced, _ = traced_library(entry, lens)      # at the OLF's kernel size (its 99 % energy size)
         res = {}
         for name, lib in (("olf", olib), ("library", traced)):
-            t = time.perf_counter()
-            if what == "simulate":
-                r = LensSimulator(lens, geom, library=lib, distortion=False)(img, depth)
-            else:
-                r = bokeh(img, depth, lens, BokehOptions(focus_m="prescribed", geometry=geom), library=lib)
-            res[name] = (r.image, time.perf_counter() - t)
+            res[name] = timed_job(what, lens, geom, img, depth, lib)
         out[what] = {"lens": lens.id, "psnr_db": _psnr_image(res["olf"][0], res["library"][0]),
                      "olf_s": res["olf"][1], "library_s": res["library"][1],
                      "sharp_psnr_db": _psnr_image(img, res["library"][0])}
@@ -314,13 +322,7 @@ def run_report(olf_files=None, out="out/report", *, quick: bool = False, sweep=N
     if sweep:
         with open(sweep, encoding="utf-8") as f:
             result["sweep"] = [json.loads(line) for line in f if line.strip()]
-    out.mkdir(parents=True, exist_ok=True)
-    write_text(out / "olf.json", json.dumps(result, indent=1, default=float) + "\n")
-    md = markdown(result)
-    write_text(out / "olf.md", md)
-    plot(result, out / "olf-error-vs-storage.png")
-    log(md)
-    log(f"wrote {out / 'olf.md'}, {out / 'olf.json'} and {out / 'olf-error-vs-storage.png'}")
+    write_report(out, "olf", result, markdown(result), plot, log)
     return 0
 
 

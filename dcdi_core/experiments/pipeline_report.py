@@ -80,8 +80,9 @@ def lens_rows(lens_id: str, pairs_dir, ids: list, models: dict, target, keep, *,
             out["corrected, estimated depth"] = _bokeh(correct(models["dacn"], cap, est), est, target, keep)
         src = psf_source(target, olf_file=olf_file, pixel_pitch_mm=geom.pixel_pitch_mm)
         olf_msg = src.message
-        if src.kind == "olf":
-            out["corrected, true depth, OLF PSFs"] = _bokeh(corrected, depth, target, keep, library=src.library)
+        if src.library is not None:
+            label = "OLF" if src.kind == "olf" else "PSF basis"
+            out[f"corrected, true depth, {label} PSFs"] = _bokeh(corrected, depth, target, keep, library=src.library)
         if models.get("baseline") is not None:
             out["depth-unaware model"] = _bokeh(correct(models["baseline"], cap, depth), depth, target, keep)
         for name, img in out.items():

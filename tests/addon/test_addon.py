@@ -394,11 +394,12 @@ img = rng.random((96, 128, 3), dtype=np.float32)
 depth = np.full((96, 128), 8.0, np.float32)
 depth[16:32, 20:44] = 1.0
 out, info = logic.run_bokeh(img, depth, lens, focus_m=1.0, keep=(0.9, 1.1), refocus=False)
-assert info["psf_source"] == "olf", info["psf_source_message"]
+assert info["psf_source"] == "basis" and "PSF basis" in info["psf_source_message"], info["psf_source_message"]
 assert np.abs(out - img)[16:32, 20:44].max() < 1e-6 and np.abs(out - img)[depth > 5].mean() > 1e-3
 try:
     logic.run_bokeh(img, depth, lens, focus_m=1.0, keep=(0.9, 1.1))
-    raise SystemExit("a refocused lens the OLF learned at its prescribed focus only was served without tracing")
+    raise SystemExit("a refocused lens the basis and the OLF hold at its prescribed focus only was served "
+                     "without tracing")
 except RuntimeError as e:
     assert "ray tracer" in str(e)
 # the 6P, learned across focus: refocused (Refocus Lens on, the default) inside the range, served
@@ -438,9 +439,9 @@ def test_bundled_engine_serves_the_olf_with_torch_blocked(addon_zip, tmp_path):
 def test_first_apply_on_a_shipped_lens_traces_nothing(headless):
     """Apply Lens Bokeh (the operator, headless) with Refocus Lens off, the
     tracer patched to raise: 6p and MOS-S1 at the 128 x 96 preview's pitch
-    (14.4 x the learned one: the OLF's kernels area-resampled) finish,
-    the status says the Omni-Lens-Field served them, the cube is kept sharp
-    and the rest is blurred."""
+    (14.4 x the stored one: the PSF basis's kernels area-resampled) finish,
+    the status says the PSF basis served them, the cube is kept sharp and
+    the rest is blurred."""
     aif = np.load(headless["dir"] / "aif.npy")
     depth = np.load(headless["dir"] / "depth.npy")[..., 0]
     f = headless["focus_m"]
@@ -448,7 +449,7 @@ def test_first_apply_on_a_shipped_lens_traces_nothing(headless):
     for lens_id in ("6p", "mos-s1"):
         run = headless["olf_apply"][lens_id]
         assert run["result"] == ["FINISHED"], run
-        assert run["status"].startswith("PSFs from the Omni-Lens-Field"), run
+        assert run["status"].startswith("PSFs from the PSF basis"), run
         assert "area-resampled" in run["status"] and "prescribed focus" in run["status"]
         out = np.load(headless["dir"] / f"olf-{lens_id}.npy")
         assert out.shape == aif.shape and np.isfinite(out).all()
@@ -541,7 +542,7 @@ def test_simulation_is_dcdi_cores_simulate_of_the_render(round_trip):
     lens = load_lens(ROUND_TRIP_LENS)
     geom = ImageGeometry.full_sensor(lens, *rgb.shape[:2])
     src = psf_source(lens, pixel_pitch_mm=geom.pixel_pitch_mm)
-    assert src.kind == "olf" and round_trip["simulate_report_status"].startswith("PSFs from the Omni-Lens-Field")
+    assert src.kind == "basis" and round_trip["simulate_report_status"].startswith("PSFs from the PSF basis")
     want = simulate(rgb, depth, lens, library=src.library)
     shown = np.load(d / "rt-sim-image.npy")
     assert shown.shape == rgb.shape == (96, 128, 3)

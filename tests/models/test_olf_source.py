@@ -31,6 +31,14 @@ LEARNED = ["--rays", "16", "--wavelengths", "3"]
 PITCH = 0.0122          # mm: the pixel pitch of mos-s1 and 6p
 
 
+@pytest.fixture(autouse=True)
+def no_basis(monkeypatch):
+    """The OLF against tracing alone: no shipped PSF basis goes first (the
+    basis's place in the choice: tests/psf/test_psf_basis.py)."""
+    from dcdi_core.models.runtime import library
+    monkeypatch.setattr(library, "shipped_store", lambda lens_id: None)
+
+
 @pytest.fixture(scope="module")
 def olf_file(tmp_path_factory):
     from dcdi_core.models.olf.data import PSFDataConfig

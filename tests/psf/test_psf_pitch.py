@@ -109,8 +109,11 @@ def test_olf_library_at_a_coarser_pitch_serves_resampled_kernels(shipped):
     assert np.allclose(got, want, atol=1e-7) and np.abs(got.sum(axis=(-1, -2)) - 1).max() < 1e-5
     pm = psf_map(lib, geom, np.full((48, 72), 2.0))
     assert pm.kernels.shape[-1] == lib.kernel_size and np.abs(pm.kernels.sum(axis=(-1, -2)) - 1).max() < 1e-5
-    src = psf_source(lens, pixel_pitch_mm=geom.pixel_pitch_mm)
+    src = psf_source(lens, pixel_pitch_mm=geom.pixel_pitch_mm, source="olf")
     assert src.kind == "olf" and "area-resampled" in src.message
+    # the default source there: the lens's PSF basis, resampled alike
+    src = psf_source(lens, pixel_pitch_mm=geom.pixel_pitch_mm)
+    assert src.kind == "basis" and "area-resampled" in src.message
     # the learned pitch (a 1280 x 1920 image on its sensor): served as it is
     full = ImageGeometry.full_sensor(lens, 1280, 1920).pixel_pitch_mm
     assert not OLFLibrary(shipped, lens, pixel_pitch_mm=full).resampled

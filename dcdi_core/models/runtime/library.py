@@ -1,4 +1,4 @@
-"""An Omni-Lens-Field as a PSF source for the renderer (numpy only).
+"""PSF sources for the renderer besides tracing: the PSF basis and the Omni-Lens-Field (numpy only).
 
 ``render.psfmap.psf_map`` reads a PSF library's interface (``grid``,
 ``fields``, ``kernel_size``, ``depth_bins``, ``field_weights``,
@@ -8,7 +8,9 @@
 ray tracing, at the same grid, so the renderer needs no change and never
 imports ``models`` (docs/design.md: the caller hands it a PSF source).
 
-:func:`psf_source` decides which source serves a request: the OLF where it
+:func:`psf_source` decides which source serves a request: the lens's PSF
+basis (``psf.basis``: a compressed traced library, the most exact per
+megabyte, at the prescribed focus) where it covers it, else the OLF where it
 covers it (the lens's optical fingerprint is the learned one; the PSF
 settings, spectral response and focus are those it learned; the pixel pitch
 is the learned one or coarser; the grid lies within its ranges), else
@@ -29,6 +31,8 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import InputRangeError
+from ...optics.errors import OpticsError
+from ...psf.basis import BasisLibrary, open_store, shipped_store
 from ...psf.compute import PSFSettings
 from ...psf.library import LibraryGrid, PSFLibrary
 from ...psf.pitch import area_resample, check_downsampling, resampled_size, same_pitch
@@ -37,7 +41,7 @@ from ..registry import NETWORKS, WEIGHTS_DIR
 from .olf import OmniLensField
 
 SHIPPED = WEIGHTS_DIR / "olf-radial.npz"
-SOURCES = ("olf", "trace")
+SOURCES = ("basis", "olf", "trace")
 
 
 def shipped_olf_files() -> list[Path]:
@@ -122,32 +126,38 @@ class OLFLibrary(PSFLibrary):
 
 @dataclass
 class PSFSource:
-    """Which PSF source serves a request: ``kind`` 'olf' (with its library)
-    or 'trace' (library None: the caller opens a traced one), and why."""
+    """Which PSF source serves a request: ``kind`` 'basis' (a compressed
+    traced library), 'olf' (each with its library) or 'trace' (library None:
+    the caller opens a traced one), and why."""
 
     kind: str
     message: str
-    library: OLFLibrary | None = None
+    library: PSFLibrary | None = None
     olf_file: str | None = None
+    basis_file: str | None = None
 
 
-def _settings_differences(entry: dict, settings: PSFSettings | None) -> list[str]:
-    """What in ``settings`` differs from the PSF settings the OLF learned
-    (kernel size, pixel pitch and focus are checked apart)."""
+def _settings_differences(learned: dict, settings: PSFSettings | None, *, rays_at_least: bool = False,
+                          verb: str = "learned") -> list[str]:
+    """What in ``settings`` differs from the PSF settings a source learned or
+    stored (kernel size, pixel pitch and focus are checked apart; with
+    ``rays_at_least``, more stored rays than asked serve the request: the same
+    PSFs with less ray noise)."""
     if settings is None:
         return []
-    learned = dict(entry["psf_settings"])
     asked = settings.as_dict()
     out = []
     for key, v in asked.items():
         if key in ("kernel_size", "pixel_pitch_mm", "focus_distance_m"):
             continue
         have = learned.get(key)
+        if key == "pupil_samples" and rays_at_least and have is not None and have >= v:
+            continue
         if isinstance(have, list):
             have = list(have)
             v = list(v)
         if have != v:
-            out.append(f"{key} {v!r} (it learned {have!r})")
+            out.append(f"{key} {v!r} (it {verb} {have!r})")
     return out
 
 
@@ -167,44 +177,104 @@ def _load_olf(path: Path) -> OmniLensField:
     return _OLF_CACHE[key]
 
 
+def _basis_source(lens, path, pitch, settings, kernel_size, focus_m, custom_response, grid):
+    """(BasisLibrary, None) if the store at ``path`` serves the request, else (None, why)."""
+    try:
+        store = open_store(path)
+        store.check_lens(lens)
+    except OpticsError as e:
+        return None, str(e)
+    stored = store.pixel_pitch_mm
+    if pitch is not None and not (pitch >= stored or same_pitch(pitch, stored)):
+        return None, (f"the image's pixel pitch {pitch * 1000:.6g} um is finer than the {stored * 1000:.6g} um "
+                      f"{path} holds {lens.id} at")
+    k = resampled_size(store.kernel_size, stored, stored if pitch is None else pitch)
+    if kernel_size is not None and kernel_size != k:
+        return None, f"a {kernel_size} px kernel was asked for; {path} serves {lens.id} at {k} px at this pitch"
+    if custom_response:
+        return None, "a custom spectral response was given; the PSF basis holds the shipped one"
+    if focus_m is not None:
+        return None, f"focus {focus_m:g} m asked for; {path} holds {lens.id} at its prescribed focus"
+    if grid is not None and grid != store.grid:
+        return None, f"a library grid {grid} was asked for; {path} holds {store.grid}"
+    diff = _settings_differences(store.meta["psf_settings"], settings, rays_at_least=True, verb="holds")
+    if diff:
+        return None, "PSF settings differ from the stored ones: " + "; ".join(diff)
+    return BasisLibrary(store, lens, pixel_pitch_mm=pitch), None
+
+
 def psf_source(lens, *, source: str | None = None, olf_file=None, pixel_pitch_mm: float | None = None,
                settings: PSFSettings | None = None, kernel_size: int | None = None, focus_m=None,
                custom_response: bool = False, grid: LibraryGrid | None = None,
-               need_field: bool = True) -> PSFSource:
-    """The PSF source for ``lens`` and a request: ``source`` 'olf' (the OLF,
-    or an error saying why it cannot serve), 'trace', or None (the OLF where
-    it covers the request, else tracing). ``olf_file``: the OLF (default: the
-    shipped one). The request: the image's pixel pitch (None: the lens's
-    sensor), the PSF settings asked for, an explicit kernel size, a focus
-    distance (None: as prescribed), a custom spectral response."""
+               need_field: bool = True, basis_file=None) -> PSFSource:
+    """The PSF source for ``lens`` and a request: ``source`` 'basis' (the
+    lens's compressed library), 'olf' (the OLF), each an error saying why if
+    it cannot serve, 'trace', or None: the basis where it covers the request,
+    else the OLF, else tracing (an ``olf_file`` given without a
+    ``basis_file`` goes first). ``olf_file`` / ``basis_file``: the files
+    (default: the shipped ones). The request: the image's pixel pitch (None:
+    the lens's sensor), the PSF settings asked for, an explicit kernel size,
+    a focus distance (None: as prescribed), a custom spectral response."""
     if source not in (None,) + SOURCES:
-        raise InputRangeError("psf source", source, "olf, trace, or none (the OLF where it covers the request)")
+        raise InputRangeError("psf source", source,
+                              "basis, olf, trace, or none (the first of basis and olf that covers the request)")
     if source == "trace":
         return PSFSource("trace", "PSFs traced (--psf-source trace)")
-    path = Path(olf_file) if olf_file else (SHIPPED if SHIPPED.exists() else None)
-    reason = None
-    lib = None
+    reasons: list[str] = []
+    # an OLF file given without a basis file is the source asked for: it goes first
+    order = ("olf", "basis") if olf_file and not basis_file else ("basis", "olf")
+    for kind in order:
+        if source not in (None, kind):
+            continue
+        src, why = (_try_basis if kind == "basis" else _try_olf)(
+            lens, basis_file if kind == "basis" else olf_file, pixel_pitch_mm, settings, kernel_size, focus_m,
+            custom_response, grid)
+        if src is not None:
+            return src
+        if source == kind:
+            what = "PSF basis" if kind == "basis" else "Omni-Lens-Field"
+            raise ModelError(f"--psf-source {kind}: the {what} cannot serve this request: {why}")
+        reasons.append(f"{'basis' if kind == 'basis' else 'OLF'}: {why}")
+    olf_path = Path(olf_file) if olf_file else (SHIPPED if SHIPPED.exists() else None)
+    return PSFSource("trace", "PSFs traced: " + "; ".join(reasons), None,
+                     None if olf_path is None else str(olf_path))
+
+
+def _try_basis(lens, basis_file, pitch, settings, kernel_size, focus_m, custom_response, grid):
+    """(PSFSource, None) where the lens's PSF basis serves the request, else (None, why)."""
+    path = Path(basis_file) if basis_file else shipped_store(lens.id)
     if path is None:
-        reason = "no OLF file ships with this engine and none was given (--olf)"
-    else:
-        try:
-            olf = _load_olf(path)
-            reason = _why_not(olf, lens, pixel_pitch_mm, settings, kernel_size, focus_m, custom_response)
-            if reason is None:
-                lib = OLFLibrary(olf, lens, grid, pixel_pitch_mm=pixel_pitch_mm, focus_m=focus_m)
-        except (LensMismatchError, ModelError, InputRangeError) as e:
-            reason = str(e)
-    if lib is not None:
-        k = lib.kernel_size
-        pixels = (f"{lib.pixel_pitch_mm * 1000:.4g} um pixels, its {lib.learned_pitch_mm * 1000:.4g} um kernels "
-                  "area-resampled" if lib.resampled else f"{lib.pixel_pitch_mm * 1000:.4g} um pixels")
-        return PSFSource("olf", f"PSFs from the Omni-Lens-Field {path} ({lens.id}: its learned prescription, "
-                                f"{pixels}, {k} x {k} px, "
-                                + ("prescribed focus" if focus_m is None else f"focus {focus_m:g} m") + ")",
-                         lib, str(path))
-    if source == "olf":
-        raise ModelError(f"--psf-source olf: the Omni-Lens-Field cannot serve this request: {reason}")
-    return PSFSource("trace", f"PSFs traced: {reason}", None, None if path is None else str(path))
+        return None, f"no PSF basis of {lens.id} ships with this engine and none was given (--basis)"
+    lib, why = _basis_source(lens, path, pitch, settings, kernel_size, focus_m, custom_response, grid)
+    if lib is None:
+        return None, why
+    pixels = (f"{lib.pixel_pitch_mm * 1000:.4g} um pixels, its {lib.stored_pitch_mm * 1000:.4g} um kernels "
+              "area-resampled" if lib.resampled else f"{lib.pixel_pitch_mm * 1000:.4g} um pixels")
+    return PSFSource("basis", f"PSFs from the PSF basis {path} ({lens.id}, rank {lib.store.rank}, {pixels}, "
+                              f"{lib.kernel_size} x {lib.kernel_size} px, prescribed focus)",
+                     lib, None, str(path)), None
+
+
+def _try_olf(lens, olf_file, pitch, settings, kernel_size, focus_m, custom_response, grid):
+    """(PSFSource, None) where the OLF serves the request, else (None, why)."""
+    path = Path(olf_file) if olf_file else (SHIPPED if SHIPPED.exists() else None)
+    if path is None:
+        return None, "no OLF file ships with this engine and none was given (--olf)"
+    try:
+        olf = _load_olf(path)
+        reason = _why_not(olf, lens, pitch, settings, kernel_size, focus_m, custom_response)
+        if reason is not None:
+            return None, reason
+        lib = OLFLibrary(olf, lens, grid, pixel_pitch_mm=pitch, focus_m=focus_m)
+    except (LensMismatchError, ModelError, InputRangeError) as e:
+        return None, str(e)
+    k = lib.kernel_size
+    pixels = (f"{lib.pixel_pitch_mm * 1000:.4g} um pixels, its {lib.learned_pitch_mm * 1000:.4g} um kernels "
+              "area-resampled" if lib.resampled else f"{lib.pixel_pitch_mm * 1000:.4g} um pixels")
+    return PSFSource("olf", f"PSFs from the Omni-Lens-Field {path} ({lens.id}: its learned prescription, "
+                            f"{pixels}, {k} x {k} px, "
+                            + ("prescribed focus" if focus_m is None else f"focus {focus_m:g} m") + ")",
+                     lib, str(path)), None
 
 
 def _why_not(olf: OmniLensField, lens, pitch, settings, kernel_size, focus_m, custom_response) -> str | None:
@@ -227,7 +297,7 @@ def _why_not(olf: OmniLensField, lens, pitch, settings, kernel_size, focus_m, cu
         return f"a {kernel_size} px kernel was asked for; {olf.path} serves {lens.id} at {k} px at this pitch"
     if custom_response:
         return "a custom spectral response was given; the OLF learned the shipped one"
-    diff = _settings_differences(entry, settings)
+    diff = _settings_differences(entry["psf_settings"], settings)
     if diff:
         return "PSF settings differ from the learned ones: " + "; ".join(diff)
     fr = entry.get("focus_range_m")
@@ -243,4 +313,4 @@ def _why_not(olf: OmniLensField, lens, pitch, settings, kernel_size, focus_m, cu
     return None
 
 
-__all__ = ["OLFLibrary", "PSFSource", "psf_source", "shipped_olf_files", "SHIPPED", "WEIGHTS_DIR", "SOURCES"]
+__all__ = ["BasisLibrary", "OLFLibrary", "PSFSource", "psf_source", "shipped_olf_files", "SHIPPED", "WEIGHTS_DIR", "SOURCES"]

@@ -1,0 +1,443 @@
+"""A PSF library stored compactly: a low-rank basis of its kernels and their coefficients.
+
+Per colour channel c, the kernels of a traced library over its grid (depth
+bins x fields, N kernels of k x k pixels) are the rows of X_c (N, k^2); the
+truncated SVD gives an orthonormal basis B_c (r, k^2) and coefficients
+C_c = X_c B_c^T (N, r), so X_c ~ C_c B_c. The file holds B_c (float16; its
+left half and centre column: a radial kernel is mirror-symmetric across the
+radial axis, exactly, so is every basis vector) and C_c (float16) instead of
+X_c: 1-5 MB per lens instead of 7-70 MB.
+
+Serving is linear: the kernel at a grid point is C_c[n] B_c, so interpolating
+coefficients (linear in field and inverse depth, ``PSFLibrary.at``) is
+interpolating kernels, exactly as the traced library does. A truncated
+basis leaves a small ripple: each served kernel is clipped at zero (and below
+its ripple floor, a fraction of its peak) and each channel renormalised to sum 1 (a
+kernel with no energy stays zero).
+
+Truncation drops ray noise as well as detail: the kernels are pixel
+histograms of a finite ray fan, their noise spreads over all k^2 directions
+while the signal lives in a few, so the rank-r kernels are closer to the
+converged PSFs than the kernels they were made from (measured by `dcdi
+report psf-source` against kernels traced with 16 x the rays).
+
+:class:`BasisLibrary` serves a store through the traced library's
+interface (``grid``, ``depth_bins``, ``field_weights``, ``ensure``, ``psf``,
+``computed``, ``kernel_size``, ``pixel_pitch_mm``, ``settings``), so the
+renderer takes it unchanged; at a pixel pitch coarser than the stored one its
+kernels are area-resampled (``psf.pitch``); a finer pitch is refused. Only
+the lens whose optical fingerprint the store was built from is served, at
+its prescribed focus.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from ..atomic import atomic_path
+from ..errors import InputRangeError
+from ..optics.errors import OpticsError
+from .compute import PSFSettings
+from .library import LibraryGrid, PSFLibrary, lens_fingerprint
+from .pitch import area_resample, check_downsampling, resampled_size, same_pitch
+
+FORMAT = "dcdi-psf-basis"
+FORMAT_VERSION = 1
+STORE_DIR = Path(__file__).resolve().parent / "data" / "basis"
+
+
+class BasisFileError(OpticsError):
+    """A PSF basis file that cannot be used (damaged, another format or version)."""
+
+
+@dataclass(frozen=True)
+class BasisRecipe:
+    """How a lens's store is built: the traced library's settings (rays per
+    pupil side, grid, pixel pitch as a multiple of the sensor's, kernel size)
+    and the rank kept per channel."""
+
+    rays: int = 256
+    n_fields: int = 64
+    n_depths: int = 40
+    pitch_factor: int = 1
+    kernel_size: int = 41
+    rank: int = 64
+    near_m: float = 0.7
+    far_m: float = 10.0
+    ripple_floor: float = 3e-4
+
+    FLAGS = {"rays": "--rays", "n_fields": "--fields", "n_depths": "--depths", "pitch_factor": "--pitch-factor",
+             "rank": "--rank", "kernel_size": "--kernel"}
+
+    def __post_init__(self):
+        for name in ("rays", "n_fields", "n_depths", "pitch_factor", "rank"):
+            if getattr(self, name) < 1:
+                raise InputRangeError(f"{name} ({self.FLAGS[name]})", getattr(self, name), ">= 1")
+        if self.n_fields < 2 or self.n_depths < 2:
+            raise InputRangeError("n_fields, n_depths (--fields, --depths)", (self.n_fields, self.n_depths), ">= 2")
+        if self.kernel_size < 1 or self.kernel_size % 2 == 0:
+            raise InputRangeError("kernel_size (--kernel)", self.kernel_size, "odd integer >= 1")
+        if not (0.0 <= self.ripple_floor < 0.1):
+            raise InputRangeError("ripple_floor", self.ripple_floor, "[0, 0.1) of a kernel's peak")
+
+    @property
+    def grid(self) -> LibraryGrid:
+        return LibraryGrid(n_fields=self.n_fields, n_depths=self.n_depths, near_m=self.near_m, far_m=self.far_m)
+
+    def settings(self, lens) -> PSFSettings:
+        """The traced library's PSF settings (the shipped band, wavelengths and
+        deposit; the prescribed focus)."""
+        from .compute import pixel_pitch_mm
+        base = PSFSettings(kernel_size=self.kernel_size, pupil_samples=self.rays)
+        return replace(base, pixel_pitch_mm=pixel_pitch_mm(lens, base) * self.pitch_factor)
+
+
+# The shipped stores (`dcdi psflib compress --recipe shipped`): ranks, grids and
+# rays chosen by `dcdi report psf-source` (docs/psf.md, "Compact PSF sources").
+# The double Gauss keeps its faint halo (a ripple floor cut it: relative L1
+# 0.0168 -> 0.0215). It is stored at 3 x its sensor pitch (0.46 um; its sensor's
+# 0.154 um is far below its 1.3 um Airy disk, and its near blur spans
+# 230 px there).
+SHIPPED_RECIPES = {
+    "mos-s1": BasisRecipe(kernel_size=41, rank=64),
+    "mos-s2": BasisRecipe(kernel_size=47, rank=64),
+    "6p": BasisRecipe(kernel_size=71, n_depths=64, rank=160),
+    "double-gauss": BasisRecipe(kernel_size=77, n_fields=32, n_depths=96, rank=144, pitch_factor=3,
+                                ripple_floor=0.0),
+}
+
+
+def shipped_store(lens_id: str) -> Path | None:
+    """The shipped store file of a lens, or None."""
+    p = STORE_DIR / f"{lens_id}.npz"
+    return p if p.exists() else None
+
+
+# ----------------------------------------------------------------- building
+def factorise(kernels: np.ndarray, rank: int) -> tuple[np.ndarray, np.ndarray]:
+    """Kernels (N, 3, k, k) -> basis (3, r, k^2) with orthonormal rows and
+    coefficients (N, 3, r), r = min(rank, N, k^2), by the truncated SVD."""
+    n, c, k, _ = kernels.shape
+    r = min(rank, n, k * k)
+    basis = np.zeros((c, r, k * k))
+    coeffs = np.zeros((n, c, r))
+    for ch in range(c):
+        x = kernels[:, ch].reshape(n, k * k).astype(np.float64)
+        _, _, vt = np.linalg.svd(x, full_matrices=False)
+        basis[ch] = vt[:r]
+        coeffs[:, ch] = x @ vt[:r].T
+    return basis, coeffs
+
+
+# Below this fraction of a channel's peak a reconstructed value is the
+# truncation's ripple, not the PSF: zeroed (the default of a recipe, stored
+# in the file; measured on the 6P at rank 160: kernels' 99.9 % support back
+# from 29 to 26 px median, the library's 25, so its PSF map costs 0.84 s
+# instead of 1.32 s; off-grid PSNR unchanged, relative L1 0.0217 -> 0.0192;
+# 1e-3 starts to cut real halo)
+RIPPLE_FLOOR = 3e-4
+
+
+def reconstruct(coeffs: np.ndarray, basis: np.ndarray, k: int | None = None,
+                floor: float = RIPPLE_FLOOR) -> np.ndarray:
+    """Kernels (..., 3, k, k) from coefficients (..., 3, r) and a basis
+    (3, r, k^2), or (``k`` given) its left half and centre column (3, r,
+    k (k // 2 + 1)) of a mirror-symmetric basis (half the products): clipped
+    at zero, values below ``floor`` of the channel's peak zeroed, each
+    channel summing to 1 (0 if it holds no energy)."""
+    c, r, cols = basis.shape
+    half = k is not None
+    k = k if half else math.isqrt(cols)
+    lead = coeffs.shape[:-2]
+    flat = coeffs.reshape(-1, c, r)
+    out = np.empty((len(flat), c, cols), np.result_type(coeffs, basis))
+    for ch in range(c):                 # one matrix product per channel (BLAS)
+        np.matmul(flat[:, ch], basis[ch], out=out[:, ch])
+    if not half:
+        out[out < floor * out.max(axis=-1, keepdims=True)] = 0.0     # negative lobes included
+        s = out.sum(axis=-1, keepdims=True)
+        return np.divide(out, s, out=np.zeros_like(out), where=s > 0).reshape(lead + (c, k, k))
+    # on the left half (the right one is its mirror): the peak is the half's,
+    # the sum twice the half's less the centre column
+    h = k // 2 + 1
+    left = out.reshape(len(flat), c, k, h)
+    peak = left.max(axis=(-1, -2), keepdims=True)
+    left[left < floor * peak] = 0.0
+    s = 2.0 * left.sum(axis=(-1, -2), keepdims=True) - left[..., -1:].sum(axis=-2, keepdims=True)
+    np.divide(left, s, out=left, where=s > 0)
+    left[np.broadcast_to(~(s > 0), left.shape)] = 0.0
+    full = np.empty((len(flat), c, k, k), out.dtype)
+    full[..., :h] = left
+    full[..., h:] = left[..., -2::-1]
+    return full.reshape(lead + (c, k, k))
+
+
+@dataclass
+class BasisStore:
+    """One lens's kernels as basis + coefficients, and what they were built from.
+
+    ``basis`` (3, r, k^2) and ``coeffs`` (D+1, F, 3, r), float16 as stored;
+    ``zero_energy`` (D+1, F): grid points no ray reaches."""
+
+    meta: dict
+    basis: np.ndarray
+    coeffs: np.ndarray
+    zero_energy: np.ndarray
+    path: str = "<memory>"
+
+    ARRAYS = ("basis_half", "coeffs", "zero_energy")
+
+    @property
+    def lens_id(self) -> str:
+        return self.meta["lens_id"]
+
+    @property
+    def grid(self) -> LibraryGrid:
+        return LibraryGrid(**self.meta["grid"])
+
+    @property
+    def settings(self) -> PSFSettings:
+        s = dict(self.meta["psf_settings"])
+        s["band_nm"] = tuple(s["band_nm"])
+        return PSFSettings(**s)
+
+    @property
+    def pixel_pitch_mm(self) -> float:
+        return float(self.meta["pixel_pitch_mm"])
+
+    @property
+    def kernel_size(self) -> int:
+        return int(self.meta["kernel_size"])
+
+    @property
+    def rank(self) -> int:
+        return int(self.basis.shape[1])
+
+    def kernels_at_bins(self, bins, dtype=np.float32) -> np.ndarray:
+        """Kernels (len(bins), F, 3, k, k) of whole depth bins (every field)."""
+        b, k = self._cast(dtype)
+        floor = float(self.meta.get("ripple_floor", RIPPLE_FLOOR))
+        return reconstruct(self.coeffs[np.asarray(bins, int)].astype(dtype), b, k, floor).astype(np.float32,
+                                                                                                  copy=False)
+
+    def _cast(self, dtype):
+        """(basis in ``dtype``, k): its left half when mirror-symmetric (k given), else whole (k None)."""
+        cache = self.__dict__.setdefault("_basis_cast", {})
+        key = np.dtype(dtype).str
+        if key not in cache:
+            c, r, kk = self.basis.shape
+            k = math.isqrt(kk)
+            if mirror_symmetric(self.basis):
+                half = self.basis.reshape(c, r, k, k)[..., :k // 2 + 1].reshape(c, r, -1)
+                cache[key] = (np.ascontiguousarray(half, dtype=dtype), k)
+            else:
+                cache[key] = (self.basis.astype(dtype), None)
+        return cache[key]
+
+    def check_lens(self, lens) -> None:
+        """Refuses a lens whose prescription is not the one the store was built from."""
+        fp = lens_fingerprint(lens)
+        if lens.id != self.lens_id or fp != self.meta["lens_fingerprint"]:
+            raise OpticsError(f"{self.path}: built for {self.lens_id} ({self.meta.get('lens_file')}; fingerprint "
+                              f"{self.meta['lens_fingerprint'][:12]}...), not {lens.id} ({lens.path}; {fp[:12]}...): "
+                              "trace its PSFs instead")
+
+    # ---------------------------------------------------------- storage
+    def file_arrays(self, dtype=np.float16) -> dict:
+        """The arrays as the file holds them: the basis's left half and centre
+        column only (a radial kernel is mirror-symmetric across its radial
+        axis, ``mirror_symmetric``), basis and coefficients in ``dtype``."""
+        c, r, kk = self.basis.shape
+        k = math.isqrt(kk)
+        return {"basis_half": self.basis.reshape(c, r, k, k)[..., :k // 2 + 1].astype(dtype),
+                "coeffs": self.coeffs.astype(dtype), "zero_energy": self.zero_energy.astype(bool)}
+
+    def save(self, path) -> None:
+        if not mirror_symmetric(self.basis):
+            raise InputRangeError("basis", "not mirror-symmetric across the radial axis",
+                                  "a radial library's kernels (rows along the radius)")
+        arrays = self.file_arrays()
+        meta = dict(self.meta, format=FORMAT, version=FORMAT_VERSION)
+        meta["checksum"] = _checksum(meta, arrays)
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as f:
+                np.savez_compressed(f, meta=np.array(json.dumps(meta)), **arrays)
+
+    @classmethod
+    def load(cls, path) -> "BasisStore":
+        path = Path(path)
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                meta = json.loads(str(z["meta"]))
+                arrays = {k: z[k] for k in cls.ARRAYS}
+        except Exception as e:  # noqa: BLE001 - any failure to read means: not usable
+            raise BasisFileError(f"{path}: not a readable PSF basis file ({type(e).__name__}: {e})") from None
+        if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+            raise BasisFileError(f"{path}: format {meta.get('format') if isinstance(meta, dict) else None!r}, "
+                                 f"expected {FORMAT!r}")
+        if meta.get("version") != FORMAT_VERSION:
+            raise BasisFileError(f"{path}: version {meta.get('version')!r}, this software reads {FORMAT_VERSION}")
+        if meta.get("checksum") != _checksum(meta, arrays):
+            raise BasisFileError(f"{path}: checksum mismatch (the file is corrupt or was edited)")
+        half, coeffs = arrays["basis_half"].astype(np.float32), arrays["coeffs"].astype(np.float32)
+        k = int(meta.get("kernel_size", 0))
+        if half.ndim != 4 or half.shape[2] != k or half.shape[3] != k // 2 + 1 or coeffs.shape[-1] != half.shape[1]:
+            raise BasisFileError(f"{path}: basis_half {half.shape} and coeffs {coeffs.shape} do not fit "
+                                 f"{k} px kernels")
+        basis = np.concatenate([half, half[..., -2::-1]], axis=-1).reshape(half.shape[0], half.shape[1], k * k)
+        if not (np.isfinite(basis).all() and np.isfinite(coeffs).all()):
+            raise BasisFileError(f"{path}: non-finite values")
+        return cls(meta, basis, coeffs, arrays["zero_energy"], str(path))
+
+
+def mirror_symmetric(basis: np.ndarray, tol: float = 1e-4) -> bool:
+    """True if every basis vector (3, r, k^2) is symmetric under a flip of the
+    kernel's columns (x -> -x across the radial axis): a rotationally
+    symmetric lens's PSF is, and the tracer's pupil grid keeps it so."""
+    c, r, kk = basis.shape
+    k = math.isqrt(kk)
+    b = basis.reshape(c, r, k, k)
+    return bool(np.abs(b - b[..., ::-1]).max() <= tol * max(np.abs(b).max(), 1e-30))
+
+
+def _checksum(meta: dict, arrays: dict) -> str:
+    h = hashlib.sha256()
+    h.update(json.dumps({k: v for k, v in meta.items() if k != "checksum"}, sort_keys=True).encode())
+    for name in sorted(arrays):
+        a = np.ascontiguousarray(arrays[name])
+        h.update(name.encode() + str(a.dtype).encode() + str(a.shape).encode() + a.tobytes())
+    return h.hexdigest()
+
+
+def compress(library: PSFLibrary, rank: int, *, kernel_size: int | None = None, build_s: float = 0.0,
+             ripple_floor: float = RIPPLE_FLOOR) -> BasisStore:
+    """The store of a fully computed traced library: its kernels (centred
+    ``kernel_size`` crop, renormalised, if given) factorised to ``rank`` per
+    channel."""
+    if not library.computed.all():
+        raise InputRangeError("library", f"{int(library.computed.sum())} of {len(library.computed)} depth bins",
+                              "every depth bin computed (build it first)")
+    k = kernel_size or library.kernel_size
+    if k > library.kernel_size or k % 2 == 0:
+        raise InputRangeError("kernel_size", k, f"odd, <= the library's {library.kernel_size}")
+    psf = library.psf.astype(np.float64)
+    r0, h = library.kernel_size // 2, k // 2
+    crop = psf[..., r0 - h:r0 + h + 1, r0 - h:r0 + h + 1]
+    held = crop.sum(axis=(-1, -2)) * (1.0 - library.energy_outside)        # of the arriving energy
+    s = crop.sum(axis=(-1, -2), keepdims=True)
+    crop = np.divide(crop, s, out=np.zeros_like(crop), where=s > 0)
+    d, f = crop.shape[:2]
+    basis, coeffs = factorise(crop.reshape(d * f, 3, k, k), rank)
+    live = ~library.zero_energy
+    meta = {"lens_id": library.meta["lens_id"], "lens_file": library.meta["lens_file"],
+            "lens_fingerprint": library.meta["lens_fingerprint"],
+            "psf_settings": replace(library.settings, kernel_size=k).as_dict(),
+            "grid": asdict(library.grid), "pixel_pitch_mm": library.pixel_pitch_mm, "kernel_size": k,
+            "rank": int(basis.shape[1]), "response_sha256": library.meta["response"]["sha256"],
+            "psf_algorithm": library.meta["algorithm"],
+            "energy_held_min": float(held[live].min()) if live.any() else 1.0,
+            "build_s": float(build_s), "ripple_floor": float(ripple_floor)}
+    return BasisStore(meta, basis.astype(np.float32), coeffs.reshape(d, f, 3, -1).astype(np.float32),
+                      library.zero_energy.copy())
+
+
+def build_store(lens, recipe: BasisRecipe, *, cache_dir=None, progress=None, log=None) -> BasisStore:
+    """Trace ``lens``'s library as ``recipe`` says (from the PSF cache where it
+    is there; ``cache_dir`` None: the default cache, False: none) and
+    compress it."""
+    import warnings
+    from .compute import KernelTooSmallWarning
+    t = time.perf_counter()
+    lib = PSFLibrary.open(lens, recipe.settings(lens), recipe.grid, cache=cache_dir is not False,
+                          cache_dir=cache_dir or None)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", KernelTooSmallWarning)
+        built = lib.build(progress=progress)
+    seconds = time.perf_counter() - t
+    if log:
+        log(f"{lens.id}: library of {lib.psf.shape[0]} depth bins x {lib.psf.shape[1]} fields at "
+            f"{recipe.rays} rays " + (f"traced in {seconds:.0f} s" if built else "from the cache"))
+    return compress(lib, recipe.rank, build_s=seconds if built else 0.0, ripple_floor=recipe.ripple_floor)
+
+
+# ----------------------------------------------------------------- serving
+class BasisLibrary(PSFLibrary):
+    """A PSF library of one lens whose bins are reconstructed from a
+    :class:`BasisStore` (never traced), at the store's grid, at its pixel
+    pitch or a coarser one (area-resampled)."""
+
+    def __init__(self, store: BasisStore, lens, *, pixel_pitch_mm: float | None = None):
+        store.check_lens(lens)
+        stored = store.pixel_pitch_mm
+        pitch = stored if pixel_pitch_mm is None else float(pixel_pitch_mm)
+        check_downsampling(stored, pitch, f"pixel pitch (mm; {store.path} holds {lens.id} at {stored:.6g} mm)")
+        k = resampled_size(store.kernel_size, stored, pitch)
+        settings = replace(store.settings, kernel_size=k, pixel_pitch_mm=pitch)
+        self.store, self.stored_pitch_mm = store, stored
+        self.last_reconstruct_s = 0.0
+        grid = store.grid
+        meta = {"format": "basis", "algorithm": store.meta.get("psf_algorithm"), "lens_id": lens.id,
+                "lens_file": str(lens.path), "lens_fingerprint": store.meta["lens_fingerprint"],
+                "settings": settings.as_dict(), "grid": asdict(grid), "pixel_pitch_mm": pitch,
+                "wavelengths_nm": [], "response": {"sha256": "basis:" + str(store.meta.get("checksum"))},
+                "basis_file": store.path}
+        super().__init__(lens, settings, grid, None, meta=meta)
+        self.zero_energy[...] = store.zero_energy
+
+    @property
+    def resampled(self) -> bool:
+        return not same_pitch(self.pixel_pitch_mm, self.stored_pitch_mm)
+
+    def kernels(self, field, depth_m) -> np.ndarray:
+        """PSFs (..., 3, k, k) at fields x depths (broadcast), interpolated as
+        the traced library's (``at``); a depth nearer than the grid's near
+        limit is an error naming it."""
+        return self.at(field, depth_m)
+
+    def ensure(self, depth_m=None, *, bins=None, clamp_near: bool = False, progress=None) -> list[int]:
+        want = np.asarray(bins if bins is not None else self.bins_needed(depth_m, clamp_near=clamp_near), int)
+        todo = [int(b) for b in want if not self.computed[b]]
+        if not todo:
+            return []
+        t = time.perf_counter()
+        kernels = self.store.kernels_at_bins(todo)
+        if self.resampled:
+            kernels = area_resample(kernels, self.stored_pitch_mm, self.pixel_pitch_mm, self.kernel_size)
+        self.psf[todo] = kernels
+        self.computed[todo] = True
+        self.energy_outside[todo] = 0.0
+        self.kernel_size_needed[todo] = self.kernel_size
+        self.last_reconstruct_s += time.perf_counter() - t
+        if progress:
+            progress(len(todo) * len(self.fields), len(todo) * len(self.fields))
+        return todo
+
+    def save(self, path) -> None:        # the store is the file
+        raise OpticsError("a basis-backed library is not saved; it is computed from its basis file")
+
+
+def open_store(path) -> BasisStore:
+    """``BasisStore.load``, kept for the next request of the same file (path,
+    size, modification time): a new pixel pitch or a refocus opens a new
+    library, not the file again."""
+    path = Path(path)
+    st = path.stat()
+    key = (str(path.resolve()), st.st_size, st.st_mtime_ns)
+    if key not in _STORES:
+        if len(_STORES) >= 8:
+            _STORES.clear()
+        _STORES[key] = BasisStore.load(path)
+    return _STORES[key]
+
+
+_STORES: dict = {}
+
+__all__ = ["BasisLibrary", "BasisRecipe", "BasisStore", "BasisFileError", "SHIPPED_RECIPES", "build_store",
+           "compress", "factorise", "open_store", "reconstruct", "shipped_store", "STORE_DIR"]
