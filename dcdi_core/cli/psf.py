@@ -149,7 +149,7 @@ def cmd_psflib_compress(args) -> int:
     check_cache(args)
     recipe = SHIPPED_RECIPES.get(lens.id, BasisRecipe())
     over = {name: getattr(args, name) for name in ("rank", "rays", "n_fields", "n_depths", "pitch_factor",
-                                                    "kernel_size") if getattr(args, name) is not None}
+                                                    "kernel_size", "near_rays") if getattr(args, name) is not None}
     recipe = replace(recipe, **over)
     t = time.perf_counter()
     store = build_store(lens, recipe, cache_dir=False if args.no_cache else None,
@@ -158,7 +158,8 @@ def cmd_psflib_compress(args) -> int:
     import os
     print(f"wrote {args.output}: {lens.id}, rank {store.rank} of {store.kernel_size} x {store.kernel_size} px "
           f"kernels at {store.pixel_pitch_mm * 1000:.4g} um, {recipe.n_depths + 1} depth bins x {recipe.n_fields} "
-          f"fields, {recipe.rays} rays; {os.path.getsize(args.output) / 1e6:.2f} MB; "
+          f"fields, {recipe.rays} rays" + (f" ({recipe.near_rays} to {recipe.near_until_m:g} m)" if recipe.near_rays
+                                           else "") + f"; {os.path.getsize(args.output) / 1e6:.2f} MB; "
           f"{time.perf_counter() - t:.1f} s")
     return 0
 
@@ -262,6 +263,9 @@ def add_commands(sub) -> None:
                    help="store at N x the sensor's pixel pitch (large blurs at a reduced resolution)")
     c.add_argument("--kernel", dest="kernel_size", type=positive_int, default=None, metavar="K",
                    help="kernel size K x K px at the stored pitch, odd")
+    c.add_argument("--near-rays", type=positive_int, default=None, metavar="N",
+                   help="pupil grid N x N for the depth bins at or nearer than 1 m (where the blur is largest "
+                        "and a kernel's ray noise too)")
     c.add_argument("--no-cache", action="store_true", help="do not read or write the PSF cache")
     c.set_defaults(func=cmd_psflib_compress)
     s_ = psub.add_parser("show", help="a PNG grid of PSFs across field and depth")

@@ -51,6 +51,7 @@ from . import write_report
 from .olf_report import _psnr_image as _psnr, timed_job
 from ..optics.lens import load_lens
 from ..psf.basis import SHIPPED_RECIPES, BasisLibrary, BasisRecipe, BasisStore, compress, shipped_store
+from ..psf.basis import traced_library as recipe_library
 from ..psf.compute import PSFSettings
 from ..psf.library import LibraryGrid, PSFLibrary, lens_fingerprint
 
@@ -80,7 +81,8 @@ class Plan:
 
     def recipe(self, lens_id: str) -> BasisRecipe:
         r = SHIPPED_RECIPES[lens_id]
-        return replace(r, rays=16, n_fields=4, n_depths=3, rank=4) if self.quick else r
+        return replace(r, rays=16, n_fields=4, n_depths=3, rank=4, near_rays=32 if r.near_rays else None) \
+            if self.quick else r
 
     @property
     def default_grid(self) -> LibraryGrid:
@@ -269,12 +271,17 @@ def lens_rows(lens_id: str, plan: Plan, out: Path, log, olf=None) -> dict:
         log(f"  {lens_id} {name}: off-grid {o['psnr_8bit']:.2f} dB (worst {o['psnr_8bit_worst']:.2f}), "
             f"{row['megabytes']:.2f} MB")
 
-    lib, secs = traced_library(lens, settings, recipe.grid, log)
-    secs = secs or trace_seconds(lens, settings, recipe.grid, log)
-    full = compress(lib, max(plan.ranks), build_s=secs, ripple_floor=recipe.ripple_floor)
+    lib, secs = recipe_library(lens, recipe, log=log)
+    if not secs:
+        secs = trace_seconds(lens, settings, recipe.grid, log)
+        if recipe.near_rays:            # the near bins again, with more rays
+            whole = trace_seconds(lens, replace(settings, pupil_samples=recipe.near_rays), recipe.grid, log)
+            secs += whole * len(recipe.near_bins()) / len(recipe.grid.depths_m)
+    ranks = sorted(set(plan.ranks) | {recipe.rank})
+    full = compress(lib, max(ranks), build_s=secs, ripple_floor=recipe.ripple_floor)
     bi, fi = grid_sample(lib, rng)
     src_grid = pad_to(lib.psf[bi, fi], k_store)
-    for r in plan.ranks:
+    for r in ranks:
         for dtype in ((np.float16, np.float32) if r == recipe.rank else (np.float16,)):
             st = truncated(full, r, dtype)
             blib = BasisLibrary(st, lens)
@@ -283,7 +290,8 @@ def lens_rows(lens_id: str, plan: Plan, out: Path, log, olf=None) -> dict:
             label = f"basis {r}" + (" (float32)" if dtype == np.float32 else "")
             add(label, "basis", kern, store_bytes(st, dtype), secs, grid, rank=r, dtype=np.dtype(dtype).name,
                 shipped=(r == recipe.rank and dtype == np.float16))
-    add(f"library ({recipe.rays} rays, uncompressed)", "library", lib.at(f, d),
+    rays = f"{recipe.rays} rays" + (f", {recipe.near_rays} to {recipe.near_until_m:g} m" if recipe.near_rays else "")
+    add(f"library ({rays}, uncompressed)", "library", lib.at(f, d),
         npz_bytes(psf=lib.psf), secs, None)
     dset = replace(PSFSettings(kernel_size=k_store), pixel_pitch_mm=pitch)
     default, dsecs = traced_library(lens, dset, plan.default_grid, log)
@@ -326,7 +334,7 @@ def map_times(lens_id: str, olf, log, plan: Plan) -> dict:
     _, depth = synthetic_rgbd(*size, seed=0)
     depth = depth.astype(np.float64)
     store = _store(lens_id, plan, lens, log)
-    lib, _ = traced_library(lens, settings, recipe.grid, log)
+    lib, _ = recipe_library(lens, recipe, log=log)
     out = {"image": list(size), "lens": lens_id}
     for name, make in (("library", lambda: lib),
                        ("basis", (lambda: BasisLibrary(store, lens)) if store is not None else None),
@@ -351,7 +359,7 @@ def map_times(lens_id: str, olf, log, plan: Plan) -> dict:
 def _store(lens_id: str, plan: Plan, lens, log) -> BasisStore | None:
     """The shipped store of the lens; for a quick run, one built from its small recipe."""
     if plan.quick:
-        lib, secs = traced_library(lens, plan.recipe(lens_id).settings(lens), plan.recipe(lens_id).grid, log)
+        lib, secs = recipe_library(lens, plan.recipe(lens_id), log=log)
         return compress(lib, plan.recipe(lens_id).rank, build_s=secs, ripple_floor=plan.recipe(lens_id).ripple_floor)
     path = shipped_store(lens_id)
     return BasisStore.load(path) if path else None

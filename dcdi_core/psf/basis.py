@@ -72,6 +72,8 @@ class BasisRecipe:
     near_m: float = 0.7
     far_m: float = 10.0
     ripple_floor: float = 3e-4
+    near_rays: int | None = None        # more rays for the bins at or nearer than near_until_m
+    near_until_m: float = 1.0
 
     FLAGS = {"rays": "--rays", "n_fields": "--fields", "n_depths": "--depths", "pitch_factor": "--pitch-factor",
              "rank": "--rank", "kernel_size": "--kernel"}
@@ -84,12 +86,20 @@ class BasisRecipe:
             raise InputRangeError("n_fields, n_depths (--fields, --depths)", (self.n_fields, self.n_depths), ">= 2")
         if self.kernel_size < 1 or self.kernel_size % 2 == 0:
             raise InputRangeError("kernel_size (--kernel)", self.kernel_size, "odd integer >= 1")
+        if self.near_rays is not None and self.near_rays < 1:
+            raise InputRangeError("near_rays", self.near_rays, ">= 1, or None")
+        if not (self.near_m <= self.near_until_m < self.far_m):
+            raise InputRangeError("near_until_m", self.near_until_m, f"[{self.near_m}, {self.far_m}) m")
         if not (0.0 <= self.ripple_floor < 0.1):
             raise InputRangeError("ripple_floor", self.ripple_floor, "[0, 0.1) of a kernel's peak")
 
     @property
     def grid(self) -> LibraryGrid:
         return LibraryGrid(n_fields=self.n_fields, n_depths=self.n_depths, near_m=self.near_m, far_m=self.far_m)
+
+    def near_bins(self) -> np.ndarray:
+        """The depth bins at or nearer than ``near_until_m`` (traced with ``near_rays``)."""
+        return np.flatnonzero(self.grid.diopters >= 1.0 / self.near_until_m - 1e-9)
 
     def settings(self, lens) -> PSFSettings:
         """The traced library's PSF settings (the shipped band, wavelengths and
@@ -101,16 +111,18 @@ class BasisRecipe:
 
 # The shipped stores (`dcdi psflib compress --recipe shipped`): ranks, grids and
 # rays chosen by `dcdi report psf-source` (docs/psf.md, "Compact PSF sources").
-# The double Gauss keeps its faint halo (a ripple floor cut it: relative L1
+# The 6P and the double Gauss trace their bins nearer than 1 m with 512 rays:
+# there a 256-ray kernel's own ray noise (38 dB against 1024 rays) was the
+# worst point's error. The double Gauss keeps its faint halo (a ripple floor cut it: relative L1
 # 0.0168 -> 0.0215). It is stored at 3 x its sensor pitch (0.46 um; its sensor's
 # 0.154 um is far below its 1.3 um Airy disk, and its near blur spans
 # 230 px there).
 SHIPPED_RECIPES = {
-    "mos-s1": BasisRecipe(kernel_size=41, rank=64),
-    "mos-s2": BasisRecipe(kernel_size=47, rank=64),
-    "6p": BasisRecipe(kernel_size=71, n_depths=64, rank=160),
-    "double-gauss": BasisRecipe(kernel_size=77, n_fields=32, n_depths=96, rank=144, pitch_factor=3,
-                                ripple_floor=0.0),
+    "mos-s1": BasisRecipe(kernel_size=41, rank=48),
+    "mos-s2": BasisRecipe(kernel_size=47, rank=48),
+    "6p": BasisRecipe(kernel_size=71, n_depths=64, rank=160, near_rays=512),
+    "double-gauss": BasisRecipe(kernel_size=77, n_fields=32, n_depths=96, rank=168, pitch_factor=3,
+                                ripple_floor=0.0, near_rays=512),
 }
 
 
@@ -348,23 +360,47 @@ def compress(library: PSFLibrary, rank: int, *, kernel_size: int | None = None, 
                       library.zero_energy.copy())
 
 
-def build_store(lens, recipe: BasisRecipe, *, cache_dir=None, progress=None, log=None) -> BasisStore:
-    """Trace ``lens``'s library as ``recipe`` says (from the PSF cache where it
-    is there; ``cache_dir`` None: the default cache, False: none) and
-    compress it."""
+def traced_library(lens, recipe: BasisRecipe, *, cache_dir=None, progress=None, log=None) -> tuple:
+    """(the fully computed traced library ``recipe`` describes, seconds traced
+    now: 0 if it all came from the PSF cache). ``cache_dir`` None: the
+    default cache, False: none. With ``near_rays``, the bins at or nearer
+    than ``near_until_m`` come from a second library traced with that many
+    rays (the same grid and settings otherwise)."""
     import warnings
     from .compute import KernelTooSmallWarning
-    t = time.perf_counter()
-    lib = PSFLibrary.open(lens, recipe.settings(lens), recipe.grid, cache=cache_dir is not False,
-                          cache_dir=cache_dir or None)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", KernelTooSmallWarning)
-        built = lib.build(progress=progress)
-    seconds = time.perf_counter() - t
-    if log:
-        log(f"{lens.id}: library of {lib.psf.shape[0]} depth bins x {lib.psf.shape[1]} fields at "
-            f"{recipe.rays} rays " + (f"traced in {seconds:.0f} s" if built else "from the cache"))
-    return compress(lib, recipe.rank, build_s=seconds if built else 0.0, ripple_floor=recipe.ripple_floor)
+    seconds = 0.0
+
+    def trace(settings, bins):
+        nonlocal seconds
+        lib = PSFLibrary.open(lens, settings, recipe.grid, cache=cache_dir is not False, cache_dir=cache_dir or None)
+        t = time.perf_counter()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", KernelTooSmallWarning)
+            done = lib.ensure(bins=bins, progress=progress)
+        seconds += (time.perf_counter() - t) if done else 0.0
+        if log:
+            log(f"{lens.id}: {len(bins)} depth bins x {len(lib.fields)} fields at {settings.pupil_samples} rays "
+                + (f"traced in {time.perf_counter() - t:.0f} s" if done else "from the cache"))
+        return lib
+
+    settings = recipe.settings(lens)
+    lib = trace(settings, np.arange(len(recipe.grid.depths_m)))
+    if recipe.near_rays:
+        near = recipe.near_bins()
+        fine = trace(replace(settings, pupil_samples=recipe.near_rays), near)
+        for name in PSFLibrary.ARRAYS:
+            getattr(lib, name)[near] = getattr(fine, name)[near]
+    return lib, seconds
+
+
+def build_store(lens, recipe: BasisRecipe, *, cache_dir=None, progress=None, log=None) -> BasisStore:
+    """Trace ``lens``'s library as ``recipe`` says (:func:`traced_library`)
+    and compress it."""
+    lib, seconds = traced_library(lens, recipe, cache_dir=cache_dir, progress=progress, log=log)
+    store = compress(lib, recipe.rank, build_s=seconds, ripple_floor=recipe.ripple_floor)
+    store.meta["near_rays"] = recipe.near_rays
+    store.meta["near_until_m"] = recipe.near_until_m if recipe.near_rays else None
+    return store
 
 
 # ----------------------------------------------------------------- serving
