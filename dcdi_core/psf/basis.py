@@ -464,7 +464,10 @@ def open_store(path) -> BasisStore:
     size, modification time): a new pixel pitch or a refocus opens a new
     library, not the file again."""
     path = Path(path)
-    st = path.stat()
+    try:
+        st = path.stat()
+    except OSError as e:
+        raise BasisFileError(f"{path}: not a readable PSF basis file ({type(e).__name__}: {e.strerror})") from None
     key = (str(path.resolve()), st.st_size, st.st_mtime_ns)
     if key not in _STORES:
         if len(_STORES) >= 8:

@@ -237,5 +237,12 @@ def test_cli_compress_and_serve(tmp_path, monkeypatch, capsys):
     assert abs(sum(res["channel_sums"]) - 3.0) < 1e-4
     png = tmp_path / "grid.png"
     assert main(["psflib", "show", str(out), "--png", str(png)]) == 0 and png.stat().st_size > 0
+    # a missing or damaged --basis file: one line naming it, before any work
+    capsys.readouterr()
+    assert main(["psf", "mos-s1", "--field", "0.4", "--depth", "1.5", "--basis", str(tmp_path / "none.npz")]) == 2
+    assert "none.npz" in capsys.readouterr().err
+    (tmp_path / "bad.npz").write_bytes(b"not a zip")
+    assert main(["psf", "mos-s1", "--field", "0.4", "--depth", "1.5", "--basis", str(tmp_path / "bad.npz")]) == 2
+    assert "bad.npz" in capsys.readouterr().err
     assert main(["psflib", "compress", "mos-s1", "-o", str(tmp_path / "c.npz"), "--kernel", "14"]) == 2
     assert "--kernel" in capsys.readouterr().err and not (tmp_path / "c.npz").exists()
