@@ -171,9 +171,8 @@ def references(lens, settings: PSFSettings, grid: LibraryGrid, n: int, seed: int
     rays, pitch and kernel size) at ``n`` points off ``grid``; read from
     ``out`` when the same were traced before."""
     from ..models.olf.data import crop_normalise, trace_points
-    s = settings
     f, d = draw_points(n, grid, seed)
-    key = hashlib.sha256(json.dumps({"lens": lens_fingerprint(lens), "settings": s.as_dict(), "n": n,
+    key = hashlib.sha256(json.dumps({"lens": lens_fingerprint(lens), "settings": settings.as_dict(), "n": n,
                                      "seed": seed}, sort_keys=True, default=str).encode()).hexdigest()
     path = out / f"references-{lens.id}.npz"
     if path.exists():
@@ -181,9 +180,9 @@ def references(lens, settings: PSFSettings, grid: LibraryGrid, n: int, seed: int
             if str(z["key"]) == key:
                 return z["field"], z["depth_m"], z["psf"]
     t, c = time.perf_counter(), time.process_time()
-    psf, ok = trace_points(lens, s, f, d)
-    f, d, psf = f[ok], d[ok], crop_normalise(psf[ok], s.kernel_size)
-    log(f"  {lens.id}: {len(f)} reference points traced with {s.pupil_samples} rays in {time.perf_counter() - t:.0f} s "
+    psf, ok = trace_points(lens, settings, f, d)
+    f, d, psf = f[ok], d[ok], crop_normalise(psf[ok], settings.kernel_size)
+    log(f"  {lens.id}: {len(f)} reference points traced with {settings.pupil_samples} rays in {time.perf_counter() - t:.0f} s "
         f"({time.process_time() - c:.0f} CPU s)")
     out.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:

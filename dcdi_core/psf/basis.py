@@ -31,10 +31,8 @@ its prescribed focus.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import math
-import os
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -42,6 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_path
+from ..io.npzfile import FileCache, checksum
 from ..errors import InputRangeError
 from ..optics.errors import OpticsError
 from .compute import PSFSettings
@@ -183,8 +182,7 @@ def reconstruct(coeffs: np.ndarray, basis: np.ndarray, k: int | None = None,
     peak = left.max(axis=(-1, -2), keepdims=True)
     left[left < floor * peak] = 0.0
     s = 2.0 * left.sum(axis=(-1, -2), keepdims=True) - left[..., -1:].sum(axis=-2, keepdims=True)
-    np.divide(left, s, out=left, where=s > 0)
-    left[np.broadcast_to(~(s > 0), left.shape)] = 0.0
+    np.divide(left, s, out=left, where=s > 0)      # s == 0: every value is already 0
     full = np.empty((len(flat), c, k, k), out.dtype)
     full[..., :h] = left
     full[..., h:] = left[..., -2::-1]
@@ -277,7 +275,7 @@ class BasisStore:
                                   "a radial library's kernels (rows along the radius)")
         arrays = self.file_arrays()
         meta = dict(self.meta, format=FORMAT, version=FORMAT_VERSION)
-        meta["checksum"] = _checksum(meta, arrays)
+        meta["checksum"] = checksum(meta, arrays)
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as f:
                 np.savez_compressed(f, meta=np.array(json.dumps(meta)), **arrays)
@@ -296,7 +294,7 @@ class BasisStore:
                                  f"expected {FORMAT!r}")
         if meta.get("version") != FORMAT_VERSION:
             raise BasisFileError(f"{path}: version {meta.get('version')!r}, this software reads {FORMAT_VERSION}")
-        if meta.get("checksum") != _checksum(meta, arrays):
+        if meta.get("checksum") != checksum(meta, arrays):
             raise BasisFileError(f"{path}: checksum mismatch (the file is corrupt or was edited)")
         half, coeffs = arrays["basis_half"].astype(np.float32), arrays["coeffs"].astype(np.float32)
         k = int(meta.get("kernel_size", 0))
@@ -317,15 +315,6 @@ def mirror_symmetric(basis: np.ndarray, tol: float = 1e-4) -> bool:
     k = math.isqrt(kk)
     b = basis.reshape(c, r, k, k)
     return bool(np.abs(b - b[..., ::-1]).max() <= tol * max(np.abs(b).max(), 1e-30))
-
-
-def _checksum(meta: dict, arrays: dict) -> str:
-    h = hashlib.sha256()
-    h.update(json.dumps({k: v for k, v in meta.items() if k != "checksum"}, sort_keys=True).encode())
-    for name in sorted(arrays):
-        a = np.ascontiguousarray(arrays[name])
-        h.update(name.encode() + str(a.dtype).encode() + str(a.shape).encode() + a.tobytes())
-    return h.hexdigest()
 
 
 def compress(library: PSFLibrary, rank: int, *, kernel_size: int | None = None, build_s: float = 0.0,
@@ -459,24 +448,18 @@ class BasisLibrary(PSFLibrary):
         raise OpticsError("a basis-backed library is not saved; it is computed from its basis file")
 
 
+_STORES = FileCache(BasisStore.load, 8)
+
+
 def open_store(path) -> BasisStore:
     """``BasisStore.load``, kept for the next request of the same file (path,
     size, modification time): a new pixel pitch or a refocus opens a new
     library, not the file again."""
-    path = Path(path)
     try:
-        st = path.stat()
-    except OSError as e:
+        return _STORES(path)
+    except OSError as e:                # stat: missing or unreadable
         raise BasisFileError(f"{path}: not a readable PSF basis file ({type(e).__name__}: {e.strerror})") from None
-    key = (str(path.resolve()), st.st_size, st.st_mtime_ns)
-    if key not in _STORES:
-        if len(_STORES) >= 8:
-            _STORES.clear()
-        _STORES[key] = BasisStore.load(path)
-    return _STORES[key]
 
-
-_STORES: dict = {}
 
 __all__ = ["BasisLibrary", "BasisRecipe", "BasisStore", "BasisFileError", "SHIPPED_RECIPES", "build_store",
            "compress", "factorise", "open_store", "reconstruct", "shipped_store", "STORE_DIR"]

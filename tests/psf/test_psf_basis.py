@@ -235,6 +235,12 @@ def test_cli_compress_and_serve(tmp_path, monkeypatch, capsys):
     res = json.loads(capsys.readouterr().out)
     assert res["psf_source"] == "basis" and res["basis_file"] == str(out)
     assert abs(sum(res["channel_sums"]) - 3.0) < 1e-4
+    # a request the basis does not hold (here another focus, which the OLF did not learn for mos-s1
+    # either): traced, the line on standard error saying why
+    assert main(["psf", "mos-s1", "--field", "0.4", "--depth", "1.5", "--focus", "2", "--basis", str(out),
+                 "--rays", "16", "--kernel", "15", "--json"]) == 0
+    res, err = capsys.readouterr()
+    assert json.loads(res)["psf_source"] == "trace" and "prescribed focus" in err
     png = tmp_path / "grid.png"
     assert main(["psflib", "show", str(out), "--png", str(png)]) == 0 and png.stat().st_size > 0
     # a missing or damaged --basis file: one line naming it, before any work

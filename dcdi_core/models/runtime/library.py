@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import InputRangeError
+from ...io.npzfile import FileCache
 from ...optics.errors import OpticsError
 from ...psf.basis import BasisLibrary, open_store, shipped_store
 from ...psf.compute import PSFSettings
@@ -161,46 +162,10 @@ def _settings_differences(learned: dict, settings: PSFSettings | None, *, rays_a
     return out
 
 
-_OLF_CACHE: dict = {}
-
-
-def _load_olf(path: Path) -> OmniLensField:
-    """``OmniLensField.load``, kept for the next request of the same file
-    (path, size and modification time): a refocus, a new pixel pitch or
-    another lens opens a new source, but not the 10 MB file again (0.1-0.3 s
-    of every focus change in the add-on's preview)."""
-    st = path.stat()
-    key = (str(path.resolve()), st.st_size, st.st_mtime_ns)
-    if key not in _OLF_CACHE:
-        _OLF_CACHE.clear()                      # one file at a time: the shipped one, or the user's
-        _OLF_CACHE[key] = OmniLensField.load(path)
-    return _OLF_CACHE[key]
-
-
-def _basis_source(lens, path, pitch, settings, kernel_size, focus_m, custom_response, grid):
-    """(BasisLibrary, None) if the store at ``path`` serves the request, else (None, why)."""
-    try:
-        store = open_store(path)
-        store.check_lens(lens)
-    except OpticsError as e:
-        return None, str(e)
-    stored = store.pixel_pitch_mm
-    if pitch is not None and not (pitch >= stored or same_pitch(pitch, stored)):
-        return None, (f"the image's pixel pitch {pitch * 1000:.6g} um is finer than the {stored * 1000:.6g} um "
-                      f"{path} holds {lens.id} at")
-    k = resampled_size(store.kernel_size, stored, stored if pitch is None else pitch)
-    if kernel_size is not None and kernel_size != k:
-        return None, f"a {kernel_size} px kernel was asked for; {path} serves {lens.id} at {k} px at this pitch"
-    if custom_response:
-        return None, "a custom spectral response was given; the PSF basis holds the shipped one"
-    if focus_m is not None:
-        return None, f"focus {focus_m:g} m asked for; {path} holds {lens.id} at its prescribed focus"
-    if grid is not None and grid != store.grid:
-        return None, f"a library grid {grid} was asked for; {path} holds {store.grid}"
-    diff = _settings_differences(store.meta["psf_settings"], settings, rays_at_least=True, verb="holds")
-    if diff:
-        return None, "PSF settings differ from the stored ones: " + "; ".join(diff)
-    return BasisLibrary(store, lens, pixel_pitch_mm=pitch), None
+# a refocus, a new pixel pitch or another lens opens a new source, but not the
+# 10 MB file again (0.1-0.3 s of every focus change in the add-on's preview);
+# one file at a time: the shipped one, or the user's
+_load_olf = FileCache(OmniLensField.load, 1)
 
 
 def psf_source(lens, *, source: str | None = None, olf_file=None, pixel_pitch_mm: float | None = None,
@@ -245,12 +210,31 @@ def _try_basis(lens, basis_file, pitch, settings, kernel_size, focus_m, custom_r
     path = Path(basis_file) if basis_file else shipped_store(lens.id)
     if path is None:
         return None, f"no PSF basis of {lens.id} ships with this engine and none was given (--basis)"
-    lib, why = _basis_source(lens, path, pitch, settings, kernel_size, focus_m, custom_response, grid)
-    if lib is None:
-        return None, why
-    pixels = (f"{lib.pixel_pitch_mm * 1000:.4g} um pixels, its {lib.stored_pitch_mm * 1000:.4g} um kernels "
-              "area-resampled" if lib.resampled else f"{lib.pixel_pitch_mm * 1000:.4g} um pixels")
-    return PSFSource("basis", f"PSFs from the PSF basis {path} ({lens.id}, rank {lib.store.rank}, {pixels}, "
+    try:
+        store = open_store(path)
+        store.check_lens(lens)
+    except OpticsError as e:
+        return None, str(e)
+    stored = store.pixel_pitch_mm
+    if pitch is not None and not (pitch >= stored or same_pitch(pitch, stored)):
+        return None, (f"the image's pixel pitch {pitch * 1000:.6g} um is finer than the {stored * 1000:.6g} um "
+                      f"{path} holds {lens.id} at")
+    k = resampled_size(store.kernel_size, stored, stored if pitch is None else pitch)
+    if kernel_size is not None and kernel_size != k:
+        return None, f"a {kernel_size} px kernel was asked for; {path} serves {lens.id} at {k} px at this pitch"
+    if custom_response:
+        return None, "a custom spectral response was given; the PSF basis holds the shipped one"
+    if focus_m is not None:
+        return None, f"focus {focus_m:g} m asked for; {path} holds {lens.id} at its prescribed focus"
+    if grid is not None and grid != store.grid:
+        return None, f"a library grid {grid} was asked for; {path} holds {store.grid}"
+    diff = _settings_differences(store.meta["psf_settings"], settings, rays_at_least=True, verb="holds")
+    if diff:
+        return None, "PSF settings differ from the stored ones: " + "; ".join(diff)
+    lib = BasisLibrary(store, lens, pixel_pitch_mm=pitch)
+    pixels = (f"{lib.pixel_pitch_mm * 1000:.4g} um pixels, its {stored * 1000:.4g} um kernels area-resampled"
+              if lib.resampled else f"{lib.pixel_pitch_mm * 1000:.4g} um pixels")
+    return PSFSource("basis", f"PSFs from the PSF basis {path} ({lens.id}, rank {store.rank}, {pixels}, "
                               f"{lib.kernel_size} x {lib.kernel_size} px, prescribed focus)",
                      lib, None, str(path)), None
 

@@ -1,6 +1,6 @@
 """Shipped network files: a module's state as .npz arrays (no pickle) plus
 one JSON string ``meta`` with format, version and a sha256 checksum of all
-of it (``runtime.olf.checksum``). numpy only: writing them from a torch
+of it (``io.npzfile.checksum``, as the PSF bases). numpy only: writing them from a torch
 module and loading them into one is ``models.common.weights_file``."""
 from __future__ import annotations
 

@@ -13,7 +13,6 @@ samples with the same functions.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import os
@@ -23,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ...io.npzfile import checksum
 from ..errors import LensMismatchError, ModelFileError, OutsideTrainedRangeError
 from ...errors import InputRangeError
 
@@ -78,17 +78,6 @@ def patch_centres_px(spec: dict, row, col):
 
 
 # ----------------------------------------------------------------- file I/O
-def checksum(meta: dict, arrays: dict) -> str:
-    """sha256 of the metadata (without its checksum) and every array (name, dtype, shape, bytes)."""
-    h = hashlib.sha256()
-    h.update(json.dumps({k: v for k, v in meta.items() if k != "checksum"}, sort_keys=True).encode())
-    for name in sorted(arrays):
-        a = np.ascontiguousarray(arrays[name])
-        h.update(name.encode() + str(a.dtype).encode() + str(a.shape).encode())
-        h.update(a.tobytes())
-    return h.hexdigest()
-
-
 # what reading a damaged file raises: truncated or not a zip (BadZipFile,
 # EOFError), a member's bytes changed (BadZipFile: CRC, zlib.error), not an
 # .npz of arrays (ValueError: pickled or bad header), unreadable (OSError)
