@@ -242,8 +242,17 @@ class NetworkCorrection:
             if geometry is None:
                 from .render.geometry import ImageGeometry
                 geometry = ImageGeometry.full_sensor(self.deconvolution.lens, *np.shape(capture)[:2])
+        from .models.dacn.unaware import told_depth, told_depth_map
+        told = told_depth(self.info)
+        deconvolution = self.deconvolution
+        if told is not None:      # trained told one depth: told it here too, refining the one-depth deconvolution
+            depth_m = told_depth_map(np.asarray(depth_m, np.float32), told)
+            if spec.refine:
+                from .correct import DeconvOptions
+                deconvolution = replace(deconvolution, options=replace(deconvolution.options or DeconvOptions(),
+                                                                       one_depth_m=told))
         if spec.refine:
-            dec, dec_info = replace(self.deconvolution, geometry=geometry).run(capture, depth_m)
+            dec, dec_info = replace(deconvolution, geometry=geometry).run(capture, depth_m)
         out = correct(self.model, capture, depth_m, deconvolved=dec, geometry=geometry, tile=self.tile,
                       overlap=self.overlap, progress=progress)
         info = {"model": self.info.get("checkpoint"), "trained_for": trained_lens(self.info),

@@ -107,6 +107,24 @@ def _eval_runs(args) -> dict:
     return runs
 
 
+def _told_depth_correction(loaded: dict, data):
+    """The inference of runs trained told one depth (models.dacn.unaware):
+    told it again, refining the one-depth deconvolution; None when no run
+    was (every run then gets the pairs' depth and deconvolution)."""
+    from ..models.dacn.unaware import Correction, told_depth
+    told = {m: told_depth(info) for m, info in loaded.values()}
+    if all(t is None for t in told.values()):
+        return None
+    import json
+    from pathlib import Path
+    lens = json.loads(Path(data, "da2t.json").read_text(encoding="utf-8"))["lens"]
+    for name, (m, info) in loaded.items():
+        if told[m] is not None:
+            print(f"eval: {name} was trained told {told[m]:g} m everywhere: told it here too, refining the "
+                  "one-depth deconvolution")
+    return Correction(told, lens, data)
+
+
 def cmd_dacn_eval(args) -> int:
     import json
     runs = _eval_runs(args)
@@ -115,13 +133,15 @@ def cmd_dacn_eval(args) -> int:
     from ..models.dacn.correct import load_dacn
     from ..models.dacn.evaluate import evaluate_models, held_out_pairs, markdown_tables, write_pictures
     ids, _ = held_out_pairs(args.data, _model_splits(runs))
-    models = {name: load_dacn(path, weights=args.weights)[0] for name, path in runs.items()}
+    loaded = {name: load_dacn(path, weights=args.weights) for name, path in runs.items()}
+    models = {name: m for name, (m, _) in loaded.items()}
+    correct_fn = _told_depth_correction(loaded, args.data)
     lp = None
     if args.lpips:
         from ..models.common.lpips import load_lpips
         lp = load_lpips(*args.lpips)
     ev, kept = evaluate_models(models, args.data, ids=ids, tile=args.tile, overlap=args.overlap,
-                               progress=counter("eval: pair"), keep_outputs=args.pictures_count if args.pictures else 0,
+                               correct_fn=correct_fn, progress=counter("eval: pair"), keep_outputs=args.pictures_count if args.pictures else 0,
                                lpips=lp)
     print(f"{len(ids)} held-out pairs of {args.data}; PSNR dB / SSIM over the imaged pixels")
     print(markdown_tables(ev), end="")

@@ -20,7 +20,12 @@ Rows (``RUNS``):
   network on the capture alone);
 - ``refine``: ``da2t+cond`` refining the deconvolution (its input, and the
   base of its output): the shipped design;
-- ``refine+mech``: ``refine`` with the paper's RDICAB and D2CB.
+- ``refine+mech``: ``refine`` with the paper's RDICAB and D2CB;
+- ``refine@2m``: ``refine`` trained the depth-unaware way (the one-depth
+  captures, told that depth everywhere, refining the one-depth
+  deconvolution; ``models.dacn.unaware``) and tested told it too: only
+  depth differs from ``refine``. Its pairs are derived from the training
+  pairs into ``OUT/<lens>/pairs-told-<depth>m``.
 
 Writes ``OUT/<lens>/<row>-s<seed>/`` (runs), ``OUT/<lens>/eval.json``,
 ``OUT/<lens>/table.md`` (mean of the seeds and each seed; per depth and field
@@ -45,7 +50,9 @@ RUNS = {
     "da2t+cond": ["--input", "capture", "--condition", "--no-refine", "--no-rdicab", "--no-d2cb"],
     "refine": ["--input", "capture", "--condition", "--refine", "--no-rdicab", "--no-d2cb"],
     "refine+mech": ["--input", "capture", "--condition", "--refine", "--rdicab", "--d2cb"],
+    "refine@2m": ["--input", "capture", "--condition", "--refine", "--no-rdicab", "--no-d2cb"],
 }
+TOLD_DEPTH_M = {"refine@2m": 2.0}     # rows trained on derived one-depth pairs (models.dacn.unaware)
 DEFAULT_RUNS = ("baseline", "da2t", "da2t+cond", "refine")
 
 
@@ -286,7 +293,14 @@ def main(argv=None) -> int:
     look = blur_table(args.train) + "\n" + data_table(args.train) + data_table(args.test)
     write_text(args.out / args.lens / "data.md", look)
     print(look)
-    jobs = [(train_command(args.train, args.out / args.lens / run_name(n, s), n, s, args),
+    data = {n: args.train for n in names}
+    for n in names:
+        if n in TOLD_DEPTH_M:
+            from ..models.dacn.unaware import derive_pairs
+            data[n] = str(args.out / args.lens / f"pairs-told-{TOLD_DEPTH_M[n]:g}m")
+            print(f"dacn_study: {n}: deriving its one-depth pairs into {data[n]}", file=sys.stderr)
+            derive_pairs(args.train, data[n], TOLD_DEPTH_M[n])
+    jobs = [(train_command(data[n], args.out / args.lens / run_name(n, s), n, s, args),
              args.out / args.lens / run_name(n, s)) for s in seeds for n in names]
     train_all(jobs, args.jobs)
     ev = evaluate(args.out, args.lens, args.test, [run_name(n, s) for n in names for s in seeds], args.weights)

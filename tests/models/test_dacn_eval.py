@@ -95,8 +95,8 @@ def test_study_trains_every_row_and_seed_at_equal_budget_and_tabulates(pairs, tm
     with pytest.raises(SystemExit, match="unknown row"):
         dacn_study.run_flags("nothing")
     out = tmp_path / "study"
-    argv = [str(out), "--lens", "mos-s2", "--train", str(pairs), "--test", str(pairs), "--runs", "baseline,refine",
-            "--seeds", "0,1", "--iters", "2", "--batch", "1", "--crop", "16", "--validate-every", "1", "--jobs", "2"]
+    argv = [str(out), "--lens", "mos-s2", "--train", str(pairs), "--test", str(pairs), "--runs",
+            "baseline,refine,refine@2m", "--seeds", "0,1", "--iters", "2", "--batch", "1", "--crop", "16", "--validate-every", "1", "--jobs", "2"]
     assert dacn_study.main(argv) == 0
     for row in ("baseline", "refine"):
         for seed in (0, 1):
@@ -106,6 +106,11 @@ def test_study_trains_every_row_and_seed_at_equal_budget_and_tabulates(pairs, tm
     assert json.loads((out / "mos-s2" / "baseline-s0" / "config.json").read_text())["arch"]["refine"] is False
     text = (out / "mos-s2" / "table.md").read_text()
     assert "| baseline |" in text and "| refine |" in text and "| capture |" in text and "| deconvolution |" in text
+    # the depth-unaware refine: trained on the derived one-depth pairs, told 2 m, evaluated told it
+    told = json.loads((out / "mos-s2" / "refine@2m-s0" / "config.json").read_text())
+    assert told["data"] == str(out / "mos-s2" / "pairs-told-2m") and "| refine@2m |" in text
+    ev = json.loads((out / "mos-s2" / "eval.json").read_text())
+    assert ev["mean"]["refine@2m-s0"]["psnr"] != ev["mean"]["refine-s0"]["psnr"]
     assert (out / "mos-s2" / "curves.png").stat().st_size > 0 and "RMS blur" in (out / "mos-s2" / "data.md").read_text()
     mtime = (out / "mos-s2" / "refine-s1" / "checkpoint.pt").stat().st_mtime
     assert dacn_study.main(argv) == 0                       # finished runs are not trained again

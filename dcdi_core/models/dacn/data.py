@@ -215,6 +215,12 @@ def _library(lens, key, geom, config: DA2TConfig, libraries: dict | None, reuse:
     return lib
 
 
+def nominal_library(lens, geom, config: DA2TConfig, libraries: dict | None):
+    """The nominal ``lens``'s PSF library at ``geom``'s pitch, the one every
+    deconvolution of ``config``'s pairs reads (kept in ``libraries``)."""
+    return _library(lens, ("nominal", geom.pixel_pitch_mm), geom, config, libraries, True)
+
+
 def degrade(frame, config: DA2TConfig, variant: int = 0, *, lens=None, simulators: dict | None = None) -> DA2TPair:
     """One frame (``rgbd.RGBDFrame``) through the DA2T degradation (module
     docstring). ``simulators``: a dict kept by the caller in which PSF
@@ -243,7 +249,7 @@ def degrade(frame, config: DA2TConfig, variant: int = 0, *, lens=None, simulator
     if config.deconvolved:
         from ...correct.deconvolution import deconvolve
         ngeom = frame_geometry(base, h, w, config.sensor_px, top_left)
-        nlib = _library(base, ("nominal", ngeom.pixel_pitch_mm), ngeom, config, simulators, True)
+        nlib = nominal_library(base, ngeom, config, simulators)
         deconvolved = deconvolve(capture, r.depth, base, geometry=ngeom, library=nlib).image.astype(np.float32)
     record = {"id": f"{frame.id}~{variant}", "frame": frame.id, "scene": frame.scene, "variant": variant,
               "source": frame.source, "lens": base.id, "perturbation": prec,
