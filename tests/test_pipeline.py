@@ -132,7 +132,22 @@ def test_pipeline_and_depth_reports_on_held_out_pairs(pairs, networks, tmp_path,
     assert main(["report", "depth", "--pairs", f"mos-s2={pairs}", "--depth-model", dep, "--count", "2",
                  "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
-    assert "| mos-s2 | 2 | capture |" in out and "| mos-s2 | 2 | sharp |" in out
+    assert "| mos-s2 | 2 | capture |" in out and "| mos-s2 | 2 | sharp |" in out and "constant" not in out
+    # the bar: the training pairs' median depth everywhere, scored on the same held-out pairs
+    assert main(["report", "depth", "--pairs", f"mos-s2={pairs}", "--depth-model", dep, "--count", "2",
+                 "--train-pairs", f"mos-s2={pairs}", "--out", str(tmp_path)]) == 0
+    res = json.loads((tmp_path / "depth.json").read_text())["mos-s2"]
+    assert res["constant_m"] in (0.9, 5.0)                     # the frames hold these two depths only
+    from dcdi_core.experiments.pipeline_report import held_out
+    from dcdi_core.models.dacn.data import load_pair, pair_path
+    want = []
+    for pid in held_out(pairs, [], 2):
+        t = np.asarray(load_pair(pair_path(pairs, pid)).depth)
+        t = t[np.isfinite(t)]
+        want.append(np.mean(np.abs(res["constant_m"] - t) / t))
+    assert res["constant"]["abs_rel"] == pytest.approx(np.mean(want), rel=1e-6)
+    out = capsys.readouterr().out
+    assert f"| constant {res['constant_m']:.2f} m |" in out and " %" in out
 
 
 # ------------------------------------------------------------------ the one rule

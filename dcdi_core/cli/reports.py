@@ -70,7 +70,8 @@ def cmd_report_depth(args) -> int:
     if missing:
         from ..models.errors import ModelError
         raise ModelError(f"no depth network for {', '.join(missing)}: give --depth-model LENS=MODEL")
-    res = pr.depth_report(pairs, {k: v["depth"] for k, v in models.items()}, {}, args.count)
+    constants = {lens: pr.median_depth_m(d) for lens, d in lens_map(args.train_pairs, "--train-pairs").items()}
+    res = pr.depth_report(pairs, {k: v["depth"] for k, v in models.items()}, {}, args.count, constants)
     text = pr.depth_markdown(res)
     write_text(Path(args.out) / "depth.md", text)
     write_text(Path(args.out) / "depth.json", json.dumps(res, indent=1) + "\n")
@@ -220,6 +221,8 @@ def add_commands(sub) -> None:
     r.add_argument("--quick", action="store_true", help="no stage timing at full sizes (for tests)")
     r.set_defaults(func=cmd_report_pipeline)
     r = _network_report(rsub, "depth", "the depth network on held-out factory pairs: AbsRel, RMSE, delta1")
+    r.add_argument("--train-pairs", action="append", default=None, metavar="LENS=DIR",
+                   help="the pairs a lens's network learned from: their median depth is the constant row")
     r.set_defaults(func=cmd_report_depth)
 
     q = sub.add_parser("bench", help="benchmarks (times, not tests)",

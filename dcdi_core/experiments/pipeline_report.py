@@ -156,21 +156,60 @@ def write_report(out_dir, results: dict, times: dict, target_id: str, keep) -> s
     return text
 
 
-def depth_report(pairs: dict, depth_models: dict, split_runs: dict, count: int) -> dict:
-    """{lens: {'capture': scores, 'sharp': scores}} of each lens's depth network."""
+def median_depth_m(pairs_dir, step: int = 4, stride: int = 16) -> float:
+    """The median finite depth (m) of a pairs folder's training scenes (its
+    split.json's 'train' part; every pair without one): every ``step``-th
+    pair, every ``stride``-th pixel of each row and column."""
+    from ..models.common.split import Split
+    from ..models.dacn.data import finished_pairs
+    recs = finished_pairs(pairs_dir)
+    sp = Path(pairs_dir) / "split.json"
+    split = Split.load(sp) if sp.exists() else None
+    ids = [p for p in sorted(recs) if split is None or split.part(recs[p]["frame"]) == "train"][::step]
+    if not ids:
+        from ..models.errors import ModelError
+        raise ModelError(f"{pairs_dir}: no training pairs to take a median depth from")
+    vals = []
+    for pid in ids:
+        d = np.asarray(load_pair(pair_path(pairs_dir, pid), recs[pid]).depth)[::stride, ::stride]
+        vals.append(d[np.isfinite(d) & (d > 0)])
+    return float(np.median(np.concatenate(vals)))
+
+
+def depth_report(pairs: dict, depth_models: dict, split_runs: dict, count: int, constants: dict | None = None) -> dict:
+    """{lens: {'capture': scores, 'sharp': scores[, 'constant': scores]}} of
+    each lens's depth network; 'constant' (with ``constants`` {lens: m}, the
+    training set's median depth): that one depth everywhere, the bar a
+    depth network must clear."""
+    from ..models.common.metrics import depth_scores
+    from ..models.dacn.data import finished_pairs
     from ..models.depth.train import evaluate_depth
     out = {}
     for lens, d in pairs.items():
         ids = held_out(d, split_runs.get(lens, []), count)
         out[lens] = {"pairs": len(ids), "capture": evaluate_depth(depth_models[lens], d, ids, input="capture"),
                      "sharp": evaluate_depth(depth_models[lens], d, ids, input="target")}
+        if constants and lens in constants:
+            recs = finished_pairs(d)
+            rows = [depth_scores(np.full(dep.shape, constants[lens]), dep)
+                    for dep in (np.asarray(load_pair(pair_path(d, p), recs[p]).depth) for p in ids)]
+            out[lens]["constant"] = {k: float(np.mean([r[k] for r in rows])) for k in ("abs_rel", "rmse", "delta1")}
+            out[lens]["constant_m"] = float(constants[lens])
     return out
 
 
 def depth_markdown(res: dict) -> str:
-    lines = ["| lens | pairs | from | AbsRel | RMSE m | delta < 1.25 |", "|---|---|---|---|---|---|"]
+    bar = any("constant" in r for r in res.values())
+    lines = ["| lens | pairs | from | AbsRel | RMSE m | delta < 1.25 |" + (" AbsRel vs constant |" if bar else ""),
+             "|---|---|---|---|---|---|" + ("---|" if bar else "")]
     for lens, r in res.items():
-        for k in ("capture", "sharp"):
+        base = r.get("constant", {}).get("abs_rel")
+        for k in ("capture", "sharp", "constant"):
+            if k not in r:
+                continue
             s = r[k]
-            lines.append(f"| {lens} | {r['pairs']} | {k} | {s['abs_rel']:.3f} | {s['rmse']:.2f} | {s['delta1']:.3f} |")
+            name = f"constant {r['constant_m']:.2f} m" if k == "constant" else k
+            vs = "" if base is None or k == "constant" else f"{100 * (s['abs_rel'] / base - 1):+.0f} %"
+            lines.append(f"| {lens} | {r['pairs']} | {name} | {s['abs_rel']:.3f} | {s['rmse']:.2f} | {s['delta1']:.3f} |"
+                         + (f" {vs} |" if bar else ""))
     return "\n".join(lines) + "\n"
