@@ -9,17 +9,19 @@
 #    pixels), sensor noise, the nominal lens's deconvolution stored: training pairs through a pool of 4 lenses
 #    perturbed within +-5 % and refocused (MOS-S2: room and tabletop twice, at two places), test pairs through
 #    the nominal lens (seed 7);
-# 3. the MOS-S2 study (rows baseline, da2t, refine, refine+mech; seeds 0 and 1; 4800 iterations of batch 8 at
-#    128^2, lr 5e-4, cosine): OUT/study/mos-s2/{data.md,table.md,curves.png,eval.json};
-# 4. the MOS-S1 refine network (seed 0, the same recipe) and its evaluation; the baseline at 2 m against
-#    infinity (1600 iterations);
-# 5. the exports that ship in dcdi_core/models/weights/ (dacn-<lens>.npz, the refine row's seed 0), written to
-#    OUT/weights/.
+# 3. the MOS-S2 study (rows baseline, da2t, refine, refine+mech, refine@2m; seeds 0 and 1; 4800 iterations
+#    of batch 8 at 128^2, lr 5e-4, cosine): OUT/study/mos-s2/{data.md,table.md,curves.png,eval.json};
+# 4. the longer budget (9600 iterations, otherwise the same recipe, seeds 0 and 1): MOS-S2 rows refine and
+#    refine@2m, MOS-S1 refine: OUT/study-9600/<lens>/...; the baseline at 2 m against infinity (1600
+#    iterations);
+# 5. the exports that ship in dcdi_core/models/weights/ (dacn-<lens>.npz, the 9600-iteration refine row's
+#    seed 0), written to OUT/weights/.
 # Every step resumes where a killed run stopped; run it again with the same OUT.
 set -euo pipefail
 OUT=${1:?usage: reproduce_dacn.sh OUT}
 PY=${PYTHON:-.venv/bin/python}
 ITERS=${ITERS:-4800}
+LONG=${LONG:-9600}
 mkdir -p "$OUT"
 for spec in "leaves 200" "room 36" "tabletop 36"; do
   set -- $spec
@@ -47,10 +49,12 @@ for lens in mos-s1 mos-s2; do
   done
 done
 "$PY" -m dcdi_core.experiments.dacn_study "$OUT/study" --lens mos-s2 --train "$OUT/pairs-mos-s2-train" \
-    --test "$OUT/pairs-mos-s2-test" --runs baseline,da2t,refine,refine+mech --seeds 0,1 --iters "$ITERS" \
-    --lr 5e-4 --jobs 2
-"$PY" -m dcdi_core.experiments.dacn_study "$OUT/study" --lens mos-s1 --train "$OUT/pairs-mos-s1-train" \
-    --test "$OUT/pairs-mos-s1-test" --runs refine --seeds 0 --iters "$ITERS" --lr 5e-4 --jobs 1
+    --test "$OUT/pairs-mos-s2-test" --runs baseline,da2t,refine,refine+mech,refine@2m --seeds 0,1 \
+    --iters "$ITERS" --lr 5e-4 --jobs 2
+"$PY" -m dcdi_core.experiments.dacn_study "$OUT/study-$LONG" --lens mos-s2 --train "$OUT/pairs-mos-s2-train" \
+    --test "$OUT/pairs-mos-s2-test" --runs refine,refine@2m --seeds 0,1 --iters "$LONG" --lr 5e-4 --jobs 2
+"$PY" -m dcdi_core.experiments.dacn_study "$OUT/study-$LONG" --lens mos-s1 --train "$OUT/pairs-mos-s1-train" \
+    --test "$OUT/pairs-mos-s1-test" --runs refine --seeds 0,1 --iters "$LONG" --lr 5e-4 --jobs 2
 # the baseline's depth, 2 m against infinity (MOS-S2, seed 0, 1600 iterations, the same frames, lenses and places)
 train_pairs mos-s2 pairs-mos-s2-train-inf 2 --baseline-depth inf
 for spec in "2m pairs-mos-s2-train" "inf pairs-mos-s2-train-inf"; do
@@ -60,6 +64,6 @@ for spec in "2m pairs-mos-s2-train" "inf pairs-mos-s2-train-inf"; do
 done
 mkdir -p "$OUT/weights"
 for lens in mos-s1 mos-s2; do
-  "$PY" -m dcdi_core dacn export "$OUT/study/$lens/refine-s0" --weights ema -o "$OUT/weights/dacn-$lens.npz"
+  "$PY" -m dcdi_core dacn export "$OUT/study-$LONG/$lens/refine-s0" --weights ema -o "$OUT/weights/dacn-$lens.npz"
 done
-echo "done: $OUT/weights (copy into dcdi_core/models/weights/), tables in $OUT/study/*/table.md"
+echo "done: $OUT/weights (copy into dcdi_core/models/weights/), tables in $OUT/study*/*/table.md"
