@@ -47,7 +47,7 @@ NETWORKS = {
     "olf": Network("olf", "Omni-Lens-Field: an MLP of a lens's PSFs over field, depth and focus", "olf",
                    "olf-", addon_package=False, addon_weights=True),      # runtime/olf.py runs it in numpy
     # the shipped refining DACNs, on held-out captures at 12.2 um with noise (the DACN study,
-    # docs/correction.md): MOS-S1 +1.94 dB over the deconvolution (9,600 iterations), MOS-S2 +2.26 dB
+    # docs/correction.md): MOS-S1 +1.97 dB over the deconvolution, MOS-S2 +2.78 dB (9,600 iterations, seed 0)
     "dacn": Network("dacn", "depth-aware correction network (DA2T-trained), per lens", "dacn",
                     "dacn-", addon_package=True, addon_weights=True,      # Correct Simulation with torch
                     beats_deconvolution=("mos-s1", "mos-s2")),
