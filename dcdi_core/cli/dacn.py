@@ -141,8 +141,8 @@ def cmd_dacn_eval(args) -> int:
         from ..models.common.lpips import load_lpips
         lp = load_lpips(*args.lpips)
     ev, kept = evaluate_models(models, args.data, ids=ids, tile=args.tile, overlap=args.overlap,
-                               correct_fn=correct_fn, progress=counter("eval: pair"), keep_outputs=args.pictures_count if args.pictures else 0,
-                               lpips=lp)
+                               correct_fn=correct_fn, progress=counter("eval: pair"),
+                               keep_outputs=args.pictures_count if args.pictures else 0, lpips=lp)
     print(f"{len(ids)} held-out pairs of {args.data}; PSNR dB / SSIM over the imaged pixels")
     print(markdown_tables(ev), end="")
     for name, sec in ev.seconds.items():

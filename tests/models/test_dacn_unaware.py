@@ -44,6 +44,7 @@ def test_derived_pairs_are_the_one_depth_captures_told_that_depth(pairs, derived
 def test_deriving_again_adds_nothing_and_other_settings_are_refused(pairs, derived, tmp_path):  # noqa: F811
     from dcdi_core.errors import InputRangeError
     from dcdi_core.models.dacn.unaware import derive_pairs
+    from dcdi_core.models.errors import ModelError
     n = len((derived / "pairs.jsonl").read_text().splitlines())
     assert len(derive_pairs(pairs, derived)) == n
     assert len((derived / "pairs.jsonl").read_text().splitlines()) == n
@@ -52,7 +53,7 @@ def test_deriving_again_adds_nothing_and_other_settings_are_refused(pairs, deriv
     cfg = json.loads((derived / "da2t.json").read_text())
     (tmp_path / "y").mkdir()
     (tmp_path / "y" / "da2t.json").write_text(json.dumps(dict(cfg, derived_from="elsewhere")))
-    with pytest.raises(InputRangeError, match="derived_from"):
+    with pytest.raises(ModelError, match="other DA2T settings .derived_from"):
         derive_pairs(pairs, tmp_path / "y")
     with pytest.raises(InputRangeError, match="derived pairs"):
         derive_pairs(derived, tmp_path / "z")

@@ -310,6 +310,22 @@ def finished_pairs(root) -> dict:
     return {rec["id"]: rec for rec in read_manifest(Path(root) / "pairs.jsonl")[0]}
 
 
+def record_settings(root, settings: dict) -> None:
+    """``root``/da2t.json: written with ``settings`` in a new folder; in one
+    that has it, they must be equal (resumed work never mixes settings)."""
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    path = root / "da2t.json"
+    if path.exists():
+        old = json.loads(path.read_text(encoding="utf-8"))
+        if old != settings:
+            diff = sorted(k for k in set(old) | set(settings) if old.get(k) != settings.get(k))
+            raise ModelError(f"{root}: pairs built with other DA2T settings ({', '.join(diff)}); use another folder")
+    else:
+        from ...atomic import write_text
+        write_text(path, json.dumps(settings, indent=1, sort_keys=True) + "\n")
+
+
 def build_pairs(source, root, config: DA2TConfig, *, ids=None, variants: int = 1, shard=(0, 1), log=None) -> dict:
     """Pre-build the pairs of ``source``'s frames (``ids``: a subset) into
     ``root``: pairs/<frame>~<k>.npy and a pairs.jsonl line each, the config
@@ -318,16 +334,7 @@ def build_pairs(source, root, config: DA2TConfig, *, ids=None, variants: int = 1
     {pair id: record} of all finished pairs."""
     say = log or (lambda s: None)
     root = Path(root)
-    root.mkdir(parents=True, exist_ok=True)
-    cfg_path = root / "da2t.json"
-    if cfg_path.exists():
-        old = json.loads(cfg_path.read_text(encoding="utf-8"))
-        if old != config.as_dict():
-            diff = sorted(k for k in set(old) | set(config.as_dict()) if old.get(k) != config.as_dict().get(k))
-            raise ModelError(f"{root}: pairs built with other DA2T settings ({', '.join(diff)}); use another folder")
-    else:
-        from ...atomic import write_text
-        write_text(cfg_path, json.dumps(config.as_dict(), indent=1, sort_keys=True) + "\n")
+    record_settings(root, config.as_dict())
     done = finished_pairs(root)
     i, n = shard
     frame_ids = list(source.ids() if ids is None else ids)

@@ -82,7 +82,7 @@ def derive_pairs(src, dst, told_m: float | None = None, *, progress=None) -> dic
     deconvolution. Resumable; a ``dst`` derived with another depth or from
     other pairs is refused. Returns {pair id: record} of ``dst``."""
     from ...dataset.factory_folder import append_record
-    from .data import DA2TPair, finished_pairs, frame_geometry, load_pair, pair_path, save_pair
+    from .data import DA2TPair, finished_pairs, frame_geometry, load_pair, pair_path, record_settings, save_pair
     src, dst = Path(src), Path(dst)
     if not (src / "da2t.json").exists():
         raise InputRangeError(f"{src}/da2t.json", "missing", "a DA2T pairs folder (dcdi dacn pairs)")
@@ -94,21 +94,11 @@ def derive_pairs(src, dst, told_m: float | None = None, *, progress=None) -> dic
         raise InputRangeError(f"{src}/da2t.json: told depth", told_m, f"{base_m:g} m, the depth its one-depth "
                               "captures were blurred at (build pairs with --baseline-depth to tell another)")
     told_m = base_m
-    cfg = dict(cfg_src, told_depth_m=told_m, derived_from=str(src.resolve()))
-    dst.mkdir(parents=True, exist_ok=True)
-    if (dst / "da2t.json").exists():
-        old = json.loads((dst / "da2t.json").read_text(encoding="utf-8"))
-        if old != cfg:
-            diff = sorted(k for k in set(old) | set(cfg) if old.get(k) != cfg.get(k))
-            raise InputRangeError(f"{dst}/da2t.json", ", ".join(diff), "the settings it was derived with "
-                                  "(use another folder)")
-    else:
-        from ...atomic import write_text
-        write_text(dst / "da2t.json", json.dumps(cfg, indent=1, sort_keys=True) + "\n")
+    record_settings(dst, dict(cfg_src, told_depth_m=told_m, derived_from=str(src.resolve())))
     if (src / "split.json").exists() and not (dst / "split.json").exists():
         shutil.copyfile(src / "split.json", dst / "split.json")
     deconv = OneDepthDeconvolution(cfg_src["lens"], told_m, _config(src))
-    todo = {pid: rec for pid, rec in finished_pairs(src).items()}
+    todo = finished_pairs(src)
     done = finished_pairs(dst)
     for i, (pid, rec) in enumerate(sorted(todo.items())):
         if pid in done:
