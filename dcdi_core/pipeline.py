@@ -77,7 +77,9 @@ def pitch_note(trained_mm: float | None, image_mm: float, what: str) -> str | No
 METHODS = ("auto", "deconv", "dacn")
 
 # the names a user knows the choice's inputs by: the `dcdi correct` options
-# (`dcdi dof` passes its own, the add-on its panel's words)
+# (`dcdi dof` passes its own, the add-on its panel's words); the PSF source's
+# ('psf_source', 'basis', 'olf': ``runtime.library.PSF_SOURCE_LABELS``) may be
+# given beside them
 CORRECTION_LABELS = MappingProxyType({"method": "--method", "model": "--model", "lens": "--lens"})
 
 REPORT = "the DACN study (docs/correction.md)"
@@ -173,7 +175,9 @@ class Deconvolution:
     olf_file, basis_file, kernel_size (an
     explicit kernel, px) and response (the sensor's spectral response) as
     ``runtime.library.psf_source``; settings: the PSF settings (their pitch
-    is the geometry's; None: the defaults). reason: why it was chosen."""
+    is the geometry's; None: the defaults). reason: why it was chosen.
+    labels: the names of the PSF source's choices in its messages
+    (``runtime.library.psf_source``'s; None: the CLI's options)."""
 
     lens: object
     options: object = None
@@ -185,6 +189,7 @@ class Deconvolution:
     basis_file: str | None = None
     response: object = None
     reason: str = ""
+    labels: object = None
 
     method = "deconv"
 
@@ -201,7 +206,7 @@ class Deconvolution:
         focus = settings.focus_distance_m if settings is not None else None
         src = psf_source(self.lens, source=self.psf_source, olf_file=self.olf_file, basis_file=self.basis_file,
                          pixel_pitch_mm=geometry.pixel_pitch_mm, settings=settings, kernel_size=self.kernel_size,
-                         focus_m=focus, custom_response=self.response is not None)
+                         focus_m=focus, custom_response=self.response is not None, labels=self.labels)
         library = src.library
         if library is None:
             library = open_library(self.lens, geometry, settings, response=self.response, fit_depth_m=depth_m)
@@ -218,7 +223,8 @@ class NetworkCorrection:
     learned. A refining network (its spec's ``refine``) reads the capture's
     ``deconvolution`` too, run first; a conditioned one the field of each
     pixel, from ``geometry`` (None: the capture spans the sensor's diagonal).
-    reason: why it was chosen."""
+    reason: why it was chosen. labels: the names of the correction's inputs
+    in its messages (:data:`CORRECTION_LABELS`'s keys; None: those)."""
 
     model: object
     info: dict
@@ -227,6 +233,7 @@ class NetworkCorrection:
     reason: str = ""
     deconvolution: Deconvolution | None = None
     geometry: object = None
+    labels: object = None
 
     method = "dacn"
 
@@ -237,8 +244,10 @@ class NetworkCorrection:
         geometry, dec, dec_info = self.geometry, None, None
         if spec.refine or spec.condition:
             if self.deconvolution is None:
-                raise ModelError(f"{self.info.get('checkpoint')}: this network refines the deconvolution with the "
-                                 "capture's lens; name the lens (--lens)")
+                lab = {**CORRECTION_LABELS, **(self.labels or {})}
+                raise ModelError(f"{self.info.get('checkpoint')}: this network "
+                                 + ("refines the deconvolution with" if spec.refine else "reads the field of")
+                                 + f" the capture's lens; name the lens ({lab['lens']})")
             if geometry is None:
                 from .render.geometry import ImageGeometry
                 geometry = ImageGeometry.full_sensor(self.deconvolution.lens, *np.shape(capture)[:2])
@@ -269,15 +278,16 @@ def trained_lens(info: dict) -> str | None:
 
 
 def load_network(path, lens_id: str | None, *, weights: str = "ema", device: str = "cpu", tile: int = 256,
-                 overlap: int = 32, reason: str = "") -> NetworkCorrection:
+                 overlap: int = 32, reason: str = "", labels=None) -> NetworkCorrection:
     """The DACN of ``path`` as a correction, refused when it was trained for
-    another lens than ``lens_id`` (None: not checked)."""
+    another lens than ``lens_id`` (None: not checked); ``labels`` as
+    :class:`NetworkCorrection`'s."""
     from .models.dacn.correct import load_dacn
     model, info = load_dacn(path, weights=weights, device=device)
     trained = trained_lens(info)
     if lens_id is not None and trained is not None and trained != lens_id:
         raise ModelError(f"{path} was trained for lens {trained}, not {lens_id}")
-    return NetworkCorrection(model, info, tile, overlap, reason)
+    return NetworkCorrection(model, info, tile, overlap, reason, labels=labels)
 
 
 def correction_for(camera, geometry, method: str = "auto", model=None, *, deconvolution: Deconvolution | None = None,
@@ -287,18 +297,23 @@ def correction_for(camera, geometry, method: str = "auto", model=None, *, deconv
     sensor (``render.geometry.ImageGeometry``): a :class:`Deconvolution`
     (``deconvolution``'s settings, else the defaults, for ``camera`` at
     ``geometry``) or a :class:`NetworkCorrection` (``model``, or the lens's
-    shipped DACN, loaded with ``weights`` on ``device``)."""
+    shipped DACN, loaded with ``weights`` on ``device``); ``labels`` name
+    the options in every message (the deconvolution's own ``labels``, where
+    set, for its PSF source)."""
     lens_id = camera.id if camera is not None else None
     pitch = geometry.pixel_pitch_mm if geometry is not None else None
     chosen, reason = choose_correction(lens_id, pitch, method, model, labels=labels)
+    template = deconvolution or Deconvolution(camera)
+    if template.labels is None and labels is not None:
+        template = replace(template, labels=labels)
     if chosen == "deconv":
-        return replace(deconvolution or Deconvolution(camera), lens=camera, geometry=geometry, reason=reason)
+        return replace(template, lens=camera, geometry=geometry, reason=reason)
     path = model if model is not None else NETWORKS["dacn"].shipped_file(lens_id)
-    net = load_network(path, lens_id, weights=weights, device=device, tile=tile, overlap=overlap, reason=reason)
+    net = load_network(path, lens_id, weights=weights, device=device, tile=tile, overlap=overlap, reason=reason,
+                       labels=labels)
     if camera is None:
         return net
-    return replace(net, deconvolution=replace(deconvolution or Deconvolution(camera), lens=camera, geometry=geometry),
-                   geometry=geometry)
+    return replace(net, deconvolution=replace(template, lens=camera, geometry=geometry), geometry=geometry)
 
 
 # ------------------------------------------------------------------ the stages

@@ -27,6 +27,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
+from types import MappingProxyType
 
 import numpy as np
 
@@ -168,10 +169,15 @@ def _settings_differences(learned: dict, settings: PSFSettings | None, *, rays_a
 _load_olf = FileCache(OmniLensField.load, 1)
 
 
+# the names a user knows the source's choices by: the CLI's options (the add-on has none of them: None, the
+# mention left out)
+PSF_SOURCE_LABELS = MappingProxyType({"psf_source": "--psf-source", "basis": "--basis", "olf": "--olf"})
+
+
 def psf_source(lens, *, source: str | None = None, olf_file=None, pixel_pitch_mm: float | None = None,
                settings: PSFSettings | None = None, kernel_size: int | None = None, focus_m=None,
                custom_response: bool = False, grid: LibraryGrid | None = None,
-               need_field: bool = True, basis_file=None) -> PSFSource:
+               need_field: bool = True, basis_file=None, labels=None) -> PSFSource:
     """The PSF source for ``lens`` and a request: ``source`` 'basis' (the
     lens's compressed library), 'olf' (the OLF), each an error saying why if
     it cannot serve, 'trace', or None: the basis where it covers the request,
@@ -179,12 +185,16 @@ def psf_source(lens, *, source: str | None = None, olf_file=None, pixel_pitch_mm
     ``basis_file`` goes first). ``olf_file`` / ``basis_file``: the files
     (default: the shipped ones). The request: the image's pixel pitch (None:
     the lens's sensor), the PSF settings asked for, an explicit kernel size,
-    a focus distance (None: as prescribed), a custom spectral response."""
+    a focus distance (None: as prescribed), a custom spectral response.
+    ``labels`` ({'psf_source', 'basis', 'olf'}: the CLI's options by
+    default; a label None leaves the option unnamed) name the choices in the
+    messages."""
+    lab = {**PSF_SOURCE_LABELS, **(labels or {})}
     if source not in (None,) + SOURCES:
         raise InputRangeError("psf source", source,
                               "basis, olf, trace, or none (the first of basis and olf that covers the request)")
     if source == "trace":
-        return PSFSource("trace", "PSFs traced (--psf-source trace)")
+        return PSFSource("trace", "PSFs traced" + (f" ({lab['psf_source']} trace)" if lab["psf_source"] else ""))
     reasons: list[str] = []
     # an OLF file given without a basis file is the source asked for: it goes first
     order = ("olf", "basis") if olf_file and not basis_file else ("basis", "olf")
@@ -193,23 +203,30 @@ def psf_source(lens, *, source: str | None = None, olf_file=None, pixel_pitch_mm
             continue
         src, why = (_try_basis if kind == "basis" else _try_olf)(
             lens, basis_file if kind == "basis" else olf_file, pixel_pitch_mm, settings, kernel_size, focus_m,
-            custom_response, grid)
+            custom_response, grid, lab[kind])
         if src is not None:
             return src
         if source == kind:
             what = "PSF basis" if kind == "basis" else "Omni-Lens-Field"
-            raise ModelError(f"--psf-source {kind}: the {what} cannot serve this request: {why}")
+            raise ModelError(f"{lab['psf_source'] or 'PSF source'} {kind}: the {what} cannot serve this request: "
+                             f"{why}")
         reasons.append(f"{'basis' if kind == 'basis' else 'OLF'}: {why}")
     olf_path = Path(olf_file) if olf_file else (SHIPPED if SHIPPED.exists() else None)
     return PSFSource("trace", "PSFs traced: " + "; ".join(reasons), None,
                      None if olf_path is None else str(olf_path))
 
 
-def _try_basis(lens, basis_file, pitch, settings, kernel_size, focus_m, custom_response, grid):
-    """(PSFSource, None) where the lens's PSF basis serves the request, else (None, why)."""
+def _none_given(label: str | None) -> str:
+    """' and none was given (LABEL)' where the user can give one."""
+    return f" and none was given ({label})" if label else ""
+
+
+def _try_basis(lens, basis_file, pitch, settings, kernel_size, focus_m, custom_response, grid, label="--basis"):
+    """(PSFSource, None) where the lens's PSF basis serves the request, else (None, why); ``label``: the
+    option that gives a basis file (None: none)."""
     path = Path(basis_file) if basis_file else shipped_store(lens.id)
     if path is None:
-        return None, f"no PSF basis of {lens.id} ships with this engine and none was given (--basis)"
+        return None, f"no PSF basis of {lens.id} ships with this engine{_none_given(label)}"
     try:
         store = open_store(path)
         store.check_lens(lens)
@@ -239,11 +256,12 @@ def _try_basis(lens, basis_file, pitch, settings, kernel_size, focus_m, custom_r
                      lib, None, str(path)), None
 
 
-def _try_olf(lens, olf_file, pitch, settings, kernel_size, focus_m, custom_response, grid):
-    """(PSFSource, None) where the OLF serves the request, else (None, why)."""
+def _try_olf(lens, olf_file, pitch, settings, kernel_size, focus_m, custom_response, grid, label="--olf"):
+    """(PSFSource, None) where the OLF serves the request, else (None, why); ``label``: the option that gives
+    an OLF file (None: none)."""
     path = Path(olf_file) if olf_file else (SHIPPED if SHIPPED.exists() else None)
     if path is None:
-        return None, "no OLF file ships with this engine and none was given (--olf)"
+        return None, f"no OLF file ships with this engine{_none_given(label)}"
     try:
         olf = _load_olf(path)
         reason = _why_not(olf, lens, pitch, settings, kernel_size, focus_m, custom_response)
