@@ -437,8 +437,10 @@ def load_dacn_cached(path: Path):
 METHODS = ("auto", "deconvolution", "network")
 METHOD_NAMES = {"auto": "Auto", "deconvolution": "Deconvolution", "network": "Network"}
 # the engine's names of the two corrections (pipeline.choose_correction), and the panel's words for its options
+# (pipeline.CORRECTION_LABELS's; the PSF source has no setting in the panel: its options go unnamed)
 ENGINE_METHODS = {"deconv": "deconvolution", "dacn": "network"}
-CORRECTION_LABELS = {"method": "Method", "model": "Correction Model", "lens": "Lens"}
+CORRECTION_LABELS = {"method": "Method", "model": "Correction Model", "lens": "Lens", "psf_source": None,
+                     "basis": None, "olf": None}
 # the sensor Simulate's Sensor Noise adds (render.noise.add_sensor_noise's defaults), electrons
 SENSOR_FULL_WELL_E = 10000.0
 SENSOR_READ_NOISE_E = 3.0
@@ -494,8 +496,8 @@ def run_correction(image, depth_m, lens, choice: CorrectionChoice, *, geometry, 
         out, info = run_deconvolution(image, depth_m, lens, geometry, sensor_noise=sensor_noise, progress=progress,
                                       cancelled=cancelled)
     else:
-        out, info = run_network(image, depth_m, lens.id, choice.model_path, pixel_pitch_mm=geometry.pixel_pitch_mm,
-                                progress=progress, cancelled=cancelled)
+        out, info = run_network(image, depth_m, lens, choice.model_path, geometry=geometry, progress=progress,
+                                cancelled=cancelled)
     return out, dict(info, method=choice.method, reason=choice.reason)
 
 
@@ -508,7 +510,8 @@ def run_deconvolution(image, depth_m, lens, geometry, *, sensor_noise: bool = Fa
     as :func:`run_bokeh`. Returns (image, info)."""
     correct = core("correct")
     report = _psf_progress(progress, cancelled)
-    src = core("models.runtime.library").psf_source(lens, pixel_pitch_mm=geometry.pixel_pitch_mm)
+    src = core("models.runtime.library").psf_source(lens, pixel_pitch_mm=geometry.pixel_pitch_mm,
+                                                     labels=CORRECTION_LABELS)
     lib = src.library or core("render.simulate").open_library(lens, geometry, fit_depth_m=depth_m, progress=report)
     _check_cancel(cancelled)
     noise = correct.NoiseModel.sensor(SENSOR_FULL_WELL_E, SENSOR_READ_NOISE_E) if sensor_noise else None
@@ -526,27 +529,49 @@ def run_deconvolution(image, depth_m, lens, geometry, *, sensor_noise: bool = Fa
     return res.image, info
 
 
-def run_network(image, depth_m, lens_id: str, model_path: Path, *, pixel_pitch_mm: float, progress=None,
-                cancelled=None):
-    """The DACN of ``model_path`` on a simulated capture of ``lens_id`` with
-    its depth on the sensor: ``pipeline.recover`` (the CLI's stage 2,
-    tiled). Returns (image, info: the model, the lens it was trained for,
-    notes (another lens, another pixel pitch), seconds)."""
+def run_network(image, depth_m, lens, model_path: Path, *, geometry, progress=None, cancelled=None):
+    """The DACN of ``model_path`` on a simulated capture of ``lens`` with its
+    depth on the sensor and its ``geometry``, as `dcdi correct --method dacn`
+    runs it: ``pipeline.NetworkCorrection`` (tiled, on the capture clipped to
+    [0, 1]) by ``pipeline.recover``. A refining network reads the capture's
+    deconvolution too (``pipeline.Deconvolution`` of the lens at that
+    geometry, with the options its training pairs and the CLI use: the noise
+    estimated from the image, Sensor Noise or not), a conditioned one the
+    field of each pixel, one trained told a single depth is told it again
+    (``models.dacn.unaware``). ``progress`` / ``cancelled`` as
+    :func:`run_bokeh` (cancel between tiles). Returns (image, info: the
+    model, the lens it was trained for, notes (another lens, another pixel
+    pitch), seconds, the deconvolution's PSF source where it ran)."""
+    pipeline = core("pipeline")
     _check_cancel(cancelled)
     if progress is not None:
         progress("loading the network", 0.0)
     model, minfo = load_dacn_cached(model_path)
     _check_cancel(cancelled)
     if progress is not None:
-        progress("correcting", 0.5)
-    notes, seconds = [], {}
-    out, _, _ = core("pipeline").recover(image, camera_pitch_mm=pixel_pitch_mm, depth_m=depth_m,
-                                         corrector=model, corrector_info=minfo, seconds=seconds, notes=notes)
-    trained_for = (minfo.get("meta") or {}).get("lens") or (minfo.get("da2t") or {}).get("lens")
-    if trained_for and trained_for != lens_id:
-        notes.append(f"the network was trained for lens {trained_for!r}, the simulation is of {lens_id!r}")
-    return out.astype(np.float32), {"model": str(model_path), "trained_for": trained_for, "notes": notes,
-                                    "seconds": seconds.get("correction", 0.0)}
+        progress("correcting", 0.0)
+
+    def tiles(done, total):
+        _check_cancel(cancelled)
+        if progress is not None:
+            progress("correcting", done / max(total, 1))
+
+    deconvolution = pipeline.Deconvolution(lens, geometry=geometry, labels=CORRECTION_LABELS)
+    net = pipeline.NetworkCorrection(model, minfo, deconvolution=deconvolution, geometry=geometry,
+                                     labels=CORRECTION_LABELS)
+    notes, seconds, record = [], {}, {}
+    out, _, _ = pipeline.recover(image, camera_pitch_mm=geometry.pixel_pitch_mm, depth_m=depth_m, correction=net,
+                                 seconds=seconds, notes=notes, record=record, progress=tiles)
+    trained_for = pipeline.trained_lens(minfo)
+    if trained_for and trained_for != lens.id:
+        notes.append(f"the network was trained for lens {trained_for!r}, the simulation is of {lens.id!r}")
+    info = {"model": str(model_path), "trained_for": trained_for, "notes": notes,
+            "seconds": seconds.get("correction", 0.0)}
+    dec = record.get("deconvolution")
+    if dec is not None:                          # a refining network: the deconvolution it refined
+        info.update(deconvolution=dec, psf_source=dec["psf_source"],
+                    psf_source_message=f"the deconvolution it refined: {dec['psf_message']}")
+    return out.astype(np.float32), info
 
 
 def correction_line(info: dict, seconds: float) -> str:

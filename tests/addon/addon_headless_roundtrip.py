@@ -4,8 +4,9 @@ Minimalist Lens and Correct Simulation (the DCDI round trip), first with
 torch blocked by an import hook (Network refuses, saying what to install;
 Auto and Deconvolution run the numpy deconvolution), then with torch and a
 tiny exported DACN as the lens's shipped network (Network, and Auto by the
-engine's rule), then with Sensor Noise; writes what it saw to a JSON file
-(pixels as .npy beside it).
+engine's rule), then with the lens's real shipped DACN (a refining one), then
+with Sensor Noise; writes what it saw to a JSON file (pixels as .npy beside
+it).
 
     python tests/addon/addon_headless_roundtrip.py ZIP OUT_DIR DACN_NPZ LENS
 """
@@ -153,6 +154,10 @@ res["missing_model_error"] = error_of(lambda: bpy.ops.dcdi.correct_lens_simulati
 s.correction_model = ""
 s.correction_method = "AUTO"
 registry.WEIGHTS_DIR = real_weights
+# the lens's real shipped network: a refining DACN (it reads the capture's deconvolution, depth and field)
+res["shipped_network_error"] = error_of(lambda: correct("NETWORK", "correct_shipped"))
+res["panel_shipped"] = draw_panel()
+s.correction_method = "AUTO"
 res["round_trip_diff"] = diff(before, state())
 res["new_data"] = {k: v - counts[k] for k, v in data_counts().items() if v != counts[k]}
 res["images_before"], res["images"] = imgs, images()

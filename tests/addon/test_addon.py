@@ -760,6 +760,123 @@ def test_auto_runs_a_shipped_network_recorded_better_at_its_pitch(tiny_dacn, tmp
         logic.choose_correction("wiener", ROUND_TRIP_LENS, learned)
 
 
+
+# ------------------------------------------------------------------ Correct with the shipped (refining) DACNs
+SHIPPED_PITCH_MM = 0.0122            # the pitch the shipped DACNs learned (registry: the DACN study's 12.2 um)
+
+
+def _capture_at_the_shipped_pitch(tmp_path, lens_id, height=64, width=96):
+    """A small simulated capture of ``lens_id`` at the shipped DACNs' pitch
+    (a crop of the sensor round the axis): its EXR and depth files, and
+    (capture as read back, depth on the sensor, lens, geometry)."""
+    from dcdi_core.io.images import read_image, write_image
+    from dcdi_core.models.runtime.library import psf_source
+    from dcdi_core.render.geometry import ImageGeometry
+    from dcdi_core.render.simulate import simulate
+    from dcdi_core.render.synthetic import synthetic_rgbd
+    lens = logic.load_lens_cached(str(ROOT / "lenses" / f"{lens_id}.toml"))
+    geom = ImageGeometry.from_pixel_pitch(lens, height, width, SHIPPED_PITCH_MM)
+    rgb, depth = synthetic_rgbd(height, width, seed=1)
+    sim = simulate(rgb, depth, lens, geometry=geom, library=psf_source(lens, pixel_pitch_mm=SHIPPED_PITCH_MM).library)
+    write_image(tmp_path / "capture.exr", sim.image)
+    np.save(tmp_path / "depth.npy", sim.depth)
+    return read_image(tmp_path / "capture.exr"), sim.depth.astype(np.float32), lens, geom
+
+
+def _cli_correct(capsys, tmp_path, lens_id, method, name, *extra):
+    """`dcdi correct --method METHOD --lens LENS [extra]` of the capture at the shipped pitch: (image, its JSON
+    record)."""
+    from dcdi_core.io.images import read_image
+    from support.cli import run_cli
+    out = tmp_path / f"{name}.exr"
+    code, stdout, err = run_cli(capsys, "correct", "--method", method, "--lens", lens_id, "--image",
+                                tmp_path / "capture.exr", "--depth", tmp_path / "depth.npy", "--image-pixel-pitch",
+                                repr(SHIPPED_PITCH_MM), "-o", out, *extra)
+    assert code == 0, err
+    return read_image(out), json.loads(stdout)
+
+
+@pytest.mark.parametrize("lens_id", ["mos-s1", "mos-s2"])
+def test_network_runs_the_shipped_refining_dacn_as_dcdi_correct_does(lens_id, tmp_path, capsys, monkeypatch):
+    """Correct's Network on a capture of a lens whose shipped DACN refines
+    the deconvolution (and reads depth and field): the add-on's result is
+    `dcdi correct --method dacn --lens L` on the same capture, depth and
+    pixel pitch; Auto at that pitch picks the network (recorded better) and
+    gives `dcdi correct --method auto`'s result."""
+    pytest.importorskip("torch")
+    monkeypatch.setenv("DCDI_CACHE_DIR", str(tmp_path / "cache"))
+    from dcdi_core.models.dacn.correct import load_dacn
+    from dcdi_core.pipeline import shipped_model
+    spec = load_dacn(shipped_model("dacn", lens_id))[0].spec
+    assert spec.refine and spec.condition                       # the defect's case: a refining, conditioned DACN
+    capture, depth, lens, geom = _capture_at_the_shipped_pitch(tmp_path, lens_id)
+    want, record = _cli_correct(capsys, tmp_path, lens_id, "dacn", "cli-dacn")
+    assert record["correction"]["method"] == "dacn" and "deconvolution" in record["correction"]
+    choice = logic.choose_correction("network", lens_id, geom.pixel_pitch_mm)
+    assert choice.method == "network" and choice.model_path == shipped_model("dacn", lens_id)
+    got, info = logic.run_correction(capture, depth, lens, choice, geometry=geom)
+    assert got.shape == (64, 96, 3) and got.dtype == np.float32
+    np.testing.assert_allclose(got, want, atol=1e-5)
+    assert info["notes"] == []                                  # its own lens, the pitch it learned
+    # Auto: the network, recorded better than the deconvolution, at the pitch it learned
+    auto = logic.choose_correction("auto", lens_id, geom.pixel_pitch_mm)
+    assert auto.method == "network" and "recorded better than the deconvolution" in auto.reason, auto
+    want_auto, record = _cli_correct(capsys, tmp_path, lens_id, "auto", "cli-auto")
+    assert record["correction"]["method"] == "dacn"
+    got_auto, _ = logic.run_correction(capture, depth, lens, auto, geometry=geom)
+    np.testing.assert_allclose(got_auto, want_auto, atol=1e-5)
+
+
+
+
+def test_network_tells_a_one_depth_dacn_its_depth_as_dcdi_correct_does(tmp_path, capsys, monkeypatch):
+    """A Correction Model trained told one depth (models.dacn.unaware: here
+    the shipped MOS-S1 network's file recorded so, told 2 m): the add-on
+    tells it that depth and refines the one-depth deconvolution, as `dcdi
+    correct --model FILE` does."""
+    pytest.importorskip("torch")
+    monkeypatch.setenv("DCDI_CACHE_DIR", str(tmp_path / "cache"))
+    from dcdi_core.models.dacn.export import read_dacn_file
+    from dcdi_core.models.runtime.npz import write_model_npz
+    from dcdi_core.pipeline import shipped_model
+    meta, arrays = read_dacn_file(shipped_model("dacn", "mos-s1"))
+    meta = {k: v for k, v in meta.items() if k != "checksum"}
+    meta["da2t"] = dict(meta["da2t"], told_depth_m=2.0)
+    told = tmp_path / "told-2m.npz"
+    write_model_npz(told, meta, arrays)
+    capture, depth, lens, geom = _capture_at_the_shipped_pitch(tmp_path, "mos-s1")
+    want, record = _cli_correct(capsys, tmp_path, "mos-s1", "dacn", "cli-told", "--model", told)
+    assert record["correction"]["deconvolution"]["one_depth_m"] == 2.0
+    choice = logic.choose_correction("network", "mos-s1", geom.pixel_pitch_mm, str(told))
+    got, info = logic.run_correction(capture, depth, lens, choice, geometry=geom)
+    np.testing.assert_allclose(got, want, atol=1e-5)
+    assert info["deconvolution"]["one_depth_m"] == 2.0
+    shipped, _ = logic.run_correction(capture, depth, lens, logic.choose_correction("network", "mos-s1",
+                                                                                    geom.pixel_pitch_mm),
+                                      geometry=geom)
+    assert np.abs(shipped - got).max() > 1e-3                 # told one depth: another result
+
+
+def test_network_in_blender_runs_the_lenss_shipped_dacn_as_dcdi_correct_does(round_trip, tmp_path, capsys):
+    """The operator with Network and the lens's real shipped DACN (MOS-S2's
+    refines the deconvolution): it runs, and its image is `dcdi correct
+    --method dacn --lens mos-s2` of the simulation at the preview's pixel
+    pitch and with its depth on the sensor."""
+    from dcdi_core.io.images import read_image, write_image
+    from support.cli import run_cli
+    r, d = round_trip, round_trip["dir"]
+    assert r["shipped_network_error"] is None and r["correct_shipped"] == ["FINISHED"]
+    assert r["correct_shipped_line"].startswith(f"Network with dacn-{ROUND_TRIP_LENS}.npz (chosen in the panel), ")
+    write_image(tmp_path / "capture.exr", np.load(d / "rt-sim.npy"))
+    code, _, err = run_cli(capsys, "correct", "--method", "dacn", "--lens", ROUND_TRIP_LENS, "--image",
+                           tmp_path / "capture.exr", "--depth", d / "rt-sensor_depth.npy", "--image-pixel-pitch",
+                           repr(r["pixel_pitch_mm"]), "-o", tmp_path / "cli.exr")
+    assert code == 0, err
+    got = np.load(d / "rt-correct_shipped.npy")
+    assert got.shape == (96, 128, 3) and np.isfinite(got).all()
+    np.testing.assert_allclose(got, read_image(tmp_path / "cli.exr"), atol=1e-5)
+
+
 def test_psf_thumbnail_is_a_grid_of_peak_normalised_psfs():
     lens = logic.load_lens_cached(str(ROOT / "lenses" / "mos-s1.toml"))
     img = logic.psf_thumbnail(lens, tile=15)
