@@ -579,3 +579,12 @@ def correction_line(info: dict, seconds: float) -> str:
     '<Method> (<why>), <time>' (and the network's file)."""
     used = f" with {Path(info['model']).name}" if info.get("model") else ""
     return f"{METHOD_NAMES[info['method']]}{used} ({info['reason']}), {seconds:.1f} s"
+
+
+def correction_report(info: dict, seconds: float, shape) -> str:
+    """The info message of a finished Correct on an image of ``shape`` (H, W, ...):
+    'Correct Simulation: <correction_line>; W x H px', then the notes and the PSF source."""
+    h, w = shape[:2]
+    notes = "".join(f"; {n}" for n in info["notes"])
+    source = f"; {info['psf_source_message']}" if info.get("psf_source_message") else ""
+    return f"Correct Simulation: {correction_line(info, seconds)}; {w} x {h} px{notes}{source}"

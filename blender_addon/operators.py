@@ -401,12 +401,8 @@ class DCDI_OT_correct_simulation(_JobOperator, bpy.types.Operator):
     def finish(self, context, job, result, seconds):
         out, info = result
         bpy_render.show_in_image_editor(context, bpy_render.put_image(CORRECTED_IMAGE, out))
-        line = logic.correction_line(info, seconds)
-        context.window_manager.dcdi_lens_bokeh_status.correction = line
-        h, w = out.shape[:2]
-        notes = "".join(f"; {n}" for n in info["notes"])
-        source = f"; {info['psf_source_message']}" if info.get("psf_source_message") else ""
-        self.report({"INFO"}, f"Correct Simulation: {line}; {w} x {h} px{notes}{source}")
+        context.window_manager.dcdi_lens_bokeh_status.correction = logic.correction_line(info, seconds)
+        self.report({"INFO"}, logic.correction_report(info, seconds, out.shape))
 
 
 def _redraw(context):

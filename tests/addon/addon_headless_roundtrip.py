@@ -5,8 +5,9 @@ torch blocked by an import hook (Network refuses, saying what to install;
 Auto and Deconvolution run the numpy deconvolution), then with torch and a
 tiny exported DACN as the lens's shipped network (Network, and Auto by the
 engine's rule), then with the lens's real shipped DACN (a refining one), then
-with Sensor Noise; writes what it saw to a JSON file (pixels as .npy beside
-it).
+with Sensor Noise; records every message Correct shows (its errors, its info
+reports, the panel's lines); writes what it saw to a JSON file (pixels as
+.npy beside it).
 
     python tests/addon/addon_headless_roundtrip.py ZIP OUT_DIR DACN_NPZ LENS
 """
@@ -43,6 +44,17 @@ res["install"], _ = install(ZIP)
 ops_mod = sys.modules[f"{MODULE}.operators"]
 logic = sys.modules[f"{MODULE}.logic"]
 registry = importlib.import_module(f"{MODULE}.dcdi_core.models.registry")
+# every info report of a finished Correct (the operator's report goes to Blender's log, not to Python)
+reports = []
+_correction_report = logic.correction_report
+
+
+def _recorded_report(*args, **kwargs):
+    reports.append(_correction_report(*args, **kwargs))
+    return reports[-1]
+
+
+logic.correction_report = _recorded_report
 s = scene.dcdi_lens_bokeh
 s.lens = LENS
 s.preview_size = 128
@@ -138,6 +150,7 @@ real_weights = registry.WEIGHTS_DIR
 registry.WEIGHTS_DIR = empty
 s.correction_method = "NETWORK"
 res["no_shipped_error"] = error_of(lambda: bpy.ops.dcdi.correct_lens_simulation())
+res["panel_no_shipped"] = draw_panel()
 res["auto_choice_no_network"] = choice()
 registry.WEIGHTS_DIR = shipped
 for run in ("cold", "warm"):
@@ -151,12 +164,24 @@ correct("NETWORK", "correct_model_file")
 correct("AUTO", "auto_given")            # with torch, Auto runs the network given
 s.correction_model = str(OUT / "missing.npz")
 res["missing_model_error"] = error_of(lambda: bpy.ops.dcdi.correct_lens_simulation())
+res["panel_missing_model"] = draw_panel()
 s.correction_model = ""
 s.correction_method = "AUTO"
 registry.WEIGHTS_DIR = real_weights
 # the lens's real shipped network: a refining DACN (it reads the capture's deconvolution, depth and field)
 res["shipped_network_error"] = error_of(lambda: correct("NETWORK", "correct_shipped"))
 res["panel_shipped"] = draw_panel()
+# what Correct says where it cannot run: a file that is no DACN, a lens without a shipped network
+(OUT / "junk.npz").write_bytes(b"not a network")
+s.correction_model = str(OUT / "junk.npz")
+res["junk_model_error"] = error_of(lambda: bpy.ops.dcdi.correct_lens_simulation())
+res["panel_junk_model"] = draw_panel()
+s.correction_model = ""
+try:
+    logic.choose_correction("network", "6p", sim["pixel_pitch_mm"])
+    res["no_shipped_6p"] = None
+except logic.BokehInputError as e:
+    res["no_shipped_6p"] = str(e)
 s.correction_method = "AUTO"
 res["round_trip_diff"] = diff(before, state())
 res["new_data"] = {k: v - counts[k] for k, v in data_counts().items() if v != counts[k]}
@@ -179,4 +204,5 @@ res["disable"] = sorted(bpy.ops.preferences.addon_disable(module=MODULE))
 res["leftovers"] = [n for n in dir(bpy.types) if n.startswith("DCDI_")]
 res["operators_left"] = [n for n in ("simulate_lens", "correct_lens_simulation") if n in dir(bpy.ops.dcdi)]
 res["simulation_kept"] = bool(ops_mod._SIMULATION)
+res["correct_reports"] = reports
 (OUT / "result.json").write_text(json.dumps(res, indent=1, default=str))

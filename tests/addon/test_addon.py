@@ -620,6 +620,55 @@ def test_correct_says_what_it_needs(round_trip):
     assert "missing.npz': no such file" in r["missing_model_error"]
 
 
+
+def _correct_messages(r) -> dict:
+    """Every message of Correct the round trip saw, by where it was seen: the
+    errors (an ERROR report or a failed poll), the worker path's refusals,
+    each finished Correct's info report and panel line, and the panel's texts."""
+    out = {k: r[k] for k in ("correct_first", "no_torch_error", "no_torch_run", "no_shipped_error",
+                             "missing_model_error", "junk_model_error", "no_shipped_6p", "shipped_network_error")
+           if r[k] is not None}
+    out.update({k: v for k, v in r.items() if k.endswith("_line") and isinstance(v, str)})
+    out.update({f"report {i}": m for i, m in enumerate(r["correct_reports"])})
+    for k, drawn in r.items():
+        if k.startswith("panel_"):
+            out.update({f"{k} {i}": x[1] for i, x in enumerate(drawn) if x[0] == "label"})
+    return out
+
+
+def test_correct_speaks_the_panels_words(round_trip):
+    """What Correct shows a Blender user (no torch, no shipped network, a
+    missing or broken Correction Model, each run's report) names the panel's
+    settings, never a `dcdi` option."""
+    r = round_trip
+    messages = _correct_messages(r)
+    for k in ("no_torch_error", "no_torch_run", "no_shipped_error", "missing_model_error", "junk_model_error",
+              "no_shipped_6p"):
+        assert messages[k], k                                   # each case was refused, saying why
+    assert "junk.npz" in messages["junk_model_error"]
+    assert "lens '6p': shipped for mos-s1, mos-s2" in messages["no_shipped_6p"]
+    assert len(r["correct_reports"]) >= 10 and any("the deconvolution it refined: PSFs from" in m
+                                                   for m in r["correct_reports"])
+    assert {k: m for k, m in messages.items() if "--" in m} == {}
+
+
+def test_psf_source_messages_on_corrects_path_name_no_option(monkeypatch):
+    """The PSF source Correct's deconvolutions report, for a lens without a
+    shipped basis and no OLF: no CLI option named (the CLI's own words keep
+    them)."""
+    import dcdi_core.models.runtime.library as library
+    from dcdi_core.optics.lens import Lens
+    from conftest import singlet_dict
+    monkeypatch.setattr(library, "SHIPPED", Path("/nonexistent/olf.npz"))
+    lens = Lens.from_dict(singlet_dict())
+    cli = library.psf_source(lens, pixel_pitch_mm=0.01)
+    assert cli.kind == "trace" and "(--basis)" in cli.message and "(--olf)" in cli.message
+    panel = library.psf_source(lens, pixel_pitch_mm=0.01, labels=logic.CORRECTION_LABELS)
+    assert panel.kind == "trace" and "--" not in panel.message, panel.message
+    assert "no PSF basis of test-singlet ships with this engine" in panel.message
+    assert library.psf_source(lens, source="trace", labels=logic.CORRECTION_LABELS).message == "PSFs traced"
+
+
 def test_round_trip_disable_leaves_nothing_registered(round_trip):
     assert round_trip["disable"] == ["FINISHED"] and round_trip["leftovers"] == []
     assert round_trip["operators_left"] == [] and not round_trip["simulation_kept"]
