@@ -878,6 +878,31 @@ def test_network_runs_the_shipped_refining_dacn_as_dcdi_correct_does(lens_id, tm
 
 
 
+
+def test_auto_at_the_shipped_pitch_without_torch_deconvolves_saying_why(tmp_path, capsys, monkeypatch):
+    """Auto where the rule picks the shipped network (MOS-S1 at 12.2 um) and
+    Blender's Python has no torch: the deconvolution runs (`dcdi correct
+    --method deconv`'s result), its reason in the panel's words; Network
+    asked for says what to install."""
+    monkeypatch.setenv("DCDI_CACHE_DIR", str(tmp_path / "cache"))
+    capture, depth, lens, geom = _capture_at_the_shipped_pitch(tmp_path, "mos-s1")
+    want, record = _cli_correct(capsys, tmp_path, "mos-s1", "deconv", "cli-deconv")
+    monkeypatch.setitem(sys.modules, "torch", None)          # as absent as in Blender's own Python
+    auto = logic.choose_correction("auto", "mos-s1", geom.pixel_pitch_mm)
+    assert auto.method == "deconvolution" and auto.model_path is None
+    assert auto.reason.startswith("the shipped DACN of mos-s1 is recorded better than the deconvolution")
+    assert auto.reason.endswith("; but this Python has no PyTorch for it") and "--" not in auto.reason
+    got, info = logic.run_correction(capture, depth, lens, auto, geometry=geom)
+    np.testing.assert_allclose(got, want, atol=1e-5)
+    assert info["psf_source"] == record["correction"]["psf_source"] == "basis"
+    line = logic.correction_report(info, 0.1, got.shape)
+    assert line.startswith(f"Correct Simulation: Deconvolution ({auto.reason}), 0.1 s; 96 x 64 px; PSFs from")
+    assert "--" not in line
+    with pytest.raises(logic.BokehInputError, match="Deconvolution runs without it") as e:
+        logic.choose_correction("network", "mos-s1", geom.pixel_pitch_mm)
+    assert "--" not in str(e.value)
+
+
 def test_network_tells_a_one_depth_dacn_its_depth_as_dcdi_correct_does(tmp_path, capsys, monkeypatch):
     """A Correction Model trained told one depth (models.dacn.unaware: here
     the shipped MOS-S1 network's file recorded so, told 2 m): the add-on
