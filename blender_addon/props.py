@@ -37,6 +37,13 @@ def _lens_items(self, context):
     return _ITEMS
 
 
+def _settings_changed(settings, context):
+    """Every setting the viewport preview shows: tell it (a Python assignment
+    and a click both run this; neither tags the depsgraph)."""
+    from . import viewport
+    viewport.settings_changed(settings, context)
+
+
 def lens_path(settings) -> str | None:
     """Path of the chosen lens's TOML file (None when there is none)."""
     for e in catalogue():
@@ -46,32 +53,32 @@ def lens_path(settings) -> str | None:
 
 
 class DCDI_LensBokehSettings(bpy.types.PropertyGroup):
-    lens: EnumProperty(name="Lens", description="Lens prescription (lenses/*.toml and imported Zemax files)",
+    lens: EnumProperty(update=_settings_changed, name="Lens", description="Lens prescription (lenses/*.toml and imported Zemax files)",
                        items=_lens_items, default=logic.lens_number(DEFAULT_LENS))
-    focus_mode: EnumProperty(name="Focus", items=[
+    focus_mode: EnumProperty(update=_settings_changed, name="Focus", items=[
         ("DISTANCE", "Distance", "Focus at a distance from the lens"),
         ("OBJECT", "Object", "Focus on an object's origin (its depth along the camera's view axis)"),
         ("CAMERA", "Camera", "The active camera's own Depth of Field focus: its Focus Object, else its Focus "
                              "Distance (animated with the camera)")],
         default="DISTANCE")
-    focus_distance: FloatProperty(name="Focus Distance", description="Distance from the lens's first vertex, "
+    focus_distance: FloatProperty(update=_settings_changed, name="Focus Distance", description="Distance from the lens's first vertex, "
                                   "in scene units (metres at unit scale 1)", default=2.0, min=0.01, soft_max=50.0,
                                   subtype="DISTANCE", unit="LENGTH")
-    focus_object: PointerProperty(name="Focus Object", type=bpy.types.Object,
+    focus_object: PointerProperty(update=_settings_changed, name="Focus Object", type=bpy.types.Object,
                                   description="Focus on this object's origin")
-    refocus: BoolProperty(name="Refocus Lens", default=True,
+    refocus: BoolProperty(update=_settings_changed, name="Refocus Lens", default=True,
                           description="Move the lens's sensor so that the focus distance is in focus (PSFs traced "
                                       "for each focus, then cached). Off: the lens as its prescription stands, the "
                                       "kept range still sharp; a shipped lens is then served by the bundled "
                                       "Omni-Lens-Field network, with no tracing")
-    keep_front: FloatProperty(name="In Front", description="Depth kept sharp in front of the focus, scene units",
+    keep_front: FloatProperty(update=_settings_changed, name="In Front", description="Depth kept sharp in front of the focus, scene units",
                               default=0.3, min=0.0, soft_max=10.0, subtype="DISTANCE", unit="LENGTH")
-    keep_behind: FloatProperty(name="Behind", description="Depth kept sharp behind the focus, scene units",
+    keep_behind: FloatProperty(update=_settings_changed, name="Behind", description="Depth kept sharp behind the focus, scene units",
                                default=0.5, min=0.0, soft_max=100.0, subtype="DISTANCE", unit="LENGTH")
-    preview_size: IntProperty(name="Preview Size", description="Long side of the preview in pixels (the render's "
+    preview_size: IntProperty(update=_settings_changed, name="Preview Size", description="Long side of the preview in pixels (the render's "
                               "aspect is kept). PSFs are built at this pixel pitch: larger takes longer the first "
                               "time", default=320, min=16, soft_max=1920, max=8192, subtype="PIXEL")
-    samples: IntProperty(name="Samples", description="Cycles samples per pixel of the all-in-focus render "
+    samples: IntProperty(update=_settings_changed, name="Samples", description="Cycles samples per pixel of the all-in-focus render "
                          "(denoised)", default=16, min=1, soft_max=256, max=16384)
     lens_in_renders: BoolProperty(name="Lens in Renders", default=False,
                                   description="Every rendered frame (F12, animations, command-line renders) gets "

@@ -5,8 +5,16 @@ changes; and the focus plane drawn while the focus is adjusted.
 How a refresh runs (``Preview.tick``, a ``bpy.app.timers`` function on the
 main thread):
 
-- a change (``depsgraph_update_post``, or the toggle) marks the preview
-  stale; the refresh starts once changes have stopped for ``DEBOUNCE_S``;
+- a change marks the preview stale; the refresh starts once changes have
+  stopped for ``DEBOUNCE_S``. Changes reach it four ways, because Blender
+  tells no single handler about all of them: the panel's settings call
+  :func:`settings_changed` from their ``update`` (a Python assignment runs
+  it too; neither tags the depsgraph); ``depsgraph_update_post`` reports
+  the scene's edits (an object moved, a material edited); a frame change
+  (``frame_change_post``) evaluates keyframed focus and animated objects;
+  and a watcher timer compares, every ``WATCH_S``, what the preview shows
+  with what the scene asks for now (the camera's own focus, a focus
+  object's drivers: whatever changed without telling anyone);
 - the sharp image and metric depth: a low-sample Cycles render at the
   preview size (``bpy_render.render_aif_depth``, about a second at 480 x
   270), redone only when something other than the lens settings changed
@@ -34,9 +42,15 @@ from .core import core
 DEBOUNCE_S = 0.25         # a refresh waits until changes have stopped this long
 POLL_S = 0.05             # the timer's period while a job runs
 FOCUS_PLANE_S = 2.0       # the focus plane stays drawn this long after a focus change
-# data-block types whose change needs a new sharp render (a lens or focus change does not)
-SCENE_TYPES = ("Mesh", "Material", "World", "Light", "Camera", "Curve", "Image", "NodeTree",
+WATCH_S = 0.2             # the watcher's period: what changed without a handler is seen this late
+# data-block types whose change needs a new sharp render (a lens or focus change
+# does not; the camera's data that shapes the render is in ``inputs``' sharp_key,
+# so a change of its focus alone reruns the lens stage only)
+SCENE_TYPES = ("Mesh", "Material", "World", "Light", "Curve", "Image", "NodeTree",
                "Texture", "GreasePencil", "Volume", "PointCloud", "Curves", "MetaBall")
+# data-block collections whose animation moves or changes what the sharp render shows
+ANIMATED_SCENE_DATA = ("objects", "meshes", "materials", "worlds", "lights", "shape_keys", "node_groups",
+                       "curves", "textures")
 
 
 class Preview:
@@ -49,6 +63,7 @@ class Preview:
         self.scene_changed = True
         self.sharp: dict | None = None       # key, rgb, depth, version of the last sharp render
         self.served: tuple | None = None     # the (sharp render, request) of the shown result
+        self.asked: tuple | None = None      # what the last refresh was started for (see ``wanted``)
         self.renders = 0                     # sharp renders so far
         self.worker: threading.Thread | None = None
         self.job: dict | None = None
@@ -75,8 +90,15 @@ class Preview:
         self.enabled = False
         self.generation += 1
         self.changed_at = None
-        self.result = self.texture = self.sharp = self.served = None
+        self.result = self.texture = self.sharp = self.served = self.asked = None
         self.error = ""
+
+    def check(self, context=None) -> None:
+        """Mark the preview stale when what the scene asks for now differs
+        from what the last refresh was started for (no-op while one is
+        pending: it reads the settings when it starts)."""
+        if self.enabled and self.changed_at is None and wanted(context or bpy.context) != self.asked:
+            self.changed(scene_changed=False)
 
     # -------------------------------------------------------------- the refresh
     def tick(self, context=None) -> float | None:
@@ -96,6 +118,7 @@ class Preview:
         if wait > 0:
             return wait
         self.changed_at = None
+        self.asked = wanted(context)
         try:
             self._start(context)
         except (logic.BokehInputError, core("errors").DcdiError, RuntimeError, ValueError, OSError) as e:
@@ -144,18 +167,6 @@ class Preview:
         self.worker = threading.Thread(target=run, name="dcdi-viewport-preview", daemon=True)
         self.worker.start()
 
-    def is_current(self, context) -> bool:
-        """Whether the shown (or running) result is of what the scene asks
-        for now, as far as the lens settings and camera go."""
-        key = self.job["key"] if self.worker is not None and self.job else self.served
-        if key is None or self.sharp is None:
-            return False
-        try:
-            a = inputs(context)
-        except (logic.BokehInputError, core("errors").DcdiError, ValueError, OSError):
-            return False
-        return a["sharp_key"] == self.sharp["key"] and key == (self.sharp["version"], a["request"])
-
     def _collect(self) -> None:
         job, self.worker = self.job, None
         if job is None or job["generation"] != self.generation or job.get("cancelled"):
@@ -191,14 +202,42 @@ def inputs(context) -> dict:
     focus, keep = operators.focus_and_keep(scene, cam, s, ep)
     d = cam.data
     sharp_key = (cam.name, tuple(map(tuple, cam.matrix_world)), h, w, s.samples, round(ep, 9), mpu, d.lens,
-                 d.sensor_width, d.sensor_height, d.sensor_fit, d.shift_x, d.shift_y)
+                 d.sensor_width, d.sensor_height, d.sensor_fit, d.shift_x, d.shift_y, d.clip_start, d.clip_end)
     return {"scene": scene, "camera": cam, "lens": lens, "path": path, "entrance_pupil_mm": ep, "h": h, "w": w,
             "mpu": mpu, "focus": focus, "keep": keep, "sharp_key": sharp_key,
             "request": (lens.id, path, focus, keep, bool(s.refocus))}
 
 
+def wanted(context) -> tuple:
+    """What the preview should show now: (sharp_key, request) of
+    :func:`inputs`, or ('error', message) when the settings cannot make one
+    (the refresh shows that message; the same error is not retried)."""
+    try:
+        a = inputs(context)
+    except (logic.BokehInputError, core("errors").DcdiError, ValueError, OSError) as e:
+        return ("error", str(e))
+    return a["sharp_key"], a["request"]
+
+
 def _tick():
     return PREVIEW.tick()
+
+
+def _watch():
+    """The watcher (module docstring): runs while the preview is on."""
+    if not PREVIEW.enabled:
+        return None
+    try:
+        PREVIEW.check()
+    except Exception as e:                # never let the watcher die silently: show why
+        PREVIEW.error = f"preview watcher: {type(e).__name__}: {e}"
+    return WATCH_S
+
+
+def settings_changed(settings, context) -> None:
+    """The panel's settings' ``update``: refresh the preview if it shows
+    something else now."""
+    PREVIEW.check(context)
 
 
 def _texture(image: np.ndarray):
@@ -288,8 +327,29 @@ def on_depsgraph_update(scene, depsgraph):
         return
     if any(_changes_the_render(u) for u in depsgraph.updates):
         PREVIEW.changed(scene_changed=True)
-    elif not PREVIEW.is_current(bpy.context):
-        PREVIEW.changed(scene_changed=False)        # the lens settings, the focus, the camera, the size
+    else:
+        PREVIEW.check()                             # the lens settings, the focus, the camera, the size
+
+
+def on_frame_change(scene, depsgraph=None):
+    """A new frame: animated objects (or their materials, lights...) need a
+    new sharp render; keyframed focus or lens settings the lens stage only."""
+    if not PREVIEW.enabled:
+        return
+    if _scene_animated():
+        PREVIEW.changed(scene_changed=True)
+    else:
+        PREVIEW.check()
+
+
+def _scene_animated() -> bool:
+    """Whether anything the sharp render shows is animated (an action or drivers)."""
+    for name in ANIMATED_SCENE_DATA:
+        for block in getattr(bpy.data, name, ()):
+            ad = getattr(block, "animation_data", None)
+            if ad is not None and (ad.action is not None or len(ad.drivers)):
+                return True
+    return False
 
 
 def _changes_the_render(update) -> bool:
@@ -297,14 +357,19 @@ def _changes_the_render(update) -> bool:
     moved or reshaped, or a mesh, material, light, world... edited. A
     property of the scene (the lens settings) tags every object's shading
     only, and the preview's own render (a temporary scene) tags the
-    collections: neither counts."""
+    collections: neither counts; nor does a camera (its change of focus tags
+    its geometry: ``inputs``' sharp_key says when it changes the render)."""
     kind = type(update.id).__name__
     if kind == "Object":
+        if update.id.type == "CAMERA":     # its placement and the data that shape the render are in sharp_key
+            return False
         return update.is_updated_transform or update.is_updated_geometry
     return kind in SCENE_TYPES
 
 
 _HANDLES: list = []
+# (handler list, function) pairs the preview adds while it is on
+_APP_HANDLERS = (("depsgraph_update_post", on_depsgraph_update), ("frame_change_post", on_frame_change))
 
 
 def set_enabled(enabled: bool, context=None) -> None:
@@ -319,8 +384,11 @@ def set_enabled(enabled: bool, context=None) -> None:
         return
     PREVIEW.enabled = True
     PREVIEW.scene_changed = True
-    if on_depsgraph_update not in bpy.app.handlers.depsgraph_update_post:
-        bpy.app.handlers.depsgraph_update_post.append(on_depsgraph_update)
+    for name, fn in _APP_HANDLERS:
+        if fn not in getattr(bpy.app.handlers, name):
+            getattr(bpy.app.handlers, name).append(fn)
+    if not bpy.app.background and not bpy.app.timers.is_registered(_watch):
+        bpy.app.timers.register(_watch, first_interval=WATCH_S, persistent=True)
     if not bpy.app.background and not _HANDLES:
         _HANDLES.append(bpy.types.SpaceView3D.draw_handler_add(draw_preview, (), "WINDOW", "POST_PIXEL"))
         _HANDLES.append(bpy.types.SpaceView3D.draw_handler_add(draw_focus_plane, (), "WINDOW", "POST_VIEW"))
@@ -331,10 +399,12 @@ def set_enabled(enabled: bool, context=None) -> None:
 def _remove_handlers() -> None:
     while _HANDLES:
         bpy.types.SpaceView3D.draw_handler_remove(_HANDLES.pop(), "WINDOW")
-    if on_depsgraph_update in bpy.app.handlers.depsgraph_update_post:
-        bpy.app.handlers.depsgraph_update_post.remove(on_depsgraph_update)
-    if not bpy.app.background and bpy.app.timers.is_registered(_tick):
-        bpy.app.timers.unregister(_tick)
+    for name, fn in _APP_HANDLERS:
+        if fn in getattr(bpy.app.handlers, name):
+            getattr(bpy.app.handlers, name).remove(fn)
+    for timer in (_tick, _watch):
+        if not bpy.app.background and bpy.app.timers.is_registered(timer):
+            bpy.app.timers.unregister(timer)
 
 
 def toggle_update(status, context) -> None:
