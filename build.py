@@ -5,6 +5,9 @@
                                       # then DCDI on it and on a synthetic scene, lens reports
     python build.py test              # make .venv/, install, run the fast test suite
     python build.py test-slow         # the tests marked slow
+    python build.py test-blender      # the add-on and the factory in a real Blender binary (UI under
+                                      # Xvfb, --background): $BLENDER, else `blender` on PATH, else one
+                                      # provisioned by blender_addon/tools/real_blender.sh (Debian, root)
     python build.py bench ARGS        # `dcdi bench ARGS` inside the environment
     python build.py bench factory [--quick] [--recipe R]  # the dataset factory's samples per hour
     python build.py bench render [--quick]    # `dcdi bench render`, then the lens bokeh beside
@@ -124,10 +127,75 @@ def ensure_environment() -> Path:
     return py
 
 
-def cmd_test(py: Path, marker: str) -> int:
-    code = _run([py, "-m", "pytest", "-m", marker, "-p", "no:cacheprovider"])
+def cmd_test(py: Path, marker: str, env: dict | None = None) -> int:
+    code = _run([py, "-m", "pytest", "-m", marker, "-p", "no:cacheprovider"], env=env)
     if code == 5:
         print("build.py: pytest collected no tests: that is a failure, not a pass", flush=True)
+        return 1
+    return code
+
+
+# ------------------------------------------------------------------ a real Blender for test-blender
+MIN_REAL_BLENDER = (5, 0)
+PROVISION = ROOT / "blender_addon" / "tools" / "real_blender.sh"
+
+
+def blender_version(binary: str) -> tuple[int, int] | None:
+    """(major, minor) that ``binary --version`` prints, or None when it does not run."""
+    try:
+        out = subprocess.run([binary, "--version"], capture_output=True, text=True, timeout=120, cwd=ROOT)
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    for line in out.stdout.splitlines():
+        if line.startswith("Blender "):
+            try:
+                major, minor = line.split()[1].split(".")[:2]
+                return int(major), int(minor)
+            except ValueError:
+                return None
+    return None
+
+
+def find_blender(provision: bool = True) -> str:
+    """A Blender >= MIN_REAL_BLENDER binary: $BLENDER, else `blender` on PATH,
+    else (as root on Debian/Ubuntu) one provisioned by real_blender.sh.
+    Exits with what to do when there is none."""
+    want = ".".join(map(str, MIN_REAL_BLENDER))
+    given = os.environ.get("BLENDER")
+    candidates = [given] if given else [shutil.which("blender") or ""]
+    for cand in candidates:
+        if not cand:
+            continue
+        v = blender_version(cand)
+        if v is not None and v >= MIN_REAL_BLENDER:
+            return cand
+        why = "does not run" if v is None else f"is Blender {v[0]}.{v[1]}"
+        if given:
+            sys.exit(f"build.py: $BLENDER {given} {why}; test-blender needs Blender >= {want}")
+        print(f"build.py: {cand} {why}; test-blender needs Blender >= {want}", flush=True)
+    if not provision:
+        sys.exit(f"build.py: no Blender >= {want} found: set $BLENDER to one, or run {PROVISION.relative_to(ROOT)} "
+                 "provision as root (Debian/Ubuntu)")
+    print(f"build.py: no Blender >= {want} found; provisioning one ({PROVISION.relative_to(ROOT)} provision, "
+          "about 5 minutes)", flush=True)
+    if _run(["bash", PROVISION, "provision"]) != 0:
+        sys.exit("build.py: provisioning a Blender failed (see above); set $BLENDER to a Blender >= "
+                 f"{want} binary instead")
+    return find_blender(provision=False)
+
+
+def cmd_test_blender(py: Path, rest: list[str]) -> int:
+    """The real-Blender suite (tests/blender, marker realblender) with $BLENDER
+    set to the Blender found; needs xvfb-run for the UI tests."""
+    blender = find_blender()
+    if shutil.which("xvfb-run") is None:
+        sys.exit("build.py: test-blender needs xvfb-run for the UI (apt-get install xvfb xauth)")
+    print(f"build.py: testing in {blender} ({'.'.join(map(str, blender_version(blender)))})", flush=True)
+    build_addon()
+    env = dict(os.environ, BLENDER=blender)
+    code = _run([py, "-m", "pytest", "-m", "realblender", "-p", "no:cacheprovider", "tests/blender", *rest], env=env)
+    if code == 5:
+        print("build.py: pytest collected no real-Blender tests: that is a failure, not a pass", flush=True)
         return 1
     return code
 
@@ -383,7 +451,7 @@ def main(argv: list[str]) -> int:
         out = build_addon()
         print(f"build.py: wrote {out.relative_to(ROOT)} ({out.stat().st_size / 1e6:.2f} MB)")
         return 0
-    if command not in ("demo", "test", "test-slow", "bench", "setup"):
+    if command not in ("demo", "test", "test-slow", "test-blender", "bench", "setup"):
         print(__doc__)
         print(f"build.py: unknown command {command!r}")
         return 2
@@ -391,9 +459,11 @@ def main(argv: list[str]) -> int:
     if command == "setup":
         return 0
     if command == "test":
-        return cmd_test(py, "not slow")
+        return cmd_test(py, "not slow and not realblender")
     if command == "test-slow":
-        return cmd_test(py, "slow")
+        return cmd_test(py, "slow and not realblender")
+    if command == "test-blender":
+        return cmd_test_blender(py, rest)
     if command == "bench":
         if rest[:1] == ["factory"]:
             picked = [rest[i + 1] for i, x in enumerate(rest[:-1]) if x == "--recipe"]

@@ -28,6 +28,7 @@ def check(name, fn):
 
 scene, cam, cube = build_scene()
 counts0 = data_counts()
+images0 = {i.name for i in bpy.data.images}        # a real Blender's startup file may hold some
 res["install"], res["install_s"] = install(ZIP)
 res["enabled"] = MODULE in bpy.context.preferences.addons
 core_mod = sys.modules[f"{MODULE}.core"]
@@ -69,7 +70,7 @@ res["snapshot_detects_a_change"] = bool(diff(before["scene"], snapshot(scene)))
 scene.render.resolution_percentage -= 1
 counts2 = data_counts()
 res["new_data"] = {k: counts2[k] - counts1[k] for k in counts2 if counts2[k] != counts1[k]}
-res["images"] = sorted(i.name for i in bpy.data.images)
+res["images"] = sorted(i.name for i in bpy.data.images if i.name not in images0)
 img = bpy.data.images["Lens Bokeh"]
 res["result_float"] = bool(img.is_float)
 res["result_colorspace"] = img.colorspace_settings.name

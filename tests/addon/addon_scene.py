@@ -91,8 +91,9 @@ def diff(a, b, path=""):
 
 
 def data_counts():
+    # (Blender 5.2's all_ids lists every ID again: a new image would count twice)
     return {k: len(getattr(bpy.data, k)) for k in dir(bpy.data)
-            if isinstance(getattr(bpy.data, k, None), bpy.types.bpy_prop_collection)}
+            if k != "all_ids" and isinstance(getattr(bpy.data, k, None), bpy.types.bpy_prop_collection)}
 
 
 def emission_checker(name, scale):

@@ -9,8 +9,14 @@ BLENDERS_PYTHON_LACKS = ("OpenImageIO", "OpenEXR", "matplotlib", "torch")
 
 
 def start(block=BLENDERS_PYTHON_LACKS) -> tuple[Path, Path]:
-    """(ZIP, OUT) of ``script ZIP OUT ...``; sets BLENDER_USER_RESOURCES
-    (it must be set before bpy is imported) and blocks ``block``."""
+    """(ZIP, OUT) of ``script ZIP OUT ...`` (with the pip bpy module) or of
+    ``blender -b --python script -- ZIP OUT ...`` (a Blender binary: then
+    sys.argv becomes ``[script, ZIP, OUT, ...]``, as under Python); sets
+    BLENDER_USER_RESOURCES (with pip bpy it must be set before bpy is
+    imported; a binary reads it at start, so its runner sets it too) and
+    blocks ``block``."""
+    if "--" in sys.argv:
+        sys.argv = [sys.argv[0]] + sys.argv[sys.argv.index("--") + 1:]
     zip_path, out = Path(sys.argv[1]), Path(sys.argv[2])
     os.environ["BLENDER_USER_RESOURCES"] = str(out / "blender-user")
     for name in block:

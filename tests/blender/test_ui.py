@@ -1,0 +1,91 @@
+"""The add-on's UI in a real Blender with a window (Xvfb, software OpenGL):
+the viewport preview follows every change and draws the engine's result."""
+import numpy as np
+import pytest
+
+from conftest import run_inside
+from dcdi_core.io.images import linear_to_srgb, read_image
+
+pytestmark = pytest.mark.realblender
+
+# the drawn preview against the engine's result, sRGB-encoded in [0, 1]: the
+# texture is drawn scaled to the camera frame with linear filtering, then
+# stored in 8 bits, so edges differ by up to a pixel's blend and every value by
+# up to half a level
+SCREEN_MEAN_TOL = 0.02
+SCREEN_P99_TOL = 0.12
+
+
+def _resample(img: np.ndarray, h: int, w: int) -> np.ndarray:
+    """Bilinear resampling of (H, W, 3) to (h, w, 3), pixel centres aligned (as a scaled texture is drawn)."""
+    H, W = img.shape[:2]
+    y = np.clip((np.arange(h) + 0.5) * H / h - 0.5, 0, H - 1)
+    x = np.clip((np.arange(w) + 0.5) * W / w - 0.5, 0, W - 1)
+    y0, x0 = np.floor(y).astype(int), np.floor(x).astype(int)
+    y1, x1 = np.minimum(y0 + 1, H - 1), np.minimum(x0 + 1, W - 1)
+    fy, fx = (y - y0)[:, None, None], (x - x0)[None, :, None]
+    top = img[y0][:, x0] * (1 - fx) + img[y0][:, x1] * fx
+    bot = img[y1][:, x0] * (1 - fx) + img[y1][:, x1] * fx
+    return top * (1 - fy) + bot * fy
+
+
+def screen_error(work, cap) -> tuple[float, float]:
+    """(mean, 99th percentile) |screen - engine result| inside the camera
+    frame (3 px in from its border: the frame's outline), sRGB in [0, 1]."""
+    shot = linear_to_srgb(read_image(work / cap["png"]))
+    left, top, right, bottom = cap["box"]
+    l, t, r, b = int(np.ceil(left)) + 3, int(np.ceil(top)) + 3, int(np.floor(right)) - 3, int(np.floor(bottom)) - 3
+    drawn = shot[t:b, l:r]
+    engine = linear_to_srgb(np.clip(np.load(work / cap["npy"]), 0.0, None))
+    # the engine's image over the whole frame, then the same inset
+    full = _resample(engine, int(round(bottom - top)), int(round(right - left)))
+    ref = full[t - int(round(top)):b - int(round(top)), l - int(round(left)):r - int(round(left))]
+    h, w = min(drawn.shape[0], ref.shape[0]), min(drawn.shape[1], ref.shape[1])
+    err = np.abs(drawn[:h, :w] - ref[:h, :w])
+    return float(err.mean()), float(np.percentile(err, 99))
+
+
+@pytest.fixture(scope="module")
+def preview_run(blender, addon_zip, tmp_path_factory):
+    work = tmp_path_factory.mktemp("ui-preview")
+    return work, run_inside(blender, "ui_preview.py", work, {"zip": str(addon_zip), "lens": "6p",
+                                                             "preview_size": 480, "resolution": [1920, 1080]},
+                            ui=True)
+
+
+def test_preview_follows_every_change(preview_run):
+    _, res = preview_run
+    changes = res["changes"]
+    assert len(changes) >= 14, changes
+    for c in changes:
+        assert c["refreshed"], f"the preview did not refresh after: {c['change']} ({c['via']}); {c}"
+        assert c["current"], f"after {c['change']} the preview shows another request: {c}"
+        assert not c["error"], c
+
+
+def test_preview_lens_only_changes_do_not_render(preview_run):
+    _, res = preview_run
+    by = {c["change"]: c for c in res["changes"]}
+    for name in ("focus distance", "focus distance again", "camera focus distance", "kept range", "refocus off",
+                 "refocus on", "frame change"):
+        assert not by[name]["rendered"], f"{name} rendered the scene anew: {by[name]}"
+    for name in ("toggle", "object moved", "preview size"):
+        assert by[name]["rendered"], by[name]
+    assert by["frame change"]["shown"]["focus_m"] == pytest.approx(4.0, abs=1e-3)
+    assert by["keyframed focus, frame 1"]["shown"]["focus_m"] == pytest.approx(1.0, abs=1e-3)
+    assert by["focus distance"]["shown"]["focus_m"] == pytest.approx(2.5, abs=1e-6)
+    assert by["kept range"]["shown"]["keep_m"][1] == pytest.approx(by["kept range"]["shown"]["focus_m"] + 1.5)
+    assert by["refocus off"]["shown"]["refocus"] is False
+    assert by["preview size"]["shown"]["shape"][1] == 240
+
+
+def test_preview_drawn_pixels_equal_the_engine_result(preview_run):
+    work, res = preview_run
+    for key in ("first_capture", "focus_capture"):
+        mean, p99 = screen_error(work, res[key])
+        assert mean <= SCREEN_MEAN_TOL and p99 <= SCREEN_P99_TOL, (key, mean, p99)
+
+
+def test_preview_off_removes_its_handlers(preview_run):
+    _, res = preview_run
+    assert res["after_off"] == {"enabled": False, "handlers": [False]}
