@@ -89,3 +89,36 @@ def test_preview_drawn_pixels_equal_the_engine_result(preview_run):
 def test_preview_off_removes_its_handlers(preview_run):
     _, res = preview_run
     assert res["after_off"] == {"enabled": False, "handlers": [False]}
+
+
+@pytest.fixture(scope="module")
+def operators_run(blender, addon_zip, tmp_path_factory):
+    work = tmp_path_factory.mktemp("ui-operators")
+    return work, run_inside(blender, "ui_operators.py", work, {"zip": str(addon_zip)}, ui=True,
+                            extra=("--enable-event-simulate",))
+
+
+def test_buttons_run_as_clicks_with_progress(operators_run):
+    _, res = operators_run
+    jobs = {j["job"]: j for j in res["jobs"]}
+    assert set(jobs) == {"apply", "simulate", "correct auto", "correct deconvolution"}
+    for j in jobs.values():
+        assert j["started"] == ["RUNNING_MODAL"], j
+        assert not j["running_after"] and j["workers_left"] == 0 and j["message"].startswith("done"), j
+    assert res["bokeh_image"] == [240, 180] and res["bokeh_finite"]
+    assert res["corrections"]["AUTO"].startswith("Deconvolution") and res["corrections"]["DECONVOLUTION"]
+    assert res["new_images"] == ["Lens Bokeh", "Lens Corrected", "Lens Simulation"]
+
+
+def test_esc_cancels_a_running_bokeh(operators_run):
+    _, res = operators_run
+    assert res["esc_started"] == ["RUNNING_MODAL"] and res["esc_workers_before"] == 1
+    before = res["esc_progress_before"]                      # the progress the status showed before Esc
+    assert 0 < before["progress"] < 100 and "Esc cancels" in before["message"], before
+    assert res["esc"]["running"] is False and res["esc"]["message"] == "cancelled"
+    assert res["esc"]["workers_left"] == 0
+
+
+def test_the_scene_is_as_before_the_clicks(operators_run):
+    _, res = operators_run
+    assert res["settings_diff"] == []
