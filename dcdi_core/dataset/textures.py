@@ -74,20 +74,17 @@ def _classify(path: Path) -> tuple[str, str]:
     return key, role
 
 
-def _check_readable(path: Path) -> None:
-    """Open the file's header (OpenImageIO), raising DatasetError naming it."""
-    from ..io.images import ImageFileError, _oiio, _open
+def _check_readable(path: Path, pixels: bool = False) -> None:
+    """Read the file's header, raising DatasetError naming it; ``pixels``:
+    refuse also a file whose pixels dcdi_core.io.images could not decode
+    here (without OpenImageIO only EXR is read)."""
+    from ..io.images import ImageFileError, image_size
     try:
-        inp = _open(path, _oiio())
+        h, w = image_size(path, pixels=pixels)
     except ImageFileError as e:
         raise DatasetError(f"--textures: {e}") from None
-    try:
-        spec = inp.spec()
-        if spec.width < 1 or spec.height < 1:
-            raise DatasetError(f"--textures: {path}: an image of {spec.width} x {spec.height} pixels "
-                               "(allowed: at least 1 x 1)")
-    finally:
-        inp.close()
+    if w < 1 or h < 1:
+        raise DatasetError(f"--textures: {path}: an image of {w} x {h} pixels (allowed: at least 1 x 1)")
 
 
 def _group(files: list[Path], root: Path) -> list[TextureSet]:
@@ -116,10 +113,12 @@ class TextureLibrary:
     sets: tuple[TextureSet, ...]
 
     @classmethod
-    def from_folder(cls, folder, option: str = "--textures") -> "TextureLibrary":
+    def from_folder(cls, folder, option: str = "--textures", *, pixels: bool = False) -> "TextureLibrary":
         """Find and check every set; raises InputRangeError for a missing
         folder or one without a usable image, DatasetError naming an
-        unreadable file. Reads headers only (fast)."""
+        unreadable file. Reads headers only (fast). ``pixels``: the pixels
+        will be decoded by dcdi_core.io.images (the numpy recipe), not by
+        Blender: refuse files it cannot decode here too."""
         root = Path(folder).expanduser()
         if not root.is_dir():
             raise InputRangeError(option, str(folder), "a folder of PNG, JPEG or EXR images"
@@ -133,7 +132,7 @@ class TextureLibrary:
                                   f"image ({found})")
         for s in sets:
             for f in s.files:
-                _check_readable(f)
+                _check_readable(f, pixels)
         return cls(folder=root, sets=tuple(sets))
 
     def pick(self, rng) -> TextureSet:

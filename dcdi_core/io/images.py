@@ -20,10 +20,17 @@ On disk:
   A non-finite value is never written to an image: it raises
   :class:`ImageFileError`.
 
-OpenImageIO (``import OpenImageIO``) does the file work and is imported lazily,
-inside the functions, so that ``dcdi_core`` imports without it: inside Blender
-the add-on reads and writes images with Blender's own image API instead of this
-module.
+OpenImageIO (``import OpenImageIO``) does the file work when it imports; it is
+imported lazily, inside the functions, so that ``dcdi_core`` imports without
+it. Where it does not import (a distribution's Blender without its
+OpenImageIO package, or a Python where it is blocked), EXR files and ``.npy``
+depth maps are read and written by the project's own numpy EXR code,
+:mod:`dcdi_core.io.rawexr`, with the same rules (the colour and depth
+channel choice, the data and display windows, the finite check, the atomic
+write): scanline EXR compressed with NONE, ZIPS or ZIP is read, ZIP-compressed
+EXR is written (float32 or half, like OpenImageIO's). What it cannot do (PNG,
+JPEG, TIFF, HDR; EXR with PIZ or another compression) is refused by
+:class:`ImageFileError` in one line naming the file and what to install.
 """
 from __future__ import annotations
 
@@ -32,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import rawexr
 from ..atomic import atomic_path
 from ..errors import DcdiError
 
@@ -44,6 +52,8 @@ __all__ = [
     "write_depth",
     "srgb_to_linear",
     "linear_to_srgb",
+    "have_openimageio",
+    "image_size",
 ]
 
 #: Depth channel names tried in this order (in every part of the file) when
@@ -123,15 +133,26 @@ def linear_to_srgb(x):
 # reading
 # --------------------------------------------------------------------------
 
+#: what to do when a file needs OpenImageIO and it does not import
+NO_OPENIMAGEIO = ("install OpenImageIO (pip install OpenImageIO; for a distribution's Blender, its "
+                  "python3-openimageio package)")
+
+
 def _oiio():
+    """The OpenImageIO module, or None where it does not import (then EXR
+    goes through :mod:`rawexr`). Imported on every call (a cached module is
+    cheap), so that blocking it (``sys.modules['OpenImageIO'] = None``)
+    takes effect at once."""
     try:
         import OpenImageIO as oiio
-    except ImportError as exc:  # pragma: no cover - the venv has it
-        raise ImportError(
-            "reading and writing image files needs OpenImageIO (pip install OpenImageIO); "
-            "inside Blender the add-on uses Blender's image API instead"
-        ) from exc
+    except ImportError:
+        return None
     return oiio
+
+
+def have_openimageio() -> bool:
+    """Whether OpenImageIO imports (else only EXR and .npy files are read and written)."""
+    return _oiio() is not None
 
 
 @dataclass(frozen=True)
@@ -153,11 +174,15 @@ class _Part:
         return f"{self.name}.{n}"
 
 
-def _open(path: Path, oiio):
+def _check_file(path: Path):
     if not path.exists():
         raise ImageFileError(path, "file not found")
     if path.is_dir():
         raise ImageFileError(path, "is a folder, not an image file")
+
+
+def _open(path: Path, oiio):
+    _check_file(path)
     config = oiio.ImageSpec()
     # PNG: keep colour as stored instead of multiplying it by alpha.
     config.attribute("oiio:UnassociatedAlpha", 1)
@@ -205,6 +230,119 @@ def _read_channels(inp, part, indices, path):
     if data.ndim == 2:
         data = data[..., None]
     return data[..., [i - lo for i in indices]]
+
+
+# ---- without OpenImageIO: EXR through rawexr, presented as OpenImageIO presents it
+
+# OpenImageIO's canonical channel order (its EXR reader; checked on 3.0 and 3.1): the
+# channels sorted by layer (the name up to its last dot), then within a layer
+# by these suffixes (ignoring case), then by name; a layer holding X and Y or
+# Z (a normal, a position) takes the second list
+_OIIO_SPECIAL = ("r", "red", "g", "green", "b", "blue", "y", "real", "imag", "a", "alpha", "ar", "ra", "ag",
+                 "ga", "ab", "ba", "z", "depth", "zback")
+_OIIO_SPECIAL_XYZ = ("r", "red", "g", "green", "b", "blue", "x", "y", "z", "real", "imag", "a", "alpha", "ar",
+                     "ra", "ag", "ga", "ab", "ba", "depth", "zback")
+
+
+def _split_layer(name: str) -> tuple[str, str]:
+    dot = name.rfind(".")
+    return (name[:dot + 1], name[dot + 1:]) if dot >= 0 else ("", name)
+
+
+def _oiio_channel_order(names) -> list:
+    """``names`` in the order OpenImageIO presents an EXR part's channels."""
+    layers: dict[str, set] = {}
+    for n in names:
+        layer, suffix = _split_layer(n)
+        layers.setdefault(layer, set()).add(suffix.lower())
+
+    def key(n):
+        layer, suffix = _split_layer(n)
+        got = layers[layer]
+        table = _OIIO_SPECIAL_XYZ if "x" in got and ("y" in got or "z" in got) else _OIIO_SPECIAL
+        low = suffix.lower()
+        return layer.encode("utf-8"), table.index(low) if low in table else 10000, suffix.encode("utf-8")
+
+    return sorted(names, key=key)
+
+
+@dataclass(frozen=True)
+class _RawSpec:
+    """The part of an OpenImageIO ImageSpec this module uses, for a part read by rawexr."""
+    x: int
+    y: int
+    width: int
+    height: int
+    full_x: int
+    full_y: int
+    full_width: int
+    full_height: int
+    types: tuple            # rawexr pixel type per channel, in the part's (OpenImageIO) order
+    alpha_channel: int = -1
+
+
+_IMAGE_MAGIC = ((b"\x89PNG", "a PNG file"), (b"\xff\xd8", "a JPEG file"), (b"II*\0", "a TIFF file"),
+                (b"MM\0*", "a TIFF file"), (b"#?RADIANCE", "a Radiance HDR file"), (b"#?RGBE", "a Radiance HDR file"))
+
+
+def _kind_of(path: Path) -> str:
+    try:
+        with open(path, "rb") as f:
+            head = f.read(16)
+    except OSError as e:
+        raise ImageFileError(path, f"cannot be read ({e.strerror})") from None
+    for magic, kind in _IMAGE_MAGIC:
+        if head.startswith(magic):
+            return kind
+    if len(head) >= 4 and int.from_bytes(head[:4], "little") == rawexr.MAGIC:
+        return "exr"
+    return "not an image file this reader knows"
+
+
+def _raw_exr(path: Path, header_only: bool = False):
+    """(rawexr.ExrFile, parts as _Part) of an EXR file, without OpenImageIO."""
+    _check_file(path)
+    kind = _kind_of(path)
+    if kind != "exr":
+        raise ImageFileError(path, f"cannot be read without OpenImageIO ({kind}; only OpenEXR files are read "
+                                   f"by dcdi's own reader): {NO_OPENIMAGEIO}, or convert it to EXR")
+    try:
+        f = rawexr.ExrFile(path, header_only=header_only)
+    except rawexr.RawExrError as e:
+        raise ImageFileError(path, f"cannot be read as an EXR ({e.why})") from None
+    parts = []
+    for p in f.parts:
+        suffixes = sorted(_split_layer(c.name)[1].lower() for c in p.channels)
+        if suffixes in (["by", "ry", "y"], ["a", "by", "ry", "y"], ["alpha", "by", "ry", "y"]):
+            raise ImageFileError(path, f"{p.label} is a luminance-chroma EXR (Y, RY, BY), which dcdi's own EXR "
+                                       f"reader does not convert to RGB: {NO_OPENIMAGEIO}")
+        by_name = {c.name: c for c in p.channels}
+        chans = [by_name[n] for n in _oiio_channel_order(by_name)]
+        (x0, y0, x1, y1), (d0, e0, d1, e1) = p.data_window, p.display_window
+        alpha = next((i for i, c in enumerate(chans) if c.name.rsplit(".", 1)[-1].lower() in ("a", "alpha")), -1)
+        spec = _RawSpec(x0, y0, x1 - x0 + 1, y1 - y0 + 1, d0, e0, d1 - d0 + 1, e1 - e0 + 1,
+                        tuple(c.pixel_type for c in chans), alpha)
+        parts.append(_Part(p.index, p.name, tuple(c.name for c in chans), spec))
+    return f, parts
+
+
+def _raw_read_channels(f, part, indices, path, *, normalise_uint=True):
+    """Pixels of the given channels of one part, (h, w, len(indices)) float32,
+    as OpenImageIO's read_image(..., "float") gives them (UINT normalised by
+    2^32 - 1)."""
+    names = [part.channels[i] for i in indices]
+    try:
+        planes = f.read(part.index, names, raw_types=True)
+    except rawexr.RawExrError as e:
+        raise ImageFileError(path, f"pixels of {part.label} cannot be read without OpenImageIO ({e.why}); "
+                                   f"{NO_OPENIMAGEIO}, or write the file uncompressed or ZIP-compressed") from None
+    out = []
+    for n in names:
+        a = planes[n]
+        if a.dtype == np.uint32:
+            a = (a.astype(np.float64) / 4294967295.0).astype(np.float32) if normalise_uint else a.astype(np.float32)
+        out.append(a)
+    return np.stack(out, axis=-1)
 
 
 def _to_display_window(data, spec, fill):
@@ -285,6 +423,13 @@ def read_image(path) -> np.ndarray:
     """
     path = Path(path)
     oiio = _oiio()
+    if oiio is None:
+        f, parts = _raw_exr(path)
+        part, indices = _choose_colour(parts, "openexr", path)
+        data = _to_display_window(_raw_read_channels(f, part, indices, path), part.spec, 0.0)
+        if data.shape[2] == 1:
+            data = np.repeat(data, 3, axis=2)
+        return np.ascontiguousarray(data, dtype=np.float32)
     inp = _open(path, oiio)
     try:
         parts = _parts(inp, path)
@@ -374,6 +519,18 @@ def read_depth(path, *, channel=None) -> np.ndarray:
     if path.suffix.lower() == ".npy":
         return _read_depth_npy(path)
     oiio = _oiio()
+    if oiio is None:
+        f, parts = _raw_exr(path)
+        part, index = _choose_depth(parts, channel, path)
+        ptype = part.spec.types[index]
+        if ptype == 0:
+            raise ImageFileError(
+                path, f"depth channel '{part.qualified(index)}' ({part.label}) holds "
+                      f"{rawexr.PIXEL_TYPE_NAMES[ptype]} values; depth must be stored as floating-point metres "
+                      f"(EXR or .npy)")
+        data = _raw_read_channels(f, part, [index], path)
+        data = _to_display_window(data, part.spec, np.nan)[..., 0]
+        return np.ascontiguousarray(data, dtype=np.float32)
     inp = _open(path, oiio)
     try:
         parts = _parts(inp, path)
@@ -389,6 +546,67 @@ def read_depth(path, *, channel=None) -> np.ndarray:
         inp.close()
     data = _to_display_window(data, part.spec, np.nan)[..., 0]
     return np.ascontiguousarray(data, dtype=np.float32)
+
+
+def _png_jpeg_size(path: Path):
+    """(height, width) from a PNG's IHDR or a JPEG's SOF marker; None if neither."""
+    import struct
+    with open(path, "rb") as f:
+        head = f.read(24)
+        if head.startswith(b"\x89PNG\r\n\x1a\n") and head[12:16] == b"IHDR":
+            w, h = struct.unpack(">II", head[16:24])
+            return h, w
+        if not head.startswith(b"\xff\xd8"):
+            return None
+        f.seek(2)
+        while True:                                     # one marker segment at a time (a few dozen)
+            mark = f.read(4)
+            if len(mark) < 4 or mark[0] != 0xFF:
+                return None
+            kind, size = mark[1], struct.unpack(">H", mark[2:])[0]
+            if 0xC0 <= kind <= 0xCF and kind not in (0xC4, 0xC8, 0xCC):
+                seg = f.read(5)
+                if len(seg) < 5:
+                    return None
+                h, w = struct.unpack(">HH", seg[1:5])
+                return h, w
+            f.seek(size - 2, 1)
+
+
+def image_size(path, *, pixels: bool = False) -> tuple[int, int]:
+    """(height, width) of an image file from its header only (the data window
+    of an EXR's colour part), or :class:`ImageFileError` naming it when it
+    cannot be read. ``pixels``: refuse also a file whose pixels
+    :func:`read_image` could not decode here (without OpenImageIO: anything
+    but an EXR that rawexr reads)."""
+    path = Path(path)
+    oiio = _oiio()
+    if oiio is not None:
+        inp = _open(path, oiio)
+        try:
+            spec = inp.spec()
+            return spec.height, spec.width
+        finally:
+            inp.close()
+    _check_file(path)
+    if _kind_of(path) != "exr" and not pixels:
+        try:
+            size = _png_jpeg_size(path)
+        except OSError as e:
+            raise ImageFileError(path, f"cannot be read ({e.strerror})") from None
+        if size is None:
+            raise ImageFileError(path, f"cannot be read as a PNG or JPEG image without OpenImageIO: "
+                                       f"{NO_OPENIMAGEIO}")
+        return size
+    f, parts = _raw_exr(path, header_only=True)
+    part, _ = _choose_colour(parts, "openexr", path)
+    if pixels:
+        comp = f.parts[part.index].compression
+        if comp not in rawexr.READ_COMPRESSIONS:
+            raise ImageFileError(path, f"{part.label} is compressed with {f.parts[part.index].compression_name}, "
+                                       f"which dcdi's own EXR reader does not read: {NO_OPENIMAGEIO}, or write "
+                                       "it uncompressed or ZIP-compressed")
+    return part.spec.height, part.spec.width
 
 
 # --------------------------------------------------------------------------
@@ -427,13 +645,22 @@ def _check_finite(a, path, what):
 
 
 def _write(path: Path, fmt, pixels, typename, channelnames, attributes):
-    """Write (h, w, c) ``pixels`` atomically with OpenImageIO's ``fmt`` writer."""
+    """Write (h, w, c) ``pixels`` atomically with OpenImageIO's ``fmt`` writer
+    (without OpenImageIO, EXR with rawexr: ZIP, as OpenImageIO writes it)."""
     oiio = _oiio()
     pixels = np.ascontiguousarray(pixels)
     # OpenImageIO's Python write_image misreads a 2-D array for a one-channel
     # image (it wants (h, w, c)); callers always pass three dimensions.
     assert pixels.ndim == 3
     h, w, c = pixels.shape
+    if oiio is None:
+        _check_writable(path, fmt)
+        data = rawexr.encode_exr({n: pixels[..., i] for i, n in enumerate(channelnames)}, pixel_type=typename,
+                                 compression=attributes.get("compression", "zip").upper(), path=path)
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as f:
+                f.write(data)
+        return
     with atomic_path(path) as tmp:
         # The writer is chosen by format name, not by the temporary's suffix
         # (which ends in the real extension anyway: '.name.XXXX.tmp.png').
@@ -446,22 +673,36 @@ def _write(path: Path, fmt, pixels, typename, channelnames, attributes):
         spec.attribute("DateTime", "")
         for key, value in attributes.items():
             spec.attribute(key, value)
-        if not out.open(str(tmp), spec):
-            raise ImageFileError(path, f"cannot be written ({out.geterror()})")
-        ok = out.write_image(pixels)
-        err = out.geterror() if not ok else ""
-        closed = out.close()
+        # OpenImageIO 3.1 (Debian's build: debug on) prints a line for the empty DateTime on every write
+        debug = oiio.get_int_attribute("debug", 0)
+        oiio.attribute("debug", 0)
+        try:
+            if not out.open(str(tmp), spec):
+                raise ImageFileError(path, f"cannot be written ({out.geterror()})")
+            ok = out.write_image(pixels)
+            err = out.geterror() if not ok else ""
+            closed = out.close()
+        finally:
+            oiio.attribute("debug", debug)
         if not ok or not closed:
             raise ImageFileError(path, f"cannot be written ({err or out.geterror() or 'write failed'})")
 
 
+def _check_writable(path: Path, fmt: str) -> None:
+    if fmt != "openexr" and _oiio() is None:
+        raise ImageFileError(path, f"cannot write {fmt.upper()} files without OpenImageIO: {NO_OPENIMAGEIO}, "
+                                   "or write .exr")
+
+
 def check_image_output(path) -> Path:
     """Refuse, before any work, an output path whose extension cannot be
-    written (the same rule as :func:`write_image`)."""
+    written (the same rule as :func:`write_image`; without OpenImageIO only
+    .exr is written)."""
     path = Path(path)
     if path.suffix.lower() not in _WRITE_FORMATS:
         raise ImageFileError(path, f"cannot write images with extension '{path.suffix}'; allowed: "
                                    f"{', '.join(_WRITE_FORMATS)}")
+    _check_writable(path, _WRITE_FORMATS[path.suffix.lower()][0])
     return path
 
 
