@@ -109,7 +109,9 @@ def parse(argv):
                    help="Cycles render samples per pixel, denoised (not images: see --count; default 8: 45.5 dB "
                         "against 256 samples; 12: 46.7 dB for 30 %% more time; see python -m "
                         "blender_addon.tools.render_noise)")
-    p.add_argument("--no-denoise", action="store_true", help="switch the denoiser off")
+    p.add_argument("--no-denoise", action="store_true",
+                   help="switch the denoiser off (a Blender without OpenImageDenoise renders undenoised anyway, "
+                        "with a warning)")
     p.add_argument("--denoise-quality", default=RenderSettings.denoising_quality, choices=["HIGH", "BALANCED", "FAST"],
                    help="Open Image Denoise quality (see python -m blender_addon.tools.render_noise)")
     p.add_argument("--denoise-prefilter", default=RenderSettings.denoising_prefilter,
@@ -143,11 +145,15 @@ def check_arguments(a):
 
     if a.recipe not in RECIPES:
         raise InputRangeError("--recipe", a.recipe, ", ".join(RECIPES))
-    if RECIPES[a.recipe].build is not None:
+    blender_recipe = RECIPES[a.recipe].build is not None
+    if blender_recipe:
         check_blender()
+        check_cycles()
     from dcdi_core.dataset.exposure import ExposureOptions
     from dcdi_core.dataset.textures import TextureLibrary
-    a.textures = TextureLibrary.from_folder(a.textures) if a.textures is not None else None
+    # Blender decodes the Blender recipes' textures itself; the numpy recipe decodes them with dcdi_core.io
+    a.textures = (TextureLibrary.from_folder(a.textures, pixels=not blender_recipe) if a.textures is not None
+                  else None)
     a.exposure_options = ExposureOptions() if a.exposure == "auto" else None
     if a.shard.strip().lower().startswith("auto"):
         a.shard = "{}/{}".format(*shard_from_environment(a.shard))      # recorded as resolved
@@ -169,9 +175,18 @@ def check_arguments(a):
     for name, v in (("--psf-rays", a.psf_rays), ("--psf-wavelengths", a.psf_wavelengths)):
         if v is not None and v < 1:
             raise InputRangeError(name, v, "an integer >= 1")
+    denoise, reason = not a.no_denoise, "--no-denoise" if a.no_denoise else None
+    if denoise and blender_recipe and not denoiser_available():
+        import bpy
+        denoise, reason = False, NO_DENOISER
+        print(f"factory: warning: {NO_DENOISER} ({bpy.app.version_string}): frames are rendered undenoised "
+              f"({a.samples} samples/pixel), as dataset.json and the manifest record; for denoised frames run "
+              "Blender from blender.org or the pip bpy module, or pass --no-denoise to choose undenoised frames",
+              file=sys.stderr, flush=True)
     try:
-        a.render = RenderSettings(samples=a.samples, denoise=not a.no_denoise, denoising_quality=a.denoise_quality,
-                                  denoising_prefilter=a.denoise_prefilter, diffuse_bounces=a.diffuse_bounces)
+        a.render = RenderSettings(samples=a.samples, denoise=denoise, denoising_quality=a.denoise_quality,
+                                  denoising_prefilter=a.denoise_prefilter, diffuse_bounces=a.diffuse_bounces,
+                                  no_denoise_reason=reason)
     except ValueError as e:
         raise InputRangeError("--cycles-samples" if "samples" in str(e) else "--diffuse-bounces", None, str(e)) \
             from None
@@ -242,7 +257,8 @@ def shard_from_environment(text: str = "auto", env=None) -> tuple[int, int]:
 # each recorded setting and the option that sets it (for the refusal's message)
 OPTION_OF = {"recipe": "--recipe", "seed": "--seed", "shard": "--shard", "resolution": "--resolution",
              "lenses": "--lens", "baseline_depth_m": "--baseline-depth",
-             "render.samples": "--cycles-samples", "render.denoise": "--no-denoise",
+             "render.samples": "--cycles-samples", "render.denoise": "the denoiser (--no-denoise)",
+             "render.no_denoise_reason": "why the frames are undenoised",
              "render.denoising_quality": "--denoise-quality", "render.denoising_prefilter": "--denoise-prefilter",
              "render.diffuse_bounces": "--diffuse-bounces",
              "psf_settings.pupil_samples": "--psf-rays", "psf_settings.n_wavelengths": "--psf-wavelengths",
@@ -275,6 +291,10 @@ def scene_settings(a) -> dict:
                                                    f"{exp.max_clipped} clipped, gain <= {exp.max_gain})")}
 
 
+# recorded but not compared: the format's number, and why undenoised frames are (their flag is compared)
+NOT_COMPARED = ("format", "render.no_denoise_reason")
+
+
 def settings_differences(have: dict, want: dict) -> list[str]:
     """'--option: folder X, this run Y' for every recorded setting that differs
     (settings the folder does not record are not compared)."""
@@ -283,7 +303,10 @@ def settings_differences(have: dict, want: dict) -> list[str]:
     if any(k.startswith("scene.") for k in b) and not any(k.startswith("scene.") for k in a):
         diffs.append("the scene recipes: the folder was made by an older factory, before its scenes changed")
     for key in sorted(set(a) & set(b)):
-        if key == "format" or a[key] == b[key]:
+        if key in NOT_COMPARED or a[key] == b[key]:
+            continue
+        if key == "render.denoise":
+            diffs.append(f"{OPTION_OF[key]}: the folder {_denoised(a)}, this run {_denoised(b)}")
             continue
         if key == "lens_fingerprints":
             changed = sorted(x for x in set(a[key]) & set(b[key]) if a[key][x] != b[key][x])
@@ -295,6 +318,14 @@ def settings_differences(have: dict, want: dict) -> list[str]:
         show = (lambda v: " ".join(v) if key == "lenses" else " ".join(map(str, v)) if isinstance(v, list) else v)
         diffs.append(f"{name}: the folder {show(a[key])}, this run {show(b[key])}")
     return diffs
+
+
+def _denoised(flat: dict) -> str:
+    """'denoised', or 'undenoised (why)' of flattened settings."""
+    if flat["render.denoise"]:
+        return "denoised"
+    why = flat.get("render.no_denoise_reason")
+    return f"undenoised ({why})" if why else "undenoised"
 
 
 def remove_stale_files(out: Path) -> list[Path]:
@@ -385,7 +416,8 @@ class RenderSettings:
     the error-against-time tables of ``python -m blender_addon.tools.render_noise``
     (docs/factory.md): samples per pixel; the Open Image Denoise pass (quality HIGH,
     BALANCED or FAST; prefilter of its albedo and normal guides NONE, FAST or
-    ACCURATE); light-path bounces (counts)."""
+    ACCURATE), or none, and why (``no_denoise_reason``: --no-denoise, or a
+    Blender without the denoiser); light-path bounces (counts)."""
 
     samples: int = 8
     denoise: bool = True
@@ -398,6 +430,9 @@ class RenderSettings:
     diffuse_bounces: int = 2
     glossy_bounces: int = 2
     transmission_bounces: int = 2
+    # why the frames are not denoised: "--no-denoise", or NO_DENOISER (this Blender has no
+    # OpenImageDenoise); None when they are. Recorded, not compared: render.denoise is
+    no_denoise_reason: str | None = None
 
     def __post_init__(self):
         if not (isinstance(self.samples, int) and 1 <= self.samples <= 65536):
@@ -412,7 +447,54 @@ class RenderSettings:
                 raise ValueError(f"{name.replace('_', ' ')} must be an integer in [0, 1024], got {v!r}")
 
     def as_dict(self) -> dict:
-        return asdict(self)
+        """The settings as recorded (dataset.json, the manifest): the reason
+        for undenoised frames only where they are undenoised."""
+        d = asdict(self)
+        if d["no_denoise_reason"] is None:
+            del d["no_denoise_reason"]
+        return d
+
+
+NO_DENOISER = "this Blender has no OpenImageDenoise"
+
+
+def denoiser_available(scene=None) -> bool:
+    """Whether this Blender's Cycles can denoise on the CPU: OpenImageDenoise
+    is compiled in (Debian's Blender has none). The denoiser's enum is
+    dynamic: its RNA lists no items to Python (``bl_rna.properties
+    ['denoiser'].enum_items`` is empty with and without OpenImageDenoise), so
+    the test is the assignment itself, on ``scene`` or a scratch scene."""
+    import bpy
+    own = scene is None
+    if own:
+        scene = bpy.data.scenes.new("dcdi-denoiser-probe")
+    try:
+        scene.cycles.denoiser = "OPENIMAGEDENOISE"
+        return True
+    except TypeError:                   # 'enum "OPENIMAGEDENOISE" not found in ()'
+        return False
+    finally:
+        if own:
+            bpy.data.scenes.remove(scene)
+
+
+def check_cycles() -> None:
+    """Refuse (InputRangeError naming --recipe) a Blender built without the
+    Cycles render engine, which the Blender recipes render with."""
+    import bpy
+
+    from dcdi_core.errors import InputRangeError
+    scene = bpy.data.scenes.new("dcdi-cycles-probe")
+    try:
+        scene.render.engine = "CYCLES"
+        ok = hasattr(scene, "cycles")
+    except TypeError:
+        ok = False
+    finally:
+        bpy.data.scenes.remove(scene)
+    if not ok:
+        raise InputRangeError("--recipe", None, f"a Blender with the Cycles render engine (this Blender "
+                                                f"{bpy.app.version_string} has none), or --recipe leaves (numpy)")
 
 
 def setup_render(scene, lens, height: int, width: int, render: RenderSettings, seed: int):
@@ -441,7 +523,13 @@ def setup_render(scene, lens, height: int, width: int, render: RenderSettings, s
     c.samples = render.samples
     c.seed = seed
     c.use_denoising = render.denoise
-    c.denoiser = "OPENIMAGEDENOISE"
+    if render.denoise:
+        if not denoiser_available(scene):
+            from dcdi_core.errors import RenderError
+            raise RenderError(f"this Blender ({bpy.app.version_string}) has no OpenImageDenoise: render "
+                              "undenoised (RenderSettings(denoise=False), the factory's --no-denoise) or use a "
+                              "Blender that has it (blender.org's, or the pip bpy module)")
+        c.denoiser = "OPENIMAGEDENOISE"
     c.denoising_quality = render.denoising_quality
     c.denoising_prefilter = render.denoising_prefilter
     # a dataset wants many clean images fast: few bounces, no caustics (render_noise's table)

@@ -37,7 +37,8 @@ from dcdi_core.dataset import factory_folder as ff  # noqa: E402
 from dcdi_core.dataset.factory_folder import MANIFEST, SETTINGS_FILE, read_manifest  # noqa: E402
 
 SHOWN = 5                     # how many indices or files a refusal lists
-NOT_COMPARED = ("shard",)     # what may differ between the shards of one dataset
+# what may differ between the shards of one dataset (why undenoised frames are: their flag is compared)
+NOT_COMPARED = ("shard", "render.no_denoise_reason")
 
 
 def parse(argv):
