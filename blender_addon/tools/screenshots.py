@@ -9,8 +9,12 @@ into a temporary user folder (an extension in Blender 4.2+, a legacy add-on
 before), shows the panel in the camera properties and the 3D view's
 sidebar, runs Apply Lens Bokeh the way a click does (invoke: worker thread,
 progress, modal timer), and saves two screenshots: ``addon-running.png``
-(progress readout while the PSFs are built) and ``addon-result.png`` (the
-"Lens Bokeh" image in an Image Editor); then it runs once more synchronously
+(progress readout while the PSFs are built), ``addon-result.png`` (the
+"Lens Bokeh" image in an Image Editor), ``addon-preview.png`` (Preview in
+Viewport over the camera view) and ``addon-focus-plane.png`` (the focus
+plane after a focus change), each a capture of the X screen (ImageMagick's
+``import -window root``: Blender's own screenshot is black under software
+OpenGL); then it runs once more synchronously
 (warm cache) and starts a run at another focus distance (a cold library) and
 presses Esc during it (Blender's event simulation), printing the panel's
 state afterwards. The PSF cache is a fresh temporary folder, so the first run
@@ -55,8 +59,12 @@ def drive(argv):
     me = str(Path(__file__).resolve())
     try:
         subprocess.run([a.blender, "-b", "--factory-startup", "--python", me, "--", "scene"], env=env, check=True)
+        # a new user's first start shows the splash (Quick Setup) over the viewport: preferences without it
+        subprocess.run([a.blender, "-b", "--factory-startup", "--python-expr",
+                        "import bpy; bpy.context.preferences.view.show_splash = False; bpy.ops.wm.save_userpref()"],
+                       env=env, check=True)
         # event simulation lets the script press Esc during a run (and ignores real input)
-        subprocess.run(["xvfb-run", "-a", "-s", f"-screen 0 {a.screen}x24", a.blender, "--factory-startup",
+        subprocess.run(["xvfb-run", "-a", "-s", f"-screen 0 {a.screen}x24", a.blender,
                         "--enable-event-simulate",
                         str(work / "demo.blend"), "--python", me, "--", "shoot"], env=env, check=True, timeout=900)
     finally:
@@ -200,7 +208,9 @@ def shoot():
         def modal(self, context, event):
             if event.type == "TIMER" and wanted:
                 name = wanted.pop(0)
-                bpy.ops.screen.screenshot(filepath=str(out / name))
+                # the X screen, not bpy.ops.screen.screenshot: Blender's own capture is black under
+                # software OpenGL (Mesa's llvmpipe, as under Xvfb)
+                subprocess.run(["import", "-window", "root", str(out / name)], check=True, timeout=60)
                 print(f"screenshots: wrote {out / name}", flush=True)
             return {"PASS_THROUGH"}
 
@@ -275,8 +285,54 @@ def shoot():
             return 1.5
         if state["phase"] == "done":
             shot("addon-result.png")
-            state["phase"] = "warm"
+            state["phase"] = "preview"
             return 0.5
+        if state["phase"] == "preview":
+            # Preview in Viewport: the lens's result over the camera view; then a focus change and its plane
+            viewport = sys.modules[module + ".viewport"]
+            if not st.viewport_preview:
+                st.viewport_preview = True
+                state["t0"] = time.perf_counter()
+                return 0.2
+            if not viewport.PREVIEW.log:
+                return 0.2
+            print(f"screenshots: preview first result {time.perf_counter() - state['t0']:.1f} s", flush=True)
+            shot("addon-preview.png")
+            state["phase"] = "focus-plane"
+            return 1.0
+        if state["phase"] == "focus-plane":
+            viewport = sys.modules[module + ".viewport"]
+            n = len(viewport.PREVIEW.log)
+            # the focus plane is the frustum's section: from the camera it fills the frame, so the third
+            # column becomes a 3D view from the side to show where it lies
+            from mathutils import Euler
+            side = cols["image"]
+            side.type = "VIEW_3D"
+            sp = side.spaces.active
+            sp.shading.type, sp.shading.color_type = "SOLID", "OBJECT"
+            sp.show_region_ui = sp.show_region_toolbar = False
+            rv3d = sp.region_3d
+            rv3d.view_perspective = "PERSP"
+            rv3d.view_location = (0.0, 3.5, 0.4)
+            rv3d.view_rotation = Euler((math.radians(62.0), 0.0, math.radians(-125.0))).to_quaternion()
+            rv3d.view_distance = 9.0
+            s.focus_mode, s.focus_distance = "DISTANCE", 3.5
+            state["phase"], state["n"], state["t_change"] = "focus-plane-shot", n, time.perf_counter()
+            return 0.2
+        if state["phase"] == "focus-plane-shot":
+            viewport = sys.modules[module + ".viewport"]
+            if viewport.PREVIEW.focus_changed_at < state["t_change"]:
+                return 0.05                       # the refresh has not started yet
+            shot("addon-focus-plane.png")         # within FOCUS_PLANE_S of the change: the plane is drawn
+            state["phase"] = "focus-plane-done"
+            return 0.5
+        if state["phase"] == "focus-plane-done":
+            viewport = sys.modules[module + ".viewport"]
+            if len(viewport.PREVIEW.log) <= state["n"]:
+                return 0.1
+            st.viewport_preview = False
+            state["phase"] = "warm"
+            return 1.0
         if state["phase"] == "warm":
             # warm: the same again with the PSF cache filled
             t = time.perf_counter()
