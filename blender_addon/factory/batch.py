@@ -43,26 +43,43 @@ from pathlib import Path
 MIN_BLENDER = (5, 0, 0)
 
 
+class BlenderRefused(SystemExit):
+    """An unsuitable Blender or Python: exit status 2, like every refusal of
+    the factory; the message is printed ("factory: error: ...") when raised."""
+
+    def __init__(self, message: str):
+        super().__init__(2)
+        self.message = message
+
+    def __str__(self):
+        return self.message
+
+
+def _refuse(message: str):
+    print(f"factory: error: {message}", file=sys.stderr, flush=True)
+    raise BlenderRefused(message)
+
+
 def check_blender() -> None:
     """Refuse a Blender older than MIN_BLENDER (its scene API differs: materials
     without node trees, no image_settings.media_type, no OIDN quality) or one
-    whose Python lacks numpy."""
+    whose Python lacks numpy, in one line (BlenderRefused, exit status 2)."""
     try:
         import bpy
     except ImportError:
-        raise SystemExit("factory: no bpy module: run it with Blender (blender --background --python "
-                         "blender_addon/factory/batch.py -- ...) or install the pip bpy module (see requirements.txt)")
+        _refuse("no bpy module: run it with Blender (blender --background --python "
+                "blender_addon/factory/batch.py -- ...) or install the pip bpy module (see requirements.txt)")
     v = tuple(bpy.app.version)
     if v < MIN_BLENDER:
-        raise SystemExit(f"factory: Blender {bpy.app.version_string} is too old: the factory needs Blender "
-                         f">= {'.'.join(map(str, MIN_BLENDER))} (Blender 5 from blender.org, or the pip bpy module "
-                         "of requirements.txt)")
+        _refuse(f"Blender {bpy.app.version_string} is too old: the factory needs Blender "
+                f">= {'.'.join(map(str, MIN_BLENDER))} (Blender 5 from blender.org, or the pip bpy module "
+                "of requirements.txt)")
     try:
         import numpy  # noqa: F401
     except ImportError:
-        raise SystemExit(f"factory: this Blender's Python ({sys.executable}, {sys.version.split()[0]}) has no "
-                         "numpy; Blender from blender.org bundles it, a distribution's blender uses the "
-                         "system python3 (install its numpy package)")
+        _refuse(f"this Blender's Python ({sys.executable}, {sys.version.split()[0]}) has no numpy; Blender from "
+                "blender.org bundles it, a distribution's blender uses the system python3 (install its numpy "
+                "package, e.g. python3-numpy)")
 
 
 if __name__ == "__main__" and sys.argv[1:2] != ["merge"]:      # the merge needs no Blender

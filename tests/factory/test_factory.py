@@ -146,10 +146,13 @@ def test_recipes_cover_the_depth_bands():
     assert hist["street"][0][-2] + hist["street"][0][-1] > 0.2      # beyond 10 m
 
 
-def test_too_old_blender_is_refused_by_name(monkeypatch):
+def test_too_old_blender_is_refused_by_name(monkeypatch, capsys):
     monkeypatch.setattr(factory, "MIN_BLENDER", (99, 0, 0))
-    with pytest.raises(SystemExit, match=r"is too old: the factory needs Blender >= 99\.0\.0"):
+    with pytest.raises(SystemExit, match=r"is too old: the factory needs Blender >= 99\.0\.0") as info:
         factory.check_blender()
+    assert info.value.code == 2                      # as every refusal of the factory
+    err = capsys.readouterr().err
+    assert err.startswith("factory: error: Blender ") and err.count("\n") == 1
 
 
 # ------------------------------------------------------------------ refusals, resume, repair (issue 11)
