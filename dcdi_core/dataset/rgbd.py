@@ -91,9 +91,12 @@ def _first(folder: Path, stem: str, exts, what: str) -> Path:
 
 def read_depth_png_mm(path) -> np.ndarray:
     """A 16-bit PNG of depth in millimetres -> float32 metres (0 -> NaN, invalid)."""
-    import OpenImageIO as oiio
+    from ..io.images import NO_OPENIMAGEIO, _oiio
 
     path = Path(path)
+    oiio = _oiio()
+    if oiio is None:
+        raise ImageFileError(path, f"a PNG depth map cannot be read without OpenImageIO: {NO_OPENIMAGEIO}")
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
         raise ImageFileError(path, f"cannot be opened ({oiio.geterror()})")

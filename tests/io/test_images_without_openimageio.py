@@ -248,3 +248,15 @@ def test_texture_folders_are_checked_by_who_decodes_them(tmp_path, monkeypatch):
         TextureLibrary.from_folder(tmp_path, pixels=True)
     os.remove(tmp_path / "photo.png")
     assert len(TextureLibrary.from_folder(tmp_path, pixels=True).sets) == 1
+
+
+def test_a_png_depth_map_is_refused_naming_what_to_install(tmp_path, monkeypatch):
+    from dcdi_core.dataset.rgbd import read_any_depth
+    spec = oiio.ImageSpec(3, 2, 1, oiio.TypeDesc("uint16"))
+    out = oiio.ImageOutput.create("png")
+    assert out.open(str(tmp_path / "d.png"), spec) and out.write_image(np.full((2, 3, 1), 1500, np.uint16))
+    out.close()
+    np.testing.assert_array_equal(read_any_depth(tmp_path / "d.png"), np.full((2, 3), 1.5, np.float32))
+    monkeypatch.setitem(sys.modules, "OpenImageIO", None)
+    with pytest.raises(ImageFileError, match=r"d.png: a PNG depth map cannot be read without OpenImageIO"):
+        read_any_depth(tmp_path / "d.png")
