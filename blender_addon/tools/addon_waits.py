@@ -2,6 +2,8 @@
 process, the repository's add-on registered in place):
 
     python -m blender_addon.tools.addon_waits [--frames 24] [--samples 16] [--json out.json]
+    blender -b --python blender_addon/tools/addon_waits.py -- [the same options]   # a Blender binary:
+                                                             # its own Python (no scipy, numpy 2)
 
 A scene of four checker spheres at 1.7-6 m before a wall at 8 m, 1920 x 1080,
 the 6P lens (shipped Omni-Lens-Field), Cycles on the CPU:
@@ -47,8 +49,11 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=24)
     ap.add_argument("--samples", type=int, default=16)
     ap.add_argument("--json", default=None)
+    if argv is None and "--" in sys.argv:          # inside a Blender binary: its options end at "--"
+        argv = sys.argv[sys.argv.index("--") + 1:]
     args = ap.parse_args(argv)
     t_start = time.perf_counter()
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))     # the repository's add-on and engine
     import bpy
     import blender_addon
     blender_addon.register()
@@ -99,11 +104,19 @@ def main(argv=None) -> int:
                             "lens_first_s": lens[0], "lens_rest_mean_s": sum(lens[1:]) / max(1, len(lens) - 1),
                             "lens_total_s": sum(lens)}
     blender_addon.unregister()
+    import numpy as np
+    out["python"] = {"version": sys.version.split()[0], "numpy": np.__version__, "blender": bpy.app.version_string,
+                     "scipy": _has("scipy"), "threadpoolctl": _has("threadpoolctl")}
     for k, v in out.items():
         print(f"{k}: {json.dumps(v)}")
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=1))
     return 0
+
+
+def _has(module: str) -> bool:
+    import importlib.util
+    return importlib.util.find_spec(module) is not None
 
 
 if __name__ == "__main__":

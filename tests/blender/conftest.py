@@ -37,7 +37,10 @@ def blender() -> str:
 
 @pytest.fixture(scope="session")
 def addon_zip(tmp_path_factory) -> Path:
-    """The extension zip, built once for the session (what a user installs)."""
+    """The extension zip, built once for the session (what a user installs);
+    $DCDI_TEST_ADDON_ZIP names another (an older build, to show a test failing on it)."""
+    if os.environ.get("DCDI_TEST_ADDON_ZIP"):
+        return Path(os.environ["DCDI_TEST_ADDON_ZIP"])
     sys.path.insert(0, str(ROOT))
     import build
     return build.build_addon(tmp_path_factory.mktemp("dist"))

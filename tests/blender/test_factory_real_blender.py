@@ -27,8 +27,10 @@ FACTS = ("import json, sys; sys.path.insert(0, {root!r}); import bpy\n"
          "try:\n    import OpenImageIO; oiio = True\nexcept ImportError:\n    oiio = False\n"
          "print('FACTS ' + json.dumps({{'version': bpy.app.version_string, 'denoiser': denoiser_available(), "
          "'oiio': oiio}}))")
-# what a manifest record holds that differs from run to run
+# what a manifest record holds that differs from run to run: timings, and how many depth bins the
+# lens's PSF library held (it counts those the PSF cache on disk already had)
 TIMINGS = ("seconds", "cpu_seconds", "stage_seconds")
+LENS_RUN_STATE = ("seconds", "depth_bins_computed")
 
 
 def _env(cache: Path) -> dict:
@@ -70,7 +72,8 @@ def fingerprint(folder: Path) -> dict:
             r.pop(k, None)
         r["render"].pop("seconds", None)
         for lens in r["lenses"].values():
-            lens.pop("seconds", None)
+            for k in LENS_RUN_STATE:
+                lens.pop(k, None)
     out["manifest.jsonl"] = records
     return out
 

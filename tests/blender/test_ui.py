@@ -56,7 +56,7 @@ def preview_run(blender, addon_zip, tmp_path_factory):
 def test_preview_follows_every_change(preview_run):
     _, res = preview_run
     changes = res["changes"]
-    assert len(changes) >= 14, changes
+    assert len(changes) >= 25, changes
     for c in changes:
         assert c["refreshed"], f"the preview did not refresh after: {c['change']} ({c['via']}); {c}"
         assert c["current"], f"after {c['change']} the preview shows another request: {c}"
@@ -65,18 +65,37 @@ def test_preview_follows_every_change(preview_run):
 
 def test_preview_lens_only_changes_do_not_render(preview_run):
     _, res = preview_run
-    by = {c["change"]: c for c in res["changes"]}
-    for name in ("focus distance", "focus distance again", "camera focus distance", "kept range", "refocus off",
-                 "refocus on", "frame change"):
-        assert not by[name]["rendered"], f"{name} rendered the scene anew: {by[name]}"
-    for name in ("toggle", "object moved", "preview size"):
-        assert by[name]["rendered"], by[name]
-    assert by["frame change"]["shown"]["focus_m"] == pytest.approx(4.0, abs=1e-3)
-    assert by["keyframed focus, frame 1"]["shown"]["focus_m"] == pytest.approx(1.0, abs=1e-3)
-    assert by["focus distance"]["shown"]["focus_m"] == pytest.approx(2.5, abs=1e-6)
-    assert by["kept range"]["shown"]["keep_m"][1] == pytest.approx(by["kept range"]["shown"]["focus_m"] + 1.5)
-    assert by["refocus off"]["shown"]["refocus"] is False
-    assert by["preview size"]["shown"]["shape"][1] == 240
+    by = {(c["via"], c["change"]): c for c in res["changes"]}
+    lens_only = [("python", n) for n in ("focus distance", "focus distance again", "camera focus distance",
+                                         "kept range", "refocus off", "refocus on", "frame change")]
+    lens_only += [("ui", n) for n in ("focus distance", "kept range", "refocus off", "focus mode next",
+                                      "focus mode next again", "frame change")]
+    for key in lens_only:
+        assert not by[key]["rendered"], f"{key} rendered the scene anew: {by[key]}"
+    for key in [("python", "toggle"), ("python", "object moved"), ("python", "preview size"), ("ui", "object moved"),
+                ("ui", "preview size")]:
+        assert by[key]["rendered"], by[key]
+    py = {n: c for (v, n), c in by.items() if v == "python"}
+    assert py["frame change"]["shown"]["focus_m"] == pytest.approx(4.0, abs=1e-3)
+    assert py["keyframed focus, frame 1"]["shown"]["focus_m"] == pytest.approx(1.0, abs=1e-3)
+    assert py["focus distance"]["shown"]["focus_m"] == pytest.approx(2.5, abs=1e-6)
+    assert py["kept range"]["shown"]["keep_m"][1] == pytest.approx(py["kept range"]["shown"]["focus_m"] + 1.5)
+    assert py["refocus off"]["shown"]["refocus"] is False
+    assert py["preview size"]["shown"]["shape"][1] == 240
+
+
+def test_changes_through_the_ui_took_effect(preview_run):
+    """The widgets were really used: each change shows in what the preview drew."""
+    _, res = preview_run
+    ui = {c["change"]: c for c in res["changes"] if c["via"] == "ui"}
+    assert ui["focus distance"]["shown"]["focus_m"] == pytest.approx(3.0, abs=1e-6)
+    kept = ui["kept range"]["shown"]
+    assert kept["keep_m"][0] == pytest.approx(kept["focus_m"] - 0.4, abs=1e-6)
+    assert ui["refocus off"]["shown"]["refocus"] is False
+    assert ui["preview size"]["shown"]["shape"][1] == 300
+    assert res["ui_lens"] != "mos-s2" and res["ui_focus_mode_1"] == "OBJECT" and res["ui_focus_mode"] == "CAMERA"
+    assert res["ui_moved_by"] == pytest.approx(0.1, abs=1e-6) and res["ui_frame"] == 1
+    assert ui["frame change"]["shown"]["focus_m"] == pytest.approx(1.0, abs=1e-3)
 
 
 def test_preview_drawn_pixels_equal_the_engine_result(preview_run):

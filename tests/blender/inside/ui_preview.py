@@ -20,6 +20,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import ARGS, MODULE, OUT, RESULT, build_scene, install, run_steps, wait_until  # noqa: E402
+import uidrive  # noqa: E402
 
 import bpy  # noqa: E402
 import numpy as np  # noqa: E402
@@ -163,10 +164,102 @@ def steps():
     yield from change("frame change", "python", frame_10)
     RESULT["frame_10_focus"] = s.focus_distance
 
+    yield from ui_changes()
     status.viewport_preview = False
     yield 0.2
     RESULT["after_off"] = {"enabled": P.enabled, "handlers": [viewport.on_depsgraph_update in
                                                               bpy.app.handlers.depsgraph_update_post]}
+
+
+def ui_changes():
+    """The same kinds of change made through the panel's widgets and the 3D
+    view's shortcuts with real input (``uidrive``)."""
+    bpy.ops.object.select_all(action="DESELECT")
+    cam.select_set(True)
+    ctx.view_layer.objects.active = cam              # the camera's properties show the Lens Bokeh panel
+    props = next(a for a in win.screen.areas if a.type == "PROPERTIES")
+    props.spaces.active.context = "DATA"
+    yield 0.5
+    region = region_of(props)
+    yield from uidrive.hover(win, region.x + region.width / 2, region.y + region.height / 2)
+    uidrive._xdo("click", "--repeat", "40", "--delay", "10", "5")      # scrolled to the panel at the end
+    yield 0.5
+
+    def widgets():
+        found = yield from uidrive.scan(win, region)
+        RESULT.setdefault("ui_widgets", []).append(sorted(found))
+        return found
+
+    w = yield from widgets()
+
+    def at(path):
+        """A sub-generator: where the widget of ``path`` is; scrolls the
+        panel up and looks again while it is out of view."""
+        key = f"dcdi_lens_bokeh.{path}"
+        for _ in range(4):
+            if key in w:
+                break
+            yield from uidrive.hover(win, region.x + region.width / 2, region.y + region.height / 2)
+            uidrive._xdo("click", "--repeat", "6", "--delay", "10", "4")
+            yield 0.3
+            w.clear()
+            w.update((yield from widgets()))
+        assert key in w, f"the panel shows no {key} where it was looked for; found {sorted(w)}"
+        return w[key][0]
+
+    def typed(path, text):
+        def fn():
+            xy = yield from at(path)
+            yield from uidrive.type_value(win, *xy, text)
+        return fn
+
+    def clicked(path):
+        def fn():
+            xy = yield from at(path)
+            yield from uidrive.click(win, *xy)
+        return fn
+
+    def wheeled(path):
+        def fn():
+            xy = yield from at(path)
+            yield from uidrive.ctrl_wheel(win, *xy)
+        return fn
+
+    yield from change("focus distance", "ui", typed("focus_distance", "3"))
+    yield from change("kept range", "ui", typed("keep_front", "0.4"))
+    yield from change("refocus off", "ui", clicked("refocus"))
+    yield from change("preview size", "ui", typed("preview_size", "300"))
+
+    yield from change("lens", "ui", wheeled("lens"))
+    RESULT["ui_lens"] = s.lens
+    # focus mode (an expanded enum): Ctrl + wheel over it steps to the next item
+    yield from change("focus mode next", "ui", wheeled("focus_mode"))
+    RESULT["ui_focus_mode_1"] = s.focus_mode
+    yield from change("focus mode next again", "ui", wheeled("focus_mode"))
+    RESULT["ui_focus_mode"] = s.focus_mode
+
+    view = view3d()
+    vr = region_of(view)
+    cx, cy = vr.x + vr.width / 2, vr.y + vr.height / 2
+    bpy.ops.object.select_all(action="DESELECT")
+    cube.select_set(True)
+    ctx.view_layer.objects.active = cube
+    x0 = cube.location.x
+
+    def grab():
+        yield from uidrive.keys(win, cx, cy, "g", "x", "period", "1", "Return")
+    yield from change("object moved", "ui", grab)
+    RESULT["ui_moved_by"] = cube.location.x - x0
+
+    def distance_mode():
+        s.focus_mode = "DISTANCE"                # the keyframed focus is the panel's distance
+        yield 0.0
+    yield from change("focus mode distance", "python", distance_mode)
+
+    def first_frame():
+        yield from uidrive.keys(win, cx, cy, "shift+Left")     # Jump to Endpoint: the first frame
+    yield from change("frame change", "ui", first_frame)
+    RESULT["ui_frame"] = scene.frame_current
 
 
 run_steps(steps())
