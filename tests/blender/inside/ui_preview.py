@@ -25,7 +25,7 @@ import uidrive  # noqa: E402
 import bpy  # noqa: E402
 import numpy as np  # noqa: E402
 
-REFRESH_LIMIT_S = 60.0
+REFRESH_LIMIT_S = float(ARGS.get("refresh_limit_s", 60.0))
 
 scene, cam, cube = build_scene()
 scene.render.resolution_x, scene.render.resolution_y = ARGS.get("resolution", (1920, 1080))
@@ -84,7 +84,8 @@ def change(name, via, fn):
     rec = {"change": name, "via": via, "refreshed": waited is not None, "error": P.error}
     if waited is not None:
         log = P.log[-1]
-        asked = viewport.wanted(ctx)
+        # (an add-on build without ``wanted``, run to show this test failing on it, is judged by refreshes)
+        asked = viewport.wanted(ctx) if hasattr(viewport, "wanted") else (None, P.served and P.served[1])
         rec.update(seconds=round(time.perf_counter() - t, 3), refreshes=len(P.log) - n,
                    rendered=P.renders > renders, render_s=round(log["render_s"], 3),
                    lens_s=round(log["lens_s"], 3), current=P.served is not None and asked[1] == P.served[1],
