@@ -283,7 +283,7 @@ def cached_psf_source(lens, pixel_pitch_mm: float, settings):
         _SOURCES.move_to_end(key)
         return _SOURCES[key]
     src = core("models.runtime.library").psf_source(lens, pixel_pitch_mm=pixel_pitch_mm, settings=settings,
-                                                     focus_m=settings.focus_distance_m)
+                                                     focus_m=settings.focus_distance_m, labels=PSF_SOURCE_LABELS)
     _SOURCES[key] = src
     while len(_SOURCES) > SOURCE_CACHE_SIZE:
         _SOURCES.popitem(last=False)
@@ -437,10 +437,11 @@ def load_dacn_cached(path: Path):
 METHODS = ("auto", "deconvolution", "network")
 METHOD_NAMES = {"auto": "Auto", "deconvolution": "Deconvolution", "network": "Network"}
 # the engine's names of the two corrections (pipeline.choose_correction), and the panel's words for its options
-# (pipeline.CORRECTION_LABELS's; the PSF source has no setting in the panel: its options go unnamed)
+# (pipeline.CORRECTION_LABELS's; the PSF source has no setting in the panel: its options go unnamed,
+# in Correct as in Apply Lens Bokeh, Simulate and Lens in Renders)
 ENGINE_METHODS = {"deconv": "deconvolution", "dacn": "network"}
-CORRECTION_LABELS = {"method": "Method", "model": "Correction Model", "lens": "Lens", "psf_source": None,
-                     "basis": None, "olf": None}
+PSF_SOURCE_LABELS = {"psf_source": None, "basis": None, "olf": None}
+CORRECTION_LABELS = {"method": "Method", "model": "Correction Model", "lens": "Lens", **PSF_SOURCE_LABELS}
 # the sensor Simulate's Sensor Noise adds (render.noise.add_sensor_noise's defaults), electrons
 SENSOR_FULL_WELL_E = 10000.0
 SENSOR_READ_NOISE_E = 3.0

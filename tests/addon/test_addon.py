@@ -962,3 +962,16 @@ def test_psf_thumbnail_is_a_grid_of_peak_normalised_psfs():
             tile = img[i * 16:i * 16 + 15, j * 16:j * 16 + 15]
             assert tile.max() == pytest.approx(1.0)                 # each PSF scaled to its own peak
     assert not img[15::16].any() and not img[:, 15::16].any()       # the gaps stay black
+
+
+def test_the_bokehs_psf_source_message_speaks_the_panels_words():
+    """Apply Lens Bokeh, Simulate and Lens in Renders show the PSF source's
+    message: for an imported lens the engine's names a CLI option (--basis)."""
+    from conftest import singlet_dict
+    from dcdi_core.models.runtime.library import psf_source
+    from dcdi_core.optics.lens import Lens
+    from dcdi_core.psf.compute import PSFSettings
+    lens = Lens.from_dict(singlet_dict())
+    assert "--basis" in psf_source(lens, pixel_pitch_mm=0.05, settings=PSFSettings()).message     # the CLI's
+    msg = logic.cached_psf_source(lens, 0.05, PSFSettings()).message
+    assert "PSFs traced" in msg and "--" not in msg, msg
