@@ -201,6 +201,13 @@ def test_same_pixels_give_the_same_bytes():
     assert b"capDate" not in a and b"DateTime" not in a                           # no time stamp
 
 
+def test_chunks_deflated_on_the_thread_pool_give_the_bytes_of_one_thread(monkeypatch):
+    big = {c: _values(200, 700, k) for k, c in enumerate("RGB")}                   # 1.7 MB: on the pool
+    pooled = rawexr.encode_exr(big)
+    monkeypatch.setattr(rawexr, "_PARALLEL_BYTES", 1 << 40)
+    assert rawexr.encode_exr(big) == pooled
+
+
 # ---------------------------------------------------------------- what is refused
 
 def _zip_file(tmp_path, h=40, w=9):
