@@ -203,8 +203,15 @@ def _check_cancel(cancelled) -> None:
         raise Cancelled()
 
 
+# The viewport preview's PSFs where they must be traced (no shipped basis or
+# OLF holds the request, e.g. a minimalist lens refocused): fewer pupil rays
+# and wavelengths, a proxy of the render's (docs/addon.md gives its error and
+# time against the full trace); Apply Lens Bokeh and renders trace in full.
+PREVIEW_TRACE = {"pupil_samples": 24, "n_wavelengths": 9}
+
+
 def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], patch: int = 16,
-              refocus: bool = True, progress=None, cancelled=None):
+              refocus: bool = True, progress=None, cancelled=None, preview: bool = False):
     """The lens's depth of field on an all-in-focus (H, W, 3) float32 linear
     image with depth (H, W) metres: the lens focused at ``focus_m`` (or, with
     ``refocus`` False, as its prescription stands), depths in ``keep`` exactly
@@ -218,13 +225,17 @@ def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], 
     ``cancelled()`` returning True stops the PSF build or the convolution
     (between its layers) with :class:`Cancelled`. A focus where nothing in
     view lies blurs everything; info's ``focus_note`` says so ('' otherwise).
-    Returns (image, info)."""
+    ``preview``: PSFs that must be traced are traced with ``PREVIEW_TRACE``
+    (info's ``psf_quality`` 'preview'). Returns (image, info)."""
     sim = core("render.simulate")
     settings = replace(core("psf.compute").PSFSettings(), focus_distance_m=float(focus_m) if refocus else None)
     # the same checked request as `dcdi bokeh` builds; messages name the panel's settings
     plan = core("render.request").RenderRequest(lens, psf=settings, patch=patch, labels=PANEL_LABELS).plan(
         image.shape[0], image.shape[1], "the render")
     geom = plan.geometry
+    quality = "full"
+    if preview and cached_psf_source(lens, geom.pixel_pitch_mm, settings).kind == "trace":
+        settings, quality = replace(settings, **PREVIEW_TRACE), "preview"
     finite = depth[np.isfinite(depth) & (depth > 0)]
     kept = int(((depth >= keep[0]) & (depth <= keep[1])).sum())
     # a camera may focus on empty space: then everything in view is out of focus
@@ -258,7 +269,7 @@ def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], 
         raise Cancelled() from None
     info = dict(res.info, focus_m=float(focus_m), keep_m=[float(keep[0]), float(keep[1])], refocus=bool(refocus),
                 pixel_pitch_mm=float(geom.pixel_pitch_mm), psf_source=src.kind, psf_source_message=src.message,
-                focus_note=focus_note)
+                focus_note=focus_note, psf_quality=quality)
     return res.image.astype(np.float32), info
 
 

@@ -19,7 +19,8 @@ main thread):
   preview size (``bpy_render.render_aif_depth``, about a second at 480 x
   270), redone only when something other than the lens settings changed
   (a focus or lens change reuses the last one);
-- the lens stage (``logic.run_bokeh``) on a worker thread; a newer change
+- the lens stage (``logic.run_bokeh``, PSFs that must be traced at the
+  preview's quality ``logic.PREVIEW_TRACE``) on a worker thread; a newer change
   cancels it (the worker's ``cancelled()`` compares generations) and its
   result is dropped;
 - the result becomes a GPU texture that a ``POST_PIXEL`` draw handler
@@ -156,7 +157,8 @@ class Preview:
         def run():
             try:
                 out, info = logic.run_bokeh(sharp["rgb"], sharp["depth"], lens, focus_m=focus, keep=keep,
-                                            refocus=refocus, cancelled=lambda: self.generation != gen)
+                                            refocus=refocus, cancelled=lambda: self.generation != gen,
+                                            preview=True)
                 job["out"], job["info"] = out, info
             except logic.Cancelled:
                 job["cancelled"] = True

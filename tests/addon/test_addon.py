@@ -975,3 +975,27 @@ def test_the_bokehs_psf_source_message_speaks_the_panels_words():
     assert "--basis" in psf_source(lens, pixel_pitch_mm=0.05, settings=PSFSettings()).message     # the CLI's
     msg = logic.cached_psf_source(lens, 0.05, PSFSettings()).message
     assert "PSFs traced" in msg and "--" not in msg, msg
+
+
+def test_the_preview_traces_what_no_shipped_source_holds_at_its_own_quality(tmp_path, monkeypatch):
+    """The viewport preview's traced PSFs (logic.PREVIEW_TRACE) are a proxy
+    of the full trace; where a shipped source serves, the preview is the
+    full result, bit for bit."""
+    from dcdi_core.optics.lens import load_lens
+    monkeypatch.setenv("DCDI_CACHE_DIR", str(tmp_path / "cache"))
+    logic.clear_psf_sources()
+    rng = np.random.default_rng(0)
+    img = rng.random((36, 48, 3), dtype=np.float32)
+    depth = np.full((36, 48), 3.0, np.float32)
+    depth[:, :20] = 1.2
+    lens = load_lens("mos-s2")
+    full, info_full = logic.run_bokeh(img, depth, lens, focus_m=2.0, keep=(2.0, 2.0))
+    prev, info_prev = logic.run_bokeh(img, depth, lens, focus_m=2.0, keep=(2.0, 2.0), preview=True)
+    assert info_full["psf_source"] == info_prev["psf_source"] == "trace"
+    assert (info_full["psf_quality"], info_prev["psf_quality"]) == ("full", "preview")
+    mse = float(np.mean((prev.astype(np.float64) - full) ** 2))
+    assert 0 < mse and 10 * np.log10(1 / mse) >= 45.0              # a proxy, not the same PSFs
+    held, info_held = logic.run_bokeh(img, depth, lens, focus_m=2.0, keep=(2.0, 2.0), refocus=False, preview=True)
+    same, _ = logic.run_bokeh(img, depth, lens, focus_m=2.0, keep=(2.0, 2.0), refocus=False)
+    assert info_held["psf_source"] == "basis" and info_held["psf_quality"] == "full"
+    assert np.array_equal(held, same)
