@@ -236,6 +236,7 @@ class _JobOperator:
         return {"RUNNING_MODAL"}
 
     def _end(self, context):
+        self._ended = True
         wm = context.window_manager
         wm.event_timer_remove(self._timer)
         wm.progress_end()
@@ -246,6 +247,10 @@ class _JobOperator:
         _redraw(context)
 
     def modal(self, context, event):
+        if getattr(self, "_ended", False):
+            # Blender 5.2 was seen calling a finished job's modal once more (its operator invoked from a
+            # timer, the next job running): ending it again would mark that next job as not running
+            return {"CANCELLED"}
         w = self._worker
         st = context.window_manager.dcdi_lens_bokeh_status
         if event.type == "ESC":

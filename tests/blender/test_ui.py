@@ -137,6 +137,7 @@ def test_buttons_run_as_clicks_with_progress(operators_run):
 def test_esc_cancels_a_running_bokeh(operators_run):
     _, res = operators_run
     assert res["esc_started"] == ["RUNNING_MODAL"] and res["esc_workers_before"] == 1
+    assert res["esc_running_before"], "the status said no job runs while one did (the last job's modal ran again)"
     before = res["esc_progress_before"]                      # the progress the status showed before Esc
     assert 0 < before["progress"] < 100 and "Esc cancels" in before["message"], before
     assert res["esc"]["running"] is False and res["esc"]["message"] == "cancelled"
