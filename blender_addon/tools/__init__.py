@@ -17,6 +17,9 @@ and read its folders through ``dcdi_core.dataset.factory_folder``:
 - ``reproduce_dacn.sh``: the shipped DACN and depth networks from scratch
   (factory, DA2T pairs, study, exports);
 - ``screenshots``: the screenshots of docs/addon.md of the add-on in a real Blender UI;
+- ``addon_waits``: the add-on's waits (preview, F12, an animation), in pip bpy or a Blender binary;
+- ``preview_quality``: the viewport preview's traced PSFs against the full trace (error, time);
+- ``real_blender.sh``: provisions Debian's Blender with Xvfb for ``python build.py test-blender``;
 - ``defocus_node``: the compositor's Defocus node (Z buffer) on an RGB-D image
   with the thin lens of a prescription, headless and timed (the comparison
   row of ``python build.py bench render``).
