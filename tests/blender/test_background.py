@@ -14,6 +14,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "addon"))
 import test_addon as _addon  # noqa: E402
 import test_render_hook as _hook  # noqa: E402
 from headless_run import run_headless  # noqa: E402
+# the fixtures by import: a conftest.py here would shadow tests/conftest.py's helpers
+from realblender_support import addon_zip, blender  # noqa: E402,F401
 
 pytestmark = pytest.mark.realblender
 

@@ -10,7 +10,8 @@ import sys
 import numpy as np
 import pytest
 
-from conftest import ROOT, run_inside, user_folders
+# the fixtures by import: a conftest.py here would shadow tests/conftest.py's helpers
+from realblender_support import ROOT, addon_zip, blender, run_inside, user_folders  # noqa: F401
 
 pytestmark = pytest.mark.realblender
 

@@ -18,6 +18,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+# the fixtures by import: a conftest.py here would shadow tests/conftest.py's helpers
+from realblender_support import blender  # noqa: E402,F401
+
 ROOT = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.realblender
 

@@ -5,7 +5,8 @@ import os
 import numpy as np
 import pytest
 
-from conftest import run_inside
+# the fixtures by import: a conftest.py here would shadow tests/conftest.py's helpers
+from realblender_support import addon_zip, blender, run_inside  # noqa: F401
 from dcdi_core.io.images import linear_to_srgb, read_image
 
 pytestmark = pytest.mark.realblender

@@ -1,4 +1,4 @@
-"""The real-Blender suite (`python build.py test-blender`): the add-on and the
+"""Shared by the real-Blender suite (`python build.py test-blender`): the add-on and the
 factory in a Blender binary as users run it, the UI under Xvfb with
 software OpenGL. The scripts that run inside Blender live in
 tests/blender/inside/; each writes OUT/result.json.
