@@ -265,7 +265,8 @@ def test_the_engine_refuses_and_warns_alike():
     from dcdi_core.errors import RenderError
     from dcdi_core.optics.lens import load_lens
     from dcdi_core.render.inputs import InputWarning
-    from dcdi_core.render.simulate import BokehOptions, bokeh, simulate
+    from dcdi_core.render.bokeh import BokehOptions, bokeh
+    from dcdi_core.render.simulate import simulate
     img, depth = synthetic_rgbd(16, 16, seed=0)
     lens = load_lens("mos-s1")
     with pytest.raises(RenderError, match="no valid depth"):

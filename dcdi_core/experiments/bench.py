@@ -171,7 +171,8 @@ def bench_render(quick: bool = False) -> int:
     from ..render.convolve import ConvolveOptions, patch_convolve
     from ..render.geometry import ImageGeometry
     from ..render.psfmap import psf_map
-    from ..render.simulate import BokehOptions, bokeh, open_library, simulate
+    from ..render.bokeh import BokehOptions, bokeh
+    from ..render.simulate import SimulateOptions, open_library, simulate
     from ..render.synthetic import synthetic_rgbd
 
     h, w = (320, 480) if quick else (1280, 1920)
@@ -190,12 +191,13 @@ def bench_render(quick: bool = False) -> int:
     rep = 1 if quick else 2                    # best of rep: the first call also warms the thread pool
     t_map, pm = _best(lambda: psf_map(lib, geom, depth, m), rep)
     t_conv, _ = _best(lambda: patch_convolve(img, pm.kernels, m, identity=pm.identity), rep)
-    t_sim, _ = _best(lambda: simulate(img, depth, mos, geometry=geom, library=lib, distortion=False), rep)
-    t_sim_d, _ = _best(lambda: simulate(img, depth, mos, geometry=geom, library=lib, distortion=True), rep)
+    t_sim, _ = _best(lambda: simulate(img, depth, mos, SimulateOptions(geometry=geom, distortion=False),
+                                      library=lib), rep)
+    t_sim_d, _ = _best(lambda: simulate(img, depth, mos, SimulateOptions(geometry=geom), library=lib), rep)
     from ..render import fft
     # the fallback that Blender's Python gets
-    t_sim_np, _ = _best(lambda: simulate(img, depth, mos, geometry=geom, library=lib, distortion=False,
-                                         fft_backend="numpy"), 1)
+    t_sim_np, _ = _best(lambda: simulate(img, depth, mos, SimulateOptions(geometry=geom, distortion=False,
+                                                                          fft_backend="numpy"), library=lib), 1)
     plain, layered = BokehOptions(keep=(1.1, 1.3), occlusion=False), BokehOptions(keep=(1.1, 1.3), occlusion=True)
     t_bk_plain, _ = _best(lambda: bokeh(img, depth, p6, plain, library=lib6), rep)
     t_bk, _ = _best(lambda: bokeh(img, depth, p6, layered, library=lib6), rep)
@@ -220,7 +222,7 @@ def bench_render(quick: bool = False) -> int:
     tracemalloc.stop()
     # peak memory in separate runs (tracing slows numpy's allocations a little)
     tracemalloc.start()
-    simulate(img, depth, mos, geometry=geom, library=lib, distortion=True)
+    simulate(img, depth, mos, SimulateOptions(geometry=geom), library=lib)
     peak_sim = tracemalloc.get_traced_memory()[1]
     tracemalloc.reset_peak()
     bokeh(img, depth, p6, layered, library=lib6)
@@ -278,7 +280,7 @@ def _bench_simulation_paths(img, depth, lens, geom, lib, rep: int) -> dict:
     import tracemalloc
 
     from ..render import accel_torch
-    from ..render.simulate import simulate
+    from ..render.simulate import SimulateOptions, simulate
 
     cases = {"exact": dict(convolution="windows"), "default": {},
              "exact, numpy FFT": dict(convolution="windows", fft_backend="numpy"),
@@ -291,12 +293,12 @@ def _bench_simulation_paths(img, depth, lens, geom, lib, rep: int) -> dict:
         kw = dict(kw)
         threads = kw.pop("torch_threads", None)
         if threads is None:
-            return simulate(img, depth, lens, geometry=geom, library=lib, distortion=False, **kw).image
+            return simulate(img, depth, lens, SimulateOptions(geometry=geom, distortion=False, **kw), library=lib).image
         import torch
         before = torch.get_num_threads()
         torch.set_num_threads(threads)         # this process's setting, restored at once
         try:
-            return simulate(img, depth, lens, geometry=geom, library=lib, distortion=False, **kw).image
+            return simulate(img, depth, lens, SimulateOptions(geometry=geom, distortion=False, **kw), library=lib).image
         finally:
             torch.set_num_threads(before)
 
@@ -372,7 +374,8 @@ def _bench_bokeh_multires(img, depth, lens, lib41, quick: bool, rep: int) -> Non
     from .simulation_accuracy import psnr
     from ..render.geometry import ImageGeometry
     from ..render.multires import BENCH_C, DEFAULT_MAX_LEVEL
-    from ..render.simulate import BokehOptions, bokeh, open_library
+    from ..render.bokeh import BokehOptions, bokeh
+    from ..render.simulate import open_library
 
     h, w = depth.shape
     fitted = open_library(lens, ImageGeometry.full_sensor(lens, h, w), fit_depth_m=depth)
@@ -414,20 +417,20 @@ def bench_correction(quick: bool = False) -> int:
     goal is a deconvolution at most 2 x the simulation."""
     from ..correct import DeconvOptions, deconvolve
     from ..models.common.metrics import psnr
-    from ..models.runtime.library import psf_source
     from ..optics.lens import load_lens
     from ..render.geometry import ImageGeometry
-    from ..render.simulate import LensSimulator, open_library
+    from ..render.simulate import LensSimulator, SimulateOptions
     from ..render.synthetic import synthetic_rgbd
 
     h, w = (320, 480) if quick else (1280, 1920)
     lens = load_lens("mos-s1")
     img, depth = synthetic_rgbd(h, w, seed=0)
     geom = ImageGeometry.full_sensor(lens, h, w)
-    src = psf_source(lens, pixel_pitch_mm=geom.pixel_pitch_mm)
-    lib = src.library if src.library is not None else open_library(lens, geom, fit_depth_m=depth)
+    from ..app.sources import PSFRequest, open_source
+    src = open_source(lens, geom, PSFRequest(), fit_depth_m=depth)
+    lib = src.library
     lib.build()
-    sim = LensSimulator(lens, geom, library=lib)
+    sim = LensSimulator(lens, SimulateOptions(geometry=geom), library=lib)
     print(f"bench correction: mos-s1, {h} x {w} RGB (synthetic scene, {geom.pixel_pitch_mm * 1000:.3g} um pixels), "
           f"{lib.kernel_size} x {lib.kernel_size} PSFs ({src.kind}), {os.cpu_count()} CPU(s), load average "
           f"{os.getloadavg()[0]:.2f}")

@@ -112,7 +112,8 @@ def engine(out: Path, quick: bool) -> int:
     from ..psf.compute import PSFSettings
     from .bokeh_reference import crop_reference
     from ..render.geometry import ImageGeometry
-    from ..render.simulate import BokehOptions, bokeh, open_library
+    from ..render.bokeh import BokehOptions, bokeh
+    from ..render.simulate import open_library
     from ..render.synthetic import synthetic_rgbd
 
     h, w = (320, 480) if quick else (1280, 1920)

@@ -38,7 +38,7 @@ import json
 import math
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -52,7 +52,7 @@ from ..io.images import linear_to_srgb
 from ..models.common.metrics import WINDOW, ssim_map
 from ..models.dacn.evaluate import BandSums
 from ..render.geometry import ImageGeometry
-from ..render.simulate import LensSimulator, check_within_sensor, open_library
+from ..render.simulate import LensSimulator, SimulateOptions, check_within_sensor, open_library
 from ..render.synthetic import synthetic_rgbd
 
 PAPER_PITCH_MM = 0.0122
@@ -196,12 +196,12 @@ class Libraries:
         self.olf, self.traced, self.messages = {}, {}, {}
 
     def main(self, geometry: ImageGeometry):
-        from ..models.runtime.library import psf_source
         key = round(geometry.pixel_pitch_mm, 9)
         if key not in self.olf:
-            src = psf_source(self.lens, pixel_pitch_mm=geometry.pixel_pitch_mm)
-            lib = src.library if src.library is not None else open_library(self.lens, geometry)
-            if src.library is not None:
+            from ..app.sources import PSFRequest, open_source
+            src = open_source(self.lens, geometry, PSFRequest(fit_kernel=False))
+            lib = src.library
+            if src.kind != "trace":
                 lib.build()                  # every bin now (network or basis: cheap): none inside a timing
             self.olf[key], self.messages[key] = (lib, src.kind), src.message
         return self.olf[key]
@@ -222,7 +222,7 @@ def _ensure(library, depth) -> None:
 
 def simulate_frame(lens, libs: Libraries, case, group, geometry, scene: Scene, seed: int, traced: bool) -> Frame:
     lib, kind = libs.main(geometry)
-    sim = LensSimulator(lens, geometry, library=lib)
+    sim = LensSimulator(lens, SimulateOptions(geometry=geometry), library=lib)
     t, c = time.perf_counter(), time.process_time()
     r = sim(scene.image, scene.depth, noise=dict(NOISE), seed=seed)
     secs = (time.perf_counter() - t, time.process_time() - c)

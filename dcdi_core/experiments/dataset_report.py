@@ -59,7 +59,7 @@ from ..dataset.statistics import (DEPTH_BANDS_M, HIGH_FREQUENCY_CYCLES_PER_PX, c
                                   spectral_energy)
 from ..errors import DatasetError, InputRangeError
 from ..render.geometry import ImageGeometry
-from ..render.simulate import LensSimulator, check_within_sensor
+from ..render.simulate import LensSimulator, SimulateOptions, check_within_sensor
 from .correction_report import PAPER_PITCH_MM, SENSOR_PX, Libraries, band_name
 
 INDOOR_BAND_M = (1.0, 5.0)            # the depth range indoor recipes should mostly fill
@@ -293,7 +293,7 @@ class LensBlur:
         geom = placed_geometry(self.lens, h, w, top_left)
         lib, _ = self.libraries.main(geom)
         self.psf_source = self.libraries.messages[round(geom.pixel_pitch_mm, 9)]
-        r = LensSimulator(self.lens, geom, library=lib)(image, depth)
+        r = LensSimulator(self.lens, SimulateOptions(geometry=geom), library=lib)(image, depth)
         # the blur spreads the unimaged pixels' black into their neighbours (the target has none of it):
         # a crop within the kernel's reach of them measures the crop's edge, not the lens
         unusable = near(~(r.depth > 0), lib.kernel_size // 2)          # NaN: not imaged

@@ -240,10 +240,11 @@ def timed_job(what: str, lens, geom, img, depth, library) -> tuple:
     """(image, seconds) of a simulation (``what`` 'simulate', no distortion)
     or an occlusion-aware bokeh at the prescribed focus of ``img`` with PSFs
     from ``library``."""
-    from ..render.simulate import BokehOptions, LensSimulator, bokeh
+    from ..render.bokeh import BokehOptions, bokeh
+    from ..render.simulate import LensSimulator, SimulateOptions
     t = time.perf_counter()
     if what == "simulate":
-        r = LensSimulator(lens, geom, library=library, distortion=False)(img, depth)
+        r = LensSimulator(lens, SimulateOptions(geometry=geom, distortion=False), library=library)(img, depth)
     else:
         r = bokeh(img, depth, lens, BokehOptions(focus_m="prescribed", geometry=geom), library=library)
     return r.image, time.perf_counter() - t

@@ -45,7 +45,7 @@ def held_out(pairs_dir, split_runs: list, count: int) -> list:
 
 
 def _bokeh(image, depth, lens, keep, library=None, settings=None):
-    from ..render.simulate import BokehOptions, bokeh
+    from ..render.bokeh import BokehOptions, bokeh
     # not imaged (NaN): left as it is by the bokeh, and out of the scores
     return bokeh(np.clip(image, 0, None), depth, lens, BokehOptions(keep=keep, settings=settings),
                  library=library).image

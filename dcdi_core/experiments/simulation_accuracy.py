@@ -28,7 +28,7 @@ from ..psf.library import LibraryGrid, PSFLibrary
 from ..render.convolve import ConvolveOptions, patch_convolve
 from ..render.geometry import ImageGeometry
 from ..render.psfmap import psf_map, rotate_radial_kernels
-from ..render.simulate import BokehOptions, bokeh
+from ..render.bokeh import BokehOptions, bokeh
 from ..render.synthetic import synthetic_rgbd
 
 
@@ -403,13 +403,14 @@ def distortion_rows(lens, *, quick: bool) -> tuple[list, list, str]:
     lib.ensure(depth)
     ref = distorted_reference(scene, lib, geom, table)
     from ..render.resample import METHODS
-    from ..render.simulate import LensSimulator
+    from ..render.simulate import LensSimulator, SimulateOptions
     rows = []
     for interp in ("linear", "keys"):
         res = blur_then_warp(img, depth, lens, lib, geom, src, table, interpolation=interp)
         rows.append(("blur, then warp (former)", interp, psnr(res, ref)))
     for interp in METHODS:
-        res = LensSimulator(lens, geom, source_geometry=src, library=lib, interpolation=interp)(img, depth)
+        res = LensSimulator(lens, SimulateOptions(geometry=geom, source_geometry=src, interpolation=interp),
+                            library=lib)(img, depth)
         rows.append(("warp, then blur at the real positions", interp, psnr(res.image, ref)))
         print(f"  {rows[-1][0]}, {interp}: PSNR {rows[-1][2]:6.2f} dB", flush=True)
     from ..render.distortion import distort

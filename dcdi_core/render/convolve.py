@@ -149,6 +149,25 @@ def grow_square(mask: np.ndarray, n: int) -> np.ndarray:
     return out
 
 
+def box_reach(kernel_size: int, m: int) -> int:
+    """px around a group of m-px patches that its blur with
+    ``kernel_size``-px kernels reaches: the kernel's radius plus a patch
+    (more than the m / 2 a blend window reaches past its patch), rounded up
+    to whole patches. Outside the group's box grown by it the blur is zero,
+    so a group (a bokeh layer, a multires level) is blurred on that box alone."""
+    return m * math.ceil((kernel_size // 2 + m) / m)
+
+
+def patch_box(mask: np.ndarray, m: int, grow: int) -> tuple[slice, slice]:
+    """Rows and columns of ``mask``'s (H, W) bounding box grown by ``grow`` px
+    and aligned to the m-px patch grid (so its patches are the image's)."""
+    h, w = mask.shape
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    y0, x0 = max(0, (rows[0] - grow) // m * m), max(0, (cols[0] - grow) // m * m)
+    y1, x1 = min(h, -(-(rows[-1] + 1 + grow) // m) * m), min(w, -(-(cols[-1] + 1 + grow) // m) * m)
+    return slice(int(y0), int(y1)), slice(int(x0), int(x1))
+
+
 def rings_needed(kernels: np.ndarray, ring: np.ndarray, eps: float, channels=None) -> np.ndarray:
     """Smallest ring index h such that the pixels with ``ring`` > h hold at most
     ``eps`` of the energy of every channel (of ``channels``, default all), per

@@ -8,7 +8,7 @@ lens's sensor semi-diagonal (docs/design.md).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -76,6 +76,12 @@ class ImageGeometry:
         sd = _positive("lens.sensor.semi_diagonal_mm", lens.sensor.semi_diagonal_mm)
         c = ((h - 1) / 2.0, (w - 1) / 2.0) if center_px is None else tuple(center_px)
         return cls(h, w, pitch, c, sd)
+
+    def crop(self, rows: slice, cols: slice) -> "ImageGeometry":
+        """The geometry of the box (``rows``, ``cols``: slices with a start and
+        a stop, in pixels) of this frame: same pitch, the axis moved with it."""
+        return replace(self, height=rows.stop - rows.start, width=cols.stop - cols.start,
+                       center_px=(self.center_px[0] - rows.start, self.center_px[1] - cols.start))
 
     # The offsets are written centre - position (not the reverse) so that on
     # the axis they are +0.0, never -0.0: atan2(-0.0, -0.0) would be -pi.

@@ -39,14 +39,16 @@ each has its own transforms).
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from ..errors import InputRangeError
 from ..psf.pitch import area_resample, resampled_size
-from .convolve import ConvolveOptions, patch_convolve
+from . import fft
+from .convolve import ConvolveOptions, box_reach, patch_box, patch_convolve
 from .psfmap import psf_map, support_radius
+from .simulate import check_patch
 
 # the level rule reads the disk holding half the energy: the core's width. 6P's
 # defocus kernels are a peaked core in a wide halo, and a rule on the 90 %
@@ -71,6 +73,31 @@ def check_multires(c, max_level, coarse_patch) -> None:
     if isinstance(coarse_patch, bool) or not isinstance(coarse_patch, (int, np.integer)) or coarse_patch < 2 \
             or coarse_patch % 2:
         raise InputRangeError("coarse_patch", coarse_patch, "an even number of coarse pixels >= 2")
+
+
+@dataclass(frozen=True)
+class MultiresOptions:
+    """How :func:`grouped_blur` and :func:`plain_blur` blur, checked when made.
+
+    c: the level rule's tolerance (px, > 0; None: every patch at level 0):
+    a patch goes to the largest level s <= ``max_level`` (0 to 4) whose
+    kernels' ``LEVEL_EPS`` radius is >= c 2^s px. patch: the full-resolution
+    patch size m (px, even, >= 2); coarse_patch: the patch size at the
+    coarser levels (coarse px, even, >= 2). fft_backend: 'scipy' or 'numpy'
+    (None: the fastest installed). ``BokehOptions.multires_options`` makes
+    one from a bokeh's options.
+    """
+
+    c: float | None
+    patch: int = 16
+    max_level: int = DEFAULT_MAX_LEVEL
+    coarse_patch: int = 16
+    fft_backend: str | None = None
+
+    def __post_init__(self):
+        check_multires(self.c, self.max_level, self.coarse_patch)
+        check_patch(self.patch)
+        fft.backend(self.fft_backend)                     # its own message: the backends this Python has
 
 
 def level_for(radius_px, c: float | None, max_level: int) -> np.ndarray:
@@ -258,24 +285,25 @@ def coarse_blur(image: np.ndarray, depth: np.ndarray, valid: np.ndarray, library
 
 
 def grouped_blur(x: np.ndarray, depth: np.ndarray, valid: np.ndarray, ident: np.ndarray, library, geometry,
-                 m: int, c: float, max_level: int, coarse_patch: int, grow: int, *, pairs=None, keep_range_m=None,
-                 table=None, fft_backend=None):
+                 options: MultiresOptions, *, pairs=None, keep_range_m=None, table=None):
     """``patch_convolve``'s blend sum_p t_p (x * K_p) over the m x m patches
-    of ``x`` (H, W, C), K_p the kernel psf_map gives patch p for the mean
-    inverse depth of its ``valid`` pixels, with each patch at its level
-    (:func:`patch_levels`): out = PC_0 + sum_{s >= 1} W_s (B_s - x), where
+    (m = ``options.patch``) of ``x`` (H, W, C), K_p the kernel psf_map gives
+    patch p for the mean inverse depth (``depth`` metres) of its ``valid``
+    pixels, with each patch at its level (:func:`patch_levels` with the
+    options' rule): out = PC_0 + sum_{s >= 1} W_s (B_s - x), where
     PC_0 is ``patch_convolve`` with every patch not at level 0 copied
     (identity), W_s the tent blend of the indicator of the level-s patches
     (bilinear between patch centres, as patch_convolve's) and B_s ``x``
     blurred at 1/2^s (:func:`coarse_blur`) with the depths of the level-s
-    patches (elsewhere in its box those of the rest). ident (nph, npw):
-    patches copied as they are (no depth, kept sharp). pairs: as
+    patches (elsewhere in its box those of the rest). Each group is blurred
+    on its box grown by the kernels' reach (``convolve.box_reach``). ident
+    (nph, npw): patches copied as they are (no depth, kept sharp). pairs: as
     patch_convolve's (x's channel, kernel channel). A constant stays
-    constant. grow: px of the kernels' reach around a group's patches.
-    table: the library's :func:`radius_table` (made here if None).
+    constant. table: the library's :func:`radius_table` (made here if None).
     Returns (float32 (H, W, len(pairs)), levels (nph, npw), -1 where ident)."""
-    from .simulate import _box, _box_geometry
-
+    m, c, max_level = options.patch, options.c, options.max_level
+    coarse_patch, fft_backend = options.coarse_patch, options.fft_backend
+    grow = box_reach(library.kernel_size, m)
     h, w = depth.shape
     pr = np.array([(i, i) for i in range(x.shape[-1])] if pairs is None else pairs, int).reshape(-1, 2)
     table = radius_table(library) if table is None else table
@@ -287,8 +315,8 @@ def grouped_blur(x: np.ndarray, depth: np.ndarray, valid: np.ndarray, ident: np.
         # on the level-0 patches' box grown by the kernels' reach: beyond it
         # every window is a copy, and inside it no level-0 window reads the
         # box's reflected border
-        ys, xs = _box(per_pixel == 0, m, grow)
-        sub = _box_geometry(geometry, ys, xs)
+        ys, xs = patch_box(per_pixel == 0, m, grow)
+        sub = geometry.crop(ys, xs)
         pm0 = psf_map(library, sub, np.where(valid[ys, xs] & (per_pixel[ys, xs] == 0), depth[ys, xs], np.nan), m,
                       keep_range_m=keep_range_m, crop=True)
         out[ys, xs] = patch_convolve(x[ys, xs], pm0.kernels, m, ConvolveOptions(fft_backend=fft_backend),
@@ -297,8 +325,8 @@ def grouped_blur(x: np.ndarray, depth: np.ndarray, valid: np.ndarray, ident: np.
         group = levels == s
         if not group.any():
             continue
-        ys, xs = _box(np.repeat(np.repeat(group, m, 0), m, 1)[:h, :w], m, grow)
-        sub = _box_geometry(geometry, ys, xs)
+        ys, xs = patch_box(np.repeat(np.repeat(group, m, 0), m, 1)[:h, :w], m, grow)
+        sub = geometry.crop(ys, xs)
         own = valid[ys, xs] & (per_pixel[ys, xs] == s)
         blurred = coarse_blur(x[ys, xs], depth[ys, xs], own, library, sub, 2 ** s, coarse_patch, pairs=pairs,
                               fallback_valid=valid[ys, xs], fft_backend=fft_backend)[0]
@@ -308,14 +336,16 @@ def grouped_blur(x: np.ndarray, depth: np.ndarray, valid: np.ndarray, ident: np.
     return out, levels
 
 
-def plain_blur(img: np.ndarray, depth: np.ndarray, library, geometry, m: int, keep_range_m, c: float,
-               max_level: int, coarse_patch: int, grow: int, *, fft_backend=None):
-    """The plain patch-wise bokeh (``BokehOptions(occlusion=False)``) with each
-    patch at its level (:func:`grouped_blur`); patches without valid depth
-    or whose depth is in ``keep_range_m`` are copied, as the exact path's.
+def plain_blur(img: np.ndarray, depth: np.ndarray, library, geometry, options: MultiresOptions, *,
+               keep_range_m=None):
+    """The plain patch-wise bokeh (``BokehOptions(occlusion=False)``) of
+    ``img`` (H, W, 3) with ``depth`` (H, W) metres, each patch at its level
+    (:func:`grouped_blur`); patches without valid depth or whose depth is in
+    ``keep_range_m`` (near, far metres) are copied, as the exact path's.
     Returns (image float32 (H, W, 3), info dict)."""
     from .psfmap import patch_inverse_depth, valid_depth_mask
 
+    m = options.patch
     valid = valid_depth_mask(depth)
     inv, has = patch_inverse_depth(depth, m, library.grid.far_m)
     d_patch = np.where(inv > 0, 1.0 / np.where(inv > 0, inv, 1.0), np.inf)
@@ -324,9 +354,8 @@ def plain_blur(img: np.ndarray, depth: np.ndarray, library, geometry, m: int, ke
         ident |= has & (d_patch >= keep_range_m[0]) & (d_patch <= keep_range_m[1])
     if valid.any():
         library.ensure(bins=library.bins_needed(depth[valid], clamp_near=True))
-    out, levels = grouped_blur(img, depth, valid, ident, library, geometry, m, c, max_level, coarse_patch, grow,
-                               keep_range_m=keep_range_m, fft_backend=fft_backend)
-    info = {"multires_patches_per_level": [int((levels == s).sum()) for s in range(max_level + 1)]}
+    out, levels = grouped_blur(img, depth, valid, ident, library, geometry, options, keep_range_m=keep_range_m)
+    info = {"multires_patches_per_level": [int((levels == s).sum()) for s in range(options.max_level + 1)]}
     # light is never negative: the cubic's undershoot next to a hard-edged disc
     # (all at level 0: left as the exact path's, bit for bit)
     return (np.maximum(out, 0.0) if (levels > 0).any() else out), info

@@ -12,40 +12,24 @@ traced.
 Units: lengths on the sensor in mm, depths in metres, wavelengths in nm,
 positions and sizes in image pixels (row, col; pixel centres at integers).
 
-Names in messages: each error names a setting by its label in ``labels``
-({field: label}); the defaults are the `dcdi` command's options, as the
-engine's memory check names them (--rays, --kernel); the add-on can pass its
-panel's words.
+Names in messages: each error names a setting by its field
+(``errors.field``), shown in each front end's words (the `dcdi` command's
+options, the add-on's panel labels); ``labels`` ({field: label}) may still
+override a name.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from types import MappingProxyType
 
 from ..errors import InputRangeError
+from ..errors import field as field_ref
 from ..psf.compute import PSFSettings, check_psf_memory
 from ..psf.library import LibraryGrid
 from .distortion import check_interpolation
 from .geometry import ImageGeometry
 from .noise import check_noise
 from .simulate import DEFAULT_INTERPOLATION, MAX_FITTED_KERNEL, check_patch, check_within_sensor
-
-# field -> the name a user knows it by (the `dcdi` command's options)
-OPTION_LABELS = MappingProxyType({
-    "image_pixel_pitch_mm": "--image-pixel-pitch",
-    "pixel_pitch_mm": "--pixel-pitch",
-    "sensor_size": "--sensor-size",
-    "axis_px": "--axis",
-    "patch": "--patch",
-    "interpolation": "--interpolation",
-    "seed": "--seed",
-    "noise": "--noise",
-    "perturb_fraction": "--perturb-fraction",
-    "fixed_depth_m": "--fixed-depth",
-    "wavelength_nm": "--wavelength",
-})
-
 
 def check_library_memory(settings: PSFSettings, grid: LibraryGrid | None = None, *, map_kernels: int = 0) -> None:
     """Refuse, before any work, a PSF library of ``grid`` (default: the
@@ -104,7 +88,7 @@ class RenderRequest:
     perturb_seed: int | None = None
     perturb_fraction: float = 0.10
     fixed_depth_m: float | None = None
-    labels: dict = field(default_factory=lambda: dict(OPTION_LABELS))
+    labels: dict = field(default_factory=dict)
 
     def __post_init__(self):
         try:
@@ -135,7 +119,7 @@ class RenderRequest:
         self.image_pitch_mm      # noqa: B018 - the pitch options checked now
 
     def _label(self, name: str) -> str:
-        return self.labels.get(name, name)
+        return self.labels.get(name) or field_ref(name)
 
     # ------------------------------------------------------------ resolved
     @property

@@ -8,7 +8,7 @@ from dcdi_core.optics.lens import load_lens
 from dcdi_core.psf.compute import PSFSettings
 from dcdi_core.psf.library import LibraryGrid, PSFLibrary
 from dcdi_core.render.geometry import ImageGeometry
-from dcdi_core.render.simulate import BokehOptions, bokeh
+from dcdi_core.render.bokeh import BokehOptions, bokeh
 
 pytestmark = pytest.mark.filterwarnings("ignore::dcdi_core.psf.compute.KernelTooSmallWarning")
 

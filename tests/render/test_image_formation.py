@@ -86,7 +86,8 @@ def test_without_over_scan_the_border_is_reflected(distorted_case):
 
 def test_no_silent_overrides():
     from dcdi_core.errors import InputRangeError
-    from dcdi_core.render.simulate import BokehOptions, bokeh, open_library
+    from dcdi_core.render.bokeh import BokehOptions, bokeh
+    from dcdi_core.render.simulate import open_library
 
     lens = load_lens("6p")
     geom = ImageGeometry.full_sensor(lens, 16, 24)

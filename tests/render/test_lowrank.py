@@ -79,7 +79,7 @@ def test_bokeh_lowrank_matches_windows_within_the_bound():
     from dcdi_core.psf.compute import PSFSettings
     from dcdi_core.psf.library import LibraryGrid, PSFLibrary
     from dcdi_core.render.geometry import ImageGeometry
-    from dcdi_core.render.simulate import BokehOptions, bokeh
+    from dcdi_core.render.bokeh import BokehOptions, bokeh
 
     lens = load_lens("mos-s1")
     h, w = 64, 96

@@ -10,7 +10,7 @@ from dcdi_core.psf.library import LibraryGrid, PSFLibrary
 from dcdi_core.render import multires as mr
 from dcdi_core.experiments.simulation_accuracy import psnr
 from dcdi_core.render.geometry import ImageGeometry
-from dcdi_core.render.simulate import BokehOptions, bokeh
+from dcdi_core.render.bokeh import BokehOptions, bokeh
 
 H, W = 96, 128
 pytestmark = pytest.mark.filterwarnings("ignore::dcdi_core.psf.compute.KernelTooSmallWarning")

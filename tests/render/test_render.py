@@ -10,7 +10,8 @@ from dcdi_core.psf.library import LibraryGrid, PSFLibrary
 from dcdi_core.render.convolve import ConvolveOptions, patch_convolve
 from dcdi_core.render.geometry import ImageGeometry
 from dcdi_core.render.psfmap import identity_kernel, psf_map
-from dcdi_core.render.simulate import BokehOptions, bokeh, simulate
+from dcdi_core.render.bokeh import BokehOptions, bokeh
+from dcdi_core.render.simulate import simulate
 
 FAST = PSFSettings(pupil_samples=24, n_wavelengths=3, kernel_size=21)
 

@@ -9,7 +9,7 @@ from dcdi_core.errors import InputRangeError
 from dcdi_core.psf.compute import PSFSettings
 from dcdi_core.render.convolve import ConvolveOptions, patch_convolve
 from dcdi_core.render.multires import DEFAULT_MAX_LEVEL
-from dcdi_core.render.simulate import BokehOptions
+from dcdi_core.render.bokeh import BokehOptions
 
 
 @pytest.mark.parametrize("fields, says", [

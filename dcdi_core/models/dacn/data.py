@@ -227,7 +227,7 @@ def degrade(frame, config: DA2TConfig, variant: int = 0, *, lens=None, simulator
     libraries are reused across frames (a lens pool's, the nominal lens's)."""
     from ...optics.lens import load_lens
     from ...render.noise import add_sensor_noise
-    from ...render.simulate import LensSimulator
+    from ...render.simulate import LensSimulator, SimulateOptions
 
     base = lens if lens is not None else load_lens(config.lens)
     s_perturb, s_noise, s_base, s_place = _seeds(config, frame.id, variant)
@@ -238,7 +238,8 @@ def degrade(frame, config: DA2TConfig, variant: int = 0, *, lens=None, simulator
     geom = frame_geometry(plens, h, w, config.sensor_px, top_left)
     reuse = config.perturb_fraction == 0 or config.lens_pool > 0    # else: a lens never met again
     lib = _library(plens, (prec["seed"], geom.pixel_pitch_mm), geom, config, simulators, reuse)
-    sim = LensSimulator(plens, geom, library=lib, patch=config.patch, baseline_depth_m=config.baseline_depth_m)
+    sim = LensSimulator(plens, SimulateOptions(geometry=geom, patch=config.patch,
+                                               baseline_depth_m=config.baseline_depth_m), library=lib)
     noise = config.noise
     r = sim(frame.image, frame.depth, noise=noise, seed=s_noise if noise is not None else None)
     baseline = r.baseline if noise is None else add_sensor_noise(r.baseline, seed=s_base, **noise)

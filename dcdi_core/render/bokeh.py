@@ -1,0 +1,386 @@
+"""Lens bokeh on an all-in-focus RGB-D image.
+
+bokeh(): the depth of field of a target lens on a sharp image, as one
+:class:`BokehOptions` says. What is kept sharp is a depth range [near, far]
+(the paper's mask: identity PSF inside it), a focus distance (the library
+refocused there) or the lens as prescribed; optionally with the lens's
+distortion first. Two renderers:
+``occlusion=False`` is the plain patch-wise blur; ``occlusion=True`` (the
+default) splits the scene into depth layers and composites them back to
+front, each blurred with its own PSFs and carrying its blurred coverage, so
+a sharp subject does not bleed into a blurred background nor get a halo.
+
+The input checks, the library at the image's pitch, the move onto the
+sensor and the result are the simulation's (``render.simulate``).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..errors import InputRangeError
+from ..psf.compute import PSFSettings
+from ..psf.library import PSFLibrary
+from . import multires as mr
+from .convolve import METHODS, ConvolveOptions, box_reach, grow_square, patch_box, patch_convolve
+from .geometry import ImageGeometry
+from .inputs import check_rgbd
+from .psfmap import PSFMap, psf_map, valid_depth_mask
+from .simulate import (DEFAULT_INTERPOLATION, Cancelled, RenderResult, check_flag, check_image, check_library_pitch,
+                       check_patch, check_within_sensor, on_sensor, open_library)
+
+PRESCRIBED = "prescribed"     # BokehOptions(focus_m=PRESCRIBED): the sensor where the prescription puts it
+LAYER_PAIRS = ((0, 0), (1, 1), (2, 2), (3, 0), (3, 1), (3, 2))   # a layer's colour, and its coverage per colour PSF
+
+
+@dataclass(frozen=True)
+class BokehOptions:
+    """What :func:`bokeh` renders, checked when made (before any work).
+
+    What is sharp, at least one of: ``keep`` (near, far) metres, 0 < near <=
+    far, kept sharp (the paper's mask: identity PSF inside it), and
+    ``focus_m``: the lens focused at this distance (metres, > 0, or inf), or
+    :data:`PRESCRIBED` ('prescribed', the lens as its prescription stands:
+    full physical defocus everywhere). Both: the lens focused at ``focus_m``
+    and the range ``keep`` exactly sharp (the add-on's Kept Sharp). Invalid
+    depths (NaN, 0, negative) are left sharp.
+
+    geometry: the output frame on the sensor (default: the image spans the
+    sensor's diagonal); source_geometry: the input's frame if it differs (as
+    :func:`simulate`). distortion: also apply the lens's distortion (before
+    the blur, as the lens does), the image resampled with ``interpolation``
+    (one of ``distortion.INTERPOLATIONS``). patch: the patch size m (px, even,
+    >= 2).
+
+    occlusion: True (the occlusion-aware renderer): the scene split into
+    ``n_layers`` depth layers (1 to 256, equal widths in diopters)
+    composited back to front, each blurred with its own PSFs and carrying
+    its blurred coverage, so a sharp subject does not bleed into a blurred
+    background nor get a halo; False: the plain patch-wise blur.
+
+    settings, response: the PSF settings and sensor spectral response
+    (default: the shipped one) of the library opened when :func:`bokeh` is
+    given none; settings' own focus, if any, must be ``focus_m``. fit_kernel:
+    grow that library's kernel to hold the depth map's blur.
+
+    convolution, rank_eps, fft_backend: :class:`ConvolveOptions`' method
+    ('fast', 'windows' or 'lowrank'), low-rank tolerance (in [0, 0.5):
+    each kernel within rank_eps in L1 of its own) and FFT backend
+    (:meth:`convolve_options`).
+
+    multires: the level rule's c (px, > 0) of the multi-resolution blur
+    (``render.multires``): a patch of a depth layer (or of the plain blur)
+    whose kernel's half-energy radius is >= c 2^s px is blurred at 1/2^s of
+    the resolution, s <= ``max_level`` (0 to 4; None: ``multires.
+    DEFAULT_MAX_LEVEL``), with ``coarse_patch``-px patches there (even, >=
+    2); None: every layer at full resolution (the exact path). Not with
+    convolution 'lowrank' (its groups are convolved by windows).
+    """
+
+    keep: tuple[float, float] | None = None
+    focus_m: float | str | None = None
+    geometry: ImageGeometry | None = None
+    source_geometry: ImageGeometry | None = None
+    distortion: bool = False
+    interpolation: str = DEFAULT_INTERPOLATION
+    patch: int = 16
+    occlusion: bool = True
+    n_layers: int = 12
+    settings: PSFSettings | None = None
+    response: object = None                    # psf.spectral.SpectralResponse, or None for the shipped one
+    fit_kernel: bool = True
+    convolution: str = "fast"
+    rank_eps: float = 2e-2
+    fft_backend: str | None = None
+    multires: float | None = None
+    max_level: int | None = None
+    coarse_patch: int = 16
+
+    def __post_init__(self):
+        from .distortion import check_interpolation
+        self._check_sharpness()
+        for name in ("geometry", "source_geometry"):
+            if getattr(self, name) is not None and not isinstance(getattr(self, name), ImageGeometry):
+                raise InputRangeError(name, getattr(self, name), "an ImageGeometry, or None")
+        for name in ("distortion", "occlusion", "fit_kernel"):
+            check_flag(name, getattr(self, name))
+        check_interpolation(self.interpolation)
+        check_patch(self.patch)
+        if isinstance(self.n_layers, bool) or not isinstance(self.n_layers, (int, np.integer)) \
+                or not 1 <= self.n_layers <= 256:
+            raise InputRangeError("n_layers", self.n_layers, "an integer in [1, 256]")
+        if self.convolution not in METHODS:
+            raise InputRangeError("convolution", self.convolution, " or ".join(METHODS))
+        self.convolve_options()                           # checks rank_eps and fft_backend
+        if self.max_level is None:
+            object.__setattr__(self, "max_level", mr.DEFAULT_MAX_LEVEL)
+        self.multires_options()                           # checks the level rule and coarse_patch
+        if self.multires is not None and self.convolution == "lowrank":
+            # the multi-resolution blur convolves its groups by windows ('fast' equals them to rounding)
+            raise InputRangeError("multires with convolution", self.convolution,
+                                  "'fast' or 'windows' (or multires None)")
+
+    def _check_sharpness(self) -> None:
+        keep, focus_m = self.keep, self.focus_m
+        if keep is None and focus_m is None:
+            raise InputRangeError("keep / focus", (keep, focus_m),
+                                  f"a keep range, a focus distance or focus {PRESCRIBED!r} (or a keep range "
+                                  "and a focus)")
+        if keep is not None:
+            if not (isinstance(keep, (tuple, list, np.ndarray)) and len(keep) == 2 and 0 < keep[0] <= keep[1]):
+                raise InputRangeError("keep (--keep)", keep, "(near, far) with 0 < near <= far metres")
+            object.__setattr__(self, "keep", tuple(keep))
+        if focus_m is not None and (focus_m != PRESCRIBED if isinstance(focus_m, str) else not focus_m > 0):
+            raise InputRangeError("focus", focus_m, f"a distance in metres (> 0, or inf) or {PRESCRIBED!r}")
+        if self.settings is not None and not isinstance(self.settings, PSFSettings):
+            raise InputRangeError("settings", self.settings, "PSFSettings, or None for the defaults")
+        have = None if self.settings is None else self.settings.focus_distance_m
+        if focus_m is not None and have is not None and have != self.focus_distance_m:
+            raise InputRangeError("focus", focus_m, f"the settings' own focus_distance_m {have} m (give one, not two)")
+
+    @property
+    def focus_distance_m(self) -> float | None:
+        """The PSFs' focus distance (m): ``focus_m``, None when prescribed or with ``keep``."""
+        return None if self.focus_m in (None, PRESCRIBED) else float(self.focus_m)
+
+    def library_settings(self) -> PSFSettings:
+        """The PSF settings a library is opened with: ``settings``, focused at ``focus_m``."""
+        s = self.settings or PSFSettings()
+        return s if self.focus_m is None else replace(s, focus_distance_m=self.focus_distance_m)
+
+    def convolve_options(self) -> ConvolveOptions:
+        """The patch-wise convolution's options (``patch_convolve``)."""
+        return ConvolveOptions(method=self.convolution, rank_eps=self.rank_eps, fft_backend=self.fft_backend)
+
+    def multires_options(self) -> mr.MultiresOptions:
+        """The multi-resolution blur's options (``multires.grouped_blur``)."""
+        return mr.MultiresOptions(self.multires, patch=self.patch, max_level=self.max_level,
+                                  coarse_patch=self.coarse_patch, fft_backend=self.fft_backend)
+
+
+def _check_library_focus(options: BokehOptions, library: PSFLibrary) -> None:
+    """A given library must be focused where ``options`` say."""
+    have = library.settings.focus_distance_m
+    if options.focus_m is not None and have != options.focus_distance_m:
+        raise InputRangeError("focus", options.focus_m,
+                              f"the library's own focus ({have if have is not None else PRESCRIBED}"
+                              f"{' m' if have is not None else ''}): open the library focused there, or "
+                              "leave the focus out")
+
+
+def bokeh(image, depth, lens, options: BokehOptions, *, library: PSFLibrary | None = None,
+          cancelled=None, progress=None, layer_progress=None) -> RenderResult:
+    """``image`` (H, W, 3) float32 linear light with ``depth`` (H, W) metres
+    as ``lens`` would take it, kept sharp or focused as ``options`` say
+    (:class:`BokehOptions`).
+
+    library: the PSFs, at the image's pixel pitch, focused where the options
+    say (without one it is opened from ``options.settings`` and
+    ``options.response``). cancelled(): called before each layer's
+    convolution; when it returns True, :class:`Cancelled` is raised.
+    progress(done, total): called as PSF bins are computed;
+    layer_progress(done, total): after each depth layer of the
+    occlusion-aware renderer."""
+    if not isinstance(options, BokehOptions):
+        raise InputRangeError("options", options, "BokehOptions (what to keep sharp, and how to render)")
+    if library is not None:
+        _check_library_focus(options, library)
+    scene = _bokeh_scene(image, depth, lens, options, library, progress)
+    if not options.occlusion:
+        return _plain_bokeh(scene, options, cancelled)
+    return _layered_bokeh(scene, options, cancelled, layer_progress)
+
+
+@dataclass
+class _BokehScene:
+    """bokeh's input on the sensor, with what both renderers read."""
+
+    img: np.ndarray            # (H, W, 3) float32 on the sensor
+    depth: np.ndarray          # (H, W) float64 metres on the sensor
+    moved: bool                # resampled onto the sensor (then returned with the result)
+    geometry: ImageGeometry
+    library: PSFLibrary
+    valid: np.ndarray          # (H, W) bool: a valid depth
+    inv: np.ndarray            # (H, W) diopters, 0 at and beyond the library's far limit
+    kept: np.ndarray           # (H, W) bool: in the keep range
+    grow: int                  # px around a layer's pixels that its blur reaches (whole patches)
+    info: dict
+
+    def result(self, image: np.ndarray, info: dict, pm: PSFMap | None = None) -> RenderResult:
+        return RenderResult(image, info, self.img if self.moved else None, pm,
+                            depth=self.depth if self.moved else None)
+
+
+def _bokeh_scene(image, depth, lens, options: BokehOptions, library: PSFLibrary | None, progress) -> _BokehScene:
+    """The checked input moved onto the sensor (distortion, over-scan), and
+    the library (opened if none is given)."""
+    img, d = check_image(image, depth, options.source_geometry)
+    check_rgbd(img, d)
+    source = options.source_geometry
+    geometry = options.geometry or source or ImageGeometry.full_sensor(lens, img.shape[0], img.shape[1])
+    check_within_sensor(geometry)
+    moved = options.distortion or (source is not None and source != geometry)
+    if moved:
+        from .distortion import radial_distortion
+        table = radial_distortion(lens) if options.distortion else None
+        img, d, _ = on_sensor(img, d, lens, geometry, source_geometry=source, distortion=table,
+                              interpolation=options.interpolation)
+    if library is None:
+        library = open_library(lens, geometry, options.library_settings(), response=options.response,
+                               fit_depth_m=d if options.fit_kernel else None, progress=progress)
+    check_library_pitch(library, geometry)
+    valid = valid_depth_mask(d)
+    inv = np.where(valid & (d < library.grid.far_m), 1.0 / np.where(valid, d, 1.0), 0.0)
+    keep = options.keep
+    kept = np.zeros(d.shape, bool) if keep is None else valid & (d >= keep[0]) & (d <= keep[1])
+    info = {"convolution": options.convolution, "occlusion": options.occlusion,
+            "distortion": bool(options.distortion), "kept_pixels": int(kept.sum()),
+            "invalid_depth_pixels": int((~valid).sum()), "multires": options.multires}
+    # each layer (plain: each patch group) is blurred on its own patch-aligned
+    # bounding box, grown by the kernel's reach: outside it the blur is zero
+    grow = box_reach(library.kernel_size, options.patch)
+    return _BokehScene(img, d, moved, geometry, library, valid, inv, kept, grow, info)
+
+
+def _plain_bokeh(sc: _BokehScene, options: BokehOptions, cancelled) -> RenderResult:
+    """The plain patch-wise blur (``occlusion=False``)."""
+    if cancelled is not None and cancelled():
+        raise Cancelled("bokeh cancelled")
+    if options.multires is not None:
+        out, mi = mr.plain_blur(sc.img, sc.depth, sc.library, sc.geometry, options.multires_options(),
+                                keep_range_m=options.keep)
+        return sc.result(out, dict(sc.info, **mi))
+    pm = psf_map(sc.library, sc.geometry, sc.depth, options.patch, keep_range_m=options.keep)
+    out = patch_convolve(sc.img, pm.kernels, options.patch, options.convolve_options(), identity=pm.identity)
+    return sc.result(out, dict(sc.info, **pm.info), pm)
+
+
+def _layers(inv: np.ndarray, valid: np.ndarray, n_layers: int):
+    """Split valid pixels into depth layers of equal width in diopters,
+    ordered far to near: list of boolean masks."""
+    lo, hi = float(inv[valid].min()), float(inv[valid].max())
+    if hi - lo < 1e-12:
+        return [valid]
+    edges = np.linspace(lo, hi, n_layers + 1)
+    idx = np.clip(np.searchsorted(edges, inv, side="right") - 1, 0, n_layers - 1)
+    return [valid & (idx == i) for i in range(n_layers) if (valid & (idx == i)).any()]
+
+
+def _layer_order(sc: _BokehScene, n_layers: int) -> list[tuple[np.ndarray, bool]]:
+    """The layers far to near, as (mask, sharp): the blurred depth layers,
+    and the kept (sharp) pixels with the invalid ones as one layer at their
+    depth (first when nothing is kept)."""
+    sharp_mask = sc.kept | ~sc.valid
+    blurred = sc.valid & ~sc.kept
+    layers = _layers(sc.inv, blurred, n_layers) if blurred.any() else []
+    order = [(float(sc.inv[m_].mean()), m_, False) for m_ in layers]
+    if sharp_mask.any():
+        order += [(float(sc.inv[sc.kept].mean()) if sc.kept.any() else -1.0, sharp_mask, True)]
+    order.sort(key=lambda t: t[0])                        # far (small diopters) first
+    return [(m_, s_) for _, m_, s_ in order]
+
+
+def _layered_bokeh(sc: _BokehScene, options: BokehOptions, cancelled, layer_progress) -> RenderResult:
+    """The occlusion-aware renderer: the layers, back to front, each layer's
+    colour and coverage blurred alike and composited over what lies behind."""
+    # ``col`` is the colour seen so far, un-premultiplied, where ``seen``: what
+    # lies behind a layer where nothing farther was seen (hidden by a nearer
+    # layer, or the farthest layer's own holes) takes the colour spread from
+    # around it (normalised blur) instead of black: no dark seam where a
+    # continuous surface crosses from one layer to the next, no dark halo.
+    col = np.zeros_like(sc.img)
+    seen = np.zeros(sc.img.shape[:2] + (1,), bool)
+    order = _layer_order(sc, options.n_layers)
+    table = None
+    if options.multires is not None and sc.valid.any():
+        sc.library.ensure(bins=sc.library.bins_needed(sc.depth[sc.valid], clamp_near=True))
+        table = mr.radius_table(sc.library)
+    info = dict(sc.info, layer_levels=[])            # multires: per layer, its patches at each level
+    for n_done, (mask, is_sharp) in enumerate(order):
+        if layer_progress is not None:
+            layer_progress(n_done, len(order))
+        if cancelled is not None and not is_sharp and cancelled():
+            raise Cancelled("bokeh cancelled")
+        ys, xs = patch_box(mask, options.patch, sc.grow if not is_sharp else 0)
+        if is_sharp:
+            a = mask[ys, xs][..., None]
+            col[ys, xs] = np.where(a, sc.img[ys, xs], col[ys, xs])
+            seen[ys, xs] |= a
+            continue
+        blurred, levels = _blur_layer(sc, options, mask, ys, xs, table)
+        if levels is not None:
+            info["layer_levels"].append([int((levels == s_).sum()) for s_ in range(options.max_level + 1)])
+            if int(levels.max()) > 0:
+                _clamp_overshoot(blurred, sc.img[ys, xs][mask[ys, xs]].max(axis=0))
+        _composite(col, seen, ys, xs, blurred)
+    if layer_progress is not None:
+        layer_progress(len(order), len(order))
+    info["layers"] = len(order)
+    return sc.result(col, info)
+
+
+def _blur_layer(sc: _BokehScene, options: BokehOptions, mask, ys: slice, xs: slice, table):
+    """The layer ``mask``'s premultiplied colour and coverage, blurred on its
+    box (ys, xs): (float32 (h, w, 6): three colours, then the coverage blurred
+    with each colour's PSF; the multires levels of its patches, or None)."""
+    af = mask[ys, xs][..., None].astype(np.float32)
+    # each colour's coverage blurred with that colour's own PSF: the
+    # normalisation of the composite is then exact for any colour fringe
+    layer = np.concatenate([sc.img[ys, xs] * af, af], axis=-1)
+    # every patch of the box gets the layer's kernel, also those holding
+    # none of its pixels: a gather takes each output pixel's kernel from
+    # its own patch, so an identity there would cut the blur spilling out
+    # of the layer's patches (a bright light's halo ended after the tent)
+    fill_inv = float(sc.inv[ys, xs][mask[ys, xs]].mean())
+    d_layer = np.where(mask[ys, xs], sc.depth[ys, xs], np.inf if fill_inv <= 0 else 1.0 / fill_inv)
+    sub = sc.geometry.crop(ys, xs)
+    m = options.patch
+    if options.multires is None:
+        # a patch whose window (the patch and its blend margin) lies beyond
+        # the kernel's reach of every layer pixel gathers nothing whatever its
+        # kernel: it gets none (NaN depth: the identity, copying zeros)
+        reach = sc.library.kernel_size // 2 + options.convolve_options().blend_px(m)
+        d_layer[~_within_reach(mask[ys, xs], m, reach)] = np.nan
+        pm = psf_map(sc.library, sub, d_layer, m, crop=True)
+        blurred = patch_convolve(layer, pm.kernels, m, options.convolve_options(), identity=pm.identity,
+                                 pairs=LAYER_PAIRS)
+        return blurred, None
+    every = np.ones(d_layer.shape, bool)                # every pixel has the layer's depth now
+    no_copy = np.zeros((math.ceil(every.shape[0] / m), math.ceil(every.shape[1] / m)), bool)
+    return mr.grouped_blur(layer, d_layer, every, no_copy, sc.library, sub, options.multires_options(),
+                           pairs=LAYER_PAIRS, table=table)
+
+
+def _within_reach(mask: np.ndarray, m: int, reach_px: int) -> np.ndarray:
+    """(H, W) bool: the pixels of the m-px patches that lie within
+    ``reach_px`` of a pixel of ``mask`` (H, W), dilated at patch level
+    (a square of patches, so it holds every pixel within the reach)."""
+    h, w = mask.shape
+    nph, npw = math.ceil(h / m), math.ceil(w / m)
+    has = np.pad(mask, ((0, nph * m - h), (0, npw * m - w))).reshape(nph, m, npw, m).any(axis=(1, 3))
+    grown = grow_square(has, math.ceil(reach_px / m))
+    return np.repeat(np.repeat(grown, m, axis=0), m, axis=1)[:h, :w]
+
+
+def _clamp_overshoot(blurred: np.ndarray, top: np.ndarray) -> None:
+    """The cubic interpolation's over- and undershoot (a layer blurred at a
+    coarser level): each colour kept within [0, its coverage x the layer's
+    brightest value of it ``top``], as the exact blur of a non-negative layer
+    is, and scaled with its coverage where that is clipped to 1 (a constant
+    stays constant)."""
+    raw = blurred[..., 3:]
+    blurred[..., :3] = np.clip(blurred[..., :3], 0.0, np.maximum(raw, 0.0) * top) \
+        * np.where(raw > 1.0, 1.0 / np.maximum(raw, 1.0), 1.0)
+
+
+def _composite(col: np.ndarray, seen: np.ndarray, ys: slice, xs: slice, blurred: np.ndarray) -> None:
+    """A blurred layer (colour premultiplied, coverage) over the colour seen
+    behind it on its box; ``col`` and ``seen`` updated in place."""
+    cover = np.clip(blurred[..., 3:], 0.0, 1.0)
+    behind = seen[ys, xs]
+    premultiplied = blurred[..., :3] + (1.0 - cover) * np.where(behind, col[ys, xs], 0.0)
+    total = np.where(behind, 1.0, cover)
+    seen[ys, xs] = (total > 1e-4).all(axis=-1, keepdims=True)
+    col[ys, xs] = np.where(total > 1e-4, premultiplied / np.maximum(total, 1e-4), 0.0)
