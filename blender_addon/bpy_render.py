@@ -20,7 +20,8 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from .core import core
+from dcdi_core.io import rawexr
+
 
 RESULT_IMAGE = "Lens Bokeh"
 RESULT_IMAGE_RENDER = "Lens Render"     # a rendered frame through the lens (Lens in Renders)
@@ -126,7 +127,7 @@ def render_aif_depth(scene, camera_obj, height: int, width: int, samples: int, v
             bpy.ops.render.render(write_still=True, scene=tmp_scene.name)
         if not out.exists():
             raise RuntimeError(f"Cycles wrote no file to {out} (see the console)")
-        ch = core("io.rawexr").read_exr_channels(out)
+        ch = rawexr.read_exr_channels(out)
     finally:
         bpy.data.scenes.remove(tmp_scene)
         bpy.data.objects.remove(cam_obj)
@@ -142,9 +143,15 @@ def render_aif_depth(scene, camera_obj, height: int, width: int, samples: int, v
     return rgb, ch[f"{name}.Depth.Z"].astype(np.float32)
 
 
-def put_image(name: str, rgb: np.ndarray):
+RECORD_PROPERTY = "dcdi_capture"     # the image's custom property holding its capture record (JSON)
+
+
+def put_image(name: str, rgb: np.ndarray, record=None):
     """Write (H, W, 3) float32 linear RGB into the float image ``name``
-    (created, or recreated when the size differs); returns the image."""
+    (created, or recreated when the size differs); returns the image.
+    ``record``: how it was made (``io.capture_record.CaptureRecord``), kept
+    as the image's custom property ``dcdi_capture`` (JSON; removed when
+    None), which the .blend file saves with it."""
     h, w = rgb.shape[:2]
     img = bpy.data.images.get(name)
     if img is not None and (tuple(img.size) != (w, h) or not img.is_float):
@@ -157,6 +164,10 @@ def put_image(name: str, rgb: np.ndarray):
     rgba[..., 3] = 1.0
     img.pixels.foreach_set(rgba.ravel())
     img.update()
+    if record is not None:
+        img[RECORD_PROPERTY] = record.as_json()
+    elif RECORD_PROPERTY in img:
+        del img[RECORD_PROPERTY]
     return img
 
 

@@ -26,8 +26,10 @@ import time
 import bpy
 from bpy.props import BoolProperty, StringProperty
 
+from dcdi_core import errors as dcdi_errors
+from dcdi_core.render import camera as dcdi_camera
+
 from . import bpy_render, logic, props
-from .core import core
 
 AIF_IMAGE = "Lens Bokeh AiF"
 DEPTH_IMAGE = "Lens Bokeh Depth"
@@ -38,7 +40,7 @@ _JOBS: set = set()
 
 def _user_errors():
     """Errors whose message is meant for the user (shown as is)."""
-    return (logic.BokehInputError, core("errors").DcdiError, ValueError, OSError, RuntimeError)
+    return (logic.BokehInputError, dcdi_errors.DcdiError, ValueError, OSError, RuntimeError)
 
 
 def _metres_per_unit(scene) -> float:
@@ -66,8 +68,8 @@ def chosen_lens(settings):
                                     "(lenses/*.toml or Import Zemax File)")
     try:
         return logic.load_lens_cached(path), path
-    except core("errors").DcdiError as e:
-        raise logic.BokehInputError(f"the lens file is broken: {e}") from None
+    except dcdi_errors.DcdiError as e:
+        raise logic.BokehInputError(f"the lens file is broken: {logic.message(e)}") from None
 
 
 def focus_metres(scene, cam, settings, entrance_pupil_mm: float, depsgraph=None) -> float:
@@ -86,7 +88,7 @@ def focus_metres(scene, cam, settings, entrance_pupil_mm: float, depsgraph=None)
         dof = cam.data.dof
         obj = dof.focus_object
         if obj is None:            # the camera's distance runs from the camera, i.e. the entrance pupil
-            return core("render.camera").planar_depth_m(-dof.focus_distance, entrance_pupil_mm, mpu)
+            return dcdi_camera.planar_depth_m(-dof.focus_distance, entrance_pupil_mm, mpu)
     else:
         obj = settings.focus_object
         if obj is None:
@@ -100,7 +102,7 @@ def point_depth_m(scene, cam, point, entrance_pupil_mm: float) -> float:
     """Depth in metres from the lens's first vertex of the world ``point``
     (scene units): its depth along the camera's view axis."""
     z = (cam.matrix_world.inverted() @ point).z          # camera space: the camera looks down -Z
-    return core("render.camera").planar_depth_m(z, entrance_pupil_mm, _metres_per_unit(scene))
+    return dcdi_camera.planar_depth_m(z, entrance_pupil_mm, _metres_per_unit(scene))
 
 
 def focus_and_keep(scene, cam, settings, entrance_pupil_mm: float, depsgraph=None):
@@ -122,7 +124,7 @@ def render_inputs(context, cam, lens_path: str):
     h, w = logic.preview_shape(r.resolution_x, r.resolution_y, r.pixel_aspect_x, r.pixel_aspect_y, s.preview_size)
     t0 = time.perf_counter()
     rgb, z = bpy_render.render_aif_depth(scene, cam, h, w, s.samples, context.view_layer.name)
-    depth = core("render.camera").depth_from_planar_z(z, ep, _metres_per_unit(scene))
+    depth = dcdi_camera.depth_from_planar_z(z, ep, _metres_per_unit(scene))
     return rgb, depth, time.perf_counter() - t0
 
 
@@ -209,7 +211,7 @@ class _JobOperator:
             t0 = time.perf_counter()
             result = self.compute(job)
         except _user_errors() as e:
-            self.report({"ERROR"}, str(e))
+            self.report({"ERROR"}, logic.message(e))
             return {"CANCELLED"}
         self.finish(context, job, result, time.perf_counter() - t0)
         return {"FINISHED"}
@@ -223,7 +225,7 @@ class _JobOperator:
             job = self.prepare(context)
         except _user_errors() as e:
             st.message = ""
-            self.report({"ERROR"}, str(e))
+            self.report({"ERROR"}, logic.message(e))
             return {"CANCELLED"}
         self._worker = _Worker(job, self.compute)
         _JOBS.add(self._worker)
@@ -273,7 +275,7 @@ class _JobOperator:
         self._end(context)
         if w.error is not None:
             st.message = "failed"
-            self.report({"ERROR"}, str(w.error))
+            self.report({"ERROR"}, logic.message(w.error))
             return {"CANCELLED"}
         st.progress, st.message = 100.0, f"done in {w.job.get('render_s', 0.0) + w.seconds:.1f} s"
         self.finish(context, w.job, w.result, w.seconds)
@@ -340,8 +342,8 @@ class DCDI_OT_simulate_lens(_JobOperator, bpy.types.Operator):
         _SIMULATION.clear()
         _SIMULATION.update(rgb=job["rgb"], depth=job["depth"], image=out, sensor_depth=sensor_depth,
                            geometry=geometry, lens=job["lens"], lens_id=job["lens"].id,
-                           pixel_pitch_mm=info["pixel_pitch_mm"], sensor_noise=job["noise"])
-        bpy_render.show_in_image_editor(context, bpy_render.put_image(SIMULATION_IMAGE, out))
+                           pixel_pitch_mm=info["pixel_pitch_mm"], sensor_noise=job["noise"], record=info["record"])
+        bpy_render.show_in_image_editor(context, bpy_render.put_image(SIMULATION_IMAGE, out, info["record"]))
         st = context.window_manager.dcdi_lens_bokeh_status
         st.psf_source = info["psf_source_message"]
         st.correction = ""                   # the last correction was of another simulation
@@ -367,7 +369,8 @@ def correction_choice(context) -> "logic.CorrectionChoice":
     s = context.scene.dcdi_lens_bokeh
     given = bpy.path.abspath(s.correction_model) if s.correction_model else ""
     return logic.choose_correction(s.correction_method.lower(), _SIMULATION["lens_id"],
-                                   _SIMULATION["pixel_pitch_mm"], given)
+                                   _SIMULATION["pixel_pitch_mm"], given, lens=_SIMULATION["lens"],
+                                   record=_SIMULATION.get("record"))
 
 
 def prepare_correction(context):
@@ -401,7 +404,8 @@ class DCDI_OT_correct_simulation(_JobOperator, bpy.types.Operator):
 
     def compute(self, job, **kw):
         return logic.run_correction(job["image"], job["sensor_depth"], job["lens"], job["choice"],
-                                    geometry=job["geometry"], sensor_noise=job["sensor_noise"], **kw)
+                                    geometry=job["geometry"], sensor_noise=job["sensor_noise"],
+                                    record=job.get("record"), **kw)
 
     def finish(self, context, job, result, seconds):
         out, info = result
@@ -430,9 +434,9 @@ class DCDI_OT_match_camera(bpy.types.Operator):
             cam = _camera(scene)
             lens, _ = chosen_lens(scene.dcdi_lens_bokeh)
             r = scene.render
-            pinhole = core("render.camera").PinholeCamera.for_lens(lens, r.resolution_y, r.resolution_x)
+            pinhole = dcdi_camera.PinholeCamera.for_lens(lens, r.resolution_y, r.resolution_x)
         except _user_errors() as e:
-            self.report({"ERROR"}, str(e))
+            self.report({"ERROR"}, logic.message(e))
             return {"CANCELLED"}
         c = pinhole.blender_camera_settings()
         for name, value in c.items():
@@ -463,7 +467,7 @@ class DCDI_OT_import_zemax(bpy.types.Operator):
         try:
             out = logic.import_zemax(self.filepath, props.user_lens_dir(create=True))
         except _user_errors() as e:
-            self.report({"ERROR"}, f"cannot import {self.filepath}: {e}")
+            self.report({"ERROR"}, f"cannot import {self.filepath}: {logic.message(e)}")
             return {"CANCELLED"}
         lens_id = os.path.splitext(os.path.basename(out))[0]
         context.scene.dcdi_lens_bokeh.lens = lens_id
@@ -499,7 +503,7 @@ class DCDI_OT_focus_pick(bpy.types.Operator):
             from mathutils import Vector
             focus = focus_on_point(context.scene, Vector(self.location))
         except _user_errors() as e:
-            self.report({"ERROR"}, str(e))
+            self.report({"ERROR"}, logic.message(e))
             return {"CANCELLED"}
         self.report({"INFO"}, f"Lens Bokeh: focus {focus:.3f} m")
         return {"FINISHED"}

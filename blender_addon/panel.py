@@ -2,8 +2,9 @@
 (tab "Lens Bokeh"); both draw the same layout."""
 import bpy
 
+from dcdi_core import errors as dcdi_errors
+
 from . import logic, props
-from .core import core
 
 
 def _readout(layout, settings):
@@ -15,12 +16,12 @@ def _readout(layout, settings):
         return
     try:
         ro = logic.lens_readout(path)
-    except (core("errors").DcdiError, ValueError, OSError) as e:
+    except (dcdi_errors.DcdiError, ValueError, OSError) as e:
         col = box.column(align=True)
         col.alert = True
         col.label(text="Broken lens file:", icon="ERROR")
         # the message names file, surface and field; wrap it over a few lines
-        msg = str(e)
+        msg = logic.message(e)
         for i in range(0, min(len(msg), 240), 48):
             col.label(text=msg[i:i + 48])
         return
@@ -47,8 +48,8 @@ def _sharp_range(scene, s) -> str:
         cam = operators._camera(scene)
         _, path = operators.chosen_lens(s)
         focus, (near, far) = operators.focus_and_keep(scene, cam, s, logic.lens_readout(path)["entrance_pupil_mm"])
-    except (logic.BokehInputError, core("errors").DcdiError, ValueError, OSError) as e:
-        return str(e)[:60]
+    except (logic.BokehInputError, dcdi_errors.DcdiError, ValueError, OSError) as e:
+        return logic.message(e)[:60]
     return f"Sharp from {near:.2f} m to {far:.2f} m (focus {focus:.2f} m)"
 
 
@@ -92,7 +93,7 @@ def draw_lens_bokeh(layout, context):
                                    s.preview_size)
         col.label(text=f"Preview {w} x {h} px")
     except logic.BokehInputError as e:
-        col.label(text=str(e), icon="ERROR")
+        col.label(text=logic.message(e), icon="ERROR")
 
     if scene.camera is None:
         layout.label(text="No active camera in the scene", icon="ERROR")
@@ -167,8 +168,8 @@ def _draw_round_trip(layout, context, s, status):
             choice = operators.correction_choice(context)
             used = f" with {choice.model_path.name}" if choice.model_path else ""
             _wrapped(layout, f"{logic.METHOD_NAMES[choice.method]}{used}: {choice.reason}", 240, "INFO")
-        except (logic.BokehInputError, core("errors").DcdiError, OSError) as e:
-            _wrapped(layout, str(e), 144, "ERROR")
+        except (logic.BokehInputError, dcdi_errors.DcdiError, OSError) as e:
+            _wrapped(layout, logic.message(e), 144, "ERROR")
     if not status.running and status.correction:
         _wrapped(layout, f"Last Correct: {status.correction}", 240, "CHECKMARK")
 

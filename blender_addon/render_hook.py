@@ -37,8 +37,10 @@ import bpy
 import numpy as np
 from bpy.app.handlers import persistent
 
+from dcdi_core import errors as dcdi_errors
+from dcdi_core.io import rawexr
+
 from . import bpy_render, logic
-from .core import core
 
 RESULT_IMAGE = bpy_render.RESULT_IMAGE_RENDER
 GROUP = "dcdi-lens-passes"
@@ -107,8 +109,8 @@ def blocker(scene) -> str | None:
     try:
         operators._camera(scene)
         operators.chosen_lens(scene.dcdi_lens_bokeh)
-    except (logic.BokehInputError, core("errors").DcdiError) as e:
-        return str(e)
+    except (logic.BokehInputError, dcdi_errors.DcdiError) as e:
+        return logic.message(e)
     return None
 
 
@@ -180,7 +182,7 @@ def _read_passes(run: _LensRender):
         raise RuntimeError("the compositor wrote no passes for this frame (is compositing disabled by "
                            "the command line, or the render cancelled?)")
     try:
-        ch = core("io.rawexr").read_exr_channels(files[-1])
+        ch = rawexr.read_exr_channels(files[-1])
     finally:
         for p in files:
             p.unlink(missing_ok=True)
@@ -206,11 +208,11 @@ def on_render_init(scene, *_):
         return
     try:
         _RUN["run"] = _start(scene)
-    except (logic.BokehInputError, core("errors").DcdiError, RuntimeError, ValueError, OSError) as e:
+    except (logic.BokehInputError, dcdi_errors.DcdiError, RuntimeError, ValueError, OSError) as e:
         LAST.clear()
-        LAST.update(error=str(e), frames=[])
-        _status(f"Lens in Renders not applied: {e}")
-        print(f"dcdi: Lens in Renders not applied: {e}")
+        LAST.update(error=logic.message(e), frames=[])
+        _status(f"Lens in Renders not applied: {logic.message(e)}")
+        print(f"dcdi: Lens in Renders not applied: {logic.message(e)}")
         return
     _status("Lens in Renders: rendering...")
 
@@ -222,8 +224,8 @@ def on_frame_change(scene, depsgraph=None):
         return
     try:
         run.focus_by_frame[scene.frame_current] = _focus(scene, run, depsgraph)
-    except (logic.BokehInputError, core("errors").DcdiError) as e:
-        run.error = str(e)
+    except (logic.BokehInputError, dcdi_errors.DcdiError) as e:
+        run.error = logic.message(e)
 
 
 @persistent
@@ -237,8 +239,8 @@ def on_render_post(scene, *_):
         rgb, z = _read_passes(run)
         req = _request(scene, run, frame)
         out, _, info = logic.lens_frame(rgb, z, run.lens, req)
-    except (logic.BokehInputError, core("errors").DcdiError, RuntimeError, ValueError, OSError) as e:
-        run.error = f"frame {frame}: {e}"
+    except (logic.BokehInputError, dcdi_errors.DcdiError, RuntimeError, ValueError, OSError) as e:
+        run.error = f"frame {frame}: {logic.message(e)}"
         print(f"dcdi: Lens in Renders: {run.error}; the frame is left as rendered")
         _status(f"Lens in Renders failed: {run.error}")
         return

@@ -37,8 +37,11 @@ import time
 import bpy
 import numpy as np
 
+from dcdi_core import errors as dcdi_errors
+from dcdi_core.io import images as dcdi_images
+from dcdi_core.render import camera as dcdi_camera
+
 from . import bpy_render, logic
-from .core import core
 
 DEBOUNCE_S = 0.25         # a refresh waits until changes have stopped this long
 POLL_S = 0.05             # the timer's period while a job runs
@@ -122,8 +125,8 @@ class Preview:
         self.asked = wanted(context)
         try:
             self._start(context)
-        except (logic.BokehInputError, core("errors").DcdiError, RuntimeError, ValueError, OSError) as e:
-            self.error = str(e)
+        except (logic.BokehInputError, dcdi_errors.DcdiError, RuntimeError, ValueError, OSError) as e:
+            self.error = logic.message(e)
             _redraw(context)
             return None
         return POLL_S if self.worker is not None else None
@@ -141,7 +144,7 @@ class Preview:
         if self.scene_changed or self.sharp is None or self.sharp["key"] != sharp_key:
             t0 = time.perf_counter()
             rgb, z = bpy_render.render_aif_depth(scene, cam, h, w, s.samples, context.view_layer.name)
-            depth = core("render.camera").depth_from_planar_z(z, ep, mpu)
+            depth = dcdi_camera.depth_from_planar_z(z, ep, mpu)
             render_s = time.perf_counter() - t0
             self.sharp = {"key": sharp_key, "rgb": rgb, "depth": depth, "version": self.renders}
             self.renders += 1
@@ -174,7 +177,7 @@ class Preview:
         if job is None or job["generation"] != self.generation or job.get("cancelled"):
             return                                   # a newer change came: its refresh is pending
         if "error" in job:
-            self.error = str(job["error"])
+            self.error = logic.message(job["error"])
             return
         self.error = ""
         self.result = {"image": job["out"], "info": job["info"], "generation": job["generation"],
@@ -216,8 +219,8 @@ def wanted(context) -> tuple:
     (the refresh shows that message; the same error is not retried)."""
     try:
         a = inputs(context)
-    except (logic.BokehInputError, core("errors").DcdiError, ValueError, OSError) as e:
-        return ("error", str(e))
+    except (logic.BokehInputError, dcdi_errors.DcdiError, ValueError, OSError) as e:
+        return ("error", logic.message(e))
     return a["sharp_key"], a["request"]
 
 
@@ -249,7 +252,7 @@ def _texture(image: np.ndarray):
     import gpu
     h, w = image.shape[:2]
     rgba = np.ones((h, w, 4), np.float32)
-    rgba[..., :3] = core("io.images").linear_to_srgb(np.clip(image, 0.0, None))
+    rgba[..., :3] = dcdi_images.linear_to_srgb(np.clip(image, 0.0, None))
     buf = gpu.types.Buffer("FLOAT", h * w * 4, rgba[::-1].ravel())
     return gpu.types.GPUTexture((w, h), format="RGBA16F", data=buf)
 
@@ -312,7 +315,7 @@ def draw_focus_plane():
     from . import operators
     try:
         ep = logic.lens_readout(operators.chosen_lens(scene.dcdi_lens_bokeh)[1])["entrance_pupil_mm"]
-    except (logic.BokehInputError, core("errors").DcdiError, OSError):
+    except (logic.BokehInputError, dcdi_errors.DcdiError, OSError):
         return
     corners = [tuple(c) for c in focus_plane_corners(scene, PREVIEW.last_focus, ep)]
     shader = gpu.shader.from_builtin("UNIFORM_COLOR")

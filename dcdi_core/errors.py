@@ -23,22 +23,55 @@ from __future__ import annotations
 
 import errno
 import os
+import re
+
+# A request's field named inside a message: ``field("method")``. Each front
+# end shows it in its own words (``DcdiError.in_words``: the CLI's options,
+# the add-on's panel labels); plain ``str()`` shows the field's own name.
+_FIELD = re.compile("\u2039([A-Za-z_][A-Za-z0-9_.]*)\u203a")
+
+
+def field(name: str) -> str:
+    """The marker of the request field ``name`` in an error message."""
+    return f"\u2039{name}\u203a"
+
+
+def in_words(text: str, words=None) -> str:
+    """``text`` with each field marker replaced by ``words[name]`` (default: the name itself)."""
+    words = words or {}
+    return _FIELD.sub(lambda m: words.get(m.group(1)) or m.group(1), text)
 
 
 class DcdiError(Exception):
-    """The root of every error meant for the user."""
+    """The root of every error meant for the user. Its message may name the
+    fields of the request (:func:`field`); :meth:`in_words` shows them in a
+    front end's words."""
+
+    def raw(self) -> str:
+        return Exception.__str__(self)
+
+    def in_words(self, words=None) -> str:
+        return in_words(self.raw(), words)
+
+    def __str__(self):
+        return self.in_words()
 
 
 class InputRangeError(DcdiError, ValueError):
     """An argument outside its allowed range (names the argument and range).
 
     ``value=None`` means the argument is missing: the message then says what
-    is needed instead of calling None out of range."""
+    is needed instead of calling None out of range. A ``name`` that is an
+    identifier is a request's field (shown in a front end's words)."""
 
     def __init__(self, name, value, allowed):
+        if isinstance(name, str) and _FIELD.fullmatch(name):
+            name = name[1:-1]                   # given as a field marker: the field's name
         self.name = name
         self.value = value
         self.allowed = allowed
+        if isinstance(name, str) and name.isidentifier():
+            name = field(name)
         if value is None:
             text = f"{name} is missing; needed: {allowed}"
         else:
@@ -59,7 +92,7 @@ class OutputError(DcdiError, OSError):
         self.path = str(path)
         DcdiError.__init__(self, f"{self.path}: {message}")
 
-    def __str__(self):
+    def raw(self) -> str:
         return self.args[0]
 
 

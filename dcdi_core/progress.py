@@ -98,3 +98,24 @@ class Steps:
         if self.on:
             self.stream.write(f"{self.label}: done in {time.perf_counter() - self._t0:.1f} s\n")
             self.stream.flush()
+
+
+class StageBars:
+    """``progress(stage, done, total)`` of an application job (``app.Control``)
+    drawn on a terminal: one bar per stage with a count ('PSFs', 'depth
+    layers', windows, tiles), silent elsewhere."""
+
+    UNITS = {"PSFs": "PSF", "depth layers": "layer", "deconvolving": "window", "correcting": "tile"}
+
+    def __init__(self, label: str, stream=None):
+        self.label, self.stream = label, stream
+        self._bars: dict = {}
+
+    def __call__(self, stage: str, done: int, total: int) -> None:
+        if done == 0 and total <= 1 and stage not in self._bars:
+            return                                  # a stage starting: its count comes with its first step
+        if stage not in self._bars:
+            self._bars[stage] = bar(f"{self.label}: {stage}", self.UNITS.get(stage, "step"), self.stream)
+        b = self._bars[stage]
+        if b is not None:
+            b(done, total)

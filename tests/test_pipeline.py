@@ -1,7 +1,7 @@
 """`dcdi dof` and dcdi_core.pipeline: the pipeline end to end with each depth
 backend, and with a sharp input, --camera none and the true depth, exactly
 `dcdi bokeh`; the one rule that chooses the correction (choose_correction),
-the deconvolution and the network through recover() and dof()."""
+the deconvolution and the network through app.correct() and app.dof()."""
 import json
 
 import numpy as np
@@ -194,48 +194,54 @@ def test_auto_picks_a_network_recorded_better_at_the_pitch_it_learned_only(recor
     method, why = choose_correction("mos-s1", learned * 1.5)
     assert method == "deconv" and f"learned {learned * 1000:.4g} um pixels" in why
     assert choose_correction("mos-s2", learned)[0] == "deconv"          # not recorded for mos-s2
-    assert choose_correction("mos-s1", learned, "deconv") == ("deconv", "asked for: --method deconv")
+    assert choose_correction("mos-s1", learned, "deconv") == ("deconv", "asked for: \u2039method\u203a deconv")
 
 
-def test_choose_correction_refuses_what_cannot_run_naming_the_option():
-    from dcdi_core.errors import DcdiError
+def test_choose_correction_refuses_what_cannot_run_naming_the_field():
+    from dcdi_core.errors import DcdiError, in_words
     from dcdi_core.pipeline import choose_correction
-    for args, kw, says in [(("6p", 0.01, "wiener"), {}, "--method = 'wiener'"),
-                           (("6p", 0.01, "dacn"), {}, "no shipped DACN for lens 6p"),
-                           (("6p", 0.01, "dacn"), {"labels": {"model": "Correction Model"}}, "give Correction Model"),
-                           ((None, 0.01, "auto"), {}, "--lens is missing"),
-                           (("6p", 0.01, "deconv", "net.npz"), {}, "--model = 'net.npz'")]:
-        with pytest.raises(DcdiError, match=says):
-            choose_correction(*args, **kw)
-    assert choose_correction(None, None, "auto", "net.npz") == ("dacn", "a network was given: --model net.npz")
+    for args, says in [(("6p", 0.01, "wiener"), "method = 'wiener'"),
+                       (("6p", 0.01, "dacn"), "no shipped DACN for lens 6p"),
+                       (("6p", 0.01, "dacn"), "give model"),
+                       ((None, 0.01, "auto"), "lens is missing"),
+                       (("6p", 0.01, "deconv", "net.npz"), "model = 'net.npz'")]:
+        with pytest.raises(DcdiError, match=says) as e:
+            choose_correction(*args)
+        assert "\u2039" not in str(e.value)
+    with pytest.raises(DcdiError) as e:
+        choose_correction("6p", 0.01, "dacn")
+    assert "give Correction Model" in e.value.in_words({"model": "Correction Model"})
+    why = choose_correction(None, None, "auto", "net.npz")
+    assert why[0] == "dacn" and in_words(why[1], {"model": "--model"}) == "a network was given: --model net.npz"
     assert choose_correction("6p", 0.01, "dacn", "net.npz")[0] == "dacn"
 
 
-def test_recover_and_dof_deconvolve_with_the_camera_lens(tmp_path, monkeypatch):
+def test_correct_and_dof_deconvolve_with_the_camera_lens(tmp_path, monkeypatch):
+    from dcdi_core import app
     from dcdi_core.optics.lens import load_lens
-    from dcdi_core.pipeline import Deconvolution, correction_for, dof, recover
     from dcdi_core.psf.compute import PSFSettings
     from dcdi_core.render.geometry import ImageGeometry
-    from dcdi_core.render.simulate import LensSimulator
+    from dcdi_core.render.request import RenderRequest
+    from dcdi_core.render.simulate import LensSimulator, SimulateOptions
     img, depth = write_rgbd_scene(tmp_path, monkeypatch, 48, 64)
     cam, target = load_lens("6p"), load_lens("mos-s1")
     settings = PSFSettings(pupil_samples=16, n_wavelengths=3, kernel_size=15)
     geom = ImageGeometry.from_pixel_pitch(cam, 48, 64, 0.05)
-    r = LensSimulator(cam, geom, settings=settings, fit_depth_m=depth)(img, depth)
-    template = Deconvolution(cam, psf_source="trace", settings=settings)
-    correction = correction_for(cam, geom, deconvolution=template)
-    assert correction.method == "deconv" and correction.geometry == geom and "no DACN ships" in correction.reason
-    record = {}
-    out, d, source = recover(r.image, depth_m=depth, correction=correction, record=record)
-    assert source == "given" and record["method"] == "deconv" and record["psf_source"] == "trace"
+    r = LensSimulator(cam, SimulateOptions(geometry=geom, settings=settings), fit_depth_m=depth)(img, depth)
+    on_sensor = RenderRequest(cam, psf=settings, image_pixel_pitch_mm=0.05)
+    request = app.CorrectRequest(r.image, depth, cam, render=on_sensor, psf=app.PSFRequest(source="trace"))
+    _, correction, geometry, _ = app.prepare(request, (48, 64))
+    assert correction.method == "deconv" and geometry == geom and "no DACN ships" in correction.reason
+    fixed = app.correct(request)
+    assert fixed.method == "deconv" and fixed.info["psf_source"] == "trace"
 
     def psnr(a):
         return -10 * np.log10(np.mean((np.clip(a, 0, 1) - np.clip(r.sharp, 0, 1)) ** 2))
-    assert psnr(out) > psnr(r.image) + 2.0
-    # dof() with a method for the camera lens: the same rule and the same deconvolution
-    res = dof(r.image, target, keep=(1.0, 2.0), depth_m=depth, correction="auto", camera=cam, camera_pitch_mm=0.05,
-              psf_source="trace", settings=settings)
-    assert res.correction["method"] == "deconv" and "no DACN ships for lens 6p" in res.correction["reason"]
-    np.testing.assert_array_equal(res.corrected, out)
-    with pytest.raises(Exception, match="camera is missing"):
-        dof(r.image, target, keep=(1.0, 2.0), depth_m=depth, correction="deconv")
+    assert psnr(fixed.image) > psnr(r.image) + 2.0
+    # the chain with the camera lens: the same rule and the same deconvolution
+    bokeh = app.BokehRequest(None, None, target, keep=(1.0, 2.0), psf=app.PSFRequest(source="trace"),
+                             render=RenderRequest(target, psf=settings))
+    res = app.dof(app.DofRequest(request, bokeh))
+    assert res.correction.method == "deconv" and "no DACN ships for lens 6p" in res.correction.reason
+    assert res.depth_source == "given"
+    np.testing.assert_array_equal(res.corrected, fixed.image)

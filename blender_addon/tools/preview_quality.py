@@ -48,7 +48,8 @@ def main(argv=None) -> int:
           " cold PSF cache for every row")
     print("| lens | focus m | PSFs | pupil x wavelengths | wall s | PSNR vs full dB |")
     print("|---|---|---|---|---|---|")
-    full_settings = logic.core("psf.compute").PSFSettings()
+    from dcdi_core.psf.compute import PSFSettings
+    full_settings = PSFSettings()
     for lens_id in a.lenses:
         lens = load_lens(lens_id)
         for focus in a.focus:

@@ -95,6 +95,58 @@ def one_line(text) -> str:
     return " ".join(str(text).split())
 
 
+# The engine names what is wrong by the fields of its requests
+# (``errors.field``); the command shows each by the option that sets it. A
+# command whose options differ sets its own (``set_defaults(words=...)``).
+WORDS = {
+    "image": "--image", "capture": "--image", "depth_m": "--depth", "lens": "--lens", "method": "--method",
+    "model": "--model", "deconv": "--deconv-weight / --deconv-method / --one-depth / --noise-full-well / --noise-read",
+    "one_depth_m": "--one-depth", "weight": "--deconv-weight",
+    "psf_source": "--psf-source", "basis": "--basis", "olf": "--olf", "keep": "--keep", "focus_m": "--focus",
+    "image_pixel_pitch_mm": "--image-pixel-pitch", "pixel_pitch_mm": "--pixel-pitch",
+    "sensor_size": "--sensor-size", "axis_px": "--axis", "patch": "--patch", "interpolation": "--interpolation",
+    "seed": "--seed", "noise": "--noise", "perturb_fraction": "--perturb-fraction", "fixed_depth_m": "--fixed-depth",
+    "wavelength_nm": "--wavelength", "multires": "--multires", "max_level": "--max-level",
+    "full_well_electrons": "--full-well", "read_noise_electrons": "--read-noise", "kernel_size": "--kernel",
+    "tile": "--tile", "device": "--device",
+}
+
+
+def job_control(label: str, args):
+    """The ``app.Control`` of a command's job: a bar per stage on a terminal,
+    the job's notes as lines on standard error in the command's words."""
+    from ..app import Control
+    from ..errors import in_words
+    from ..progress import StageBars
+    words = error_words(args)
+    return Control(progress=StageBars(label), note=lambda line: say(in_words(line, words)))
+
+
+def psf_request(args, resp=None):
+    """The ``app.PSFRequest`` of --psf-source, --olf, --basis and the sensor response."""
+    from ..app import PSFRequest
+    return PSFRequest(source=getattr(args, "psf_source", None), olf_file=getattr(args, "olf", None),
+                      basis_file=getattr(args, "basis", None), response=resp)
+
+
+def error_words(args) -> dict:
+    """The words a command's errors are shown in: :data:`WORDS`, then the command's own."""
+    return {**WORDS, **(getattr(args, "words", None) or {})}
+
+
+def in_cli_words(args, value):
+    """A job's text (a reason, a note; or a dict or list of them) in the
+    command's words: the engine's field markers as its options."""
+    from ..errors import in_words
+    if isinstance(value, str):
+        return in_words(value, error_words(args))
+    if isinstance(value, dict):
+        return {k: in_cli_words(args, v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [in_cli_words(args, v) for v in value]
+    return value
+
+
 def say(text: str) -> None:
     """A line for the user on standard error."""
     print(f"dcdi: {text}", file=sys.stderr)

@@ -7,7 +7,8 @@ has been checked and needs it.
 from __future__ import annotations
 
 from .common import (UNITS, add_device_option, add_psf_options, add_psf_source_options, check_cache, check_olf_file,
-                     check_output, counter, depth_value, dump, positive_int, response, say)
+                     check_output, depth_value, dump, in_cli_words, job_control, positive_int, psf_request, response,
+                     say)
 from .render import add_focus_options, add_rgbd_options, quiet_input_warnings, render_inputs
 
 
@@ -27,11 +28,11 @@ def _shipped_for(kind: str) -> str:
 DECONV_LABELS = {"weight": "--deconv-weight", "one_depth_m": "--one-depth", "method": "--deconv-method",
                  "full well (electrons)": "--noise-full-well", "read noise (electrons)": "--noise-read"}
 DECONV_ONLY = ("deconv_weight", "deconv_method", "one_depth", "noise_full_well", "noise_read")
-DOF_LABELS = {"model": "--dacn", "lens": "--camera"}
+DOF_WORDS = {"model": "--dacn", "lens": "--camera"}
 
 
 def _relabelled(make):
-    """``make()``, an engine error renamed by the option the user gave."""
+    """``make()``, a DeconvOptions / NoiseModel error renamed by the option the user gave."""
     from ..errors import InputRangeError
     try:
         return make()
@@ -81,33 +82,16 @@ def _early_network(args, model_option: str) -> None:
             resolve_device(args.device)
 
 
-def _say_correction(correction) -> None:
-    name = "the deconvolution" if correction.method == "deconv" else "the network (DACN)"
-    say(f"correction by {name}: {correction.reason}")
-
-
-def _deconvolution(args, camera, settings, resp):
-    """The deconvolution's settings (its geometry is set by pipeline.correction_for)."""
-    from ..pipeline import Deconvolution
-    return Deconvolution(camera, options=deconv_options(args), psf_source=getattr(args, "psf_source", None),
-                         olf_file=getattr(args, "olf", None), settings=settings, kernel_size=getattr(args, "kernel", None),
-                         response=resp, basis_file=getattr(args, "basis", None))
-
-
-# ------------------------------------------------------------------ dcdi correct
-def _correct_geometry(args, lens, h: int, w: int):
-    """(capture's geometry on the lens's sensor, PSF settings) from --image-pixel-pitch, --axis and the PSF
-    options (`dacn correct` has none: the image spans the sensor's diagonal)."""
-    from ..render.geometry import ImageGeometry
-    if not hasattr(args, "image_pixel_pitch"):
-        return ImageGeometry.full_sensor(lens, h, w), None
+def _correct_render(args, lens):
+    """The capture on the lens's sensor (--image-pixel-pitch, --axis) and the PSF options, as a
+    ``render.request.RenderRequest`` (`dacn correct` has none: None, the capture spans the sensor's
+    diagonal, or what the file recorded)."""
+    if lens is None or not hasattr(args, "image_pixel_pitch"):
+        return None
     from ..render.request import RenderRequest
     from .common import psf_settings
-    request = RenderRequest(lens=lens, psf=psf_settings(args, sensor_focus=True), fit_kernel=not args.kernel,
-                            image_pixel_pitch_mm=args.image_pixel_pitch,
-                            axis_px=tuple(args.axis) if args.axis else None)
-    plan = request.plan(h, w, image=f"the image {args.image}")
-    return plan.geometry, plan.settings
+    return RenderRequest(lens=lens, psf=psf_settings(args, sensor_focus=True), fit_kernel=not args.kernel,
+                         image_pixel_pitch_mm=args.image_pixel_pitch, axis_px=tuple(args.axis) if args.axis else None)
 
 
 def _refuse_missing_depth(args) -> None:
@@ -121,10 +105,9 @@ def _refuse_missing_depth(args) -> None:
 
 
 def _correct_depth(args, shape):
-    """The capture's depth map (metres), or --one-depth everywhere without one; refused when of another size."""
+    """The capture's depth map (metres), or None (--one-depth everywhere); refused when of another size."""
     if args.depth is None:
-        import numpy as np
-        return np.full(shape, args.one_depth, np.float32)
+        return None
     from ..dataset.rgbd import read_any_depth
     from ..errors import InputRangeError
     depth = read_any_depth(args.depth)
@@ -133,19 +116,30 @@ def _correct_depth(args, shape):
     return depth
 
 
+def _given_deconv(args):
+    """The deconvolution's options where any was given, else None (its defaults, and no refusal where a
+    network corrects)."""
+    return deconv_options(args) if any(getattr(args, o, None) is not None for o in DECONV_ONLY) else None
+
+
+def _recorded(path):
+    """What the capture file remembers of how it was made (None: nothing)."""
+    from ..io.capture_record import read_record
+    return read_record(path)
+
+
 def cmd_correct(args) -> int:
     """`dcdi correct` and `dcdi dacn correct` (--method dacn, no deconvolution options)."""
+    from ..app import CorrectRequest, correct
     from ..io.images import check_image_output, read_image, write_image
-    from ..pipeline import check_correction, correction_for, recover
+    from ..pipeline import check_correction
     out = check_image_output(args.output)
     _refuse_missing_depth(args)
     lens = None
     if args.lens is not None:
         from ..optics.lens import load_lens
         lens = load_lens(args.lens)
-    # `dacn correct` has no --method: the deconvolution is `dcdi correct`'s
-    labels = None if hasattr(args, "deconv_weight") else {"method": "dcdi correct --method"}
-    check_correction(lens.id if lens is not None else None, args.method, args.model, labels=labels)
+    check_correction(lens.id if lens is not None else None, args.method, args.model)
     _early_network(args, "model")
     deconvolves = lens is not None and args.method != "dacn" and args.model is None
     if deconvolves:                                     # its settings, PSF cache and OLF file checked now
@@ -154,29 +148,24 @@ def cmd_correct(args) -> int:
         check_olf_file(args)
     image = read_image(args.image)
     depth = _correct_depth(args, image.shape[:2])
-    geometry, settings = _correct_geometry(args, lens, *image.shape[:2]) if lens is not None else (None, None)
-    deconvolution = _deconvolution(args, lens, settings, response(args)) if deconvolves else None
-    correction = correction_for(lens, geometry, args.method, args.model, deconvolution=deconvolution,
-                                weights=args.weights, device=args.device, tile=args.tile, overlap=args.overlap,
-                                labels=labels)
-    _refuse_deconv_only(args, correction.method, correction.reason)
-    _say_correction(correction)
-    if correction.method == "dacn":
+    request = CorrectRequest(image, depth, lens, args.method, args.model, render=_correct_render(args, lens),
+                             deconv=_given_deconv(args) if hasattr(args, "deconv_weight") else None,
+                             psf=psf_request(args, response(args)), tile=args.tile, overlap=args.overlap,
+                             weights=args.weights, device=args.device, recorded=_recorded(args.image),
+                             image_name=f"the image {args.image}")
+    if args.method == "dacn" or args.model is not None:
         import torch
         torch.set_num_threads(args.threads)
-    seconds, notes, record = {}, [], {}
-    progress = counter("correct: " + ("tile" if correction.method == "dacn" else "window"))
-    result, _, _ = recover(image, camera_pitch_mm=geometry.pixel_pitch_mm if geometry is not None else None,
-                           depth_m=depth, correction=correction, seconds=seconds, notes=notes, record=record,
-                           progress=progress)
-    if correction.method == "deconv":
-        say(record["psf_message"])
+    r = correct(request, job_control("dcdi correct", args))
+    notes = in_cli_words(args, r.notes)
     for note in notes:
         say(f"note: {note}")
-    write_image(out, result)
+    write_image(out, r.image)
     print(dump({"output": str(out), "size": [image.shape[0], image.shape[1]],
-                "lens": lens.id if lens is not None else record.get("trained_for"), "correction": record,
-                "seconds": {k: round(v, 3) for k, v in seconds.items()}, "notes": notes}))
+                "lens": lens.id if lens is not None else r.info.get("trained_for"),
+                "pixel_pitch_mm": r.geometry.pixel_pitch_mm if r.geometry is not None else None,
+                "correction": in_cli_words(args, r.as_dict()),
+                "seconds": {k: round(v, 3) for k, v in r.seconds.items()}, "notes": notes}))
     return 0
 
 
@@ -207,66 +196,55 @@ def _dof_estimator(args, camera):
     return load_estimator(args.depth_backend, ck, **opts)
 
 
-def _dof_correction(args, camera, img, plan, resp):
-    """(correction, the capture's geometry on the camera's sensor) of `dcdi dof` ((None, None) for
-    --camera none), by pipeline.choose_correction's rule; the capture lies on the camera's sensor as the
-    geometry options place it."""
-    if camera is None:
-        given = [f"--{o.replace('_', '-')}" for o in ("dacn", *DECONV_ONLY) if getattr(args, o, None) is not None]
-        given += [f"--method {args.method}"] if args.method != "auto" else []
-        if given:
-            from ..errors import InputRangeError
-            raise InputRangeError("--camera", "none", f"a lens: {given[0]} corrects a capture of a lens "
-                                  "(--camera none: a sharp image, no correction)")
-        return None, None
-    from ..pipeline import correction_for
+def _refuse_correction_of_sharp(args) -> None:
+    """--camera none with a correction's option: refused (a sharp image is not corrected)."""
+    given = [f"--{o.replace('_', '-')}" for o in ("dacn", *DECONV_ONLY) if getattr(args, o, None) is not None]
+    given += [f"--method {args.method}"] if args.method != "auto" else []
+    if given:
+        from ..errors import InputRangeError
+        raise InputRangeError("--camera", "none", f"a lens: {given[0]} corrects a capture of a lens "
+                              "(--camera none: a sharp image, no correction)")
+
+
+def _camera_render(args, camera):
+    """The capture on the camera's sensor: the geometry options (--image-pixel-pitch, --sensor-size,
+    --axis) and the PSF settings, without the target's focus."""
     from .render import render_request
-    sensor, source = render_request(args, camera, sensor_focus=False).geometries(*img.shape[:2],
-                                                                                image=f"the image {args.image}")
-    deconvolution = _deconvolution(args, camera, plan.settings, resp)
-    geometry = source or sensor
-    correction = correction_for(camera, geometry, args.method, args.dacn, deconvolution=deconvolution,
-                                labels=DOF_LABELS)
-    _refuse_deconv_only(args, correction.method, correction.reason)
-    return correction, geometry
+    return render_request(args, camera, sensor_focus=False)
 
 
 def cmd_dof(args) -> int:
     from pathlib import Path
 
+    from ..app import CorrectRequest, DofRequest, dof
     from ..io.images import write_depth, write_image
     from ..optics.lens import load_lens
     from ..pipeline import check_correction
+    from .render import bokeh_request
     camera = None if args.camera == "none" else load_lens(args.camera)
     if camera is not None:                              # refused before any image is read
-        check_correction(camera.id, args.method, args.dacn, labels=DOF_LABELS)
+        check_correction(camera.id, args.method, args.dacn)
         _early_network(args, "dacn")
+    else:
+        _refuse_correction_of_sharp(args)
     deconv_options(args)
     lens, request, plan, resp, img, depth = render_inputs(args, sensor_focus=False)
     if args.save_intermediates:
         for name in ("corrected.exr", "depth.exr"):
             check_output(str(Path(args.save_intermediates) / name), "--save-intermediates", image=True)
-    correction, camera_geometry = _dof_correction(args, camera, img, plan, resp)
+    correct_request = CorrectRequest(
+        img, depth, camera, args.method, args.dacn,
+        render=_camera_render(args, camera) if camera is not None else None, deconv=_given_deconv(args),
+        psf=psf_request(args, resp), recorded=_recorded(args.image), image_name=f"the image {args.image}")
     estimator = _dof_estimator(args, camera)
-    if estimator is not None or (correction is not None and correction.method == "dacn"):
+    if estimator is not None or args.method == "dacn" or args.dacn is not None:
         import torch
         torch.set_num_threads(args.threads)
-    if correction is not None:
-        _say_correction(correction)
-    from ..pipeline import dof
-    camera_pitch = camera_geometry.pixel_pitch_mm if camera_geometry is not None else None
     with quiet_input_warnings():
-        r = dof(img, lens, keep=tuple(args.keep) if args.keep else None, focus_m=args.focus, depth_m=depth,
-                estimator=estimator, correction=correction, camera_pitch_mm=camera_pitch,
-                psf_source=args.psf_source, olf_file=args.olf, basis_file=args.basis, settings=plan.settings,
-                geometry=plan.geometry,
-                source_geometry=plan.source_geometry, response=resp, distortion=args.distort,
-                interpolation=request.interpolation, patch=request.patch, occlusion=not args.plain,
-                fit_kernel=request.fit_kernel)
-    if r.correction.get("psf_message"):
-        say(f"camera {camera.id}: {r.correction['psf_message']}")
-    say(r.psf_message)
-    for note in r.notes:
+        r = dof(DofRequest(correct_request, bokeh_request(args, lens, request, resp, None, None), estimator),
+                job_control("dcdi dof", args))
+    notes = in_cli_words(args, r.notes)
+    for note in notes:
         say(f"note: {note}")
     write_image(args.output, r.image)
     if args.save_intermediates:
@@ -276,9 +254,10 @@ def cmd_dof(args) -> int:
         from ..models.dacn.evaluate import panel_strip
         from ..render.pictures import depth_panel
         write_image(args.side_by_side, panel_strip([img, r.corrected, depth_panel(r.depth_m), r.image]))
-    print(dump({"output": args.output, "camera": args.camera, "lens": lens.id, "correction": r.correction,
-                "depth_source": r.depth_source, "psf_source": r.psf_source,
-                "seconds": {k: round(v, 3) for k, v in r.seconds.items()}, "notes": r.notes}))
+    print(dump({"output": args.output, "camera": args.camera, "lens": lens.id,
+                "correction": in_cli_words(args, r.correction_dict()), "depth_source": r.depth_source,
+                "psf_source": r.bokeh.source.kind, "seconds": {k: round(v, 3) for k, v in r.seconds.items()},
+                "notes": notes}))
     return 0
 
 
@@ -333,8 +312,8 @@ def correct_parser(subparsers, name: str, *, network_only: bool = False, **kw):
                    help="the lens that took the capture: its PSFs, or its shipped DACN without --model; with "
                         "--model, refuse a model trained for another lens")
     t.add_argument("-o", "--output", required=True, help="the corrected image (.exr, .png, .jpg)")
-    if network_only:
-        t.set_defaults(method="dacn")
+    if network_only:        # `dacn correct` has no --method: the deconvolution is `dcdi correct`'s
+        t.set_defaults(method="dacn", words={"method": "dcdi correct --method"})
     else:
         add_method_option(t, "--lens")
         t.add_argument("--image-pixel-pitch", type=float, default=None, metavar="MM",
@@ -384,4 +363,4 @@ def add_commands(sub) -> None:
     q.add_argument("--distort", action="store_true", help="also apply the target lens's distortion")
     q.add_argument("--plain", action="store_true", help="plain patch-wise blur instead of occlusion-aware layers")
     q.add_argument("--threads", type=positive_int, default=1, help="torch threads (default 1)")
-    q.set_defaults(func=cmd_dof)
+    q.set_defaults(func=cmd_dof, words=DOF_WORDS)

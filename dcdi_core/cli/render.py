@@ -8,8 +8,8 @@ from __future__ import annotations
 import contextlib
 
 from .common import (UNITS, add_psf_options, add_psf_source_options, check_cache, check_olf_file,
-                     check_output, depth_value, dump, focus_value, positive_int, psf_settings, response)
-from .psf import choose_psf_source
+                     check_output, depth_value, dump, focus_value, in_cli_words, job_control, positive_int, psf_request,
+                     psf_settings, response, say)
 
 
 def add_rgbd_options(q, *, sensor_focus: bool, depth_required: bool = True,
@@ -125,73 +125,62 @@ def quiet_input_warnings():
 
 
 def cmd_simulate(args) -> int:
+    from ..app import SimulateRequest, simulate
     from ..io.images import write_image
-    from ..progress import Steps, psf_progress
-    from ..render.simulate import LensSimulator
     lens, request, plan, resp, img, depth = render_inputs(args, sensor_focus=True)
-    steps = Steps("dcdi simulate")
-    steps.start("PSF library (built once per lens and setting, then read from the cache)")
-    record = None
-    if args.perturb is not None:
-        from ..optics.perturb import perturb_lens
-        lens, record = perturb_lens(lens, seed=args.perturb, fraction=args.perturb_fraction)
-    src = choose_psf_source(args, lens, pixel_pitch_mm=plan.geometry.pixel_pitch_mm, settings=plan.settings,
-                            focus_m=plan.settings.focus_distance_m)
-    # without --kernel, the kernel grows to hold the PSFs this depth map needs
-    # (an OLF's kernels hold 99 % of the energy over its whole depth range)
-    sim = LensSimulator(lens, plan.geometry, source_geometry=plan.source_geometry, settings=plan.settings,
-                        library=src.library, response=resp, patch=request.patch,
-                        distortion=not args.no_distortion, interpolation=request.interpolation,
-                        fit_depth_m=depth if request.fit_kernel else None,
-                        progress=psf_progress("PSFs"), accelerator=args.accelerator)
-    steps.start(f"distortion, PSF map and convolution of {img.shape[0]} x {img.shape[1]} pixels")
     with quiet_input_warnings():
-        r = sim(img, depth, fixed_depth_m=request.fixed_depth_m, noise=request.noise_settings, seed=args.seed)
-    steps.start("writing")
-    write_image(args.output, r.image)
+        r = simulate(SimulateRequest(img, depth, lens, request, psf_request(args, resp),
+                                     distortion=not args.no_distortion, accelerator=args.accelerator,
+                                     image_name=f"the image {args.image}"), job_control("dcdi simulate", args))
+    write_image(args.output, r.image, record=r.record)
     if args.sharp_out:
         write_image(args.sharp_out, r.sharp)
-    steps.done()
-    print(dump({"output": args.output, **r.info, "perturbation": record, "psf_source": src.kind,
-                "olf_file": src.olf_file if src.kind == "olf" else None,
-                "basis_file": src.basis_file if src.kind == "basis" else None}))
+    print(dump(in_cli_words(args, {"output": args.output, **r.info, "perturbation": r.perturbation,
+                                   **_source_json(r.source), "seconds": {k: round(v, 3) for k, v in r.seconds.items()}})))
     return 0
 
 
+def _source_json(source) -> dict:
+    d = source.as_dict()
+    return {"psf_source": d["psf_source"], "olf_file": d["olf_file"], "basis_file": d["basis_file"]}
+
+
+def bokeh_request(args, lens, request, resp, img, depth, recorded=None):
+    """The ``app.BokehRequest`` of `dcdi bokeh`'s options (and `dcdi dof`'s target lens); ``recorded``:
+    the image file's capture record."""
+    from ..app import BokehRequest
+    return BokehRequest(img, depth, lens, keep=tuple(args.keep) if args.keep else None, focus_m=args.focus,
+                        render=request, occlusion=not args.plain, distortion=args.distort,
+                        multires=getattr(args, "multires", None), max_level=getattr(args, "max_level", None),
+                        psf=psf_request(args, resp), recorded=recorded, image_name=f"the image {args.image}")
+
+
 def cmd_bokeh(args) -> int:
+    from ..app import bokeh
     from ..io.images import write_image
-    from ..progress import Steps, bar, psf_progress
     from ..render.multires import DEFAULT_MAX_LEVEL, check_multires
-    from ..render.simulate import BokehOptions, bokeh
     check_multires(args.multires, DEFAULT_MAX_LEVEL if args.max_level is None else args.max_level, 16)
     lens, request, plan, resp, img, depth = render_inputs(args, sensor_focus=False)
-    steps = Steps("dcdi bokeh")
-    steps.start("PSF library (built once per lens, focus and setting, then read from the cache), then the blur")
-    keep = tuple(args.keep) if args.keep else None
-    focus_m = None if args.focus in (None, "prescribed") else args.focus
-    src = choose_psf_source(args, lens, pixel_pitch_mm=plan.geometry.pixel_pitch_mm, settings=plan.settings,
-                            focus_m=focus_m)
-    options = BokehOptions(keep=keep, focus_m=args.focus, geometry=plan.geometry,
-                           source_geometry=plan.source_geometry, distortion=args.distort,
-                           interpolation=request.interpolation, patch=request.patch, occlusion=not args.plain,
-                           settings=plan.settings, response=resp, fit_kernel=request.fit_kernel,
-                           multires=args.multires, max_level=args.max_level)
     with quiet_input_warnings():
-        r = bokeh(img, depth, lens, options, library=src.library, progress=psf_progress("PSFs"),
-                  layer_progress=bar("depth layers", "layer"))
-    steps.start("writing")
+        from ..io.capture_record import read_record
+        r = bokeh(bokeh_request(args, lens, request, resp, img, depth, read_record(args.image)),
+                  job_control("dcdi bokeh", args))
+    notes = in_cli_words(args, r.notes)
+    for note in notes:
+        say(f"note: {note}")
     write_image(args.output, r.image)
     if args.side_by_side:
         from ..render.pictures import side_by_side
+        keep = tuple(args.keep) if args.keep else None
         focus = (None if args.focus is None else "as prescribed" if args.focus == "prescribed"
                  else f"focus {args.focus:g} m")
         what = ", ".join(w for w in (focus, f"keep {keep[0]:g}-{keep[1]:g} m" if keep else None) if w)
         side_by_side(args.side_by_side, img if r.sharp is None else r.sharp,
-                     depth if r.depth is None else r.depth, r.image, f"{lens.name}: {what}")
-    steps.done()
-    print(dump({"output": args.output, **r.info, "psf_source": src.kind,
-                "olf_file": src.olf_file if src.kind == "olf" else None,
-                "basis_file": src.basis_file if src.kind == "basis" else None}))
+                     depth if r.depth_m is None else r.depth_m, r.image, f"{lens.name}: {what}")
+    print(dump(in_cli_words(args, {"output": args.output, "pixel_pitch_mm": float(r.geometry.pixel_pitch_mm),
+                                   "axis_px": [float(c) for c in r.geometry.center_px], **r.info,
+                                   **_source_json(r.source), "seconds": {k: round(v, 3) for k, v in r.seconds.items()},
+                                   "notes": notes})))
     return 0
 
 

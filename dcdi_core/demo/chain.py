@@ -8,14 +8,14 @@ correction and depth -> another lens's depth of field, each beside its truth.
    covers the lens at this pixel pitch, else traced. Its truth: the sharp frame and
    the depth on the same sensor (distorted alike, NaN where nothing is
    imaged), what the network was trained to recover;
-2. correction and depth: ``pipeline.dof`` with the engine's rule (the
+2. correction and depth: ``app.dof`` with the engine's rule (the
    deconvolution with the camera lens's own PSFs, or the shipped DACN where
    it is recorded better)
    and depth network renders the target lens's depth of field (focused at
    ``focus_m``) on the corrected image with the estimated depth;
 3. the same bokeh of the uncorrected capture with the same estimated depth,
    and the *ideal*: the same bokeh of the true sharp frame with the true
-   depth. All three with the same PSF source (``pipeline.dof`` chooses it).
+   depth. All three with the same PSF source (``app.dof`` chooses it).
 
 Scores (``ChainResult.scores``): PSNR (dB, over the imaged pixels) of the
 capture and of the corrected image against the sharp truth, of both depths
@@ -131,10 +131,10 @@ class ChainResult:
 def simulate_capture(scene: Scene, nets: Networks, seed: int) -> Capture:
     """The camera lens's capture of ``scene`` and its truth (module docstring, 1)."""
     from ..models.runtime.library import psf_source
-    from ..render.simulate import LensSimulator
+    from ..render.simulate import LensSimulator, SimulateOptions
 
     src = psf_source(nets.camera, pixel_pitch_mm=scene.geometry.pixel_pitch_mm)
-    sim = LensSimulator(nets.camera, scene.geometry, library=src.library)
+    sim = LensSimulator(nets.camera, SimulateOptions(geometry=scene.geometry), library=src.library)
     r = sim(scene.aif, scene.depth_m, noise=nets.noise, seed=seed if nets.noise is not None else None)
     image, truth = r.image, r.sharp
     if nets.saturate:
@@ -175,38 +175,43 @@ def run_chain(scene: Scene, nets: Networks, settings: ChainSettings, out: Path, 
     """The chain on one scene (module docstring); writes its picture
     ``dcdi_<scene key>.png`` to ``out``: capture | corrected | estimated
     depth | true depth | the pipeline's depth of field | the ideal."""
-    from ..pipeline import dof
-    from ..render.geometry import ImageGeometry
+    from ..app import BokehRequest, CorrectRequest, DofRequest, dof
+    from ..render.request import RenderRequest
 
     seconds = {}
     t0 = time.perf_counter()
     cap = simulate_capture(scene, nets, settings.seed)
     seconds["capture"] = time.perf_counter() - t0
     log(f"  {scene.key}: {nets.camera.id} capture simulated in {seconds['capture']:.1f} s ({cap.psf_message})")
-    h, w = cap.image.shape[:2]
     g = scene.geometry
     # the target lens's frame lies where the camera's did, at the same pitch
-    target_geometry = ImageGeometry.from_pixel_pitch(nets.target, h, w, g.pixel_pitch_mm, center_px=g.center_px)
-    common = {"focus_m": settings.focus_m, "geometry": target_geometry}
-    # the correction by the engine's rule (dcdi correct --method auto): the deconvolution with the camera's
-    # own PSFs unless a shipped network is recorded better; the depth is the estimated one, as a user has
-    r = dof(cap.image, nets.target, estimator=nets.estimator, correction="auto", camera=nets.camera,
-            camera_pitch_mm=g.pixel_pitch_mm, **common)
+    on_sensor = {"image_pixel_pitch_mm": g.pixel_pitch_mm, "axis_px": g.center_px}
+    target = BokehRequest(None, None, nets.target, focus_m=settings.focus_m,
+                          render=RenderRequest(nets.target, **on_sensor))
+    camera = RenderRequest(nets.camera, **on_sensor)
+
+    def chain(image, depth_m=None, estimator=None, corrected: bool = True):
+        # the correction by the engine's rule (dcdi correct --method auto): the deconvolution with the
+        # camera's own PSFs unless a shipped network is recorded better
+        fix = CorrectRequest(image, depth_m, nets.camera if corrected else None, render=camera if corrected else None)
+        return dof(DofRequest(fix, target, estimator))
+
+    # the depth is the estimated one, as a user has
+    r = chain(cap.image, estimator=nets.estimator)
     seconds.update(r.seconds)
     log(f"  {scene.key}: depth {r.seconds.get('depth', 0):.1f} s, correction {r.seconds.get('correction', 0):.1f} s, "
-        f"{nets.target.id} depth of field {r.seconds.get('psfs and bokeh', 0):.1f} s ({r.psf_message})")
+        f"{nets.target.id} depth of field {r.seconds.get('psfs and bokeh', 0):.1f} s ({r.bokeh.source.message})")
     t0 = time.perf_counter()
-    uncorrected = dof(cap.image, nets.target, depth_m=r.depth_m, **common).image
-    ideal = dof(cap.truth, nets.target, depth_m=cap.depth_m, **common).image
+    uncorrected = chain(cap.image, r.depth_m, corrected=False).image
+    ideal = chain(cap.truth, cap.depth_m, corrected=False).image
     # with the true depth (an RGB-D camera's): the correction and the bokeh both use it
-    known = dof(cap.image, nets.target, depth_m=cap.depth_m, correction="auto", camera=nets.camera,
-                camera_pitch_mm=g.pixel_pitch_mm, **common)
-    known_uncorrected = dof(cap.image, nets.target, depth_m=cap.depth_m, **common).image
+    known = chain(cap.image, cap.depth_m)
+    known_uncorrected = chain(cap.image, cap.depth_m, corrected=False).image
     seconds["references"] = time.perf_counter() - t0
     scores = chain_scores(cap, r.corrected, r.depth_m, r.image, uncorrected, ideal)
     scores.update(true_depth_scores(cap, known.corrected, known.image, known_uncorrected, ideal))
     result = ChainResult(scene.key, scene.title, cap, r.corrected, r.depth_m, r.image, uncorrected, ideal,
-                         r.psf_message, scores, seconds, list(r.notes), correction=dict(r.correction))
+                         r.bokeh.source.message, scores, seconds, list(r.notes), correction=r.correction_dict())
     result.picture = write_strip(result, out)
     log(f"  {scene.key}: PSNR capture {scores['capture_psnr']:.2f} dB -> corrected {scores['corrected_psnr']:.2f} dB; "
         f"depth of field: pipeline {scores['dof_psnr']:.2f} dB, uncorrected {scores['dof_uncorrected_psnr']:.2f} dB "

@@ -77,7 +77,7 @@ def dcdi_section(results, nets: Networks, settings: ChainSettings, factory_missi
              f"in the correction network's training pairs), corrected by {_method(results, nets, cfg)}, "
              f"its depth estimated by the shipped depth network (`{nets.depth_file.name}`), "
              f"then the {tgt} lens's depth of field focused at {settings.focus_m:g} m rendered on the corrected "
-             "image with the estimated depth (`dcdi_core.pipeline.dof`). The *ideal* is the same bokeh of the "
+             "image with the estimated depth (`dcdi_core.app.dof`). The *ideal* is the same bokeh of the "
              "true sharp frame with the true depth; the truth of the capture is the sharp frame on the same "
              "sensor (distorted alike).", "",
              "| scene | capture vs truth, dB | corrected vs truth, dB | "

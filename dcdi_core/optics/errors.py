@@ -52,7 +52,7 @@ class UnknownGlassError(OpticsError, KeyError):
         text += " (give model glass as {nd = ..., vd = ...} if it is not catalogued)"
         super().__init__(text)
 
-    def __str__(self):  # KeyError would quote the message
+    def raw(self) -> str:  # KeyError would quote the message
         return self.args[0]
 
 

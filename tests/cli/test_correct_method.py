@@ -58,6 +58,8 @@ def test_auto_picks_the_deconvolution_over_a_shipped_network_and_says_why(captur
         pytest.skip("no shipped DACN of mos-s1")
     dacn_recorded_better(monkeypatch, ())          # as if the study had not found it better
     d = capture
+    from dcdi_core.io.images import write_image
+    write_image(d / "cap.exr", read_image(d / "cap.exr"))   # a capture of unknown origin (no record of the 6P)
     code, out, err = _correct(capsys, d, "--depth", d / "depth.exr", "--lens", "mos-s1", *FAST)
     assert code == 0, err
     c = json.loads(out)["correction"]
@@ -135,5 +137,5 @@ def test_dof_corrects_with_the_same_deconvolution_as_correct(capture, capsys):
     # --method dacn for a camera without a network: refused by name, before any work
     code, _, err = _cli(capsys, "dof", "--image", d / "cap.exr", "--depth", d / "depth.exr", "--camera", "6p",
                         "--method", "dacn", "--lens", "mos-s1", "--keep", "1", "2", "-o", d / "x.exr", *FAST)
-    assert code == 2 and "no shipped DACN for lens 6p" in err and "--dacn MODEL" in err
+    assert code == 2 and "no shipped DACN for lens 6p" in err and "give --dacn (a DACN file" in err
     assert not (d / "x.exr").exists()

@@ -122,7 +122,7 @@ def test_source_is_the_olf_where_it_covers_the_request_else_tracing(olf_file, tm
         kw = {"pixel_pitch_mm": PITCH, "settings": learned} | kw
         src = psf_source(l_, olf_file=path, **kw)
         assert src.kind == "trace" and src.library is None and re.search(why, src.message), (why, src.message)
-        with pytest.raises(ModelError, match="--psf-source olf.*" + why):
+        with pytest.raises(ModelError, match="psf_source olf.*" + why):
             psf_source(l_, olf_file=path, source="olf", **kw)
     # a coarser pitch: served, its kernels area-resampled (tests/psf/test_psf_pitch.py)
     src = psf_source(lens, olf_file=path, pixel_pitch_mm=0.05, settings=learned)

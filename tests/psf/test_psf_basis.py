@@ -218,7 +218,7 @@ def test_psf_source_prefers_the_basis_and_says_why_not():
     # fewer rays than stored are served (the same PSFs, less ray noise); more are not
     assert psf_source(lens, settings=PSFSettings(pupil_samples=32)).kind == "basis"
     assert psf_source(lens, settings=PSFSettings(pupil_samples=1024)).kind != "basis"
-    with pytest.raises(Exception, match="--psf-source basis"):
+    with pytest.raises(Exception, match="psf_source basis"):
         psf_source(load_lens("6p"), source="basis", focus_m=2.0)
 
 

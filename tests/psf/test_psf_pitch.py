@@ -126,8 +126,9 @@ def test_olf_at_a_finer_pitch_is_traced_and_refused_by_the_library(shipped):
     lens = load_lens("6p")
     src = psf_source(lens, pixel_pitch_mm=0.006)
     assert src.kind == "trace" and "6 um is finer than the 12.2 um" in src.message
-    with pytest.raises(ModelError, match="--psf-source olf.*finer"):
+    with pytest.raises(ModelError, match="psf_source olf.*finer") as e:
         psf_source(lens, source="olf", pixel_pitch_mm=0.006)
+    assert e.value.in_words({"psf_source": "--psf-source"}).startswith("--psf-source olf")
     with pytest.raises(InputRangeError, match=r"pixel pitch.*learned 6p at 0\.0122 mm.*>= 0\.0122 mm"):
         OLFLibrary(shipped, lens, pixel_pitch_mm=0.006)
     assert math.isfinite(shipped.lens_entry("6p")["pixel_pitch_mm"])

@@ -31,7 +31,7 @@ from types import MappingProxyType
 
 import numpy as np
 
-from ...errors import InputRangeError
+from ...errors import InputRangeError, field
 from ...io.npzfile import FileCache
 from ...optics.errors import OpticsError
 from ...psf.basis import BasisLibrary, open_store, shipped_store
@@ -169,9 +169,9 @@ def _settings_differences(learned: dict, settings: PSFSettings | None, *, rays_a
 _load_olf = FileCache(OmniLensField.load, 1)
 
 
-# the names a user knows the source's choices by: the CLI's options (the add-on has none of them: None, the
-# mention left out)
-PSF_SOURCE_LABELS = MappingProxyType({"psf_source": "--psf-source", "basis": "--basis", "olf": "--olf"})
+# the request's fields the source's messages name (errors.field: each front end shows them in its own words;
+# a caller may still pass labels, a label None leaving the mention out)
+PSF_SOURCE_LABELS = MappingProxyType({"psf_source": field("psf_source"), "basis": field("basis"), "olf": field("olf")})
 
 
 def psf_source(lens, *, source: str | None = None, olf_file=None, pixel_pitch_mm: float | None = None,
@@ -187,8 +187,8 @@ def psf_source(lens, *, source: str | None = None, olf_file=None, pixel_pitch_mm
     the lens's sensor), the PSF settings asked for, an explicit kernel size,
     a focus distance (None: as prescribed), a custom spectral response.
     ``labels`` ({'psf_source', 'basis', 'olf'}: the CLI's options by
-    default; a label None leaves the option unnamed) name the choices in the
-    messages."""
+    request's fields by default, shown in each front end's words; a label None
+    leaves the option unnamed) name the choices in the messages."""
     lab = {**PSF_SOURCE_LABELS, **(labels or {})}
     if source not in (None,) + SOURCES:
         raise InputRangeError("psf source", source,

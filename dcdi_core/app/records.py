@@ -1,0 +1,65 @@
+"""What a capture file remembers of how it was made, and how a job reads it
+back as its defaults (``io.capture_record``'s record)."""
+from __future__ import annotations
+
+
+def simulated_record(lens, geometry, *, focus_distance_m, psf_source: str, noise: dict | None = None,
+                     seed: int | None = None, distortion: bool = True, extra: dict | None = None):
+    """The record of a capture simulated through ``lens`` on ``geometry``
+    (the sensor's frame): lens and prescription, pixel pitch (mm), optical
+    axis (row, col px), image size, focus (m, None: as prescribed), PSF
+    source ('basis', 'cache', 'trace', ...), noise model (``noise``: the
+    simulation's full well and read noise, electrons, with its ``seed``;
+    None: noiseless), distortion applied or not."""
+    from ..io.capture_record import CaptureRecord, prescription_sha256
+    if noise:
+        noise = {"full_well_electrons": float(noise["full_well_electrons"]),
+                 "read_noise_electrons": float(noise["read_noise_electrons"]), "seed": int(seed)}
+    return CaptureRecord(kind="simulated", lens_id=lens.id, prescription_sha256=prescription_sha256(lens),
+                         pixel_pitch_mm=float(geometry.pixel_pitch_mm),
+                         axis_px=(float(geometry.center_px[0]), float(geometry.center_px[1])),
+                         image_size=(int(geometry.height), int(geometry.width)),
+                         focus_distance_m=None if focus_distance_m is None else float(focus_distance_m),
+                         psf_source=psf_source, noise=noise or None, distortion_applied=bool(distortion),
+                         extra=dict(extra or {}))
+
+
+def recorded_defaults(render, lens, record, shape, image_name: str, *, focus: bool = True):
+    """(``render`` with the capture's recorded geometry as its defaults,
+    notes): the pixel pitch and optical axis where the request gives neither
+    a pitch nor a sensor size, the sensor's focus where the PSF settings
+    leave it unset; an explicit value wins. A ``lens`` other than the one
+    the capture was made with is refused naming both; a record made for
+    another image size (the file was resized or cropped since) is ignored,
+    with a note. ``render`` None: the lens's defaults. ``focus`` False:
+    leave the focus alone (a bokeh's focus is its own)."""
+    from dataclasses import replace
+
+    from ..errors import InputRangeError
+    from ..render.request import RenderRequest
+    if record is None or lens is None:
+        return render, []
+    if record.lens_id is not None and record.lens_id != lens.id:
+        raise InputRangeError("lens", lens.id,
+                              f"the lens the capture was made with, {record.lens_id} (recorded in {image_name})")
+    if record.image_size is not None and shape is not None and tuple(record.image_size) != tuple(shape):
+        return render, [f"{image_name} records a {record.image_size[0]} x {record.image_size[1]} px capture but "
+                        f"is {shape[0]} x {shape[1]} px (resized or cropped since): its record is ignored"]
+    render = render or RenderRequest(lens)
+    changes = {}
+    if render.image_pitch_mm is None and render.sensor_size is None and record.pixel_pitch_mm is not None:
+        changes["image_pixel_pitch_mm"] = float(record.pixel_pitch_mm)
+        if render.axis_px is None and record.axis_px is not None:
+            changes["axis_px"] = tuple(float(a) for a in record.axis_px)
+    if focus and render.psf.focus_distance_m is None and record.focus_distance_m is not None:
+        changes["psf"] = replace(render.psf, focus_distance_m=float(record.focus_distance_m))
+    if record.prescription_sha256 is not None and record.prescription_sha256 != prescription_of(lens):
+        note = (f"{image_name} was made with a different prescription of {lens.id} (perturbed or edited: its "
+                "prescription hash differs); it is used as given")
+        return (replace(render, **changes) if changes else render), [note]
+    return (replace(render, **changes) if changes else render), []
+
+
+def prescription_of(lens) -> str:
+    from ..io.capture_record import prescription_sha256
+    return prescription_sha256(lens)

@@ -1,0 +1,225 @@
+"""The render jobs a user asks for: a lens's aberrations on an all-in-focus
+RGB-D image (:func:`simulate`) and a lens's depth of field on it
+(:func:`bokeh`). Both front ends (the `dcdi` command, the Blender add-on)
+build a request, call the job and translate the result; the decisions (which
+PSFs, which bins, what the user is told) are made here once.
+
+Units: depths in metres from the lens's first vertex, lengths on the sensor
+in mm, image positions in pixels (row, col).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from ..errors import InputRangeError
+from ..render.request import RenderRequest
+from .control import Cancelled, Control
+from .records import recorded_defaults
+from .sources import PSFRequest, PSFSourceResult, SourceCache, ensure_bins, open_source
+
+
+def _array(name: str, value, ndim: int):
+    a = np.asarray(value, dtype=np.float32)
+    if a.ndim != ndim or (ndim == 3 and a.shape[2] != 3):
+        raise InputRangeError(name, a.shape, "(H, W, 3) linear RGB" if ndim == 3 else "(H, W) metres")
+    return a
+
+
+def _psf_request(psf: PSFRequest, render: RenderRequest, settings) -> PSFRequest:
+    """The job's PSF request: the plan's settings, the explicit kernel of a render that does not fit one."""
+    return replace(psf, settings=settings, fit_kernel=render.fit_kernel,
+                   kernel_size=None if render.fit_kernel else settings.kernel_size)
+
+
+def _source(lens, geometry, psf: PSFRequest, cache: SourceCache | None, fit_depth_m, control):
+    chosen = cache.chosen(lens, geometry, psf) if cache is not None else None
+    return open_source(lens, geometry, psf, fit_depth_m=fit_depth_m, control=control, chosen=chosen)
+
+
+# ------------------------------------------------------------------ simulate
+@dataclass(frozen=True)
+class SimulateRequest:
+    """The aberrations of ``lens`` on an all-in-focus ``image`` (H, W, 3)
+    float32 linear with ``depth_m`` (H, W) metres (None only with
+    ``render.fixed_depth_m``). ``render``: the image on the sensor (pixel
+    pitch, over-scan, axis), the PSF settings (their focus moves the
+    sensor), patch, interpolation, noise and its seed, a fixed depth, a
+    perturbation of the prescription (``render.request.RenderRequest``).
+    ``psf``: which PSFs (:class:`PSFRequest`). ``distortion``: apply the
+    lens's distortion. ``accelerator``: None (numpy) or 'torch'.
+    ``image_name``: how messages name the image."""
+
+    image: np.ndarray
+    depth_m: np.ndarray | None
+    lens: object
+    render: RenderRequest | None = None
+    psf: PSFRequest = field(default_factory=PSFRequest)
+    distortion: bool = True
+    accelerator: str | None = None
+    image_name: str = "the image"
+
+
+@dataclass
+class SimulateResult:
+    """``image``: the capture (H, W, 3) float32 on the sensor's frame;
+    ``sharp``: the ideal image distorted alike (an aligned pair); ``depth_m``:
+    the depth on the sensor (NaN where the lens images nothing); ``geometry``:
+    the frame on the sensor; ``lens``: the lens used (perturbed if asked);
+    ``source``: the PSFs; ``info``: the simulation's figures; ``perturbation``:
+    the perturbation's record; ``record``: what a capture file remembers."""
+
+    image: np.ndarray
+    sharp: np.ndarray
+    depth_m: np.ndarray
+    geometry: object
+    lens: object
+    source: PSFSourceResult
+    info: dict
+    perturbation: dict | None
+    record: object
+    seconds: dict
+
+
+def simulate(request: SimulateRequest, control: Control | None = None, *,
+             cache: SourceCache | None = None) -> SimulateResult:
+    """Run a :class:`SimulateRequest` (progress: 'PSFs', then 'simulating';
+    cancel while PSFs are traced). ``cache``: keeps PSF sources between jobs."""
+    from ..render.simulate import LensSimulator, SimulateOptions
+    control = control or Control()
+    img = _array("image", request.image, 3)
+    depth = None if request.depth_m is None else _array("depth_m", request.depth_m, 2)
+    render = request.render or RenderRequest(request.lens)
+    if depth is None and render.fixed_depth_m is None:
+        raise InputRangeError("depth_m", None, "the scene's depth map (H, W) metres, or a fixed depth")
+    lens, perturbation = request.lens, None
+    if render.perturb_seed is not None:
+        from ..optics.perturb import perturb_lens
+        lens, perturbation = perturb_lens(lens, seed=render.perturb_seed, fraction=render.perturb_fraction)
+    t0 = time.perf_counter()
+    plan = render.plan(*img.shape[:2], image=request.image_name)
+    psf = _psf_request(request.psf, render, plan.settings)
+    # the kernel grows to hold the PSFs this depth map needs (a basis's or an
+    # OLF's kernels hold their energy over the whole depth range)
+    src = _source(lens, plan.geometry, psf, cache, depth if render.fixed_depth_m is None else None, control)
+    options = SimulateOptions(geometry=plan.geometry, source_geometry=plan.source_geometry, settings=plan.settings,
+                              response=psf.response, patch=render.patch, distortion=request.distortion,
+                              interpolation=render.interpolation, accelerator=request.accelerator)
+    sim = LensSimulator(lens, options, library=src.library, progress=control.counter("PSFs"))
+    t1 = time.perf_counter()
+    control.report("simulating", 0, 1)
+    depth_in = depth if depth is not None else np.full(img.shape[:2], render.fixed_depth_m, np.float32)
+    r = sim(img, depth_in, fixed_depth_m=render.fixed_depth_m, noise=render.noise_settings, seed=render.seed)
+    seconds = {"psfs": t1 - t0, "simulation": time.perf_counter() - t1}
+    from .records import simulated_record
+    extra = {} if render.fixed_depth_m is None else {"fixed_depth_m": float(render.fixed_depth_m)}
+    if perturbation is not None:
+        extra["perturb_seed"] = int(render.perturb_seed)
+    record = simulated_record(lens, plan.geometry, focus_distance_m=plan.settings.focus_distance_m,
+                              psf_source=src.kind, noise=render.noise_settings, seed=render.seed,
+                              distortion=request.distortion, extra=extra)
+    return SimulateResult(r.image, r.sharp, r.depth, plan.geometry, lens, src, dict(r.info), perturbation, record,
+                          seconds)
+
+
+# ------------------------------------------------------------------ bokeh
+@dataclass(frozen=True)
+class BokehRequest:
+    """The depth of field of ``lens`` on an all-in-focus ``image`` (H, W, 3)
+    float32 linear with ``depth_m`` (H, W) metres.
+
+    What is sharp, at least one of: ``keep`` (near, far) metres kept exactly
+    sharp, ``focus_m`` the lens focused there (metres, or 'prescribed': the
+    lens as its prescription stands). ``render``: the image on the sensor
+    and the PSF settings (``render.request.RenderRequest``; its PSF focus
+    must be unset: the focus is ``focus_m``). ``occlusion``: the
+    occlusion-aware layers (False: the plain patch-wise blur);
+    ``distortion``: also the lens's distortion; ``multires`` / ``max_level``:
+    the multi-resolution blur (``render.bokeh.BokehOptions``). ``psf``:
+    which PSFs (:class:`PSFRequest`; ``preview``: a lighter trace).
+    ``recorded``: what the image file remembers
+    (``io.capture_record.CaptureRecord``; ``records.recorded_defaults``)."""
+
+    image: np.ndarray
+    depth_m: np.ndarray
+    lens: object
+    keep: tuple[float, float] | None = None
+    focus_m: float | str | None = None
+    render: RenderRequest | None = None
+    occlusion: bool = True
+    distortion: bool = False
+    multires: float | None = None
+    max_level: int | None = None
+    psf: PSFRequest = field(default_factory=PSFRequest)
+    recorded: object = None
+    image_name: str = "the image"
+
+
+@dataclass
+class BokehResult:
+    """``image`` (H, W, 3) float32 on the sensor's frame; ``sharp`` / ``depth_m``:
+    the input moved onto the sensor (None when it was not moved); ``geometry``;
+    ``source``: the PSFs; ``info``; ``notes``: lines for the user (a focus
+    where nothing in view lies)."""
+
+    image: np.ndarray
+    sharp: np.ndarray | None
+    depth_m: np.ndarray | None
+    geometry: object
+    source: PSFSourceResult
+    info: dict
+    notes: list
+    seconds: dict
+
+
+def _focus_note(depth, keep) -> str | None:
+    """A kept range where nothing in view lies: everything is out of focus."""
+    if keep is None:
+        return None
+    if int(((depth >= keep[0]) & (depth <= keep[1])).sum()):
+        return None
+    finite = depth[np.isfinite(depth) & (depth > 0)]
+    seen = f"{finite.min():.2f}-{finite.max():.2f} m" if finite.size else "only background (infinity)"
+    return (f"nothing in view lies in the kept range {keep[0]:.2f}-{keep[1]:.2f} m (depths in view: {seen}): "
+            "everything is out of focus")
+
+
+def bokeh(request: BokehRequest, control: Control | None = None, *, cache: SourceCache | None = None) -> BokehResult:
+    """Run a :class:`BokehRequest`. The PSF bins the scene blurs are built
+    first (progress 'PSFs', cancel between bins), then the layers (progress
+    'depth layers', cancel between them). The kernel grows to hold the blur
+    of the depths that get blurred (the kept ones are exactly sharp)."""
+    from ..render.bokeh import BokehOptions
+    from ..render.bokeh import bokeh as render_bokeh
+    from ..render.simulate import Cancelled as RenderCancelled
+    control = control or Control()
+    img = _array("image", request.image, 3)
+    depth = _array("depth_m", request.depth_m, 2)
+    render, notes = recorded_defaults(request.render, request.lens, request.recorded, img.shape[:2],
+                                      request.image_name, focus=False)
+    render = render or RenderRequest(request.lens)
+    t0 = time.perf_counter()
+    plan = render.plan(*img.shape[:2], image=request.image_name)
+    options = BokehOptions(keep=request.keep, focus_m=request.focus_m, geometry=plan.geometry,
+                           source_geometry=plan.source_geometry, distortion=request.distortion,
+                           interpolation=render.interpolation, patch=render.patch, occlusion=request.occlusion,
+                           settings=plan.settings, response=request.psf.response, fit_kernel=render.fit_kernel,
+                           multires=request.multires, max_level=request.max_level)
+    psf = _psf_request(request.psf, render, plan.settings).focused(options.focus_distance_m)
+    keep = options.keep
+    blurred = depth[(depth > 0) & ~((depth >= keep[0]) & (depth <= keep[1]))] if keep is not None else depth[depth > 0]
+    src = _source(request.lens, plan.geometry, psf, cache, blurred if blurred.size else None, control)
+    ensure_bins(src.library, blurred, control)
+    t1 = time.perf_counter()
+    control.report("depth layers", 0, 1)
+    try:
+        r = render_bokeh(img, depth, request.lens, options, library=src.library, cancelled=control.cancelled,
+                         layer_progress=control.counter("depth layers"))
+    except RenderCancelled:
+        raise Cancelled("cancelled") from None
+    note = _focus_note(depth, keep)
+    seconds = {"psfs": t1 - t0, "bokeh": time.perf_counter() - t1}
+    return BokehResult(r.image.astype(np.float32), r.sharp, r.depth, plan.geometry, src, dict(r.info),
+                       notes + ([note] if note else []), seconds)
