@@ -682,7 +682,7 @@ def check_output_folder(out: Path) -> None:
 def _run(a, out: Path) -> int:
     from dcdi_core.progress import psf_progress
     from dcdi_core.render.geometry import ImageGeometry
-    from dcdi_core.render.simulate import LensSimulator
+    from dcdi_core.render.simulate import LensSimulator, SimulateOptions
     from scenes.recipes import RECIPES
 
     layout = ff.FolderLayout(out)
@@ -716,16 +716,17 @@ def _run(a, out: Path) -> int:
         for lens in lenses:
             t1 = time.perf_counter()
             if lens.id not in sims:
-                sims[lens.id] = LensSimulator(lens, ImageGeometry.full_sensor(lens, h, w), settings=settings,
-                                              baseline_depth_m=a.baseline_depth,
-                                              progress=psf_progress(f"factory: PSFs of {lens.id}"))
+                options = SimulateOptions(geometry=ImageGeometry.full_sensor(lens, h, w), settings=settings,
+                                          baseline_depth_m=a.baseline_depth)
+                sims[lens.id] = LensSimulator(lens, options, progress=psf_progress(f"factory: PSFs of {lens.id}"))
                 stages["setup"] = stages.get("setup", 0.0) + time.perf_counter() - t1
             t2, c2 = time.perf_counter(), _cpu_s()
             r = sims[lens.id](img, depth)
             aberrated, baseline, sharp, info = r.image, r.baseline, r.sharp, r.info
             t3 = time.perf_counter()
             stages["cpu_simulate"] = stages.get("cpu_simulate", 0.0) + _cpu_s() - c2
-            ff.write_lens_images(layout, lens.id, sid, aberrated=aberrated, baseline=baseline, sharp=sharp)
+            ff.write_lens_images(layout, lens.id, sid, aberrated=aberrated, baseline=baseline, sharp=sharp,
+                                 record=capture_record(sims[lens.id]))
             t4 = time.perf_counter()
             stages["simulate"] = stages.get("simulate", 0.0) + t3 - t2
             stages["write"] += t4 - t3
@@ -761,22 +762,31 @@ def add_lenses(out: Path, records: list[dict], lenses, a, settings: dict) -> Non
     starts over (every file is replaced atomically)."""
     from dcdi_core.progress import psf_progress
     from dcdi_core.render.geometry import ImageGeometry
-    from dcdi_core.render.simulate import LensSimulator
+    from dcdi_core.render.simulate import LensSimulator, SimulateOptions
 
     layout = ff.FolderLayout(out)
     h, w = a.resolution
     print(f"factory: adding {', '.join(x.id for x in lenses)} to {len(records)} finished samples", flush=True)
     for lens in lenses:
-        sim = LensSimulator(lens, ImageGeometry.full_sensor(lens, h, w), settings=a.psf_settings,
-                            baseline_depth_m=a.baseline_depth, progress=psf_progress(f"factory: PSFs of {lens.id}"))
+        options = SimulateOptions(geometry=ImageGeometry.full_sensor(lens, h, w), settings=a.psf_settings,
+                                  baseline_depth_m=a.baseline_depth)
+        sim = LensSimulator(lens, options, progress=psf_progress(f"factory: PSFs of {lens.id}"))
         for rec in records:
             sid = rec["id"]
             t = time.perf_counter()
             r = sim(*ff.read_rgbd(layout, sid))
-            ff.write_lens_images(layout, lens.id, sid, aberrated=r.image, baseline=r.baseline, sharp=r.sharp)
+            ff.write_lens_images(layout, lens.id, sid, aberrated=r.image, baseline=r.baseline, sharp=r.sharp,
+                                 record=capture_record(sim))
             rec.setdefault("lenses", {})[lens.id] = {"seconds": round(time.perf_counter() - t, 3), **r.info}
     ff.write_manifest(layout.manifest, records)
     ff.write_settings(out, settings)
+
+
+def capture_record(sim):
+    """What the factory's captures through ``sim`` (a ``LensSimulator``) remember: the app's record."""
+    from dcdi_core.app.records import simulated_record
+    return simulated_record(sim.lens, sim.geometry, focus_distance_m=sim.library.settings.focus_distance_m,
+                            psf_source="trace", distortion=sim.table is not None, extra={"factory": True})
 
 
 def _versions() -> dict:

@@ -15,8 +15,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from . import dacn, depth, lens, olf, pipeline, psf, render, reports
-from .common import UNITS, deprecated, one_line, show_warning
+from . import dacn, depth, info, lens, olf, pipeline, psf, render, reports
+from .common import UNITS, deprecated, error_words, one_line, show_warning
 
 # old spelling -> new, kept for one release (a note on stderr says so)
 DEPRECATED = {"dcdi train dacn": "dcdi dacn train", "dcdi train depth": "dcdi depth train",
@@ -36,7 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="dcdi", description=__doc__.split("\n\n")[0] + " " + UNITS,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for group in (lens, psf, render, pipeline, olf, dacn, depth, reports):
+    for group in (lens, psf, render, pipeline, info, olf, dacn, depth, reports):
         group.add_commands(sub)
     _add_deprecated(sub)
     return p
@@ -63,7 +63,7 @@ def main(argv=None) -> int:
         try:
             return args.func(args)
         except DcdiError as e:
-            print(f"dcdi: error: {one_line(e)}", file=sys.stderr)
+            print(f"dcdi: error: {one_line(e.in_words(error_words(args)))}", file=sys.stderr)
             return 2
         except MemoryError:
             print(f"dcdi: error: {OUT_OF_MEMORY}", file=sys.stderr)

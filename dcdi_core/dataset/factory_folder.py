@@ -282,11 +282,19 @@ def write_rgbd(layout: FolderLayout, sid: str, image, depth) -> None:
     write_depth(layout.depth(sid), depth)
 
 
-def write_lens_images(layout: FolderLayout, lens: str, sid: str, *, aberrated, baseline, sharp) -> None:
-    """<lens>/aberrated|baseline|sharp/<id>.exr, each linear RGB (H, W, 3)."""
+def write_lens_images(layout: FolderLayout, lens: str, sid: str, *, aberrated, baseline, sharp,
+                      record=None) -> None:
+    """<lens>/aberrated|baseline|sharp/<id>.exr, each linear RGB (H, W, 3).
+    ``record``: the aberrated image's capture record
+    (``io.capture_record.CaptureRecord``), kept in its header (the baseline's
+    too, marked depth-unaware)."""
+    from dataclasses import replace
+
     from ..io.images import write_image
-    for kind, img in zip(LENS_KINDS, (aberrated, baseline, sharp)):
-        write_image(layout.lens_image(lens, kind, sid), img)
+    records = (record, None if record is None else replace(record, extra={**record.extra, "depth_aware": False}),
+               None)
+    for kind, img, rec in zip(LENS_KINDS, (aberrated, baseline, sharp), records):
+        write_image(layout.lens_image(lens, kind, sid), img, record=rec)
 
 
 def read_rgbd(layout: FolderLayout, sid: str):

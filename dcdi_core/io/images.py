@@ -655,8 +655,10 @@ def _write(path: Path, fmt, pixels, typename, channelnames, attributes):
     h, w, c = pixels.shape
     if oiio is None:
         _check_writable(path, fmt)
+        strings = {k: v for k, v in attributes.items() if k != "compression"}
         data = rawexr.encode_exr({n: pixels[..., i] for i, n in enumerate(channelnames)}, pixel_type=typename,
-                                 compression=attributes.get("compression", "zip").upper(), path=path)
+                                 compression=attributes.get("compression", "zip").upper(), strings=strings,
+                                 path=path)
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as f:
                 f.write(data)
@@ -706,7 +708,7 @@ def check_image_output(path) -> Path:
     return path
 
 
-def write_image(path, image, *, bit_depth=None) -> None:
+def write_image(path, image, *, bit_depth=None, record=None) -> None:
     """Write a linear-light image, the format chosen by the extension.
 
     ``.exr``: linear RGB, float32 (half with ``bit_depth=16``); ``.png``:
@@ -715,7 +717,14 @@ def write_image(path, image, *, bit_depth=None) -> None:
     three equal channels) or ``(H, W, 3)``, floating point. A NaN or inf
     anywhere raises :class:`ImageFileError` and writes nothing. Missing folders
     are created; the file appears only once completely written.
+
+    ``record``: how the image was made (``capture_record.CaptureRecord``),
+    kept in the EXR header, else in the sidecar ``<path>.dcdi.json`` written
+    after the image; None removes a sidecar left by an earlier write.
     """
+    from .capture_record import CaptureRecord, EXR_ATTRIBUTE, has_header, write_sidecar
+    if record is not None and not isinstance(record, CaptureRecord):
+        raise ImageFileError(path, f"record {record!r}: a CaptureRecord, or None")
     path = check_image_output(path)
     ext = path.suffix.lower()
     fmt, allowed, default = _WRITE_FORMATS[ext]
@@ -733,7 +742,10 @@ def write_image(path, image, *, bit_depth=None) -> None:
                     path, f"{int(big.sum())} value(s) exceed the half-float range "
                           f"(|x| <= {_HALF_MAX:g}; largest {float(np.abs(rgb).max()):g}); "
                           f"write float32 (bit_depth=None) instead")
-        _write(path, fmt, rgb, "half" if bits == 16 else "float", "RGB", {"compression": "zip"})
+        attributes = {"compression": "zip"}
+        if record is not None:
+            attributes[EXR_ATTRIBUTE] = record.as_json()
+        _write(path, fmt, rgb, "half" if bits == 16 else "float", "RGB", attributes)
         return
     top = 65535 if bits == 16 else 255
     encoded = linear_to_srgb(np.clip(rgb.astype(np.float64), 0.0, 1.0))
@@ -742,6 +754,8 @@ def write_image(path, image, *, bit_depth=None) -> None:
     if fmt == "jpeg":
         attributes["Compression"] = "jpeg:95"
     _write(path, fmt, pixels, "uint16" if bits == 16 else "uint8", "RGB", attributes)
+    if not has_header(path):
+        write_sidecar(path, record)
 
 
 def write_depth(path, depth) -> None:
