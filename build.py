@@ -12,7 +12,8 @@
     python build.py bench factory [--quick] [--recipe R]  # the dataset factory's samples per hour
     python build.py bench render [--quick]    # `dcdi bench render`, then the lens bokeh beside
                                               # Blender's Defocus node (time, memory, distance)
-    python build.py addon             # the Blender extension zip dist/<id>-<version>.zip
+    python build.py wheel             # the engine's wheel dist/dcdi-<version>-py3-none-any.whl
+    python build.py addon             # the Blender extension zip dist/<id>-<version>.zip (with that wheel)
 
 Works from any Python 3 interpreter: it finds a Python 3.11 (bpy 5.0.1 needs
 it), makes the virtual environment `.venv/` beside this file and installs the
@@ -24,13 +25,14 @@ row start the engine (`dcdi`) and the Blender batch jobs and tools
 (blender_addon/factory/batch.py, defocus_node.py) from here: the engine
 never starts the Blender layer.
 
-`addon` needs no environment: it zips blender_addon/ (without its tools/
-folder of batch jobs and developer tools) as the folder <id>/ with dcdi_core/
-(of its models/, only the numpy runtime and the shipped Omni-Lens-Field
-weights: no torch code) and lenses/ vendored inside it,
-id and version from blender_addon/blender_manifest.toml. The zip installs as
-an extension in Blender 4.2+ (Install from Disk) and as a legacy add-on in
-older Blender (its bl_info). Same sources, same bytes (fixed timestamps).
+`wheel` builds the engine's package as a wheel (`pip wheel`, offline, with
+every shipped data file: PSF bases, weights, lenses, the sensor response).
+`addon` zips blender_addon/ (without its factory/ and tools/ folders of
+batch jobs and developer tools) as the folder <id>/ with that wheel in
+<id>/wheels/, listed by blender_addon/blender_manifest.toml (id, version):
+Blender 4.2+ installs the zip from disk as an extension and its wheel with
+it, offline; the add-on imports `dcdi_core` as an ordinary package. Same
+sources, same bytes (fixed timestamps).
 """
 from __future__ import annotations
 
@@ -90,7 +92,7 @@ def find_python311() -> str:
 
 def _setup_hash() -> str:
     h = hashlib.sha256()
-    for name in ("requirements.txt", "pyproject.toml"):
+    for name in ("requirements.txt", "pyproject.toml", "setup.py"):
         h.update((ROOT / name).read_bytes())
     return h.hexdigest()
 
@@ -204,70 +206,90 @@ def cmd_test_blender(py: Path, rest: list[str]) -> int:
 # job that needs the repository's scenes/ and runs under `blender --background`)
 # and the developer tools (screenshots, studies)
 ADDON_EXCLUDE_DIRS = ("factory", "tools")
-# folders of dcdi_core/ left out: reports and benches (`dcdi report`, `dcdi bench`)
-ENGINE_EXCLUDE_DIRS = ("experiments",)
+# what the wheel is built from (a copy: the build's own folders stay out of the checkout)
+WHEEL_SOURCES = ("pyproject.toml", "setup.py", "README.md", "dcdi_core", "blender_addon", "scenes", "lenses")
+# fixed timestamps inside the wheel (setuptools reads it): same sources, same bytes
+SOURCE_DATE_EPOCH = "315532800"
 
 
-def _registry():
-    """dcdi_core/models/registry.py, loaded by path (standard library only:
-    `addon` runs without the environment)."""
-    import importlib.util
-    spec = importlib.util.spec_from_file_location("_dcdi_registry", ROOT / "dcdi_core/models/registry.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod                # dataclasses looks the module up by name
-    spec.loader.exec_module(mod)
-    return mod
+def _package_version() -> str:
+    return tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["version"]
 
 
-def _engine_file(p: Path, registry) -> bool:
-    """True for a dcdi_core file the add-on bundles: sources and data outside
-    ENGINE_EXCLUDE_DIRS; of models/, its own modules, the folders the network
-    registry names (the numpy runtime always; a network's package where the
-    add-on runs it) and the shipped weights it marks for the add-on; the
-    shipped PSF bases (psf/data/basis/*.npz)."""
-    rel = p.relative_to(ROOT / "dcdi_core").parts
-    if rel[0] in ENGINE_EXCLUDE_DIRS:
-        return False
-    if rel[:3] == ("psf", "data", "basis"):
-        return p.suffix == ".npz"
-    if rel[0] == "models" and len(rel) > 2:
-        if rel[1] == "weights":
-            return p.suffix == ".npz" and p.name.startswith(registry.addon_weight_prefixes())
-        if rel[1] not in registry.addon_model_folders():
-            return False
-    return p.suffix in (".py", ".csv", ".md", ".json")
+def wheel_name() -> str:
+    """The file name of the engine's wheel (pure Python: any platform, Blender's Python too)."""
+    return f"dcdi-{_package_version()}-py3-none-any.whl"
+
+
+def build_wheel(out_dir: Path, python: str | Path | None = None) -> Path:
+    """``pip wheel`` of the package (with every shipped data file: PSF
+    bases, weights, lenses, the sensor response) into ``out_dir``, from a
+    copy of its sources, offline (no build isolation: the set-up's
+    setuptools); returns its path."""
+    import tempfile
+    python = str(python or sys.executable)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix="dcdi-wheel-") as tmp:
+        src = Path(tmp) / "src"
+        for name in WHEEL_SOURCES:
+            p = ROOT / name
+            if p.is_dir():
+                shutil.copytree(p, src / name, ignore=shutil.ignore_patterns("__pycache__", "*.pyc", "*.egg-info"))
+            else:
+                src.mkdir(exist_ok=True)
+                shutil.copyfile(p, src / name)
+        env = dict(os.environ, SOURCE_DATE_EPOCH=SOURCE_DATE_EPOCH, PIP_DISABLE_PIP_VERSION_CHECK="1")
+        r = subprocess.run([python, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "--no-index",
+                            "-q", "-w", str(Path(tmp) / "wheel"), str(src)], env=env, capture_output=True, text=True)
+        built = Path(tmp) / "wheel" / wheel_name()
+        if r.returncode != 0 or not built.is_file():
+            sys.exit(f"build.py: building the wheel failed ({python} -m pip wheel):\n{r.stdout[-2000:]}{r.stderr[-2000:]}")
+        out = out_dir / built.name
+        shutil.copyfile(built, out)
+    return out
 
 
 def _addon_files() -> list[tuple[Path, str]]:
-    """(source, name inside the package folder) of every file in the add-on."""
-    def tree(folder: Path, prefix: str, keep) -> list[tuple[Path, str]]:
-        return [(p, prefix + p.relative_to(folder).as_posix()) for p in sorted(folder.rglob("*"))
-                if p.is_file() and "__pycache__" not in p.parts and keep(p)]
+    """(source, name inside the package folder) of the add-on's own files."""
     addon = ROOT / "blender_addon"
-    registry = _registry()
-    files = tree(addon, "", lambda p: p.relative_to(addon).parts[0] not in ADDON_EXCLUDE_DIRS
-                 and p.suffix in (".py", ".toml", ".md"))
-    files += tree(ROOT / "dcdi_core", "dcdi_core/", lambda p: _engine_file(p, registry))
-    files += tree(ROOT / "lenses", "lenses/", lambda p: p.suffix in (".toml", ".md"))
-    return files
+    return [(p, p.relative_to(addon).as_posix()) for p in sorted(addon.rglob("*"))
+            if p.is_file() and "__pycache__" not in p.parts and p.relative_to(addon).parts[0] not in ADDON_EXCLUDE_DIRS
+            and p.suffix in (".py", ".toml", ".md")]
 
 
-def build_addon(out_dir: Path = ROOT / "dist") -> Path:
-    """Write dist/<id>-<version>.zip (temporary name, then renamed); returns its path."""
+def _manifest_wheels(manifest: dict) -> list[str]:
+    wheels = manifest.get("wheels", [])
+    if wheels != [f"./wheels/{wheel_name()}"]:
+        sys.exit(f"build.py: blender_manifest.toml wheels = {wheels!r}; it must list the engine's wheel, "
+                 f"[\"./wheels/{wheel_name()}\"] (pyproject.toml's version)")
+    return wheels
+
+
+def build_addon(out_dir: Path = ROOT / "dist", python: str | Path | None = None) -> Path:
+    """Write dist/<id>-<version>.zip (temporary name, then renamed): the
+    add-on's package folder <id>/ with the engine's wheel in <id>/wheels/, as
+    its manifest lists it (Blender 4.2+ installs the wheel with the
+    extension, offline). Returns its path."""
+    import tempfile
     manifest = tomllib.loads((ROOT / "blender_addon" / "blender_manifest.toml").read_text())
     ext_id, version = manifest["id"], manifest["version"]
     if not ext_id.isidentifier():
         sys.exit(f"build.py: blender_manifest.toml id {ext_id!r} must be a Python identifier")
+    wheels = _manifest_wheels(manifest)
     out_dir.mkdir(parents=True, exist_ok=True)
     out = out_dir / f"{ext_id}-{version}.zip"
     tmp = out.with_name(f".{out.name}.tmp")
     try:
-        with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=9) as z:
-            for src, name in _addon_files():
-                info = zipfile.ZipInfo(f"{ext_id}/{name}", date_time=(1980, 1, 1, 0, 0, 0))
-                info.compress_type = zipfile.ZIP_DEFLATED
-                info.external_attr = 0o644 << 16
-                z.writestr(info, src.read_bytes())
+        with tempfile.TemporaryDirectory(prefix="dcdi-addon-") as wdir:
+            wheel = build_wheel(Path(wdir), python)
+            files = _addon_files() + [(wheel, wheels[0].removeprefix("./"))]
+            with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=9) as z:
+                for src, name in files:
+                    info = zipfile.ZipInfo(f"{ext_id}/{name}", date_time=(1980, 1, 1, 0, 0, 0))
+                    # a wheel is a zip already: stored, not deflated again
+                    info.compress_type = zipfile.ZIP_STORED if name.endswith(".whl") else zipfile.ZIP_DEFLATED
+                    info.external_attr = 0o644 << 16
+                    z.writestr(info, src.read_bytes())
         os.replace(tmp, out)
     finally:
         if tmp.exists():
@@ -447,16 +469,16 @@ def main(argv: list[str]) -> int:
         print(__doc__)
         return 0 if argv else 2
     command, rest = argv[0], argv[1:]
-    if command == "addon":
-        out = build_addon()
-        print(f"build.py: wrote {out.relative_to(ROOT)} ({out.stat().st_size / 1e6:.2f} MB)")
-        return 0
-    if command not in ("demo", "test", "test-slow", "test-blender", "bench", "setup"):
+    if command not in ("demo", "test", "test-slow", "test-blender", "bench", "setup", "addon", "wheel"):
         print(__doc__)
         print(f"build.py: unknown command {command!r}")
         return 2
     py = ensure_environment()
     if command == "setup":
+        return 0
+    if command in ("addon", "wheel"):
+        out = build_addon(python=py) if command == "addon" else build_wheel(ROOT / "dist", py)
+        print(f"build.py: wrote {out.relative_to(ROOT)} ({out.stat().st_size / 1e6:.2f} MB)")
         return 0
     if command == "test":
         return cmd_test(py, "not slow and not realblender")

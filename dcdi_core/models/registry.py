@@ -1,10 +1,7 @@
 """The project's networks by name: where each one's package and shipped
-weights are, and which parts the Blender add-on bundles.
-
-Read by the ``dcdi`` command (shipped files per lens) and by ``build.py``
-(the add-on zip is built from these folders, not from a list of files);
-standard library only, so ``build.py`` can load it by path without numpy.
-"""
+weights are, and where a shipped one is recorded better than the
+alternative. Read by the ``dcdi`` command (shipped files per lens) and the
+correction rule; standard library only."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -19,8 +16,6 @@ class Network:
     summary: str
     package: str              # folder under dcdi_core/models/: architecture, data, training, export
     weights_prefix: str       # shipped files: weights/<prefix><key>.npz
-    addon_package: bool       # the add-on bundles the package (runs where torch exists)
-    addon_weights: bool       # the add-on bundles the shipped weights
     # lens ids whose shipped network scored better than the deconvolution
     # (dcdi_core.correct) on held-out captures: the DACN study
     # (experiments/dacn_study.py) decides it; `pipeline.choose_correction`
@@ -45,21 +40,14 @@ class Network:
 
 NETWORKS = {
     "olf": Network("olf", "Omni-Lens-Field: an MLP of a lens's PSFs over field, depth and focus", "olf",
-                   "olf-", addon_package=False, addon_weights=True),      # runtime/olf.py runs it in numpy
+                   "olf-"),                                  # runtime/olf.py runs it in numpy
     # the shipped refining DACNs, on held-out captures at 12.2 um with noise (the DACN study,
     # docs/correction.md): MOS-S1 +1.97 dB over the deconvolution, MOS-S2 +2.78 dB (9,600 iterations, seed 0)
     "dacn": Network("dacn", "depth-aware correction network (DA2T-trained), per lens", "dacn",
-                    "dacn-", addon_package=True, addon_weights=True,      # Correct Simulation with torch
-                    beats_deconvolution=("mos-s1", "mos-s2")),
+                    "dacn-", beats_deconvolution=("mos-s1", "mos-s2")),
     "depth": Network("depth", "small metric-depth network on a lens's captures", "depth",
-                     "depth-", addon_package=False, addon_weights=False),  # Blender gives exact depth
+                     "depth-"),
 }
-
-# torch-free folders of dcdi_core/models/ every install has; ``common`` is the
-# shared training machinery and the inference helpers the networks' packages use
-ALWAYS_BUNDLED = ("runtime",)
-ADDON_SHARED = ("common",)     # bundled when any network's package is
-
 
 def network(name: str) -> Network:
     try:
@@ -67,13 +55,3 @@ def network(name: str) -> Network:
     except KeyError:
         from ..errors import InputRangeError
         raise InputRangeError("network", name, ", ".join(NETWORKS)) from None
-
-
-def addon_model_folders() -> list[str]:
-    """Folders of dcdi_core/models/ the add-on zip bundles."""
-    pkgs = [n.package for n in NETWORKS.values() if n.addon_package]
-    return list(ALWAYS_BUNDLED) + (list(ADDON_SHARED) if pkgs else []) + pkgs
-
-
-def addon_weight_prefixes() -> tuple[str, ...]:
-    return tuple(n.weights_prefix for n in NETWORKS.values() if n.addon_weights)

@@ -31,9 +31,8 @@ counts0 = data_counts()
 images0 = {i.name for i in bpy.data.images}        # a real Blender's startup file may hold some
 res["install"], res["install_s"] = install(ZIP)
 res["enabled"] = MODULE in bpy.context.preferences.addons
-core_mod = sys.modules[f"{MODULE}.core"]
 logic = sys.modules[f"{MODULE}.logic"]
-res["core_root"] = core_mod.ROOT
+res["engine_file"] = sys.modules["dcdi_core"].__file__
 res["lenses"] = {e.id: e.path for e in logic.lens_catalogue()}
 res["user_folder"] = os.environ["BLENDER_USER_RESOURCES"]
 
@@ -83,7 +82,7 @@ res["focus_m"] = 1.0 - ep
 
 # a shipped lens with the lens as prescribed (Refocus Lens off): served by the
 # bundled Omni-Lens-Field; the tracer raises, so a finished run traced nothing
-engine = f"{MODULE}.dcdi_core"
+engine = "dcdi_core"
 tracers = {m: sys.modules[f"{engine}.{m}"].compute_sources for m in ("psf.library", "psf.compute")}
 
 

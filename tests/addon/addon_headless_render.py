@@ -24,7 +24,7 @@ res["install"], _ = install(ZIP)
 logic = sys.modules[f"{MODULE}.logic"]
 hook = sys.modules[f"{MODULE}.render_hook"]
 operators = sys.modules[f"{MODULE}.operators"]
-runtime = importlib.import_module(f"{MODULE}.dcdi_core.models.runtime.library")
+runtime = importlib.import_module("dcdi_core.models.runtime.library")
 res["handlers_registered"] = sorted(n for n, fn in hook.HANDLERS if fn in getattr(bpy.app.handlers, n))
 
 # count the PSF sources built (one per lens, pitch and focus)

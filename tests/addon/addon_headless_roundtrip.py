@@ -43,7 +43,7 @@ scene, cam, cube = build_scene()
 res["install"], _ = install(ZIP)
 ops_mod = sys.modules[f"{MODULE}.operators"]
 logic = sys.modules[f"{MODULE}.logic"]
-registry = importlib.import_module(f"{MODULE}.dcdi_core.models.registry")
+registry = importlib.import_module("dcdi_core.models.registry")
 # every info report of a finished Correct (the operator's report goes to Blender's log, not to Python)
 reports = []
 _correction_report = logic.correction_report

@@ -1,4 +1,4 @@
-"""The Blender add-on: the extension zip, its vendored engine, and (with the
+"""The Blender add-on: the extension zip, the engine's wheel it bundles, and (with the
 pip bpy module, in a subprocess) install, Apply Lens Bokeh, settings left
 as they were, error messages, disable without leftovers."""
 import importlib.util
@@ -34,60 +34,89 @@ def addon_zip(tmp_path_factory):
 
 
 # ------------------------------------------------------------------ the zip
-def test_zip_is_an_extension_with_the_engine_and_lenses_inside(addon_zip, tmp_path):
+WHEEL = _build_module().wheel_name()
+
+
+def _unpack(addon_zip, where: Path) -> tuple[Path, Path]:
+    """The zip as Blender installs it: (the folder holding the add-on's
+    package, the site folder its bundled wheel is extracted into)."""
+    with zipfile.ZipFile(addon_zip) as z:
+        z.extractall(where / "ext")
+    site = where / "site"
+    with zipfile.ZipFile(where / "ext" / EXT_ID / "wheels" / WHEEL) as w:
+        w.extractall(site)
+    return where / "ext", site
+
+
+# the first lines of a subprocess that sees the unpacked zip alone: not this
+# checkout (its folder, the editable install's finder), not $PYTHONPATH
+_ISOLATED = """
+import sys
+sys.path = [p for p in sys.path if p not in ('', {root!r})]
+sys.meta_path = [f for f in sys.meta_path if "__editable__" not in getattr(f, "__module__", "")]
+sys.path[:0] = [{ext!r}, {site!r}]
+"""
+
+
+def _isolated_run(code: str, addon_zip, where: Path, **env_extra):
+    ext, site = _unpack(addon_zip, where)
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "DCDI_LENS_PATH")}
+    env.update(env_extra)
+    head = _ISOLATED.format(root=str(ROOT), ext=str(ext), site=str(site))
+    out = subprocess.run([sys.executable, "-c", head + code.format(ext=EXT_ID, site=str(site))],
+                         capture_output=True, text=True, env=env, cwd=where, timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return out.stdout
+
+
+def test_zip_is_an_extension_bundling_the_engines_wheel(addon_zip, tmp_path):
     assert EXT_ID.isidentifier() and addon_zip.name == f"{EXT_ID}-0.1.0.zip"
     with zipfile.ZipFile(addon_zip) as z:
         names = set(z.namelist())
         manifest = tomllib.loads(z.read(f"{EXT_ID}/blender_manifest.toml").decode())
         init = z.read(f"{EXT_ID}/__init__.py").decode()
+        wheel = set(zipfile.ZipFile(z.open(f"{EXT_ID}/wheels/{WHEEL}")).namelist())
     assert all(n.startswith(f"{EXT_ID}/") for n in names)          # one folder: extension and legacy layout
     assert manifest["blender_version_min"] == "4.2.0" and manifest["license"] == ["SPDX:GPL-3.0-or-later"]
     assert manifest["type"] == "add-on" and manifest["tags"] and manifest["schema_version"] == "1.0.0"
+    assert manifest["wheels"] == [f"./wheels/{WHEEL}"]
     assert "bl_info" in init and "def register" in init and "def unregister" in init
-    for lens in (ROOT / "lenses").glob("*.toml"):
-        assert f"{EXT_ID}/lenses/{lens.name}" in names
-    for need in ("dcdi_core/render/simulate.py", "dcdi_core/io/rawexr.py", "dcdi_core/psf/data/default_rgb_response.csv",
-                 "operators.py", "panel.py", "props.py"):
+    for need in ("operators.py", "panel.py", "props.py", "logic.py"):
         assert f"{EXT_ID}/{need}" in names
-    # Correct Simulation's deconvolution, which runs without torch
-    correct = {p.relative_to(ROOT).as_posix() for p in (ROOT / "dcdi_core" / "correct").glob("*.py")}
-    assert "dcdi_core/correct/__init__.py" in correct and {f"{EXT_ID}/{n}" for n in correct} <= names
+    # no vendored copy of the engine: it comes in the wheel only
+    assert not any(n.startswith((f"{EXT_ID}/dcdi_core/", f"{EXT_ID}/lenses/")) for n in names)
+    assert f"{EXT_ID}/core.py" not in names
     tools = {p.name for p in (ROOT / "blender_addon" / "tools").glob("*.py")}
     assert {"factory.py", "render_noise.py", "depth_histogram.py", "screenshots.py"} <= tools
-    assert not any(n.rsplit("/", 1)[-1] in tools - {"__init__.py"} or "/tools/" in n or "__pycache__" in n
-                   for n in names)
+    assert not any(n.rsplit("/", 1)[-1] in tools - {"__init__.py"} or "/tools/" in n or "/factory/" in n
+                   or "__pycache__" in n for n in names)
+    # the wheel carries every shipped data file
+    for data in [*(ROOT / "lenses").glob("*.toml"), *(ROOT / "dcdi_core/psf/data").rglob("*.*"),
+                 *(ROOT / "dcdi_core/models/weights").glob("*.npz")]:
+        name = f"dcdi_core/lenses/{data.name}" if data.suffix == ".toml" else data.relative_to(ROOT).as_posix()
+        assert name in wheel, name
     again = _build_module().build_addon(tmp_path)
     assert again.read_bytes() == addon_zip.read_bytes()              # same sources, same bytes
 
 
-def test_vendored_engine_runs_without_the_repository_or_image_libraries(addon_zip, tmp_path):
-    with zipfile.ZipFile(addon_zip) as z:
-        z.extractall(tmp_path)
-    code = f"""
-import sys
-sys.path = [p for p in sys.path if p not in ('', {str(ROOT)!r})]
-sys.path.insert(0, {str(tmp_path)!r})
-for m in ("OpenImageIO", "OpenEXR", "matplotlib", "torch", "bpy"):
+def test_unpacked_zip_runs_without_the_repository_or_image_libraries(addon_zip, tmp_path):
+    code = """
+for m in ("OpenImageIO", "OpenEXR", "matplotlib", "torch", "bpy", "scipy"):
     sys.modules[m] = None
-from {EXT_ID} import core, logic
-assert core.ROOT == "{EXT_ID}.dcdi_core", core.ROOT
-assert "dcdi_core" not in sys.modules
+from {ext} import logic
+import dcdi_core
+assert dcdi_core.__file__.startswith({site!r}), dcdi_core.__file__
 cat = {{e.id: e.path for e in logic.lens_catalogue()}}
 assert set(cat) >= {{"6p", "mos-s1", "mos-s2", "double-gauss"}}, cat
-assert all(p.startswith({str(tmp_path)!r}) for p in cat.values()), cat
+assert all(p.startswith({site!r}) for p in cat.values()), cat
 ro = logic.lens_readout(cat["mos-s1"])
 print(round(ro["focal_length_mm"], 3), round(ro["f_number"], 3))
 """
-    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "DCDI_LENS_PATH")}
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=tmp_path)
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.split() == ["19.946", "4.999"]
+    assert _isolated_run(code, addon_zip, tmp_path).split() == ["19.946", "4.999"]
 
 
 _IMPORT_ALL = """
-import importlib, json, sys, traceback
-sys.path = [p for p in sys.path if p not in ('', {root!r})]
-sys.path.insert(0, {where!r})
+import importlib, json, traceback
 for m in {blocked!r}:
     sys.modules[m] = None                      # as absent as in Blender's own Python
 res = {{}}
@@ -101,39 +130,47 @@ print(json.dumps(res))
 """
 
 
-def _import_all(where, modules, blocked):
-    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "DCDI_LENS_PATH")}
-    code = _IMPORT_ALL.format(root=str(ROOT), where=str(where), blocked=list(blocked), modules=modules)
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=where,
-                         timeout=300)
-    assert out.returncode == 0, out.stderr[-3000:]
-    return json.loads(out.stdout.strip().splitlines()[-1])
+def _import_all(addon_zip, where, modules, blocked):
+    code = _IMPORT_ALL.format(blocked=list(blocked), modules=modules).replace("{", "{{").replace("}", "}}")
+    return json.loads(_isolated_run(code, addon_zip, where).strip().splitlines()[-1])
+
+
+def _modules(addon_zip) -> list[str]:
+    with zipfile.ZipFile(addon_zip) as z:
+        names = [n for n in z.namelist() if n.endswith(".py")]
+        wheel = zipfile.ZipFile(z.open(f"{EXT_ID}/wheels/{WHEEL}"))
+        names += [n for n in wheel.namelist() if n.endswith(".py") and n.startswith("dcdi_core/")]
+    # (a __main__ module runs its program when imported: an entry point, not imported here)
+    return sorted(n[:-3].replace("/", ".").removesuffix(".__init__") for n in names
+                  if not n.endswith("/__main__.py"))
+
+
+# what the add-on may not need in Blender's own Python: its bpy modules, the
+# networks' torch code, the reports' plotting
+_BPY_ONLY = {f"{EXT_ID}.{m}" for m in ("operators", "panel", "props", "bpy_render", "render_hook", "viewport",
+                                       "thumbnails")}
 
 
 def test_every_module_of_the_zip_imports(addon_zip, tmp_path):
-    """Every module in the zip imports from the unpacked zip alone: in a
+    """Every module of the zip and of its wheel imports from them alone: in a
     Python like Blender's own (numpy, no torch, scipy, tqdm, OpenImageIO,
-    matplotlib) only the bpy modules may fail, and only for want of bpy;
-    with bpy (the pip module) every module imports (torch-only modules of
-    dcdi_core.models, when there are any, only where torch is installed)."""
-    with zipfile.ZipFile(addon_zip) as z:
-        z.extractall(tmp_path)
-        names = [n for n in z.namelist() if n.endswith(".py")]
-    # (a __main__ module runs its program when imported: an entry point, not imported here)
-    modules = sorted(n[:-3].replace("/", ".").removesuffix(".__init__") for n in names
-                     if not n.endswith("/__main__.py"))
-    assert len(modules) > 40 and f"{EXT_ID}.dcdi_core.render.simulate" in modules
-    bpy_only = {f"{EXT_ID}.{m}" for m in ("operators", "panel", "props", "bpy_render", "render_hook", "viewport", "thumbnails")}
-    bare = _import_all(tmp_path, modules, ["bpy", "torch", "scipy", "tqdm", "OpenImageIO", "OpenEXR",
-                                           "matplotlib"])
+    matplotlib) only the bpy modules, the networks' torch modules and the
+    reports may fail, and only for want of bpy, torch or matplotlib; every
+    module the add-on imports works there; with bpy (the pip module) every
+    module but those needing torch imports."""
+    modules = _modules(addon_zip)
+    assert len(modules) > 40 and "dcdi_core.render.simulate" in modules and f"{EXT_ID}.logic" in modules
+    bare = _import_all(addon_zip, tmp_path / "bare", modules, ["bpy", "torch", "scipy", "tqdm", "OpenImageIO",
+                                                                "OpenEXR", "matplotlib"])
     failed = {m: e for m, e in bare.items() if e}
-    assert set(failed) <= bpy_only | {m for m in modules if ".dcdi_core.models." in m
-                                      and ".runtime" not in m}, failed
-    assert all("bpy" in e or "torch" in e for e in failed.values()), failed
+    optional = {m for m in modules if (m.startswith("dcdi_core.models.") and ".runtime" not in m)
+                or m.startswith("dcdi_core.experiments.")}
+    assert set(failed) <= _BPY_ONLY | optional, failed
+    assert all(any(w in e for w in ("bpy", "torch", "matplotlib")) for e in failed.values()), failed
     if importlib.util.find_spec("bpy") is None:
         pytest.skip("pip bpy not installed: the bpy modules were not imported")
     blocked = [] if importlib.util.find_spec("torch") else ["torch"]
-    full = _import_all(tmp_path, modules, blocked)
+    full = _import_all(addon_zip, tmp_path / "full", modules, blocked)
     failed = {m: e for m, e in full.items() if e and not (blocked and "torch" in e)}
     assert not failed, failed
 
@@ -205,7 +242,8 @@ def headless(addon_zip, tmp_path_factory):
 
 def test_zip_installs_into_a_temporary_user_folder_and_enables(headless):
     assert headless["install"] == ["FINISHED"] and headless["enabled"]
-    assert headless["core_root"] == f"bl_ext.user_default.{EXT_ID}.dcdi_core"
+    # the engine is the extension's bundled wheel, installed into the user folder with it
+    assert headless["engine_file"].startswith(headless["user_folder"]), headless["engine_file"]
     assert set(headless["lenses"]) == {p.stem for p in (ROOT / "lenses").glob("*.toml")}
     assert all(p.startswith(headless["user_folder"]) for p in headless["lenses"].values())
     assert headless["default_lens"] == "6p"
@@ -316,7 +354,7 @@ def test_cancel_stops_the_psf_build_and_progress_is_reported(tmp_path, monkeypat
     assert seen == []                                   # stopped at the first batch, before any report
     out, info = logic.run_bokeh(img, depth, load_lens("mos-s1"), focus_m=1.0, keep=(0.9, 1.1),
                                 progress=lambda stage, f: seen.append((stage, f)))
-    assert [s for s, _ in seen][-1] == "convolving" and any(s == "PSFs" for s, _ in seen)
+    assert [s for s, _ in seen][-1] == "depth layers" and any(s == "PSFs" for s, _ in seen)
     assert all(0.0 <= f <= 1.0 for _, f in seen)
     assert info["kept_pixels"] == 80 and np.abs(out - img)[8:16, 10:20].max() < 1e-6
     # the PSFs are cached now: a cancel after the build stops the convolution between its layers
@@ -328,37 +366,8 @@ def test_cancel_stops_the_psf_build_and_progress_is_reported(tmp_path, monkeypat
 
 
 # ------------------------------------------------------------------ the bundled Omni-Lens-Field
-def test_zip_bundles_the_olf_runtime_the_dacn_modules_and_weights_and_no_module_level_torch(addon_zip):
-    with zipfile.ZipFile(addon_zip) as z:
-        names = {n[len(EXT_ID) + 1:] for n in z.namelist()}
-    models = sorted(n for n in names if n.startswith("dcdi_core/models/"))
-    weights = sorted(p.name for p in (ROOT / "dcdi_core" / "models" / "weights").glob("*.npz")
-                     if p.name.startswith(("olf-", "dacn-")))
-    assert weights and all(f"dcdi_core/models/weights/{w}" in names for w in weights)
-    assert {"dcdi_core/models/__init__.py", "dcdi_core/models/errors.py", "dcdi_core/models/runtime/olf.py",
-            "dcdi_core/models/runtime/library.py"} <= set(models)
-    # whole folders, as the network registry says: the numpy runtime, the DACN's package (Correct
-    # Simulation runs it where torch exists) and the shared machinery it uses; the pipeline
-    from dcdi_core.models.registry import addon_model_folders
-    assert addon_model_folders() == ["runtime", "common", "dacn"]
-    for folder in addon_model_folders():
-        src = {p.relative_to(ROOT).as_posix() for p in (ROOT / "dcdi_core/models" / folder).rglob("*.py")}
-        assert src and src <= names, folder
-    assert "dcdi_core/pipeline.py" in names
-    # not the OLF's training package, the depth network, the reports and benches
-    for left_out in ("dcdi_core/models/olf/", "dcdi_core/models/depth/", "dcdi_core/experiments/"):
-        assert not any(n.startswith(left_out) for n in names), left_out
-    assert not any(n.startswith("dcdi_core/models/weights/depth-") for n in names)
-    import re
-    with zipfile.ZipFile(addon_zip) as z:       # no module-level torch import (require_torch's is inside it)
-        for n in (m for m in models if m.endswith(".py")):
-            assert not re.search(r"^(import|from) torch", z.read(f"{EXT_ID}/{n}").decode(), re.M), n
-
-
 _BUNDLED_OLF = """
-import sys, importlib.abc
-sys.path = [p for p in sys.path if p not in ('', {root!r})]
-sys.path.insert(0, {where!r})
+import importlib, importlib.abc
 
 
 class NoTorch(importlib.abc.MetaPathFinder):
@@ -372,9 +381,9 @@ sys.meta_path.insert(0, NoTorch())
 for m in ("OpenImageIO", "OpenEXR", "matplotlib", "bpy", "scipy"):
     sys.modules[m] = None
 import numpy as np
-from {ext} import core, logic
-eng = core.ROOT
-assert eng == "{ext}.dcdi_core", eng
+from {ext} import logic
+import dcdi_core
+assert dcdi_core.__file__.startswith({site!r}), dcdi_core.__file__
 
 
 def no_tracing(*a, **k):
@@ -382,11 +391,11 @@ def no_tracing(*a, **k):
 
 
 for m in ("psf.library", "psf.compute"):
-    setattr(core.core(m), "compute_sources", no_tracing)
-lib_mod = core.core("models.runtime.library")
-assert str(lib_mod.SHIPPED).startswith({where!r}) and lib_mod.SHIPPED.exists(), lib_mod.SHIPPED
+    setattr(importlib.import_module("dcdi_core." + m), "compute_sources", no_tracing)
+lib_mod = importlib.import_module("dcdi_core.models.runtime.library")
+assert str(lib_mod.SHIPPED).startswith({site!r}) and lib_mod.SHIPPED.exists(), lib_mod.SHIPPED
 lens = logic.load_lens_cached(dict((e.id, e.path) for e in logic.lens_catalogue())["mos-s1"])
-olf = core.core("models.runtime.olf").OmniLensField.load(lib_mod.SHIPPED)
+olf = importlib.import_module("dcdi_core.models.runtime.olf").OmniLensField.load(lib_mod.SHIPPED)
 k = olf.psf(lens, [0.0, 0.7], 2.0)
 assert k.shape == (2, 3, 41, 41) and abs(k.sum(axis=(-1, -2)) - 1).max() < 1e-5 and k.min() >= 0
 rng = np.random.default_rng(0)
@@ -425,15 +434,9 @@ def test_bundled_engine_serves_the_olf_with_torch_blocked(addon_zip, tmp_path):
     through it with the tracer patched to raise (refocused: MOS-S1, learned
     at its prescribed focus only, traces; the 6P, learned across focus, is
     served inside the learned range and traced outside it)."""
-    with zipfile.ZipFile(addon_zip) as z:
-        z.extractall(tmp_path)
-    code = _BUNDLED_OLF.format(root=str(ROOT), where=str(tmp_path), ext=EXT_ID)
-    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "DCDI_LENS_PATH")}
-    env.update(DCDI_CACHE_DIR=str(tmp_path / "cache"), OMP_NUM_THREADS="1")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=tmp_path,
-                         timeout=300)
-    assert out.returncode == 0, out.stderr[-3000:]
-    assert out.stdout.startswith("ok") and "area-resampled" in out.stdout, out.stdout
+    out = _isolated_run(_BUNDLED_OLF, addon_zip, tmp_path, DCDI_CACHE_DIR=str(tmp_path / "cache"),
+                        OMP_NUM_THREADS="1")
+    assert out.startswith("ok") and "area-resampled" in out, out
 
 
 def test_first_apply_on_a_shipped_lens_traces_nothing(headless):
@@ -479,16 +482,22 @@ ROUND_TRIP_LENS = "mos-s2"          # the lens of test_dacn_train's tiny pairs
 
 
 def test_correction_model_path_names_the_lenses_with_a_network(tmp_path, monkeypatch):
+    """The choice names the network file it will run: the one given, else
+    the lens's shipped one; a lens without one is refused in the engine's
+    words shown as the panel's."""
     import dcdi_core.models.registry as registry
     monkeypatch.setattr(registry, "WEIGHTS_DIR", tmp_path)
-    with pytest.raises(logic.BokehInputError, match="lens '6p': shipped for no lens yet"):
-        logic.correction_model_path("6p")
+    monkeypatch.setattr(logic, "torch_missing", lambda: None)
+    with pytest.raises(logic.BokehInputError, match="no shipped DACN for lens 6p .shipped for: none.; give "
+                                                    "Correction Model"):
+        logic.choose_correction("network", "6p", 0.0122)
     (tmp_path / "dacn-mos-s1.npz").write_bytes(b"")
     (tmp_path / "dacn-mos-s2.npz").write_bytes(b"")
-    assert logic.correction_model_path("mos-s1") == tmp_path / "dacn-mos-s1.npz"
-    with pytest.raises(logic.BokehInputError, match="lens '6p': shipped for mos-s1, mos-s2; choose one"):
-        logic.correction_model_path("6p")
-    assert logic.correction_model_path("6p", str(tmp_path / "dacn-mos-s2.npz")) == tmp_path / "dacn-mos-s2.npz"
+    assert logic.choose_correction("network", "mos-s1", 0.0122).model_path == tmp_path / "dacn-mos-s1.npz"
+    with pytest.raises(logic.BokehInputError, match="shipped for: mos-s1, mos-s2.; give Correction Model"):
+        logic.choose_correction("network", "6p", 0.0122)
+    given = str(tmp_path / "dacn-mos-s2.npz")
+    assert logic.choose_correction("network", "6p", 0.0122, given).model_path == tmp_path / "dacn-mos-s2.npz"
     with pytest.raises(logic.BokehInputError, match="no such file"):
         logic.correction_model_path("6p", str(tmp_path / "mine.npz"))
 
@@ -564,7 +573,9 @@ def test_simulation_is_dcdi_cores_simulate_of_the_render(round_trip):
 
 def test_correct_runs_the_shipped_dacn_on_the_simulation_with_its_depth(round_trip, tiny_dacn):
     from dcdi_core.models.dacn.correct import load_dacn
-    from dcdi_core.pipeline import recover
+    from dcdi_core.optics.lens import load_lens
+    from dcdi_core.pipeline import NetworkCorrection, recover
+    from dcdi_core.render.geometry import ImageGeometry
     d = round_trip["dir"]
     r = round_trip
     assert r["correct_warm"] == ["FINISHED"] and r["correct_model_file"] == ["FINISHED"]
@@ -572,8 +583,9 @@ def test_correct_runs_the_shipped_dacn_on_the_simulation_with_its_depth(round_tr
     np.testing.assert_array_equal(np.load(d / "rt-correct_warm.npy"), got)
     assert r["correct_cold_line"].startswith(f"Network with dacn-{ROUND_TRIP_LENS}.npz (chosen in the panel), ")
     model, info = load_dacn(tiny_dacn)
-    want, _, _ = recover(np.load(d / "rt-sim.npy"), depth_m=np.load(d / "rt-sensor_depth.npy"), corrector=model,
-                         corrector_info=info)
+    want, _ = recover(np.load(d / "rt-sim.npy"), np.load(d / "rt-sensor_depth.npy"),
+                      NetworkCorrection(model, info, geometry=ImageGeometry.full_sensor(load_lens(ROUND_TRIP_LENS),
+                                                                                       96, 128)))
     assert got.shape == (96, 128, 3) and np.isfinite(got).all()
     np.testing.assert_allclose(got, want, atol=1e-4)
 
@@ -615,7 +627,7 @@ def test_network_without_torch_says_what_to_install_and_changes_nothing(round_tr
 def test_correct_says_what_it_needs(round_trip):
     r = round_trip
     assert "run Simulate Minimalist Lens first" in r["correct_first"]
-    assert f"no shipped correction network (DACN) for lens '{ROUND_TRIP_LENS}': shipped for no lens yet" \
+    assert f"no shipped DACN for lens {ROUND_TRIP_LENS} (shipped for: none); give Correction Model" \
         in r["no_shipped_error"]
     assert "missing.npz': no such file" in r["missing_model_error"]
 
@@ -646,7 +658,7 @@ def test_correct_speaks_the_panels_words(round_trip):
               "no_shipped_6p"):
         assert messages[k], k                                   # each case was refused, saying why
     assert "junk.npz" in messages["junk_model_error"]
-    assert "lens '6p': shipped for mos-s1, mos-s2" in messages["no_shipped_6p"]
+    assert "no shipped DACN for lens 6p (shipped for: mos-s1, mos-s2)" in messages["no_shipped_6p"]
     assert len(r["correct_reports"]) >= 10 and any("the deconvolution it refined: PSFs from" in m
                                                    for m in r["correct_reports"])
     assert {k: m for k, m in messages.items() if "--" in m} == {}
@@ -654,19 +666,21 @@ def test_correct_speaks_the_panels_words(round_trip):
 
 def test_psf_source_messages_on_corrects_path_name_no_option(monkeypatch):
     """The PSF source Correct's deconvolutions report, for a lens without a
-    shipped basis and no OLF: no CLI option named (the CLI's own words keep
-    them)."""
+    shipped basis and no OLF: the engine names its request's fields, the
+    panel shows its own words (no CLI option), the CLI its options."""
     import dcdi_core.models.runtime.library as library
+    from dcdi_core.cli.common import WORDS
+    from dcdi_core.errors import in_words
     from dcdi_core.optics.lens import Lens
     from conftest import singlet_dict
     monkeypatch.setattr(library, "SHIPPED", Path("/nonexistent/olf.npz"))
     lens = Lens.from_dict(singlet_dict())
-    cli = library.psf_source(lens, pixel_pitch_mm=0.01)
-    assert cli.kind == "trace" and "(--basis)" in cli.message and "(--olf)" in cli.message
-    panel = library.psf_source(lens, pixel_pitch_mm=0.01, labels=logic.CORRECTION_LABELS)
-    assert panel.kind == "trace" and "--" not in panel.message, panel.message
-    assert "no PSF basis of test-singlet ships with this engine" in panel.message
-    assert library.psf_source(lens, source="trace", labels=logic.CORRECTION_LABELS).message == "PSFs traced"
+    src = library.psf_source(lens, pixel_pitch_mm=0.01)
+    assert src.kind == "trace" and "no PSF basis of test-singlet ships with this engine" in src.message
+    assert "(--basis)" in in_words(src.message, WORDS) and "(--olf)" in in_words(src.message, WORDS)
+    panel = logic._note(src.message)
+    assert "--" not in panel and "\u2039" not in panel, panel
+    assert logic._note(library.psf_source(lens, source="trace").message) == "PSFs traced (PSF source trace)"
 
 
 def test_round_trip_disable_leaves_nothing_registered(round_trip):
@@ -760,7 +774,8 @@ def test_auto_picks_what_the_engines_rule_says(round_trip, tiny_dacn, tmp_path, 
     pitch = r["pixel_pitch_mm"]
 
     def rule(model=None):
-        return choose_correction(ROUND_TRIP_LENS, pitch, "auto", model, labels=logic.CORRECTION_LABELS)
+        method, why = choose_correction(ROUND_TRIP_LENS, pitch, "auto", model)
+        return method, logic._note(why)               # the engine's reason in the panel's words
 
     empty, shipped = tmp_path / "empty", tmp_path / "shipped"
     empty.mkdir()
@@ -966,15 +981,18 @@ def test_psf_thumbnail_is_a_grid_of_peak_normalised_psfs():
 
 def test_the_bokehs_psf_source_message_speaks_the_panels_words():
     """Apply Lens Bokeh, Simulate and Lens in Renders show the PSF source's
-    message: for an imported lens the engine's names a CLI option (--basis)."""
+    message: for an imported lens the engine's names its request's field
+    (basis), the CLI shows its option, the panel its own words."""
     from conftest import singlet_dict
+    from dcdi_core.cli.common import WORDS
+    from dcdi_core.errors import in_words
     from dcdi_core.models.runtime.library import psf_source
     from dcdi_core.optics.lens import Lens
-    from dcdi_core.psf.compute import PSFSettings
     lens = Lens.from_dict(singlet_dict())
-    assert "--basis" in psf_source(lens, pixel_pitch_mm=0.05, settings=PSFSettings()).message     # the CLI's
-    msg = logic.cached_psf_source(lens, 0.05, PSFSettings()).message
-    assert "PSFs traced" in msg and "--" not in msg, msg
+    message = psf_source(lens, pixel_pitch_mm=0.05).message
+    assert "--basis" in in_words(message, WORDS)                                     # the CLI's
+    msg = logic._note(message)                                                        # run_bokeh's, the panel's
+    assert "PSFs traced" in msg and "--" not in msg and "\u2039" not in msg, msg
 
 
 def test_the_preview_traces_what_no_shipped_source_holds_at_its_own_quality(tmp_path, monkeypatch):
