@@ -224,10 +224,11 @@ def wheel_name() -> str:
 def build_wheel(out_dir: Path, python: str | Path | None = None) -> Path:
     """``pip wheel`` of the package (with every shipped data file: PSF
     bases, weights, lenses, the sensor response) into ``out_dir``, from a
-    copy of its sources, offline (no build isolation: the set-up's
-    setuptools); returns its path."""
+    copy of its sources, offline (no build isolation: the setuptools of
+    ``python``, default the set-up's); returns its path."""
     import tempfile
-    python = str(python or sys.executable)
+    # the set-up's Python has setuptools and wheel; build.py may run under another
+    python = str(python or (_venv_python() if _venv_python().exists() else sys.executable))
     out_dir.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="dcdi-wheel-") as tmp:
         src = Path(tmp) / "src"

@@ -5,9 +5,10 @@ tools (the dataset factory, ``python -m blender_addon.factory``).
 bpy only: it gathers pixels and settings from Blender, calls dcdi_core, and
 puts pixels back; no optics here. Importing this package imports no bpy, so
 the factory and the tests can import it anywhere; Blender calls register().
-Built as an extension zip by ``python build.py addon`` (Blender 4.2+, with
-``dcdi_core`` and ``lenses/`` vendored inside); ``bl_info`` lets Blender
-versions before 4.2 load the same zip as a legacy add-on.
+Built as an extension zip by ``python build.py addon`` (Blender 4.2+, the
+engine's wheel bundled and listed in ``blender_manifest.toml``); ``bl_info``
+lets Blender versions before 4.2 load the same zip as a legacy add-on once
+that wheel is installed into their Python.
 """
 
 bl_info = {
@@ -27,8 +28,23 @@ def _classes():
     return props.CLASSES + operators.CLASSES + panel.CLASSES
 
 
+def _engine_importable() -> None:
+    """The engine comes in the extension's bundled wheel (Blender 4.2+
+    installs it); say what to do where it did not come."""
+    import importlib
+    try:
+        importlib.import_module("dcdi_core")
+    except ImportError as e:
+        raise ImportError("DCDI Lens Bokeh: its engine (dcdi_core) is not installed in this Blender's Python: "
+                          "Blender 4.2+ installs it from the zip's wheels/ folder; before 4.2, run <Blender's "
+                          "python> -m pip install wheels/dcdi-<version>-py3-none-any.whl from the zip first "
+                          f"({e})") from None
+
+
 def register():
     import bpy
+
+    _engine_importable()
 
     from . import props, render_hook, thumbnails
     for cls in _classes():

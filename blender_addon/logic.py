@@ -58,7 +58,8 @@ PANEL_WORDS = {"patch": "Patch Size", "interpolation": "Interpolation", "seed": 
                "perturb_fraction": "perturbation", "method": "Method", "model": "Correction Model", "lens": "Lens",
                "keep": "Kept Sharp", "focus_m": "Focus Distance", "image": "the render", "capture": "the simulation",
                "depth_m": "the depth pass", "psf_source": "PSF source", "basis": "PSF basis file",
-               "olf": "Omni-Lens-Field file", "deconv": "the deconvolution's settings"}
+               "olf": "Omni-Lens-Field file", "deconv": "the deconvolution's settings",
+               "focus_distance_m": "Focus Distance", "fraction": "perturbation"}
 
 
 def message(e: Exception) -> str:

@@ -108,7 +108,10 @@ WORDS = {
     "seed": "--seed", "noise": "--noise", "perturb_fraction": "--perturb-fraction", "fixed_depth_m": "--fixed-depth",
     "wavelength_nm": "--wavelength", "multires": "--multires", "max_level": "--max-level",
     "full_well_electrons": "--full-well", "read_noise_electrons": "--read-noise", "kernel_size": "--kernel",
-    "tile": "--tile", "device": "--device",
+    "tile": "--tile", "device": "--device", "focus_distance_m": "--focus", "fraction": "--perturb-fraction",
+    "field": "--field", "angle_deg": "--angle", "deposit_sigma_px": "--deposit-sigma", "pupil_samples": "--rays",
+    "n_wavelengths": "--wavelengths", "n_fields": "--fields", "n_depths": "--depths", "near_m": "--near",
+    "far_m": "--far",
 }
 
 

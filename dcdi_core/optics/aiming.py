@@ -172,12 +172,12 @@ def sources(lens: Lens, depth_m, *, field=None, angle_deg=None, wavelength_nm=No
     if field is not None:
         f = np.atleast_1d(np.asarray(field, dtype=np.float64))
         if not np.isfinite(f).all() or (f < 0).any():
-            raise InputRangeError("field (--field)", f.tolist(), "finite, >= 0 (1 = sensor semi-diagonal)")
+            raise InputRangeError("field", f.tolist(), "finite, >= 0 (1 = sensor semi-diagonal)")
         dd, ff = np.meshgrid(depth_mm, f)
         return solve_field(lens, dd, ff * lens.sensor.semi_diagonal_mm, wavelength_nm)
     a = np.atleast_1d(np.asarray(angle_deg, dtype=np.float64))
     if not np.isfinite(a).all() or (np.abs(a) >= 90).any():
-        raise InputRangeError("angle_deg (--angle)", a.tolist(), "(-90, 90) degrees")
+        raise InputRangeError("angle_deg", a.tolist(), "(-90, 90) degrees")
     dd, aa = np.meshgrid(depth_mm, a)
     return aim_chief(lens, dd, np.tan(np.radians(aa)), wavelength_nm)
 

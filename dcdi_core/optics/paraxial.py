@@ -158,10 +158,10 @@ def refocused(lens: Lens, focus_distance_m: float, wavelength_nm: float | None =
     from ..errors import InputRangeError
 
     if not (focus_distance_m > 0):
-        raise InputRangeError("focus_distance_m (--focus)", focus_distance_m, "> 0 metres, or inf")
+        raise InputRangeError("focus_distance_m", focus_distance_m, "> 0 metres, or inf")
     q = float(image_distance_mm(lens, focus_distance_m, wavelength_nm))
     if not (math.isfinite(q) and q > 0):
-        raise InputRangeError("focus_distance_m (--focus)", focus_distance_m,
+        raise InputRangeError("focus_distance_m", focus_distance_m,
                               f"a distance whose image is real and behind the lens (image distance {q:.4g} mm)")
     surfaces = list(lens.surfaces)
     surfaces[-1] = replace(surfaces[-1], thickness_mm=q)

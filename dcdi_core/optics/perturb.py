@@ -56,7 +56,7 @@ def perturb_lens(lens: Lens, *, seed: int, fraction: float = 0.10, radii: bool =
         raise InputRangeError("seed", seed, "an integer >= 0")
     if isinstance(fraction, bool) or not isinstance(fraction, (int, float, np.integer, np.floating)) \
             or not math.isfinite(fraction) or not (0.0 <= fraction <= 0.5):
-        raise InputRangeError("fraction (--perturb-fraction)", fraction, "a number in [0, 0.5] (0.1 = +-10 %)")
+        raise InputRangeError("fraction", fraction, "a number in [0, 0.5] (0.1 = +-10 %)")
     fraction = float(fraction)
     seed = int(seed)
     rng = np.random.default_rng(seed)

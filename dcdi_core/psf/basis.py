@@ -41,7 +41,7 @@ import numpy as np
 
 from ..atomic import atomic_path
 from ..io.npzfile import FileCache, checksum
-from ..errors import InputRangeError
+from ..errors import InputRangeError, field
 from ..optics.errors import OpticsError
 from .compute import PSFSettings
 from .library import LibraryGrid, PSFLibrary, lens_fingerprint
@@ -82,9 +82,9 @@ class BasisRecipe:
             if getattr(self, name) < 1:
                 raise InputRangeError(f"{name} ({self.FLAGS[name]})", getattr(self, name), ">= 1")
         if self.n_fields < 2 or self.n_depths < 2:
-            raise InputRangeError("n_fields, n_depths (--fields, --depths)", (self.n_fields, self.n_depths), ">= 2")
+            raise InputRangeError(f"{field('n_fields')}, {field('n_depths')}", (self.n_fields, self.n_depths), ">= 2")
         if self.kernel_size < 1 or self.kernel_size % 2 == 0:
-            raise InputRangeError("kernel_size (--kernel)", self.kernel_size, "odd integer >= 1")
+            raise InputRangeError("kernel_size", self.kernel_size, "odd integer >= 1")
         if self.near_rays is not None and self.near_rays < 1:
             raise InputRangeError("near_rays", self.near_rays, ">= 1, or None")
         if not (self.near_m <= self.near_until_m < self.far_m):

@@ -101,11 +101,11 @@ class PSFSettings:
 
     def __post_init__(self):
         if self.kernel_size < 1 or self.kernel_size % 2 == 0:
-            raise InputRangeError("kernel_size (--kernel)", self.kernel_size, "odd integer >= 1")
+            raise InputRangeError("kernel_size", self.kernel_size, "odd integer >= 1")
         if self.pupil_samples < 1:
-            raise InputRangeError("pupil_samples (--rays)", self.pupil_samples, ">= 1")
+            raise InputRangeError("pupil_samples", self.pupil_samples, ">= 1")
         if self.n_wavelengths < 1:
-            raise InputRangeError("n_wavelengths (--wavelengths)", self.n_wavelengths, ">= 1")
+            raise InputRangeError("n_wavelengths", self.n_wavelengths, ">= 1")
         lo, hi = self.band_nm
         if not (300.0 <= lo < hi <= 1100.0):
             raise InputRangeError("band_nm", self.band_nm, "300 <= lo < hi <= 1100 nm")
@@ -115,11 +115,11 @@ class PSFSettings:
             raise InputRangeError("oversample", self.oversample, ">= 1")
         if not (isinstance(self.deposit_sigma_px, (int, float)) and math.isfinite(self.deposit_sigma_px)
                 and 0.0 <= self.deposit_sigma_px <= 3.0):
-            raise InputRangeError("deposit_sigma_px (--deposit-sigma)", self.deposit_sigma_px, "0 <= sigma <= 3 pixels")
+            raise InputRangeError("deposit_sigma_px", self.deposit_sigma_px, "0 <= sigma <= 3 pixels")
         if self.wavelength_nm is not None and not (200.0 < self.wavelength_nm < 2500.0):
-            raise InputRangeError("wavelength_nm (--wavelength)", self.wavelength_nm, "(200, 2500) nm, or None for the band")
+            raise InputRangeError("wavelength_nm", self.wavelength_nm, "(200, 2500) nm, or None for the band")
         if self.pixel_pitch_mm is not None and not (self.pixel_pitch_mm > 0):
-            raise InputRangeError("pixel_pitch_mm (--pixel-pitch)", self.pixel_pitch_mm, "> 0 mm")
+            raise InputRangeError("pixel_pitch_mm", self.pixel_pitch_mm, "> 0 mm")
 
     def as_dict(self) -> dict:
         d = asdict(self)

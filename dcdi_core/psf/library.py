@@ -28,7 +28,7 @@ import numpy as np
 
 from ..atomic import atomic_path
 from ..optics.aiming import sources
-from ..errors import InputRangeError
+from ..errors import InputRangeError, field
 from ..optics.errors import OpticsError
 from ..optics.lens import Lens
 from .compute import PSFSettings, compute_sources, focused_lens, pixel_pitch_mm, spectral_samples, warn_if_clipped
@@ -56,11 +56,12 @@ class LibraryGrid:
 
     def __post_init__(self):
         if self.n_fields < 2:
-            raise InputRangeError("n_fields (--fields)", self.n_fields, ">= 2")
+            raise InputRangeError("n_fields", self.n_fields, ">= 2")
         if self.n_depths < 2:
-            raise InputRangeError("n_depths (--depths)", self.n_depths, ">= 2 (near and far at least)")
+            raise InputRangeError("n_depths", self.n_depths, ">= 2 (near and far at least)")
         if not (0 < self.near_m < self.far_m < math.inf):
-            raise InputRangeError("near_m, far_m (--near, --far)", (self.near_m, self.far_m), "0 < near < far < inf metres")
+            raise InputRangeError(f"{field('near_m')}, {field('far_m')}", (self.near_m, self.far_m),
+                                  "0 < near < far < inf metres")
 
     @property
     def fields(self) -> np.ndarray:

@@ -130,7 +130,7 @@ class BokehOptions:
                                   "and a focus)")
         if keep is not None:
             if not (isinstance(keep, (tuple, list, np.ndarray)) and len(keep) == 2 and 0 < keep[0] <= keep[1]):
-                raise InputRangeError("keep (--keep)", keep, "(near, far) with 0 < near <= far metres")
+                raise InputRangeError("keep", keep, "(near, far) with 0 < near <= far metres")
             object.__setattr__(self, "keep", tuple(keep))
         if focus_m is not None and (focus_m != PRESCRIBED if isinstance(focus_m, str) else not focus_m > 0):
             raise InputRangeError("focus", focus_m, f"a distance in metres (> 0, or inf) or {PRESCRIBED!r}")

@@ -68,14 +68,14 @@ class NodeDefocus:
     def for_lens(cls, lens, height: int, width: int, focus_m: float) -> "NodeDefocus":
         if isinstance(focus_m, bool) or not isinstance(focus_m, (int, float)) or not (focus_m > 0) \
                 or not math.isfinite(focus_m):
-            raise InputRangeError("focus_m (--focus)", focus_m, "a finite distance > 0 metres")
+            raise InputRangeError("focus_m", focus_m, "a finite distance > 0 metres")
         fo = first_order(lens)
         efl = float(fo.effective_focal_length_mm)
         if not (math.isfinite(efl) and efl > 0):
             raise InputRangeError(f"{lens.path}: effective focal length (mm)", efl, "> 0 (a real image)")
         z_h = efl - float(fo.front_focal_length_mm)      # F is ffl in front of the vertex, H is EFL behind F
         if not focus_m * 1000.0 + z_h > efl:
-            raise InputRangeError("focus_m (--focus)", focus_m,
+            raise InputRangeError("focus_m", focus_m,
                                   f"> {(efl - z_h) / 1000:.4g} m (beyond the front focal point)")
         geom = ImageGeometry.full_sensor(lens, height, width)
         return cls(efl, float(fo.f_number), z_h, float(focus_m), geom.pixel_pitch_mm, geom.height, geom.width)

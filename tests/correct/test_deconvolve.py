@@ -12,7 +12,7 @@ from dcdi_core.errors import InputRangeError
 from dcdi_core.models.runtime.library import psf_source
 from dcdi_core.optics.lens import load_lens
 from dcdi_core.render.geometry import ImageGeometry
-from dcdi_core.render.simulate import LensSimulator
+from dcdi_core.render.simulate import SimulateOptions, LensSimulator
 
 PITCH = 0.0122                     # mm: the paper's pixel pitch, where the shipped basis serves MOS-S1 as stored
 QUIET = NoiseModel(0.0, 1e-5)      # noise-free captures: a small prior keeps the cut windows from ringing
@@ -67,7 +67,7 @@ def test_a_noise_free_band_limited_image_is_recovered(mos_s1):
     geom = _geometry(lens, h, w)
     img = _band_limited(h, w, seed=1)
     depth = np.where(np.arange(w)[None, :] < w // 2, 1.5, 4.0) * np.ones((h, 1))
-    r = LensSimulator(lens, geom, library=lib)(img, depth)
+    r = LensSimulator(lens, SimulateOptions(geometry=geom), library=lib)(img, depth)
     # with 3 kernel radii of context (the default's 1.5 trade about 4 dB of this noise-free case for speed)
     res = deconvolve(r.image, r.depth, lens, DeconvOptions(noise=QUIET, pad=60), geometry=geom, library=lib)
     inner = _inner(img.shape, 24) & ~np.isnan(r.depth)
@@ -85,7 +85,7 @@ def test_depth_aware_beats_one_depth_on_two_planes_that_blur_differently(mos_s1)
     geom = _geometry(lens, h, w, off=(0.0, 0.0))
     img = _natural(h, w, seed=2)
     depth = np.where(np.arange(w)[None, :] < w // 2, 0.75, np.inf) * np.ones((h, 1))
-    r = LensSimulator(lens, geom, library=lib)(img, depth, noise={}, seed=3)
+    r = LensSimulator(lens, SimulateOptions(geometry=geom), library=lib)(img, depth, noise={}, seed=3)
     noise = NoiseModel.sensor()
     aware = deconvolve(r.image, r.depth, lens, DeconvOptions(noise=noise), geometry=geom, library=lib)
     one = deconvolve(r.image, r.depth, lens, DeconvOptions(noise=noise, one_depth_m=2.0), geometry=geom, library=lib)
@@ -105,7 +105,7 @@ def test_clipped_highlights_and_depth_edges_give_no_nan_and_no_overshoot(mos_s1)
     img = _band_limited(h, w, seed=4, sigma_px=1.0)
     img[30:40, 40:50] = 6.0                               # a light: clipped in the capture
     depth = np.where(np.arange(w)[None, :] < 60, 0.8, 8.0) * np.ones((h, 1))    # a depth edge
-    r = LensSimulator(lens, geom, library=lib)(img, depth, noise={}, seed=5)
+    r = LensSimulator(lens, SimulateOptions(geometry=geom), library=lib)(img, depth, noise={}, seed=5)
     cap = np.clip(r.image, 0.0, 1.0)                      # the sensor saturates
     res = deconvolve(cap, r.depth, lens, DeconvOptions(), geometry=geom, library=lib)
     out = res.image
@@ -115,7 +115,7 @@ def test_clipped_highlights_and_depth_edges_give_no_nan_and_no_overshoot(mos_s1)
     assert res.info["clipped_px"] == int(clipped.sum())
     # the same scene without the light: the depth edge alone
     img[30:40, 40:50] = 0.5
-    r = LensSimulator(lens, geom, library=lib)(img, depth, noise={}, seed=5)
+    r = LensSimulator(lens, SimulateOptions(geometry=geom), library=lib)(img, depth, noise={}, seed=5)
     out = deconvolve(np.clip(r.image, 0, 1), r.depth, lens, DeconvOptions(), geometry=geom, library=lib).image
     inner = _inner(img.shape, res.info["kernel_px"] // 2 + 1)
     assert out[inner].max() <= 1.15 * r.sharp[inner].max()
@@ -187,7 +187,7 @@ def test_hqs_keeps_edges_better_than_wiener_on_a_piecewise_constant_scene(mos_s1
     rng = np.random.default_rng(7)
     blocks = rng.uniform(0.15, 0.85, (6, 8, 3))
     img = np.kron(blocks, np.ones((16, 16, 1))).astype(np.float32)
-    r = LensSimulator(lens, geom, library=lib)(img, np.full((h, w), 3.0), noise={}, seed=8)
+    r = LensSimulator(lens, SimulateOptions(geometry=geom), library=lib)(img, np.full((h, w), 3.0), noise={}, seed=8)
     noise = NoiseModel.sensor()
     wiener = deconvolve(r.image, r.depth, lens, DeconvOptions(noise=noise), geometry=geom, library=lib)
     hqs = deconvolve(r.image, r.depth, lens, DeconvOptions(noise=noise, method="hqs"), geometry=geom, library=lib)

@@ -96,7 +96,7 @@ def test_lens_simulator_equals_two_simulate_calls():
     from dcdi_core.optics.lens import load_lens
     from dcdi_core.psf.compute import PSFSettings
     from dcdi_core.render.geometry import ImageGeometry
-    from dcdi_core.render.simulate import LensSimulator, simulate
+    from dcdi_core.render.simulate import SimulateOptions, LensSimulator, simulate
 
     lens = load_lens("mos-s1")
     rng = np.random.default_rng(3)
@@ -104,10 +104,10 @@ def test_lens_simulator_equals_two_simulate_calls():
     depth = rng.uniform(0.7, 12.0, (40, 56)).astype(np.float32)
     depth[:8, :8] = np.inf
     geom = ImageGeometry.full_sensor(lens, 40, 56)
-    sim = LensSimulator(lens, geom, settings=PSFSettings(pupil_samples=12, n_wavelengths=3), baseline_depth_m=2.0)
+    sim = LensSimulator(lens, SimulateOptions(geometry=geom, settings=PSFSettings(pupil_samples=12, n_wavelengths=3), baseline_depth_m=2.0))
     r = sim(img, depth)
-    aware = simulate(img, depth, lens, geometry=sim.geometry, library=sim.library)
-    plain = simulate(img, depth, lens, geometry=sim.geometry, library=sim.library, fixed_depth_m=2.0)
+    aware = simulate(img, depth, lens, SimulateOptions(geometry=sim.geometry), library=sim.library)
+    plain = simulate(img, depth, lens, SimulateOptions(geometry=sim.geometry), library=sim.library, fixed_depth_m=2.0)
     assert np.array_equal(r.image, aware.image) and np.array_equal(r.sharp, aware.sharp)
     assert np.array_equal(r.baseline, plain.image)
     assert r.info["patches"] == aware.info["patches"]

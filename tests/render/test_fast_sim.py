@@ -17,7 +17,7 @@ from dcdi_core.render import accel_torch
 from dcdi_core.render.convolve import ConvolveOptions, patch_convolve
 from dcdi_core.render.geometry import ImageGeometry
 from dcdi_core.render.psfmap import _rotate_flat, _rotate_flat_fast, psf_map
-from dcdi_core.render.simulate import simulate
+from dcdi_core.render.simulate import SimulateOptions, simulate
 
 FAST = PSFSettings(pupil_samples=24, n_wavelengths=3, kernel_size=21)
 ROUNDING = 2e-6          # float32 rounding of sums of O(100) terms of values <= 1
@@ -131,9 +131,9 @@ def test_cropped_psf_map_is_the_full_maps_centre(scene):
 
 def test_simulate_fast_default_equals_windows(scene):
     lens, geom, lib, img, depth = scene
-    want = simulate(img, depth, lens, geometry=geom, library=lib, distortion=False, convolution="windows").image
+    want = simulate(img, depth, lens, SimulateOptions(geometry=geom, distortion=False, convolution="windows"), library=lib).image
     for backend in (None, "numpy"):
-        got = simulate(img, depth, lens, geometry=geom, library=lib, distortion=False, fft_backend=backend).image
+        got = simulate(img, depth, lens, SimulateOptions(geometry=geom, distortion=False, fft_backend=backend), library=lib).image
         assert np.abs(got - want).max() <= ROUNDING
 
 
@@ -143,8 +143,8 @@ def test_torch_equals_numpy(scene):
     a = psf_map(lib, geom, depth, 8)
     b = psf_map(lib, geom, depth, 8, accelerator="torch")
     assert np.abs(a.kernels - b.kernels).max() <= 1e-5 and (a.support_px == b.support_px).all()
-    want = simulate(img, depth, lens, geometry=geom, library=lib, distortion=False).image
-    got = simulate(img, depth, lens, geometry=geom, library=lib, distortion=False, accelerator="torch").image
+    want = simulate(img, depth, lens, SimulateOptions(geometry=geom, distortion=False), library=lib).image
+    got = simulate(img, depth, lens, SimulateOptions(geometry=geom, distortion=False, accelerator="torch"), library=lib).image
     assert got.dtype == np.float32 and np.abs(got - want).max() <= 1e-5
     rng = np.random.default_rng(9)
     ker = _kernels(rng, 3, 4, 21)
@@ -160,13 +160,13 @@ def test_torch_blocked_numpy_runs(scene, monkeypatch):
     monkeypatch.setitem(sys.modules, "torch", None)       # `import torch` now raises ImportError
     assert not accel_torch.available()
     with pytest.raises(InputRangeError, match="accelerator"):
-        simulate(img, depth, lens, geometry=geom, library=lib, distortion=False, accelerator="torch")
+        simulate(img, depth, lens, SimulateOptions(geometry=geom, distortion=False, accelerator="torch"), library=lib)
     with pytest.raises(InputRangeError, match="accelerator"):
         psf_map(lib, geom, depth, 8, accelerator="torch")
     with pytest.raises(ValueError, match="torch"):
         patch_convolve(img, np.zeros((6, 9, 3, 5, 5), np.float32), 8,
                        ConvolveOptions(method="fast", accelerator="torch"))
-    r = simulate(img, depth, lens, geometry=geom, library=lib, distortion=False)
+    r = simulate(img, depth, lens, SimulateOptions(geometry=geom, distortion=False), library=lib)
     assert np.isfinite(r.image).all()
 
 
@@ -175,7 +175,7 @@ def test_bad_options_refused_before_work(scene):
     for kw, field in ((dict(convolution="lowrank"), "convolution"), (dict(accelerator="cuda"), "accelerator"),
                       (dict(convolution="windows", accelerator="torch"), "accelerator"), (dict(blend=9), "blend")):
         with pytest.raises(InputRangeError, match=field):
-            simulate(img, depth, lens, geometry=geom, library=lib, distortion=False, **kw)
+            simulate(img, depth, lens, SimulateOptions(geometry=geom, distortion=False), library=lib, **kw)
     with pytest.raises(InputRangeError, match="method"):
         psf_map(lib, geom, depth, 8, method="quick")
 
@@ -186,9 +186,9 @@ def test_stiff_inputs_no_nan(scene, accelerator):
     h, w = img.shape[:2]
 
     def run(x, d, g=geom):
-        out = simulate(x, d, lens, geometry=g, library=lib, distortion=False, accelerator=accelerator).image
+        out = simulate(x, d, lens, SimulateOptions(geometry=g, distortion=False, accelerator=accelerator), library=lib).image
         assert out.shape == x.shape and np.isfinite(out).all() and (out >= 0).all()
-        want = simulate(x, d, lens, geometry=g, library=lib, distortion=False, convolution="windows").image
+        want = simulate(x, d, lens, SimulateOptions(geometry=g, distortion=False, convolution="windows"), library=lib).image
         assert np.abs(out - want).max() <= 1e-5
         return out
 

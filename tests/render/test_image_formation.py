@@ -11,7 +11,7 @@ from dcdi_core.psf.compute import PSFSettings
 from dcdi_core.psf.library import LibraryGrid, PSFLibrary
 from dcdi_core.experiments.simulation_accuracy import blur_then_warp, distortion_case, distorted_reference, psnr
 from dcdi_core.render.geometry import ImageGeometry
-from dcdi_core.render.simulate import LensSimulator, simulate
+from dcdi_core.render.simulate import SimulateOptions, LensSimulator, simulate
 
 
 def pinhole_singlet():
@@ -34,12 +34,12 @@ def test_perfect_lens_leaves_an_area_integrated_image_unchanged():
     geom = ImageGeometry.full_sensor(lens, 48, 64)
     grid = LibraryGrid(n_fields=8, n_depths=3)
     settings = PSFSettings(kernel_size=7, pupil_samples=8, wavelength_nm=550.0)
-    r = simulate(img, depth, lens, geometry=geom, settings=settings, distortion=False)
+    r = simulate(img, depth, lens, SimulateOptions(geometry=geom, settings=settings, distortion=False))
     assert np.abs(r.image - img).max() < 1e-4
     paper = PSFLibrary.open(lens, PSFSettings(kernel_size=7, pupil_samples=8, wavelength_nm=550.0,
                                               deposit_sigma_px=math.sqrt(2) / 3,
                                               pixel_pitch_mm=geom.pixel_pitch_mm), grid, cache=False)
-    blurred = simulate(img, depth, lens, geometry=geom, library=paper, distortion=False)
+    blurred = simulate(img, depth, lens, SimulateOptions(geometry=geom, distortion=False), library=paper)
     assert np.abs(blurred.image - img).max() > 0.05
 
 
@@ -62,7 +62,7 @@ def test_distorted_simulation_matches_a_per_pixel_reference(distorted_case):
     # image evaluated exactly where the distortion takes it: warping first
     # and blurring with the real positions' PSFs must reproduce it
     lens, geom, src, table, img, depth, lib, ref = distorted_case
-    r = LensSimulator(lens, geom, source_geometry=src, library=lib)(img, depth)
+    r = LensSimulator(lens, SimulateOptions(geometry=geom, source_geometry=src), library=lib)(img, depth)
     assert r.info["border"] == "scene"        # the over-scan source feeds the frame's border too
     assert psnr(r.image, ref) > 60.0
     # the former order (PSFs at the pinhole positions, warped afterwards:
@@ -73,14 +73,14 @@ def test_distorted_simulation_matches_a_per_pixel_reference(distorted_case):
 
 def test_higher_order_warp_beats_bilinear(distorted_case):
     lens, geom, src, table, img, depth, lib, ref = distorted_case
-    got = {m: psnr(LensSimulator(lens, geom, source_geometry=src, library=lib, interpolation=m)(img, depth).image,
+    got = {m: psnr(LensSimulator(lens, SimulateOptions(geometry=geom, source_geometry=src, interpolation=m), library=lib)(img, depth).image,
                    ref) for m in ("linear", "keys", "bspline")}
     assert got["keys"] > got["linear"] + 6.0 and got["bspline"] > got["linear"] + 6.0, got
 
 
 def test_without_over_scan_the_border_is_reflected(distorted_case):
     lens, geom, src, table, img, depth, lib, ref = distorted_case
-    crop = LensSimulator(lens, src, library=lib, distortion=False)
+    crop = LensSimulator(lens, SimulateOptions(distortion=False), src, library=lib)
     assert crop.margin == 0 and crop(img, depth).info["border"] == "reflected"
 
 

@@ -11,7 +11,7 @@ from dcdi_core.render.convolve import ConvolveOptions, patch_convolve
 from dcdi_core.render.geometry import ImageGeometry
 from dcdi_core.render.psfmap import identity_kernel, psf_map
 from dcdi_core.render.bokeh import BokehOptions, bokeh
-from dcdi_core.render.simulate import simulate
+from dcdi_core.render.simulate import SimulateOptions, simulate
 
 FAST = PSFSettings(pupil_samples=24, n_wavelengths=3, kernel_size=21)
 
@@ -60,7 +60,7 @@ def test_constant_image_stays_constant_odd_sizes(lens, shape):
     geom = _geom(lens, h, w)
     depth = np.random.default_rng(2).uniform(0.7, 20.0, size=(h, w))
     img = np.full((h, w, 3), 0.37, np.float32)
-    r = simulate(img, depth, lens, geometry=geom, library=_lib(lens, geom), distortion=False)
+    r = simulate(img, depth, lens, SimulateOptions(geometry=geom, distortion=False), library=_lib(lens, geom))
     assert r.image.shape == (h, w, 3) and r.image.dtype == np.float32
     assert np.abs(r.image - 0.37).max() < 1e-5
 
@@ -73,7 +73,7 @@ def test_single_point_reproduces_the_psf(lens):
     y, x = 40, 57
     img[y, x] = 1.0
     depth = np.full((h, w), 2.0)
-    r = simulate(img, depth, lens, geometry=geom, library=lib, distortion=False, patch=16)
+    r = simulate(img, depth, lens, SimulateOptions(geometry=geom, distortion=False, patch=16), library=lib)
     pm = r.psf_map
     kern = pm.kernels[y // 16, x // 16]                       # the patch's own kernel
     k = kern.shape[-1]
@@ -90,7 +90,7 @@ def test_no_seam_on_a_smooth_image(lens):
     yy, xx = np.mgrid[0:h, 0:w]
     img = np.stack([0.3 + 0.2 * np.sin(xx / 17.0), 0.5 + 0.1 * np.cos(yy / 23.0), 0.4 + 0.001 * xx], -1).astype(np.float32)
     depth = 1.0 + 4.0 * xx / w                                   # depth varies across patches
-    r = simulate(img, depth, lens, geometry=geom, library=_lib(lens, geom), distortion=False)
+    r = simulate(img, depth, lens, SimulateOptions(geometry=geom, distortion=False), library=_lib(lens, geom))
     # the second difference across a patch border is no larger than inside patches
     d2 = np.abs(r.image[:, 2:] - 2 * r.image[:, 1:-1] + r.image[:, :-2]).mean(axis=(0, 2))
     cols = np.arange(1, w - 1)
@@ -123,8 +123,8 @@ def test_depth_unaware_baseline_uses_one_depth(lens):
     depth = np.random.default_rng(3).uniform(0.8, 9.0, (h, w))
     img = np.random.default_rng(4).random((h, w, 3)).astype(np.float32)
     lib = _lib(lens, geom)
-    aware = simulate(img, depth, lens, geometry=geom, library=lib, distortion=False)
-    fixed = simulate(img, depth, lens, geometry=geom, library=lib, distortion=False, fixed_depth_m=2.0)
+    aware = simulate(img, depth, lens, SimulateOptions(geometry=geom, distortion=False), library=lib)
+    fixed = simulate(img, depth, lens, SimulateOptions(geometry=geom, distortion=False), library=lib, fixed_depth_m=2.0)
     assert np.isfinite(fixed.image).all()
     assert np.nanstd(fixed.psf_map.depth_m) == 0.0 and np.nanstd(aware.psf_map.depth_m) > 0
     assert not fixed.info["depth_aware"]
