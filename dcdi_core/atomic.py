@@ -9,20 +9,80 @@ from pathlib import Path
 from .errors import DcdiError, output_error
 
 
+def _host_tag() -> str:
+    import hashlib
+    import socket
+    return hashlib.sha256(socket.gethostname().encode()).hexdigest()[:8]
+
+
+# who writes a temporary: a process (its pid, taken at each write: forks differ) on a
+# host (a cluster's nodes share folders)
+_HOST = _host_tag()
+_OWNED = None                     # compiled on first use
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:        # another user's live process
+        return True
+    return True
+
+
+def remove_dead_temporaries(path, *, foreign_after_s: float = 86400.0) -> list[Path]:
+    """Remove the temporaries that runs killed while writing ``path`` left
+    beside it: those of a process of this host that is gone, and those of
+    other hosts (or of the older unowned form) untouched for
+    ``foreign_after_s`` seconds. A live run's temporary is never touched.
+    Returns what was removed."""
+    import re
+    import time
+    global _OWNED
+    if _OWNED is None:
+        _OWNED = re.compile(r"\.p(\d+)_h([0-9a-f]{8})_[A-Za-z0-9_]+\.tmp(\.[A-Za-z0-9]+)?$")
+    path = Path(path)
+    folder, lead = path.parent, f".{path.name}."
+    if not folder.is_dir():
+        return []
+    me, now, gone = _HOST, time.time(), []
+    try:
+        names = [e.name for e in os.scandir(folder) if e.name.startswith(lead) and ".tmp" in e.name]
+    except OSError:
+        return []
+    for name in names:
+        m = _OWNED.match(name[len(path.name) + 1:])
+        p = folder / name
+        try:
+            if m and m.group(2) == me:
+                dead = int(m.group(1)) != os.getpid() and not _alive(int(m.group(1)))
+            else:
+                dead = now - p.stat().st_mtime >= foreign_after_s
+            if dead and p.is_file():
+                p.unlink()
+                gone.append(p)
+        except OSError:
+            continue
+    return gone
+
+
 @contextmanager
 def atomic_path(path: str | os.PathLike):
     """Yield a temporary path beside ``path``; rename it onto ``path`` only if
     the block succeeds (the temporary is removed otherwise).
 
-    The temporary is ``.<name>.<random>.tmp<suffix>`` in the target's folder
-    (see :func:`remove_stale_temporaries`). An OSError (a read-only folder, a
+    The temporary is ``.<name>.p<pid>_h<host>_<random>.tmp<suffix>`` in the
+    target's folder: whose it is, so that a later run can remove it once its
+    process is gone (:func:`remove_dead_temporaries`,
+    :func:`remove_stale_temporaries`). An OSError (a read-only folder, a
     file where a folder should be, a full disk) becomes an
     :class:`~dcdi_core.errors.OutputError` naming ``path``."""
     path = Path(path)
     tmp = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.p{os.getpid()}_h{_HOST}_", suffix=".tmp" + path.suffix, dir=path.parent)
         os.close(fd)
         yield Path(tmp)
         os.chmod(tmp, 0o644)  # mkstemp makes files owner-only

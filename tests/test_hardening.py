@@ -374,8 +374,11 @@ def test_trace_chunk_is_a_parameter():
 
 @pytest.mark.parametrize("command, extra, says", [
     ("bokeh", ["--side-by-side", "side.jpg"], ["--side-by-side", "ending in .png"]),
-    ("simulate", ["--noise", "--seed", "1", "--full-well", "-1"], ["(--full-well) = -1.0", "> 0"]),
-    ("simulate", ["--noise", "--seed", "1", "--read-noise", "-1"], ["(--read-noise) = -1.0", ">= 0"]),
+    ("simulate", ["--noise", "--seed", "1", "--full-well", "-1"], ["--full-well = -1.0", "> 0"]),
+    ("simulate", ["--noise", "--seed", "1", "--read-noise", "-1"], ["--read-noise = -1.0", ">= 0"]),
+    # beyond any sensor: refused before any work, naming the option
+    ("simulate", ["--noise", "--seed", "1", "--full-well", "1e30"], ["--full-well = 1e+30", "(0, 1e+09]"]),
+    ("simulate", ["--noise", "--seed", "1", "--read-noise", "1e30"], ["--read-noise = 1e+30", "at most the full well"]),
     ("simulate", ["--perturb", "3", "--perturb-fraction", "5"], ["--perturb-fraction = 5.0", "[0, 0.5]"]),
     ("simulate", ["--fixed-depth", "0.1"], ["--fixed-depth = 0.1", ">= 0.7 m"]),
     ("bokeh", ["--keep", "5", "1"], ["--keep = ", "near <= far"]),

@@ -649,27 +649,37 @@ def run(argv=None) -> int:
         return merge_main(argv[1:])
     a = parse(argv)
     out = Path(a.out)
-    created = False
+    from dcdi_core.signals import stop_code, stop_on_signals
+    created, lock = False, None
     try:
-        check_arguments(a)
-        check_output_folder(out)
-        created = not out.exists()
-        out.mkdir(parents=True, exist_ok=True)
-        lock = _lock(out)
-        try:
+        with stop_on_signals():          # SIGINT and SIGTERM: stop, remove this run's temporaries, one line
+            check_arguments(a)
+            check_output_folder(out)
+            try:
+                out.mkdir(parents=True)       # atomic: of two runs starting together, one creates the folder
+                created = True
+            except FileExistsError:
+                pass
+            lock = _lock(out)                 # before anything is written; refused while another run holds it
             return _run(a, out)
-        finally:
-            if lock is not None:
-                lock.close()
     except BaseException as e:
-        if created and not finished_ids(out / MANIFEST):
+        # only the run that created the folder and holds its lock may remove it: never another run's data
+        if created and lock is not None and not finished_ids(out / MANIFEST):
             shutil.rmtree(out, ignore_errors=True)       # nothing finished: leave no folder behind
+        if isinstance(e, KeyboardInterrupt):
+            code, word = stop_code(e)
+            print(f"factory: {word}; the finished samples are kept: run the same command again to resume",
+                  file=sys.stderr, flush=True)
+            return code
         if not isinstance(e, (DcdiError, MemoryError)):
-            raise                                        # a bug (or Ctrl-C): keep its traceback
+            raise                                        # a bug: keep its traceback
         msg = str(e) if isinstance(e, DcdiError) else ("out of memory: lower --psf-rays, --psf-wavelengths or "
                                                        "--resolution")
         print(f"factory: error: {' '.join(msg.split())}", file=sys.stderr, flush=True)
         return 2
+    finally:
+        if lock is not None:
+            lock.close()
 
 
 def check_output_folder(out: Path) -> None:

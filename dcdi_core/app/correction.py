@@ -177,6 +177,11 @@ def correct(request: CorrectRequest, control: Control | None = None, *, networks
     depth = _array("depth_m", depth, 2)
     if depth.shape != capture.shape[:2]:
         raise InputRangeError("depth_m", depth.shape, f"{capture.shape[:2]}, the capture's size")
+    from ..psf.library import LibraryGrid
+    from ..render.inputs import depth_counts, depth_notes
+    counts = depth_counts(depth, LibraryGrid().near_m)
+    notes = notes + depth_notes(counts, f"the depth map of {request.image_name}",
+                                "each takes its patch's depth, a patch with none is left as captured")
     if correction.method == "dacn":
         trained = (correction.info.get("meta") or {}).get("pixel_pitch_mm")
         note = pitch_note(trained, geometry.pixel_pitch_mm, "the correction network") if geometry else None
@@ -188,6 +193,7 @@ def correct(request: CorrectRequest, control: Control | None = None, *, networks
     control.report(stage, 0, 1)
     t0 = time.perf_counter()
     image, info = recover(capture, depth, correction, control.counter(stage), psf_progress=control.counter("PSFs"))
+    info = {**info, **counts}
     seconds = {"correction": time.perf_counter() - t0}
     return CorrectResult(image, correction.method, correction.reason, geometry, info, notes, seconds)
 
@@ -265,5 +271,5 @@ def dof(request: DofRequest, control: Control | None = None, *, networks=None, c
     t0 = time.perf_counter()
     b = run_bokeh(replace(request.bokeh, image=corrected, depth_m=depth), control, cache=cache)
     seconds["psfs and bokeh"] = time.perf_counter() - t0
-    notes += b.notes
+    notes = list(dict.fromkeys(notes + b.notes))         # the depth's notes once, not per stage
     return DofResult(b.image, corrected, depth, depth_source, fixed, b, notes, seconds)

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..errors import InputRangeError
+from ..render.inputs import depth_counts, depth_notes
 from ..render.request import RenderRequest
 from .control import Cancelled, Control
 from .records import recorded_defaults
@@ -69,7 +70,8 @@ class SimulateResult:
     the depth on the sensor (NaN where the lens images nothing); ``geometry``:
     the frame on the sensor; ``lens``: the lens used (perturbed if asked);
     ``source``: the PSFs; ``info``: the simulation's figures; ``perturbation``:
-    the perturbation's record; ``record``: what a capture file remembers."""
+    the perturbation's record; ``record``: what a capture file remembers;
+    ``notes``: lines for the user (depth pixels masked or clamped)."""
 
     image: np.ndarray
     sharp: np.ndarray
@@ -81,6 +83,7 @@ class SimulateResult:
     perturbation: dict | None
     record: object
     seconds: dict
+    notes: list = field(default_factory=list)
 
 
 def simulate(request: SimulateRequest, control: Control | None = None, *,
@@ -113,6 +116,11 @@ def simulate(request: SimulateRequest, control: Control | None = None, *,
     depth_in = depth if depth is not None else np.full(img.shape[:2], render.fixed_depth_m, np.float32)
     r = sim(img, depth_in, fixed_depth_m=render.fixed_depth_m, noise=render.noise_settings, seed=render.seed)
     seconds = {"psfs": t1 - t0, "simulation": time.perf_counter() - t1}
+    counts, notes = {}, []
+    if render.fixed_depth_m is None:
+        counts = depth_counts(depth, src.library.grid.near_m)
+        notes = depth_notes(counts, f"the depth map of {request.image_name}",
+                            "each takes its patch's blur, a patch with none is left sharp")
     from .records import simulated_record
     extra = {} if render.fixed_depth_m is None else {"fixed_depth_m": float(render.fixed_depth_m)}
     if perturbation is not None:
@@ -120,8 +128,8 @@ def simulate(request: SimulateRequest, control: Control | None = None, *,
     record = simulated_record(lens, plan.geometry, focus_distance_m=plan.settings.focus_distance_m,
                               psf_source=src.kind, noise=render.noise_settings, seed=render.seed,
                               distortion=request.distortion, extra=extra)
-    return SimulateResult(r.image, r.sharp, r.depth, plan.geometry, lens, src, dict(r.info), perturbation, record,
-                          seconds)
+    return SimulateResult(r.image, r.sharp, r.depth, plan.geometry, lens, src, {**r.info, **counts}, perturbation,
+                          record, seconds, notes)
 
 
 # ------------------------------------------------------------------ bokeh
@@ -221,5 +229,7 @@ def bokeh(request: BokehRequest, control: Control | None = None, *, cache: Sourc
         raise Cancelled("cancelled") from None
     note = _focus_note(depth, keep)
     seconds = {"psfs": t1 - t0, "bokeh": time.perf_counter() - t1}
-    return BokehResult(r.image.astype(np.float32), r.sharp, r.depth, plan.geometry, src, dict(r.info),
+    counts = depth_counts(depth, src.library.grid.near_m)
+    notes += depth_notes(counts, f"the depth map of {request.image_name}", "left sharp")
+    return BokehResult(r.image.astype(np.float32), r.sharp, r.depth, plan.geometry, src, {**r.info, **counts},
                        notes + ([note] if note else []), seconds)

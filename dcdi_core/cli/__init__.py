@@ -16,7 +16,8 @@ import argparse
 import sys
 
 from . import dacn, depth, info, lens, olf, pipeline, psf, render, reports
-from .common import UNITS, deprecated, error_words, one_line, show_warning
+from .common import (UNITS, deprecated, error_words, one_line, refuse_overwriting_inputs, remove_dead_temporaries_of,
+                     show_warning)
 
 # old spelling -> new, kept for one release (a note on stderr says so)
 DEPRECATED = {"dcdi train dacn": "dcdi dacn train", "dcdi train depth": "dcdi depth train",
@@ -58,9 +59,12 @@ def main(argv=None) -> int:
     if new is not None:
         old = next(k for k, v in DEPRECATED.items() if v == new)
         print(f"dcdi: note: '{old}' is deprecated and goes in the next release; use '{new}'", file=sys.stderr)
-    with warnings.catch_warnings():
+    from ..signals import stop_code, stop_on_signals
+    with warnings.catch_warnings(), stop_on_signals():
         warnings.showwarning = show_warning          # one line each, no source line
         try:
+            refuse_overwriting_inputs(args)
+            remove_dead_temporaries_of(args)
             return args.func(args)
         except DcdiError as e:
             print(f"dcdi: error: {one_line(e.in_words(error_words(args)))}", file=sys.stderr)
@@ -68,9 +72,10 @@ def main(argv=None) -> int:
         except MemoryError:
             print(f"dcdi: error: {OUT_OF_MEMORY}", file=sys.stderr)
             return 2
-        except KeyboardInterrupt:
-            print("dcdi: interrupted", file=sys.stderr)
-            return 130
+        except KeyboardInterrupt as e:           # SIGINT or SIGTERM: this run's temporaries are gone already
+            code, word = stop_code(e)
+            print(f"dcdi: {word}", file=sys.stderr)
+            return code
 
 
 __all__ = ["main", "build_parser"]

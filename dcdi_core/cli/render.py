@@ -132,11 +132,14 @@ def cmd_simulate(args) -> int:
         r = simulate(SimulateRequest(img, depth, lens, request, psf_request(args, resp),
                                      distortion=not args.no_distortion, accelerator=args.accelerator,
                                      image_name=f"the image {args.image}"), job_control("dcdi simulate", args))
+    for note in in_cli_words(args, r.notes):
+        say(f"warning: {note}")
     write_image(args.output, r.image, record=r.record)
     if args.sharp_out:
         write_image(args.sharp_out, r.sharp)
     print(dump(in_cli_words(args, {"output": args.output, **r.info, "perturbation": r.perturbation,
-                                   **_source_json(r.source), "seconds": {k: round(v, 3) for k, v in r.seconds.items()}})))
+                                   **_source_json(r.source), "seconds": {k: round(v, 3) for k, v in r.seconds.items()},
+                                   "notes": r.notes})))
     return 0
 
 

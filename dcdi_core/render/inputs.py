@@ -91,3 +91,31 @@ def check_rgbd(image, depth, *, image_name: str = "the image", depth_name: str =
         msgs += light_problems(image, image_name)
     for m in msgs:
         warnings.warn(m, InputWarning, stacklevel=3)
+
+
+def depth_counts(depth, near_m: float) -> dict:
+    """How many pixels of ``depth`` (metres) a job cannot use as they are:
+    ``invalid_depth_pixels`` (NaN, 0 or negative: no depth) and
+    ``near_clamped_pixels`` (valid but nearer than ``near_m``, the PSFs'
+    near limit: blurred as at ``near_m``), with ``depth_pixels`` (all)."""
+    d = np.asarray(depth, dtype=np.float64)
+    valid = d > 0
+    return {"depth_pixels": int(d.size), "invalid_depth_pixels": int((~valid).sum()),
+            "near_clamped_pixels": int((valid & (d < near_m)).sum()), "near_limit_m": float(near_m)}
+
+
+def depth_notes(counts: dict, what: str, invalid_fate: str) -> list[str]:
+    """The lines a user is told about :func:`depth_counts`' pixels (none when
+    every pixel is usable): the count and the share of each kind, and what
+    the job did with them (``invalid_fate``)."""
+    n = max(counts["depth_pixels"], 1)
+    out = []
+    k = counts["invalid_depth_pixels"]
+    if k:
+        out.append(f"{what}: {k} of {counts['depth_pixels']} pixels ({_pct(k / n)}) have no valid depth (NaN, 0 "
+                   f"or negative): {invalid_fate}")
+    k = counts["near_clamped_pixels"]
+    if k:
+        out.append(f"{what}: {k} of {counts['depth_pixels']} pixels ({_pct(k / n)}) are nearer than "
+                   f"{counts['near_limit_m']:g} m, the PSFs' near limit: blurred as at {counts['near_limit_m']:g} m")
+    return out

@@ -22,13 +22,26 @@ def _number(name, v, *, lo, lo_open, unit):
     return float(v)
 
 
+# beyond any sensor: the largest full wells are ~1e6 electrons; a read noise
+# above the whole well leaves nothing but noise
+MAX_FULL_WELL_ELECTRONS = 1e9
+# numpy's Poisson sampler refuses a mean near 2^63; far below that, a pixel
+# of more electrons than this is no exposure any sensor records
+MAX_ELECTRONS = 1e15
+
+
 def check_noise(full_well_electrons: float, read_noise_electrons: float) -> tuple[float, float]:
-    """The noise settings checked (as :func:`add_sensor_noise` will): full well
-    > 0, read noise >= 0 electrons."""
-    return (_number("full_well_electrons (--full-well)", full_well_electrons, lo=0.0, lo_open=True,
-                    unit="electrons"),
-            _number("read_noise_electrons (--read-noise)", read_noise_electrons, lo=0.0, lo_open=False,
-                    unit="electrons RMS"))
+    """The noise settings checked (as :func:`add_sensor_noise` will): full
+    well in (0, 1e9] electrons, read noise in [0, full well] electrons RMS."""
+    fw = _number("full_well_electrons", full_well_electrons, lo=0.0, lo_open=True, unit="electrons")
+    if fw > MAX_FULL_WELL_ELECTRONS:
+        raise InputRangeError("full_well_electrons", fw, f"(0, {MAX_FULL_WELL_ELECTRONS:.0e}] electrons (real "
+                              "sensors hold 1e3-1e6)")
+    read = _number("read_noise_electrons", read_noise_electrons, lo=0.0, lo_open=False, unit="electrons RMS")
+    if read > fw:
+        raise InputRangeError("read_noise_electrons", read, f"[0, {fw:g}] electrons RMS, at most the full well "
+                              "(beyond it the image is noise alone; real sensors: 1-10)")
+    return fw, read
 
 
 def add_sensor_noise(image, *, seed: int, full_well_electrons: float = 10000.0,
@@ -44,13 +57,16 @@ def add_sensor_noise(image, *, seed: int, full_well_electrons: float = 10000.0,
     values raise InputRangeError."""
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise InputRangeError("seed", seed, "an integer >= 0")
-    fw = _number("full_well_electrons (--full-well)", full_well_electrons, lo=0.0, lo_open=True, unit="electrons")
-    read = _number("read_noise_electrons (--read-noise)", read_noise_electrons, lo=0.0, lo_open=False, unit="electrons RMS")
+    fw, read = check_noise(full_well_electrons, read_noise_electrons)
     x = np.asarray(image, dtype=np.float64)
     if not np.isfinite(x).all():
         raise InputRangeError("image", "NaN or infinite values", "finite linear values >= 0 (1.0 = full well)")
     if (x < 0).any():
         raise InputRangeError("image", float(x.min()), "finite linear values >= 0 (1.0 = full well)")
+    top = float(x.max()) if x.size else 0.0
+    if top * fw > MAX_ELECTRONS:       # checked before sampling: numpy's sampler would fail on it
+        raise InputRangeError("image", top, f"linear values whose electrons (value x full well {fw:g}) stay "
+                              f"<= {MAX_ELECTRONS:.0e}: at most {MAX_ELECTRONS / fw:.3g} here (1.0 = full well)")
     rng = np.random.default_rng(int(seed))
     # draw order fixed (shot, then read) so that a seed always means the same noise
     electrons = rng.poisson(x * fw).astype(np.float64)
