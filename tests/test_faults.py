@@ -221,3 +221,42 @@ def test_ctrl_c_on_the_factory_is_one_line_and_resumes(tmp_path):
     done = [json.loads(x)["id"] for x in (out / "manifest.jsonl").read_text().splitlines()]
     assert done and all((out / "aif" / f"{i}.exr").exists() for i in done)
     assert not [p for p in out.rglob(".*.tmp*")]
+
+
+# ------------------------------------------------------------------ a prescription whose surfaces cross
+CROSSED = """schema_version = 1
+id = "crossed"
+name = "a biconvex lens thinner at the centre than its curvatures allow"
+[sensor]
+semi_diagonal_mm = 2.0
+[[surface]]
+radius_mm = 5.0
+thickness_mm = 0.5
+material = "N-BK7"
+semi_diameter_mm = 4.0
+stop = true
+[[surface]]
+radius_mm = -5.0
+thickness_mm = 4.5
+material = "air"
+semi_diameter_mm = 4.0
+"""
+
+
+def test_a_lens_whose_surfaces_cross_is_refused_naming_the_surface(tmp_path, capsys):
+    (tmp_path / "crossed.toml").write_text(CROSSED)
+    for argv in (["lens", "info", tmp_path / "crossed.toml"],
+                 ["psf", tmp_path / "crossed.toml", "--field", "0", "--depth", "2", *FAST[:-2]]):
+        code, out, err = _cli(capsys, *argv)
+        assert code == 2 and out == "" and err.count("\n") == 1, err
+        assert "surface 1, field 'thickness_mm'" in err and "cross: -3.5 mm apart at 4 mm" in err, err
+    # the same lens with room for its edge loads
+    (tmp_path / "ok.toml").write_text(CROSSED.replace("thickness_mm = 0.5", "thickness_mm = 4.2"))
+    code, out, _ = _cli(capsys, "lens", "info", tmp_path / "ok.toml", "--json")
+    assert code == 0 and json.loads(out)["id"] == "crossed"
+
+
+def test_first_order_figures_the_rays_cannot_give_are_null_not_sentinels():
+    from dcdi_core.optics.report import _figure
+    assert _figure(-1.0) is None and _figure(float("inf")) is None and _figure(float("nan")) is None
+    assert _figure(4.99) == 4.99

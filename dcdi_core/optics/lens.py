@@ -189,6 +189,7 @@ class Lens:
                    sensor=sensor, stated=dict(stated), source=str(d.get("source", "")),
                    notes=str(d.get("notes", "")), wavelength_nm=wl, path=path,
                    content_hash=content_hash)
+        _check_no_crossing(lens.surfaces, err)
         lo, hi = lens.wavelength_range_nm
         if not lo <= wl <= hi:
             raise err("the design wavelength lies outside the glass data's validity", field="wavelength_nm",
@@ -207,6 +208,29 @@ class Lens:
         except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
             raise LensFileError(path, f"not valid TOML: {e}") from None
         return cls.from_dict(d, path, hashlib.sha256(data).hexdigest())
+
+
+# a gap below this (mm) is two surfaces through each other, not a touch at the edge
+CROSSING_TOLERANCE_MM = 1e-6
+
+
+def _check_no_crossing(surfaces, err) -> None:
+    """Refuse a prescription whose neighbouring surfaces (or the last one and
+    the sensor) cross inside their common clear aperture: the axial gap
+    t_i + sag_{i+1}(r) - sag_i(r) must stay >= 0 for r up to the smaller
+    semi-diameter (a lens's edge thickness, an air gap's clearance)."""
+    for i, s in enumerate(surfaces):
+        nxt = surfaces[i + 1] if i + 1 < len(surfaces) else None
+        r = s.semi_diameter_mm if nxt is None else min(s.semi_diameter_mm, nxt.semi_diameter_mm)
+        r2 = np.linspace(0.0, r * r, 129)
+        gap = s.thickness_mm + (0.0 if nxt is None else nxt.sag(r2)) - s.sag(r2)
+        j = int(np.argmin(gap))
+        if gap[j] < -CROSSING_TOLERANCE_MM:
+            what = "the sensor" if nxt is None else f"surface {i + 2}"
+            raise err(f"surface {i + 1} and {what} cross: {gap[j]:.4g} mm apart at {math.sqrt(r2[j]):.4g} mm from "
+                      f"the axis ({s.thickness_mm:g} mm on it; an edge thickness must be >= 0)", surface=i + 1,
+                      field="thickness_mm", value=s.thickness_mm,
+                      allowed=f">= {s.thickness_mm - gap[j]:.4g} mm, or smaller semi-diameters")
 
 
 def load_lens(name_or_path: str | os.PathLike) -> Lens:

@@ -46,19 +46,28 @@ def lens_info(lens: Lens, wavelength_nm: float | None = None, *, real_rays: bool
         "stated": dict(lens.stated),
     }
     if real_rays:
-        half = float(real_field_angle_deg(lens, [1.0], wavelength_nm)[0])
+        # a figure the real rays cannot give (no chief ray reaches the field, no
+        # ray through the stop) is None (null; left out of the table), never a sentinel
+        half = _figure(real_field_angle_deg(lens, [1.0], wavelength_nm)[0])
         info["half_field_of_view_deg"] = half
-        info["field_of_view_deg"] = 2 * half if half >= 0 else None
+        info["field_of_view_deg"] = None if half is None else 2 * half
         if lens.sensor.resolution_px:
             rows, cols = lens.sensor.resolution_px
             diag = math.hypot(rows, cols)
-            v, h = real_field_angle_deg(lens, [rows / diag, cols / diag], wavelength_nm)
-            info["vertical_field_of_view_deg"] = 2 * float(v)
-            info["horizontal_field_of_view_deg"] = 2 * float(h)
-        info["distortion_at_field_1"] = float(distortion(lens, [half], wavelength_nm)[0]) if half > 0 else None
-        info["working_f_number"] = working_f_number(lens, wavelength_nm)
+            v, h = (_figure(a) for a in real_field_angle_deg(lens, [rows / diag, cols / diag], wavelength_nm))
+            info["vertical_field_of_view_deg"] = None if v is None else 2 * v
+            info["horizontal_field_of_view_deg"] = None if h is None else 2 * h
+        info["distortion_at_field_1"] = (float(distortion(lens, [half], wavelength_nm)[0])
+                                         if half is not None and half > 0 else None)
+        info["working_f_number"] = _figure(working_f_number(lens, wavelength_nm))
         info["best_focus_object_distance_m"] = _finite(best_focus_depth_m(lens, wavelength_nm))
     return info
+
+
+def _figure(v) -> float | None:
+    """A real-ray figure, or None where the rays gave none (a negative angle, inf or NaN)."""
+    v = float(v)
+    return v if math.isfinite(v) and v >= 0 else None
 
 
 def format_info(info: dict) -> str:
