@@ -69,3 +69,37 @@ def check_fits(estimate_bytes: float, what: str, advice: str, *, available: int 
         return
     raise MemoryLimitError(f"{what} needs about {gib(estimate_bytes)} of memory, but {gib(have)} are available; "
                            f"{advice}")
+
+
+# Peak bytes a job holds per image pixel, beyond the interpreter's ~0.25 GiB:
+# the growth of the peak RSS from 320 x 480 to 1280 x 1920 (the synthetic
+# scene, MOS-S1, its PSF basis; `dcdi bench memory`, docs/performance.md):
+# simulate 259, bokeh 298-336, correct (deconvolution) 327-331; with a
+# margin, and dof running both stages.
+JOB_BYTES_PER_PIXEL = {"simulate": 320, "bokeh": 420, "correct": 420, "dof": 520}
+
+
+def image_job_bytes(height: int, width: int, job: str) -> float:
+    """About how much memory ``job`` needs on a ``height`` x ``width`` image."""
+    return float(height) * float(width) * JOB_BYTES_PER_PIXEL[job]
+
+
+def check_image_job(height: int, width: int, job: str, image: str, *, available: int | None = None) -> None:
+    """Refuse, before any pixel is read, an image too large for this
+    machine's memory for ``job`` (:data:`JOB_BYTES_PER_PIXEL`); the refusal
+    names the image, the figure needed and what is free."""
+    need = image_job_bytes(height, width, job)
+    have = available_bytes() if available is None else available
+    if have is None or need <= SAFETY * have:
+        return
+    total = _physical_bytes()
+    of = f" of this machine's {gib(total)}" if total else ""
+    raise MemoryLimitError(f"{image}: {width} x {height} px; {job} needs about {gib(need)} of memory for it, but "
+                           f"{gib(have)}{of} are free; use a smaller image (or crop it into parts)")
+
+
+def _physical_bytes() -> int | None:
+    try:
+        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None

@@ -260,3 +260,23 @@ def test_first_order_figures_the_rays_cannot_give_are_null_not_sentinels():
     from dcdi_core.optics.report import _figure
     assert _figure(-1.0) is None and _figure(float("inf")) is None and _figure(float("nan")) is None
     assert _figure(4.99) == 4.99
+
+
+# ------------------------------------------------------------------ an image too large for the memory
+@pytest.mark.parametrize("command, extra", [("simulate", []), ("bokeh", ["--focus", "1.5"]),
+                                            ("correct", ["--method", "deconv"]),
+                                            ("dof", ["--camera", "mos-s1", "--method", "deconv", "--keep", "1", "2"])])
+def test_an_image_too_large_for_the_memory_is_refused_before_its_pixels_are_read(tmp_path, capsys, monkeypatch,
+                                                                                 command, extra):
+    """A 20000 x 20000 image (its header's size: the test's header says so)
+    is refused from the header alone, with the figure; no pixel is read."""
+    from dcdi_core.io import images
+    big = tmp_path / "huge.exr"
+    images.write_image(big, np.zeros((16, 16, 3), np.float32))
+    monkeypatch.setattr(images, "image_size", lambda path, **k: (20000, 20000))
+    read = []
+    monkeypatch.setattr(images, "read_image", lambda *a, **k: read.append(a) or np.zeros((1, 1, 3)))
+    lens = ["--lens", "6p"] if command == "dof" else ["--lens", "mos-s1"]
+    code, out, err = _cli(capsys, command, "--image", big, "--depth", big, *lens, *extra, "-o", tmp_path / "o.exr")
+    assert code == 2 and not read and err.count("\n") == 1, err
+    assert "huge.exr: 20000 x 20000 px" in err and "GiB of memory" in err and "are free" in err, err

@@ -9,7 +9,7 @@ from __future__ import annotations
 from .common import (UNITS, add_device_option, add_psf_options, add_psf_source_options, check_cache, check_olf_file,
                      check_output, depth_value, dump, in_cli_words, job_control, positive_int, psf_request, response,
                      say)
-from .render import add_focus_options, add_rgbd_options, quiet_input_warnings, render_inputs
+from .render import add_focus_options, add_rgbd_options, check_image_fits, quiet_input_warnings, render_inputs
 
 
 def _shipped(kind: str, lens_id: str | None):
@@ -146,6 +146,7 @@ def cmd_correct(args) -> int:
         deconv_options(args)
         check_cache()
         check_olf_file(args)
+    check_image_fits(args, "correct")
     image = read_image(args.image)
     depth = _correct_depth(args, image.shape[:2])
     request = CorrectRequest(image, depth, lens, args.method, args.model, render=_correct_render(args, lens),

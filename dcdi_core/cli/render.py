@@ -53,15 +53,28 @@ def add_focus_options(q, focus_help: str) -> None:
     q.add_argument("--focus", type=focus_value, metavar="D", help=focus_help)
 
 
+def check_image_fits(args, job: str) -> None:
+    """Refuse, from the image's header alone (before any pixel is read), an
+    image too large for this machine's memory for ``job``."""
+    from ..io.images import image_size
+    from ..memory import JOB_BYTES_PER_PIXEL, check_image_job
+    if job not in JOB_BYTES_PER_PIXEL:
+        job = max(JOB_BYTES_PER_PIXEL, key=JOB_BYTES_PER_PIXEL.get)
+    h, w = image_size(args.image)
+    check_image_job(h, w, job, f"the image {args.image}")
+
+
 def read_rgbd(args, *, check_depth: bool = True):
     """The image and depth map (None without --depth), checked: same size; a
     depth map with no valid pixel refused; an implausible one (another unit)
     or negative light warned about, naming the files (render.inputs).
-    ``check_depth``: False where the depth map is not used (--fixed-depth)."""
+    ``check_depth``: False where the depth map is not used (--fixed-depth).
+    An image too large for the memory is refused before it is read."""
     import warnings
 
     from ..io.images import read_depth, read_image
     from ..render.inputs import InputWarning, depth_problems, light_problems
+    check_image_fits(args, getattr(args, "command", None))
     img = read_image(args.image)
     depth = None if args.depth is None else read_depth(args.depth, channel=args.depth_channel)
     if depth is not None and depth.shape != img.shape[:2]:

@@ -562,7 +562,64 @@ def bench_cli(quick: bool = False, repeat: int = 2) -> int:
     return 0
 
 
+# Linux counts a forked child's peak from its parent's size at the fork (and
+# keeps it across exec): the job is started by a small helper process, so its
+# peak is its own
+_PEAK_HELPER = """
+import os, subprocess, sys
+p = subprocess.Popen(sys.argv[1:], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+_, status, usage = os.wait4(p.pid, 0)
+err = p.stderr.read().decode(errors="replace")
+code = os.waitstatus_to_exitcode(status)
+print(usage.ru_maxrss if code == 0 else "failed " + err[-800:])
+"""
+
+
+def _peak_rss_bytes(cmd: list[str]) -> int:
+    """The peak resident memory (bytes) of one whole process ``cmd``."""
+    import subprocess
+    import sys
+    out = subprocess.run([sys.executable, "-S", "-c", _PEAK_HELPER, *cmd], capture_output=True, text=True).stdout
+    if out.startswith("failed"):
+        raise RuntimeError(f"{' '.join(cmd)} failed: {out[7:]}")
+    return int(out) * 1024                      # Linux reports KiB
+
+
+def bench_memory(quick: bool = False) -> int:
+    """Peak RSS of `dcdi simulate`, `bokeh --keep 0.9 1.1` and `correct
+    --method deconv` (MOS-S1, its PSF basis) on the synthetic scene at two
+    sizes; their growth per pixel is what the job needs per pixel, printed
+    beside ``memory.JOB_BYTES_PER_PIXEL`` (the estimate that refuses an image
+    too large before it is read)."""
+    import sys
+    import tempfile
+    from ..io.images import write_depth, write_image
+    from ..memory import JOB_BYTES_PER_PIXEL, gib
+    from ..render.synthetic import synthetic_rgbd
+    sizes = [(160, 240), (640, 960)] if quick else [(320, 480), (1280, 1920)]
+    jobs = {"simulate": ["--psf-source", "basis"], "bokeh": ["--keep", "0.9", "1.1", "--psf-source", "basis"],
+            "correct": ["--method", "deconv", "--psf-source", "basis"]}
+    print(f"peak RSS (wait4) of whole processes, MOS-S1 and its PSF basis, synthetic scene (seed 1) at "
+          f"{sizes[0][0]} x {sizes[0][1]} and {sizes[1][0]} x {sizes[1][1]}")
+    print("| job | small | large | bytes per pixel (growth) | estimate used |")
+    print("|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as d:
+        for h, w in sizes:
+            img, depth = synthetic_rgbd(h, w, seed=1)
+            write_image(f"{d}/{h}.exr", img)
+            write_depth(f"{d}/{h}_d.exr", depth)
+        for job, extra in jobs.items():
+            peaks = [_peak_rss_bytes([sys.executable, "-m", "dcdi_core", job, "--image", f"{d}/{h}.exr", "--depth",
+                                      f"{d}/{h}_d.exr", "--lens", "mos-s1", *extra, "-o", f"{d}/out.exr"])
+                     for h, w in sizes]
+            per_px = (peaks[1] - peaks[0]) / (sizes[1][0] * sizes[1][1] - sizes[0][0] * sizes[0][1])
+            print(f"| {job} | {gib(peaks[0])} | {gib(peaks[1])} | {per_px:.0f} | {JOB_BYTES_PER_PIXEL[job]} |")
+    return 0
+
+
 def run(what: str, args) -> int:
+    if what == "memory":
+        return bench_memory(getattr(args, "quick", False))
     if what == "cli":
         quick = getattr(args, "quick", False)
         return bench_cli(quick, repeat=1 if quick else 2)
