@@ -4,7 +4,7 @@
     python build.py demo [--out DIR]  # make .venv/, install, run the demo job: one factory sample,
                                       # then DCDI on it and on a synthetic scene, lens reports
     python build.py test              # make .venv/, install, run the fast test suite
-    python build.py test-slow         # the tests marked slow
+    python build.py test-slow         # the tests marked slow, and the property-based ones at length
     python build.py test-blender      # the add-on and the factory in a real Blender binary (UI under
                                       # Xvfb, --background): $BLENDER, else `blender` on PATH, else one
                                       # provisioned by blender_addon/tools/real_blender.sh (Debian, root)
@@ -484,7 +484,8 @@ def main(argv: list[str]) -> int:
     if command == "test":
         return cmd_test(py, "not slow and not realblender")
     if command == "test-slow":
-        return cmd_test(py, "slow and not realblender")
+        # the slow tests, and the property-based ones again with many examples
+        return cmd_test(py, "(slow or property) and not realblender", env=dict(os.environ, DCDI_HYPOTHESIS_PROFILE="long"))
     if command == "test-blender":
         return cmd_test_blender(py, rest)
     if command == "bench":

@@ -1,7 +1,17 @@
 import math
+import os
 
 import numpy as np
 import pytest
+
+try:                                     # property-based tests: a few fixed examples by default, many in test-slow
+    from hypothesis import settings as _hypothesis_settings
+    _hypothesis_settings.register_profile("quick", max_examples=12, deadline=None, derandomize=True,
+                                          print_blob=True)
+    _hypothesis_settings.register_profile("long", max_examples=300, deadline=None, print_blob=True)
+    _hypothesis_settings.load_profile(os.environ.get("DCDI_HYPOTHESIS_PROFILE", "quick"))
+except ImportError:                      # the suite's property tests then fail to import, saying so
+    pass
 
 from dcdi_core.dataset.rgbd import RGBDFrame, RGBDSource
 from dcdi_core.optics.lens import Lens, load_lens

@@ -93,12 +93,15 @@ def _holes(d: Path) -> Path:
     return d / "holes.exr"
 
 
-@pytest.mark.parametrize("command, extra", [("simulate", []), ("bokeh", ["--focus", "1.5"]),
-                                            ("correct", ["--method", "deconv"])])
+@pytest.mark.parametrize("command, extra", [("simulate", ["--lens", "mos-s1"]),
+                                            ("bokeh", ["--lens", "mos-s1", "--focus", "1.5"]),
+                                            ("correct", ["--lens", "mos-s1", "--method", "deconv"]),
+                                            ("dof", ["--camera", "mos-s1", "--lens", "6p", "--method", "deconv",
+                                                     "--keep", "1", "2"])])
 def test_masked_and_clamped_depth_pixels_are_counted_and_said(scene, capsys, command, extra):
     d = scene
-    code, out, err = _cli(capsys, command, "--image", d / "aif.exr", "--depth", _holes(d), "--lens", "mos-s1",
-                          *extra, "-o", d / "out.exr", *FAST)
+    code, out, err = _cli(capsys, command, "--image", d / "aif.exr", "--depth", _holes(d), *extra,
+                          "-o", d / "out.exr", *FAST)
     assert code == 0, err
     info = json.loads(out)
     counts = info.get("correction", info)

@@ -274,7 +274,14 @@ def compute_sources(lens: Lens, aimed: Aimed, settings: PSFSettings, wavelengths
         inside = raw.sum(axis=(-1, -2))
         outside[sl] = np.where(arrived > 0, 1.0 - inside / safe, 0.0)
         norm = np.where(inside > 0, inside, 1.0)[..., None, None]
-        psf[sl] = np.where(inside[..., None, None] > 0, raw / norm, 0.0).astype(np.float32)
+        kern = np.where(inside[..., None, None] > 0, raw / norm, 0.0)
+        # light that reached the sensor but fell wholly outside the kernel (a
+        # kernel far too small, warned about): all of it at the chief ray's
+        # pixel, so that each channel still sums to 1 (never a black kernel)
+        lost = (inside <= 0) & (arrived > 0)
+        if lost.any():
+            kern[..., k // 2, k // 2] = np.where(lost, 1.0, kern[..., k // 2, k // 2])
+        psf[sl] = kern.astype(np.float32)
         clipped = np.flatnonzero(outside[sl].max(-1) > CLIP_WARNING)
         for i in clipped:   # only where the kernel clips: a quantile per source
             v = valid[i]

@@ -375,12 +375,18 @@ def _clamp_overshoot(blurred: np.ndarray, top: np.ndarray) -> None:
         * np.where(raw > 1.0, 1.0 / np.maximum(raw, 1.0), 1.0)
 
 
+COVER_EPS = 1e-6     # a layer's coverage below this is FFT round-off, not light
+
+
 def _composite(col: np.ndarray, seen: np.ndarray, ys: slice, xs: slice, blurred: np.ndarray) -> None:
     """A blurred layer (colour premultiplied, coverage) over the colour seen
     behind it on its box; ``col`` and ``seen`` updated in place."""
-    cover = np.clip(blurred[..., 3:], 0.0, 1.0)
+    # the FFT leaves ~1e-8 of coverage (and colour) where the layer's blur is
+    # zero: below COVER_EPS it is zero, so what lies behind stays bit-exact there
+    tiny = blurred[..., 3:] < COVER_EPS
+    cover = np.where(tiny, 0.0, np.clip(blurred[..., 3:], 0.0, 1.0))
     behind = seen[ys, xs]
-    premultiplied = blurred[..., :3] + (1.0 - cover) * np.where(behind, col[ys, xs], 0.0)
+    premultiplied = np.where(tiny, 0.0, blurred[..., :3]) + (1.0 - cover) * np.where(behind, col[ys, xs], 0.0)
     total = np.where(behind, 1.0, cover)
     seen[ys, xs] = (total > 1e-4).all(axis=-1, keepdims=True)
     col[ys, xs] = np.where(total > 1e-4, premultiplied / np.maximum(total, 1e-4), 0.0)

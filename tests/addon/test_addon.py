@@ -545,7 +545,7 @@ def test_simulation_is_dcdi_cores_simulate_of_the_render(round_trip):
     from dcdi_core.models.runtime.library import psf_source
     from dcdi_core.optics.lens import load_lens
     from dcdi_core.render.geometry import ImageGeometry
-    from dcdi_core.render.simulate import SimulateOptions, simulate
+    from dcdi_core.render.simulate import simulate
     d = round_trip["dir"]
     rgb, depth = np.load(d / "rt-rgb.npy"), np.load(d / "rt-depth.npy")
     lens = load_lens(ROUND_TRIP_LENS)
@@ -836,12 +836,13 @@ def _capture_at_the_shipped_pitch(tmp_path, lens_id, height=64, width=96):
     from dcdi_core.io.images import read_image, write_image
     from dcdi_core.models.runtime.library import psf_source
     from dcdi_core.render.geometry import ImageGeometry
-    from dcdi_core.render.simulate import simulate
+    from dcdi_core.render.simulate import SimulateOptions, simulate
     from dcdi_core.render.synthetic import synthetic_rgbd
     lens = logic.load_lens_cached(str(ROOT / "lenses" / f"{lens_id}.toml"))
     geom = ImageGeometry.from_pixel_pitch(lens, height, width, SHIPPED_PITCH_MM)
     rgb, depth = synthetic_rgbd(height, width, seed=1)
-    sim = simulate(rgb, depth, lens, SimulateOptions(geometry=geom), library=psf_source(lens, pixel_pitch_mm=SHIPPED_PITCH_MM).library)
+    sim = simulate(rgb, depth, lens, SimulateOptions(geometry=geom),
+                   library=psf_source(lens, pixel_pitch_mm=SHIPPED_PITCH_MM).library)
     write_image(tmp_path / "capture.exr", sim.image)
     np.save(tmp_path / "depth.npy", sim.depth)
     return read_image(tmp_path / "capture.exr"), sim.depth.astype(np.float32), lens, geom

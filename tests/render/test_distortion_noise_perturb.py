@@ -318,13 +318,13 @@ def test_perturbation_input_checks(mos):
 
 
 def test_perturbation_that_breaks_a_surface_names_it_and_the_seed():
-    # a hemisphere-like surface: sd just below |R|; a larger semi-diameter or a
-    # smaller radius no longer fits
+    # a hemisphere-like surface: sd just below |R| (5 mm thick: its edge clears the plane behind); a larger
+    # semi-diameter or a smaller radius no longer fits
     lens = Lens.from_dict({
         "schema_version": 1, "id": "tight", "sensor": {"semi_diagonal_mm": 2.0},
         "surface": [
             {"radius_mm": math.inf, "thickness_mm": 1.0, "material": "air", "semi_diameter_mm": 1.0, "stop": True},
-            {"radius_mm": 5.0, "thickness_mm": 4.0, "material": {"nd": 1.5, "vd": 50.0}, "semi_diameter_mm": 4.99},
+            {"radius_mm": 5.0, "thickness_mm": 5.0, "material": {"nd": 1.5, "vd": 50.0}, "semi_diameter_mm": 4.99},
             {"radius_mm": math.inf, "thickness_mm": 10.0, "material": "air", "semi_diameter_mm": 5.0},
         ]})
     failures = 0

@@ -175,7 +175,7 @@ def test_bad_options_refused_before_work(scene):
     for kw, field in ((dict(convolution="lowrank"), "convolution"), (dict(accelerator="cuda"), "accelerator"),
                       (dict(convolution="windows", accelerator="torch"), "accelerator"), (dict(blend=9), "blend")):
         with pytest.raises(InputRangeError, match=field):
-            simulate(img, depth, lens, SimulateOptions(geometry=geom, distortion=False), library=lib, **kw)
+            simulate(img, depth, lens, SimulateOptions(geometry=geom, distortion=False, **kw), library=lib)
     with pytest.raises(InputRangeError, match="method"):
         psf_map(lib, geom, depth, 8, method="quick")
 
@@ -186,9 +186,11 @@ def test_stiff_inputs_no_nan(scene, accelerator):
     h, w = img.shape[:2]
 
     def run(x, d, g=geom):
-        out = simulate(x, d, lens, SimulateOptions(geometry=g, distortion=False, accelerator=accelerator), library=lib).image
+        out = simulate(x, d, lens, SimulateOptions(geometry=g, distortion=False, accelerator=accelerator),
+                       library=lib).image
         assert out.shape == x.shape and np.isfinite(out).all() and (out >= 0).all()
-        want = simulate(x, d, lens, SimulateOptions(geometry=g, distortion=False, convolution="windows"), library=lib).image
+        want = simulate(x, d, lens, SimulateOptions(geometry=g, distortion=False, convolution="windows"),
+                        library=lib).image
         assert np.abs(out - want).max() <= 1e-5
         return out
 

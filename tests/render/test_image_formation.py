@@ -73,14 +73,14 @@ def test_distorted_simulation_matches_a_per_pixel_reference(distorted_case):
 
 def test_higher_order_warp_beats_bilinear(distorted_case):
     lens, geom, src, table, img, depth, lib, ref = distorted_case
-    got = {m: psnr(LensSimulator(lens, SimulateOptions(geometry=geom, source_geometry=src, interpolation=m), library=lib)(img, depth).image,
-                   ref) for m in ("linear", "keys", "bspline")}
+    got = {m: psnr(LensSimulator(lens, SimulateOptions(geometry=geom, source_geometry=src, interpolation=m),
+                                 library=lib)(img, depth).image, ref) for m in ("linear", "keys", "bspline")}
     assert got["keys"] > got["linear"] + 6.0 and got["bspline"] > got["linear"] + 6.0, got
 
 
 def test_without_over_scan_the_border_is_reflected(distorted_case):
     lens, geom, src, table, img, depth, lib, ref = distorted_case
-    crop = LensSimulator(lens, SimulateOptions(distortion=False), src, library=lib)
+    crop = LensSimulator(lens, SimulateOptions(geometry=src, distortion=False), library=lib)
     assert crop.margin == 0 and crop(img, depth).info["border"] == "reflected"
 
 
