@@ -30,12 +30,17 @@ def _raise(signum, frame):
 @contextmanager
 def stop_on_signals():
     """SIGINT and SIGTERM raise :class:`Stopped` inside the block (main
-    thread only; elsewhere a no-op); the previous handlers come back after."""
+    thread only; elsewhere a no-op); the previous handlers come back after.
+    A signal whose handler Python did not install (a host application's,
+    such as Blender's) or that is ignored keeps its own handling."""
     import threading
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    old = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    # a handler installed outside Python (getsignal: None, Blender's own) or
+    # one that ignores the signal is the host's choice: left as it is
+    old = {s: h for s in (signal.SIGINT, signal.SIGTERM)
+           if (h := signal.getsignal(s)) is not None and h is not signal.SIG_IGN}
     for s in old:
         signal.signal(s, _raise)
     try:

@@ -283,3 +283,15 @@ def test_an_image_too_large_for_the_memory_is_refused_before_its_pixels_are_read
     code, out, err = _cli(capsys, command, "--image", big, "--depth", big, *lens, *extra, "-o", tmp_path / "o.exr")
     assert code == 2 and not read and err.count("\n") == 1, err
     assert "huge.exr: 20000 x 20000 px" in err and "GiB of memory" in err and "are free" in err, err
+
+
+def test_a_host_applications_own_signal_handler_is_left_alone(monkeypatch):
+    """Blender installs its SIGINT handler outside Python (getsignal: None);
+    an ignored signal stays ignored: the policy touches neither."""
+    from dcdi_core import signals
+    seen = {}
+    monkeypatch.setattr(signals.signal, "getsignal", lambda s: None if s == signal.SIGINT else signal.SIG_IGN)
+    monkeypatch.setattr(signals.signal, "signal", lambda s, h: seen.setdefault(s, h))
+    with signals.stop_on_signals():
+        pass
+    assert seen == {}
