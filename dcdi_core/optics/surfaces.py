@@ -7,12 +7,10 @@ A surface is described in its local frame (vertex at the origin, axis +z):
 with curvature c = 1/R (1/mm; 0 for a plane), conic constant k and even
 aspheric coefficients a_i (mm^(1 - 2 i)). All lengths in millimetres.
 
-The intersection is written after Spencer & Murty (JOSA 52, 1962) and
-rayoptics: the ray is first moved to the vertex plane, then the quadratic of
-the conic is solved in the form -C / (B + sign(B) sqrt(B^2 - A C)), which has
-no cancellation and tends to the plane solution as c -> 0 (it stays valid at
-c = 0 and at radius 1e15). Aspheres start from the conic root and are refined
-by a bounded number of Newton steps.
+How a ray meets each kind of surface (its root, normal, sheet) is the
+kind's own class in ``optics.profiles``, one module per kind; this module
+holds the prescription's ``Surface``, the ray status codes and the sag
+arithmetic the kinds share (:func:`sag_and_slope`).
 """
 from __future__ import annotations
 

@@ -13,12 +13,13 @@ valid position and direction: it never produces NaN or inf downstream.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from ..parallel import thread_pool
 from . import surfaces as S
+from .profiles import Plane, Profile, profile_of
 
 # rays per chunk: 256 kB per coordinate array keeps a chunk's working set in
 # cache while amortising numpy's per-call overhead (measured: dcdi bench trace)
@@ -58,9 +59,7 @@ class _Step:
     """What the kernel needs of one surface (or of the sensor plane)."""
 
     z_vertex: float
-    c: float
-    k: float
-    coeffs: tuple[float, ...]
+    profile: Profile     # the surface's kind: its root, sheet and normal
     sd2: float           # squared semi-diameter (inf: no aperture)
     refract: bool        # False where the media on both sides are identical
     index: int
@@ -73,12 +72,10 @@ def _steps(lens, upto: int | None, apertures: bool) -> list[_Step]:
         s = lens.surfaces[i]
         before = lens.surfaces[i - 1].material if i > 0 else None
         same = (before is s.material) or (before is None and s.material.name == "air")
-        out.append(_Step(float(lens.vertex_z_mm[i]), s.curvature, float(s.conic),
-                         tuple(float(a) for a in s.aspheric_coefficients),
-                         s.semi_diameter_mm ** 2 if apertures else np.inf,
-                         not same, i))
+        out.append(_Step(float(lens.vertex_z_mm[i]), profile_of(s),
+                         s.semi_diameter_mm ** 2 if apertures else np.inf, not same, i))
     if upto is None:  # the sensor: a plane without aperture
-        out.append(_Step(float(lens.sensor_z_mm), 0.0, 0.0, (), np.inf, False, len(lens.surfaces)))
+        out.append(_Step(float(lens.sensor_z_mm), Plane(), np.inf, False, len(lens.surfaces)))
     return out
 
 
@@ -91,18 +88,24 @@ def _kill(status, failed, mask, code, index):
 
 def _trace_chunk(steps, mu_tables, widx, x, y, z, dx, dy, dz, status, failed,
                  newton_tol, newton_iter):
-    """Trace one chunk in place through ``steps``.
+    """Trace one chunk in place through ``steps``: each surface's kind
+    (``optics.profiles``) gives the root from the vertex plane, the sheet
+    check and the normal; the kernel moves, clips and refracts.
 
     Written for speed: each failure test is first a single min/max reduction,
     and masks are built only when some ray really fails; dead rays are frozen
     with masked copies."""
     dt = x.dtype
-    all_alive = bool((status == S.OK).all())
+    alive = [bool((status == S.OK).all())]
+
     for st in steps:
+        def kill(mask, code, index=st.index):
+            _kill(status, failed, mask, code, index)
+            alive[0] = False
+
         if dz.min() <= S.MIN_FORWARD_COSINE:
             backward = dz <= S.MIN_FORWARD_COSINE
-            _kill(status, failed, backward, S.BACKWARD, st.index)
-            all_alive = False
+            kill(backward, S.BACKWARD)
             dzs = np.where(backward, 1.0, dz)
         else:
             dzs = dz
@@ -110,71 +113,29 @@ def _trace_chunk(steps, mu_tables, widx, x, y, z, dx, dy, dz, status, failed,
         t = (st.z_vertex - z) / dzs
         xs = x + t * dx
         ys = y + t * dy
-        c, k = st.c, st.k
+        prof = st.profile
         zl = None
-        if c != 0.0 or st.coeffs:
-            A = c * (1.0 + k * dz * dz) if k != 0.0 else dt.type(c)
-            B = c * (xs * dx + ys * dy) - dz
-            C = c * (xs * xs + ys * ys)
-            disc = B * B - A * C
-            den = B + np.copysign(np.sqrt(np.abs(disc)), B)
-            if disc.min() < 0.0 or np.abs(den).min() == 0.0:
-                miss = (disc < 0.0) | (den == 0.0)
-                den[miss] = 1.0
-                t1 = -C / den
-                t1[miss] = 0.0
-                _kill(status, failed, miss, S.MISSED, st.index)
-                all_alive = False
-            else:
-                t1 = -C / den
-            if st.coeffs:
-                t1, conv, dom = _newton_asphere(c, k, st.coeffs, xs, ys, dx, dy, dz, t1,
-                                                newton_tol, newton_iter)
-                if not (conv.all() and dom.all()):
-                    _kill(status, failed, ~dom, S.MISSED, st.index)
-                    _kill(status, failed, ~conv, S.NOT_CONVERGED, st.index)
-                    all_alive = False
+        t1 = prof.root(xs, ys, dx, dy, dz, kill, newton_tol, newton_iter)
+        if t1 is not None:
             xs += t1 * dx
             ys += t1 * dy
             zl = t1 * dz
             t += t1
-            # the root must lie on the sheet that holds the vertex: c (1 + k) z < 1
-            ck = c * (1.0 + k)
-            if (ck > 0 and zl.max() * ck >= 1.0) or (ck < 0 and zl.min() * ck >= 1.0):
-                _kill(status, failed, ck * zl >= 1.0, S.MISSED, st.index)
-                all_alive = False
+            prof.check_sheet(zl, kill)
         r2 = xs * xs + ys * ys
         # the surface behind the ray (beyond rounding: 1e-9 mm), or outside the aperture
         if t.min() < -1e-9:
-            _kill(status, failed, t < -1e-9, S.BACKWARD, st.index)
-            all_alive = False
+            kill(t < -1e-9, S.BACKWARD)
         if np.isfinite(st.sd2) and r2.max() > st.sd2:
-            _kill(status, failed, r2 > st.sd2, S.VIGNETTED, st.index)
-            all_alive = False
-        ok = None if all_alive else status == S.OK
+            kill(r2 > st.sd2, S.VIGNETTED)
+        ok = None if alive[0] else status == S.OK
         if zl is not None:
             zl += st.z_vertex
         _assign(ok, (x, y, z), (xs, ys, zl if zl is not None else st.z_vertex))
         if not st.refract:
             continue
-        # unit normal, oriented along +z at the vertex
-        if st.coeffs:
-            _, slope, _ = S.sag_and_slope(c, k, st.coeffs, r2)
-            nx, ny = -2.0 * slope * xs, -2.0 * slope * ys
-            nz = 1.0 / np.sqrt(nx * nx + ny * ny + 1.0)
-            nx *= nz
-            ny *= nz
-        elif zl is None:  # a plane
-            nx = ny = dt.type(0.0)
-            nz = dt.type(1.0)
-        else:
-            nx, ny = -c * xs, -c * ys
-            nz = 1.0 - (c * (1.0 + k)) * (zl - st.z_vertex)
-            if k != 0.0:  # a sphere's implicit normal is already unit length
-                inv = 1.0 / np.sqrt(nx * nx + ny * ny + nz * nz)
-                nx *= inv
-                ny *= inv
-                nz *= inv
+        # unit normal, oriented along +z at the vertex (local z: as the global one minus the vertex)
+        nx, ny, nz = prof.normal(xs, ys, None if zl is None else zl - st.z_vertex, r2, dt)
         mu = mu_tables[st.index]
         if widx is not None:
             mu = mu[widx]
@@ -186,9 +147,8 @@ def _trace_chunk(steps, mu_tables, widx, x, y, z, dx, dy, dz, status, failed,
         kk = 1.0 - mu * mu * (1.0 - cos_i * cos_i)
         if np.min(kk) < 0.0:
             tir = kk < 0.0
-            _kill(status, failed, tir, S.TIR, st.index)
+            kill(tir, S.TIR)
             kk[tir] = 0.0
-            all_alive = False
             ok = status == S.OK
         g = np.sqrt(kk) - mu * cos_i
         _assign(ok, (dx, dy, dz), (mu * dx + g * nx, mu * dy + g * ny, mu * dz + g * nz))
@@ -201,32 +161,6 @@ def _assign(ok, targets, values):
             tgt[...] = val
         else:
             np.copyto(tgt, val, where=ok)
-
-
-def _newton_asphere(c, k, coeffs, x0, y0, dx, dy, dz, t, tol, max_iter):
-    """Refine the distance t from the vertex plane to an even asphere.
-
-    Solves g(t) = t dz - sag(r2(t)) = 0 with at most ``max_iter`` Newton steps.
-    Returns (t, converged, in_domain)."""
-    converged = np.zeros(t.shape, dtype=bool)
-    for _ in range(max_iter):
-        xs = x0 + t * dx
-        ys = y0 + t * dy
-        r2 = xs * xs + ys * ys
-        z, slope, dom = S.sag_and_slope(c, k, coeffs, r2)
-        g = t * dz - z
-        dg = dz - 2.0 * slope * (xs * dx + ys * dy)
-        dg = np.where(np.abs(dg) < 1e-12, 1e-12, dg)
-        step = g / dg
-        t = t - np.where(converged, 0.0, step)
-        converged |= np.abs(step) < tol
-        if converged.all():
-            break
-    xs = x0 + t * dx
-    ys = y0 + t * dy
-    _, _, dom = S.sag_and_slope(c, k, coeffs, xs * xs + ys * ys)
-    t = np.where(np.isfinite(t), t, 0.0)
-    return t, converged, dom
 
 
 def trace(lens, origins, directions, wavelength_nm, *, dtype=np.float64,
@@ -273,8 +207,7 @@ def trace(lens, origins, directions, wavelength_nm, *, dtype=np.float64,
         mu_tables = [m[0] for m in mu_tables]
     steps = _steps(lens, upto_surface, apertures)
     if upto_surface is not None:
-        steps[-1] = _Step(steps[-1].z_vertex, steps[-1].c, steps[-1].k, steps[-1].coeffs,
-                          steps[-1].sd2, False, steps[-1].index)
+        steps[-1] = replace(steps[-1], refract=False)
     tol = newton_tol if newton_tol is not None else (1e-12 if dtype == np.float64 else 1e-5)
 
     def run(sl):
