@@ -31,7 +31,7 @@ _STATED_KEYS = {"effective_focal_length_mm", "f_number", "field_of_view_deg",
                 "field_of_view_note", "image_semi_diameter_mm", "back_focal_length_mm",
                 "sensor_semi_diagonal_mm", "sensor_note", "pixel_pitch_mm", "resolution_px"}
 _SURFACE_KEYS = {"label", "radius_mm", "thickness_mm", "material", "semi_diameter_mm",
-                 "conic", "aspheric_coefficients", "stop"}
+                 "conic", "aspheric_coefficients", "odd_aspheric_coefficients", "stop"}
 _ID_RE = re.compile(r"^[a-z0-9][a-z0-9-]*$")
 
 
@@ -309,6 +309,14 @@ def _surface(num, s, err, materials) -> Surface:
     coeffs = tuple(_number(a, err, "aspheric_coefficients", num) for a in coeffs)
     while coeffs and coeffs[-1] == 0.0:
         coeffs = coeffs[:-1]
+    odd = s.get("odd_aspheric_coefficients", [])
+    if not isinstance(odd, list):
+        raise err("must be a list of numbers", surface=num, field="odd_aspheric_coefficients", value=odd)
+    odd = tuple(_number(b, err, "odd_aspheric_coefficients", num) for b in odd)
+    while odd and odd[-1] == 0.0:
+        odd = odd[:-1]
+    if coeffs and odd:
+        raise err("an even or an odd asphere, not both", surface=num, field="odd_aspheric_coefficients")
     stop = s.get("stop", False)
     if not isinstance(stop, bool):
         raise err("must be true or false", surface=num, field="stop", value=stop)
@@ -322,10 +330,10 @@ def _surface(num, s, err, materials) -> Surface:
         except (ValueError, TypeError) as e:
             raise err(str(e), surface=num, field="material", value=spec) from None
     c = 0.0 if (radius == 0 or math.isinf(radius)) else 1.0 / radius
-    if c != 0.0 and not coeffs and (1.0 + conic) * c * c * sd * sd > 1.0:
+    if c != 0.0 and not coeffs and not odd and (1.0 + conic) * c * c * sd * sd > 1.0:
         raise err("semi-diameter exceeds the surface's sag domain (the sphere/conic closes before it)",
                   surface=num, field="semi_diameter_mm", value=sd,
                   allowed=f"<= {1.0 / math.sqrt(max((1.0 + conic) * c * c, 1e-300)):.6g}")
     return Surface(radius_mm=radius, thickness_mm=thickness, material=materials[key],
                    semi_diameter_mm=sd, conic=conic, aspheric_coefficients=coeffs, stop=stop,
-                   label=str(s.get("label", "")))
+                   label=str(s.get("label", "")), odd_aspheric_coefficients=odd)

@@ -88,7 +88,7 @@ def perturb_lens(lens: Lens, *, seed: int, fraction: float = 0.10, radii: bool =
         s2 = replace(s, **kw) if kw else s
         c = s2.curvature
         # the same sag-domain rule the prescription loader applies
-        if c != 0.0 and not s2.aspheric_coefficients \
+        if c != 0.0 and not s2.is_aspheric \
                 and (1.0 + s2.conic) * c * c * s2.semi_diameter_mm ** 2 > 1.0:
             raise OpticsError(
                 f"perturb_lens({lens.id}, seed={seed}, fraction={fraction}): surface {i + 1}: the semi-diameter "

@@ -61,6 +61,8 @@ class Surface:
     aspheric_coefficients: tuple[float, ...] = field(default_factory=tuple)
     stop: bool = False
     label: str = ""
+    # an odd asphere's terms b_i r^i, i = 1, 2, ... (mm^(1 - i)), added to the sag
+    odd_aspheric_coefficients: tuple[float, ...] = field(default_factory=tuple)
 
     @property
     def curvature(self) -> float:
@@ -71,7 +73,7 @@ class Surface:
 
     @property
     def is_aspheric(self) -> bool:
-        return any(a != 0.0 for a in self.aspheric_coefficients)
+        return any(a != 0.0 for a in self.aspheric_coefficients + self.odd_aspheric_coefficients)
 
     @property
     def is_plane(self) -> bool:
@@ -88,6 +90,12 @@ class Surface:
         for a in self.aspheric_coefficients:
             z = z + a * power
             power = power * r2
+        if self.odd_aspheric_coefficients:
+            r = np.sqrt(r2)
+            power = r
+            for b in self.odd_aspheric_coefficients:
+                z = z + b * power
+                power = power * r
         return z
 
     def max_abs_sag(self) -> float:

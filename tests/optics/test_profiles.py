@@ -112,3 +112,60 @@ def test_each_surface_gets_its_kind():
     lens = Lens.from_dict(singlet_dict(asph=[0.0, 1e-5]))
     assert type(profile_of(lens.surfaces[1])).__name__ == "EvenAsphere"
     assert math.isclose(profile_of(lens.surfaces[1]).sag(4.0), float(lens.surfaces[1].sag(4.0)))
+
+
+# ------------------------------------------------------------------ a new kind in one file: the odd asphere
+@pytest.mark.parametrize("c, k, coeffs", [(1 / 25.0, 0.0, (0.0, 0.0, 1e-4)), (-1 / 40.0, -0.3, (0.0, 0.0, -2e-4, 1e-5)),
+                                          (0.0, 0.0, (0.02,))])
+def test_odd_asphere_root_is_a_bracketing_root_finders(c, k, coeffs):
+    from scipy.optimize import brentq
+
+    from dcdi_core.optics.profiles import OddAsphere
+    prof = OddAsphere(c, k, coeffs)
+    xs, ys, dx, dy, dz = rays(n=60, spread=2.0)
+    t = prof.root(xs, ys, dx, dy, dz, no_kill, 1e-12, 30)
+    for i in range(len(xs)):
+        def g(tt, i=i):
+            x, y = xs[i] + tt * dx[i], ys[i] + tt * dy[i]
+            return tt * dz[i] - float(prof.sag(x * x + y * y))
+        assert abs(t[i] - brentq(g, -5.0, 5.0, xtol=1e-14)) < 1e-10
+    x, y = xs + t * dx, ys + t * dy
+    far = np.hypot(x, y) > 1e-3                        # the cone's tip (b_1 r) has no normal at the axis
+    _normal_is_the_sags_gradient(prof, x[far], y[far], (t * dz)[far])
+
+
+def test_an_odd_asphere_of_even_powers_is_the_even_asphere():
+    """b_2 r^2 + b_4 r^4 is a_1 r^2 + a_2 r^4: the same lens, traced to 1e-9 mm."""
+    from conftest import singlet_dict
+    from dcdi_core.optics.lens import Lens
+    from dcdi_core.optics.trace import trace
+    from dcdi_core.psf.library import lens_fingerprint
+    even = Lens.from_dict(singlet_dict(asph=[1e-3, -2e-6]))
+    d = singlet_dict()
+    d["surface"][1]["odd_aspheric_coefficients"] = [0.0, 1e-3, 0.0, -2e-6]
+    odd = Lens.from_dict(d)
+    assert type(profile_of(odd.surfaces[1])).__name__ == "OddAsphere"
+    assert lens_fingerprint(odd) != lens_fingerprint(even)
+    xs, ys, dx, dy, dz = rays(n=500, spread=4.0, tilt=0.1)
+    o = np.stack([xs, ys, np.full_like(xs, -5.0)], -1)
+    dirs = np.stack([dx, dy, dz], -1)
+    a, b = trace(even, o, dirs, 550.0), trace(odd, o, dirs, 550.0)
+    assert (a.status == b.status).all() and a.valid.mean() > 0.9
+    np.testing.assert_allclose(b.position_mm[b.valid], a.position_mm[a.valid], atol=1e-9)
+
+
+def test_an_odd_asphere_loads_from_a_lens_file_and_refuses_both_kinds(tmp_path):
+    from conftest import singlet_dict
+    from dcdi_core.optics.errors import LensFileError
+    from dcdi_core.optics.lens import Lens
+    d = singlet_dict(asph=[1e-3])
+    d["surface"][1]["odd_aspheric_coefficients"] = [0.0, 1e-3]
+    with pytest.raises(LensFileError, match="an even or an odd asphere, not both"):
+        Lens.from_dict(d)
+    d = singlet_dict()
+    d["surface"][1]["odd_aspheric_coefficients"] = [1e-4, 0.0, 1e-5, 0.0]
+    lens = Lens.from_dict(d)
+    assert lens.surfaces[1].odd_aspheric_coefficients == (1e-4, 0.0, 1e-5)     # trailing zeros dropped
+    assert lens.surfaces[1].is_aspheric
+    r2 = np.array([0.0, 4.0])
+    assert np.allclose(lens.surfaces[1].sag(r2), profile_of(lens.surfaces[1]).sag(r2))
