@@ -295,3 +295,15 @@ def test_a_host_applications_own_signal_handler_is_left_alone(monkeypatch):
     with signals.stop_on_signals():
         pass
     assert seen == {}
+
+
+def test_an_afocal_prescription_is_refused_in_one_line(tmp_path, capsys):
+    """A flat window (zero power): a project error naming the file, never a traceback."""
+    flat = CROSSED.replace("radius_mm = 5.0", "radius_mm = inf").replace("radius_mm = -5.0", "radius_mm = inf")
+    flat = flat.replace("thickness_mm = 0.5", "thickness_mm = 2.0")
+    (tmp_path / "flat.toml").write_text(flat)
+    for argv in (["lens", "info", tmp_path / "flat.toml"],
+                 ["psf", tmp_path / "flat.toml", "--field", "0", "--depth", "2", *FAST[:-2]]):
+        code, out, err = _cli(capsys, *argv)
+        assert code == 2 and "Traceback" not in err and err.count("\n") == 1, err
+        assert "flat.toml" in err and "afocal" in err, err

@@ -13,6 +13,11 @@ class OpticsError(DcdiError):
     aiming, import); a :class:`dcdi_core.errors.DcdiError`."""
 
 
+class AfocalLensError(OpticsError, ValueError):
+    """A prescription without paraxial power: no focal length, no focus, no
+    sensor image (a ValueError too, as it was)."""
+
+
 class LensFileError(OpticsError, ValueError):
     """A lens prescription (TOML file or dict) that breaks the schema.
 

@@ -67,7 +67,9 @@ def first_order(lens: Lens, wavelength_nm: float | None = None) -> FirstOrder:
     stop = lens.stop_index
     (a, b), (c, d) = m = matrix(lens, wl, 0, last)
     if c == 0.0:
-        raise ValueError(f"{lens.path}: the lens is afocal (zero power); EFL is infinite")
+        from .errors import AfocalLensError
+        raise AfocalLensError(f"{lens.path}: the lens is afocal (zero paraxial power): it has no focal length and "
+                              "forms no image on a sensor; check the radii (a flat or a window is not a lens)")
     efl = -1.0 / c
     bfl = -a / c
     ffl = -d / c   # front focal point at z = d / c from the first vertex
