@@ -47,9 +47,8 @@ def available_bytes() -> int | None:
     except (OSError, ValueError):
         pass
     if found is None:
-        try:
-            found = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-        except (ValueError, OSError, AttributeError):
+        found = _physical_bytes()
+        if found is None:
             return None
     room = _cgroup_room()
     return found if room is None else min(found, room)

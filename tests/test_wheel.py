@@ -6,7 +6,6 @@ the checkout, `dcdi lens info`, `simulate`, `correct`, `bokeh` and `info` work.
 The fresh environment is a new venv whose only other package is this
 machine's numpy (linked in: no download); scipy, OpenImageIO and torch are
 absent there, as in Blender's own Python."""
-import importlib.util
 import json
 import os
 import subprocess
@@ -18,19 +17,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from support.build import build_module
+
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def _build_module():
-    spec = importlib.util.spec_from_file_location("dcdi_build", ROOT / "build.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 @pytest.fixture(scope="module")
 def wheel(tmp_path_factory):
-    return _build_module().build_wheel(tmp_path_factory.mktemp("wheel"))
+    return build_module().build_wheel(tmp_path_factory.mktemp("wheel"))
 
 
 def test_wheel_carries_every_shipped_data_file(wheel):

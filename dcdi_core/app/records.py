@@ -53,13 +53,9 @@ def recorded_defaults(render, lens, record, shape, image_name: str, *, focus: bo
             changes["axis_px"] = tuple(float(a) for a in record.axis_px)
     if focus and render.psf.focus_distance_m is None and record.focus_distance_m is not None:
         changes["psf"] = replace(render.psf, focus_distance_m=float(record.focus_distance_m))
-    if record.prescription_sha256 is not None and record.prescription_sha256 != prescription_of(lens):
-        note = (f"{image_name} was made with a different prescription of {lens.id} (perturbed or edited: its "
-                "prescription hash differs); it is used as given")
-        return (replace(render, **changes) if changes else render), [note]
-    return (replace(render, **changes) if changes else render), []
-
-
-def prescription_of(lens) -> str:
     from ..io.capture_record import prescription_sha256
-    return prescription_sha256(lens)
+    notes = []
+    if record.prescription_sha256 is not None and record.prescription_sha256 != prescription_sha256(lens):
+        notes.append(f"{image_name} was made with a different prescription of {lens.id} (perturbed or edited: "
+                     "its prescription hash differs); it is used as given")
+    return (replace(render, **changes) if changes else render), notes

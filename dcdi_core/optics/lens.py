@@ -290,6 +290,17 @@ def _sensor(s, err) -> Sensor:
     return Sensor(sd, res, pitch)
 
 
+def _coefficients(s, key, err, num) -> tuple[float, ...]:
+    """A surface's list of aspheric coefficients ``key``, trailing zeros dropped."""
+    values = s.get(key, [])
+    if not isinstance(values, list):
+        raise err("must be a list of numbers", surface=num, field=key, value=values)
+    values = tuple(_number(a, err, key, num) for a in values)
+    while values and values[-1] == 0.0:
+        values = values[:-1]
+    return values
+
+
 def _surface(num, s, err, materials) -> Surface:
     if not isinstance(s, dict):
         raise err("a surface must be a table", surface=num)
@@ -303,18 +314,8 @@ def _surface(num, s, err, materials) -> Surface:
     thickness = _number(s["thickness_mm"], err, "thickness_mm", num, lo=0.0)
     sd = _number(s["semi_diameter_mm"], err, "semi_diameter_mm", num, lo=0.0, lo_open=True)
     conic = _number(s.get("conic", 0.0), err, "conic", num)
-    coeffs = s.get("aspheric_coefficients", [])
-    if not isinstance(coeffs, list):
-        raise err("must be a list of numbers", surface=num, field="aspheric_coefficients", value=coeffs)
-    coeffs = tuple(_number(a, err, "aspheric_coefficients", num) for a in coeffs)
-    while coeffs and coeffs[-1] == 0.0:
-        coeffs = coeffs[:-1]
-    odd = s.get("odd_aspheric_coefficients", [])
-    if not isinstance(odd, list):
-        raise err("must be a list of numbers", surface=num, field="odd_aspheric_coefficients", value=odd)
-    odd = tuple(_number(b, err, "odd_aspheric_coefficients", num) for b in odd)
-    while odd and odd[-1] == 0.0:
-        odd = odd[:-1]
+    coeffs = _coefficients(s, "aspheric_coefficients", err, num)
+    odd = _coefficients(s, "odd_aspheric_coefficients", err, num)
     if coeffs and odd:
         raise err("an even or an odd asphere, not both", surface=num, field="odd_aspheric_coefficients")
     stop = s.get("stop", False)

@@ -16,25 +16,19 @@ import pytest
 
 from blender_addon import logic
 from headless_run import run_headless
+from support.build import build_module
 
 ROOT = Path(__file__).resolve().parents[2]
 EXT_ID = tomllib.loads((ROOT / "blender_addon" / "blender_manifest.toml").read_text())["id"]
 
 
-def _build_module():
-    spec = importlib.util.spec_from_file_location("dcdi_build", ROOT / "build.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 @pytest.fixture(scope="module")
 def addon_zip(tmp_path_factory):
-    return _build_module().build_addon(tmp_path_factory.mktemp("dist"))
+    return build_module().build_addon(tmp_path_factory.mktemp("dist"))
 
 
 # ------------------------------------------------------------------ the zip
-WHEEL = _build_module().wheel_name()
+WHEEL = build_module().wheel_name()
 
 
 def _unpack(addon_zip, where: Path) -> tuple[Path, Path]:
@@ -95,7 +89,7 @@ def test_zip_is_an_extension_bundling_the_engines_wheel(addon_zip, tmp_path):
                  *(ROOT / "dcdi_core/models/weights").glob("*.npz")]:
         name = f"dcdi_core/lenses/{data.name}" if data.suffix == ".toml" else data.relative_to(ROOT).as_posix()
         assert name in wheel, name
-    again = _build_module().build_addon(tmp_path)
+    again = build_module().build_addon(tmp_path)
     assert again.read_bytes() == addon_zip.read_bytes()              # same sources, same bytes
 
 

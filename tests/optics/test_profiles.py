@@ -68,11 +68,10 @@ def _normal_is_the_sags_gradient(prof, x, y, z, h=1e-6):
     np.testing.assert_allclose(np.sqrt(nx * nx + ny * ny + nz * nz), 1.0, atol=1e-12)
 
 
-@pytest.mark.parametrize("c, k, coeffs", [(1 / 20.0, 0.0, (0.0, 1e-4, -2e-7)), (-1 / 30.0, -0.5, (1e-3, -1e-6)),
-                                          (0.0, 0.0, (2e-3,))])
-def test_even_asphere_root_is_a_bracketing_root_finders(c, k, coeffs):
+def _root_is_brentqs(prof):
+    """The kind's roots of 60 rays against scipy's bracketing brentq on its
+    sag, to 1e-10 mm; returns the hits (x, y, z)."""
     from scipy.optimize import brentq
-    prof = EvenAsphere(c, k, coeffs)
     xs, ys, dx, dy, dz = rays(n=60, spread=2.0)
     t = prof.root(xs, ys, dx, dy, dz, no_kill, 1e-12, 30)
     for i in range(len(xs)):
@@ -81,8 +80,14 @@ def test_even_asphere_root_is_a_bracketing_root_finders(c, k, coeffs):
             return tt * dz[i] - float(prof.sag(x * x + y * y))
         ref = brentq(g, -5.0, 5.0, xtol=1e-14)
         assert abs(t[i] - ref) < 1e-10, (i, t[i], ref)
-    x, y = xs + t * dx, ys + t * dy
-    _normal_is_the_sags_gradient(prof, x, y, t * dz)
+    return xs + t * dx, ys + t * dy, t * dz
+
+
+@pytest.mark.parametrize("c, k, coeffs", [(1 / 20.0, 0.0, (0.0, 1e-4, -2e-7)), (-1 / 30.0, -0.5, (1e-3, -1e-6)),
+                                          (0.0, 0.0, (2e-3,))])
+def test_even_asphere_root_is_a_bracketing_root_finders(c, k, coeffs):
+    prof = EvenAsphere(c, k, coeffs)
+    _normal_is_the_sags_gradient(prof, *_root_is_brentqs(prof))
 
 
 def test_plane_is_the_vertex_plane():
@@ -118,20 +123,11 @@ def test_each_surface_gets_its_kind():
 @pytest.mark.parametrize("c, k, coeffs", [(1 / 25.0, 0.0, (0.0, 0.0, 1e-4)), (-1 / 40.0, -0.3, (0.0, 0.0, -2e-4, 1e-5)),
                                           (0.0, 0.0, (0.02,))])
 def test_odd_asphere_root_is_a_bracketing_root_finders(c, k, coeffs):
-    from scipy.optimize import brentq
-
     from dcdi_core.optics.profiles import OddAsphere
     prof = OddAsphere(c, k, coeffs)
-    xs, ys, dx, dy, dz = rays(n=60, spread=2.0)
-    t = prof.root(xs, ys, dx, dy, dz, no_kill, 1e-12, 30)
-    for i in range(len(xs)):
-        def g(tt, i=i):
-            x, y = xs[i] + tt * dx[i], ys[i] + tt * dy[i]
-            return tt * dz[i] - float(prof.sag(x * x + y * y))
-        assert abs(t[i] - brentq(g, -5.0, 5.0, xtol=1e-14)) < 1e-10
-    x, y = xs + t * dx, ys + t * dy
+    x, y, z = _root_is_brentqs(prof)
     far = np.hypot(x, y) > 1e-3                        # the cone's tip (b_1 r) has no normal at the axis
-    _normal_is_the_sags_gradient(prof, x[far], y[far], (t * dz)[far])
+    _normal_is_the_sags_gradient(prof, x[far], y[far], z[far])
 
 
 def test_an_odd_asphere_of_even_powers_is_the_even_asphere():

@@ -67,3 +67,11 @@ def check_conic_sheet(c, k, z_local, kill) -> None:
     ck = c * (1.0 + k)
     if (ck > 0 and z_local.max() * ck >= 1.0) or (ck < 0 and z_local.min() * ck >= 1.0):
         kill(ck * z_local >= 1.0, S.MISSED)
+
+
+def kill_unsolved(converged, in_domain, kill) -> None:
+    """After a Newton refinement: rays that left the sag's domain missed the
+    surface (MISSED), the others that did not converge NOT_CONVERGED."""
+    if not (converged.all() and in_domain.all()):
+        kill(~in_domain, S.MISSED)
+        kill(~converged, S.NOT_CONVERGED)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import surfaces as S
-from .base import Profile, check_conic_sheet, conic_root
+from .base import Profile, check_conic_sheet, conic_root, kill_unsolved
 
 
 class EvenAsphere(Profile):
@@ -20,9 +20,7 @@ class EvenAsphere(Profile):
     def root(self, xs, ys, dx, dy, dz, kill, newton_tol, newton_iter):
         t1 = conic_root(self.c, self.k, xs, ys, dx, dy, dz, kill)
         t1, conv, dom = _newton(self.c, self.k, self.coeffs, xs, ys, dx, dy, dz, t1, newton_tol, newton_iter)
-        if not (conv.all() and dom.all()):
-            kill(~dom, S.MISSED)
-            kill(~conv, S.NOT_CONVERGED)
+        kill_unsolved(conv, dom, kill)
         return t1
 
     def check_sheet(self, z_local, kill) -> None:

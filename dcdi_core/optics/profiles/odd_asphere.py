@@ -7,8 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import surfaces as S
-from .base import Profile, check_conic_sheet, conic_root
+from .base import Profile, check_conic_sheet, conic_root, kill_unsolved
 
 
 class OddAsphere(Profile):
@@ -54,9 +53,7 @@ class OddAsphere(Profile):
         x, y = xs + t * dx, ys + t * dy
         _, _, dom = self._sag_and_dr(np.sqrt(x * x + y * y))
         t = np.where(np.isfinite(t), t, 0.0)
-        if not (converged.all() and dom.all()):
-            kill(~dom, S.MISSED)
-            kill(~converged, S.NOT_CONVERGED)
+        kill_unsolved(converged, dom, kill)
         return t
 
     def check_sheet(self, z_local, kill) -> None:
