@@ -145,7 +145,10 @@ class BokehRequest:
     must be unset: the focus is ``focus_m``). ``occlusion``: the
     occlusion-aware layers (False: the plain patch-wise blur);
     ``distortion``: also the lens's distortion; ``multires`` / ``max_level``:
-    the multi-resolution blur (``render.bokeh.BokehOptions``). ``psf``:
+    the multi-resolution blur (``render.bokeh.BokehOptions``);
+    ``exact_layers``: every depth layer as the equal-width split makes it,
+    at the image's patches with the tent (no merging, no wider patches:
+    ``BokehOptions``' interp_eps and seam_tol None). ``psf``:
     which PSFs (:class:`PSFRequest`; ``preview``: a lighter trace).
     ``recorded``: what the image file remembers
     (``io.capture_record.CaptureRecord``; ``records.recorded_defaults``)."""
@@ -160,6 +163,7 @@ class BokehRequest:
     distortion: bool = False
     multires: float | None = None
     max_level: int | None = None
+    exact_layers: bool = False
     psf: PSFRequest = field(default_factory=PSFRequest)
     recorded: object = None
     image_name: str = "the image"
@@ -214,7 +218,8 @@ def bokeh(request: BokehRequest, control: Control | None = None, *, cache: Sourc
                            source_geometry=plan.source_geometry, distortion=request.distortion,
                            interpolation=render.interpolation, patch=render.patch, occlusion=request.occlusion,
                            settings=plan.settings, response=request.psf.response, fit_kernel=render.fit_kernel,
-                           multires=request.multires, max_level=request.max_level)
+                           multires=request.multires, max_level=request.max_level,
+                           **(dict(interp_eps=None, seam_tol=None) if request.exact_layers else {}))
     psf = _psf_request(request.psf, render, plan.settings).focused(options.focus_distance_m)
     keep = options.keep
     blurred = depth[(depth > 0) & ~((depth >= keep[0]) & (depth <= keep[1]))] if keep is not None else depth[depth > 0]

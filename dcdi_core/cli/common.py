@@ -107,6 +107,7 @@ WORDS = {
     "sensor_size": "--sensor-size", "axis_px": "--axis", "patch": "--patch", "interpolation": "--interpolation",
     "seed": "--seed", "noise": "--noise", "perturb_fraction": "--perturb-fraction", "fixed_depth_m": "--fixed-depth",
     "wavelength_nm": "--wavelength", "multires": "--multires", "max_level": "--max-level",
+    "interp_eps": "--exact-layers", "seam_tol": "--exact-layers",
     "full_well_electrons": "--full-well", "read_noise_electrons": "--read-noise", "kernel_size": "--kernel",
     "tile": "--tile", "device": "--device", "focus_distance_m": "--focus", "fraction": "--perturb-fraction",
     "field": "--field", "angle_deg": "--angle", "deposit_sigma_px": "--deposit-sigma", "pupil_samples": "--rays",

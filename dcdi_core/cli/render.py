@@ -168,7 +168,8 @@ def bokeh_request(args, lens, request, resp, img, depth, recorded=None):
     return BokehRequest(img, depth, lens, keep=tuple(args.keep) if args.keep else None, focus_m=args.focus,
                         render=request, occlusion=not args.plain, distortion=args.distort,
                         multires=getattr(args, "multires", None), max_level=getattr(args, "max_level", None),
-                        psf=psf_request(args, resp), recorded=recorded, image_name=f"the image {args.image}")
+                        exact_layers=getattr(args, "exact_layers", False), psf=psf_request(args, resp),
+                        recorded=recorded, image_name=f"the image {args.image}")
 
 
 def cmd_bokeh(args) -> int:
@@ -234,5 +235,8 @@ def add_commands(sub) -> None:
                         "`dcdi report simulation-accuracy`); default: every layer at full resolution")
     q.add_argument("--max-level", type=int, default=None, metavar="S",
                    help="with --multires: at most 1/2^S of the resolution (default 2)")
+    q.add_argument("--exact-layers", action="store_true",
+                   help="every depth layer at --patch with the tent, none merged (the former path: about twice "
+                        "the time at the same error, docs/performance.md)")
     q.add_argument("--side-by-side", default=None, metavar="PNG", help="also write input | depth | result")
     q.set_defaults(func=cmd_bokeh)

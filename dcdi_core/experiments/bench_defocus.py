@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 FOCUS_M = 1.2      # inside the bench's kept range (1.1-1.3 m): the red disk at 1.2 m is in focus
+GOAL_PSNR_DB = 38.1   # the occlusion-aware bokeh's distance from the reference before the layer choices
 
 
 def crop_boxes(depth: np.ndarray, size: int) -> dict[str, tuple[int, int, int, int]]:
@@ -202,6 +203,13 @@ def score(out: Path, node_process_s: float | None = None) -> int:
           + ("" if node_process_s is None else f" (whole process {node_process_s:.2f} s)") + "; its peak is the "
           f"process's RSS ({node['rss_before_composite_mib']:.0f} MiB before the composite), the engine's "
           f"numpy's allocations (tracemalloc)")
+    occ = rec["rows"].get("occlusion-aware")
+    if occ is not None:
+        ratio = node["composite_s"][best] / occ["seconds"]
+        psnr = _distances(crops["occlusion-aware"], ref)[0]
+        print(f"  goals: the occlusion-aware bokeh >= 3 x faster than the node: x{ratio:.2f} "
+              f"({'met' if ratio >= 3 else 'NOT met'}); at >= {GOAL_PSNR_DB} dB against the reference: {psnr:.2f} dB "
+              f"({'met' if psnr >= GOAL_PSNR_DB - 0.005 else 'NOT met'})")
     print(f"  per crop, PSNR dB (" + ", ".join(boxes) + "):")
     for name in rec["rows"]:
         print(f"    {name:<16} " + "  ".join(f"{_distances(crops[name][i], ref[i])[0]:6.2f}"

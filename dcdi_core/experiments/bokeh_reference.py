@@ -27,28 +27,7 @@ from dataclasses import replace
 import numpy as np
 
 from ..errors import InputRangeError
-from ..render.psfmap import rotate_radial_kernels, valid_depth_mask
-
-
-def pixel_kernels(library, geometry, rows, cols, depth) -> np.ndarray:
-    """The PSFs (n, 3, k, k) of pixels (rows, cols) of ``geometry`` at depths
-    ``depth`` (metres, n): the library's, at the pixel's field, rotated to
-    its azimuth; a unit impulse for invalid depths."""
-    rows, cols = np.asarray(rows), np.asarray(cols)
-    d = np.asarray(depth, np.float64)
-    valid = valid_depth_mask(d)
-    d = np.where(~valid, library.grid.far_m, d)
-    d = np.where(d >= library.grid.far_m, np.inf, np.maximum(d, library.grid.near_m))
-    field = np.minimum(geometry.field(rows, cols), 1.0)
-    vec = np.stack([rows - geometry.center_px[0], cols - geometry.center_px[1]], -1).astype(np.float64)
-    norm = np.hypot(vec[:, 0], vec[:, 1])
-    outward = np.where(norm[:, None] > 1e-9, vec / np.maximum(norm, 1e-12)[:, None], [1.0, 0.0])
-    kern = rotate_radial_kernels(library.at(field, d), outward)
-    if not valid.all():
-        r = library.kernel_size // 2
-        kern[~valid] = 0.0
-        kern[~valid, :, r, r] = 1.0
-    return kern
+from ..render.psfmap import pixel_kernels, valid_depth_mask  # noqa: F401  (pixel_kernels: the references' kernels)
 
 
 def scatter_reference(img, depth, library, geometry, *, rows_per_block: int | None = None) -> np.ndarray:

@@ -22,7 +22,9 @@ import numpy as np
 
 from ..errors import InputRangeError
 from ..psf.compute import PSFSettings
+from ..parallel import workers
 from ..psf.library import PSFLibrary
+from . import layer_patch
 from . import multires as mr
 from .convolve import METHODS, ConvolveOptions, box_reach, grow_square, patch_box, patch_convolve
 from .geometry import ImageGeometry
@@ -77,6 +79,16 @@ class BokehOptions:
     DEFAULT_MAX_LEVEL``), with ``coarse_patch``-px patches there (even, >=
     2); None: every layer at full resolution (the exact path). Not with
     convolution 'lowrank' (its groups are convolved by windows).
+
+    interp_eps: each depth layer is blurred with the cheapest patches
+    (``patch`` with the tent, or 32 or 64 px with 8-px ramps) whose kernel
+    interpolation keeps the blur of sampled layer pixels within this RMS
+    fraction of it, against their own PSFs (``render.layer_patch``), in
+    (0, 1); None: every layer at ``patch`` with the tent (the exact
+    path). seam_tol: adjacent layers that meet without a depth edge (99 %
+    of their touching pixels within this fraction of a layer's width in
+    diopters) are blurred as one (a floor is not cut into bands), in [0,
+    1]; None: never. Neither applies with ``multires``.
     """
 
     keep: tuple[float, float] | None = None
@@ -97,6 +109,8 @@ class BokehOptions:
     multires: float | None = None
     max_level: int | None = None
     coarse_patch: int = 16
+    interp_eps: float | None = 0.002
+    seam_tol: float | None = 0.25
 
     def __post_init__(self):
         from .distortion import check_interpolation
@@ -117,6 +131,11 @@ class BokehOptions:
         if self.max_level is None:
             object.__setattr__(self, "max_level", mr.DEFAULT_MAX_LEVEL)
         self.multires_options()                           # checks the level rule and coarse_patch
+        for name, lo, hi, low_open in (("interp_eps", 0.0, 1.0, True), ("seam_tol", 0.0, 1.0, False)):
+            value = getattr(self, name)
+            if value is not None and not (isinstance(value, (int, float, np.floating)) and not isinstance(value, bool)
+                                          and (lo < value if low_open else lo <= value) and value <= hi):
+                raise InputRangeError(name, value, f"a fraction in {'(' if low_open else '['}{lo:g}, {hi:g}], or None")
         if self.multires is not None and self.convolution == "lowrank":
             # the multi-resolution blur convolves its groups by windows ('fast' equals them to rounding)
             raise InputRangeError("multires with convolution", self.convolution,
@@ -260,21 +279,82 @@ def _plain_bokeh(sc: _BokehScene, options: BokehOptions, cancelled) -> RenderRes
 def _layers(inv: np.ndarray, valid: np.ndarray, n_layers: int):
     """Split valid pixels into depth layers of equal width in diopters,
     ordered far to near: list of boolean masks."""
+    return [m_ for _, m_ in _layer_masks(inv, valid, n_layers)[0]]
+
+
+def _layer_masks(inv: np.ndarray, valid: np.ndarray, n_layers: int):
+    """([(layer index, mask)] of the non-empty depth layers of equal width in
+    diopters, far to near; the (H, W) layer index, -1 off ``valid``)."""
     lo, hi = float(inv[valid].min()), float(inv[valid].max())
     if hi - lo < 1e-12:
-        return [valid]
+        return [(0, valid)], np.where(valid, 0, -1)
     edges = np.linspace(lo, hi, n_layers + 1)
-    idx = np.clip(np.searchsorted(edges, inv, side="right") - 1, 0, n_layers - 1)
-    return [valid & (idx == i) for i in range(n_layers) if (valid & (idx == i)).any()]
+    idx = np.where(valid, np.clip(np.searchsorted(edges, inv, side="right") - 1, 0, n_layers - 1), -1)
+    return [(i, idx == i) for i in range(n_layers) if (idx == i).any()], idx
 
 
-def _layer_order(sc: _BokehScene, n_layers: int) -> list[tuple[np.ndarray, bool]]:
+def _merge_continuous(sc: _BokehScene, layers: list, idx: np.ndarray, tol: float) -> list:
+    """Adjacent depth layers (far to near) joined where they meet without a
+    depth edge: a layer joins the group before it when it touches the last
+    of them and, across 99 % of the pixel pairs where it touches any of
+    them, the diopters jump by at most ``tol`` of a layer's width. A
+    continuous surface cut by the layering (a floor, a wall at a slant)
+    occludes nothing of itself, and its bands composited one over another
+    equal their sum up to the difference of the kernels across that jump;
+    a depth edge between any two members keeps them apart (a chain of
+    floor bands does not join a board standing on it to a disk in front
+    of it). Never across the kept range."""
+    if len(layers) < 2:
+        return [m_ for _, m_ in layers]
+    limit = tol * _layer_width(sc, idx)
+    barrier = float(sc.inv[sc.kept].mean()) if sc.kept.any() else None
+    seam = _seams(idx, sc.inv)
+    groups = [[layers[0]]]
+    for label, mask in layers[1:]:
+        group = groups[-1]
+        last_label, last_mask = group[-1]
+        crosses = barrier is not None and float(sc.inv[last_mask].max()) < barrier < float(sc.inv[mask].min())
+        smooth = all(np.quantile(seam[(g, label)], 0.99) <= limit for g, _ in group if (g, label) in seam)
+        if (last_label, label) in seam and smooth and not crosses:
+            group.append((label, mask))
+        else:
+            groups.append([(label, mask)])
+    return [np.logical_or.reduce([m_ for _, m_ in g]) for g in groups]
+
+
+def _layer_width(sc: _BokehScene, idx: np.ndarray) -> float:
+    """A depth layer's width in diopters."""
+    inv = sc.inv[idx >= 0]
+    return float(inv.max() - inv.min()) / max(1, int(idx.max()) + 1)
+
+
+def _seams(idx: np.ndarray, inv: np.ndarray) -> dict:
+    """{(layer a, layer b): the diopter jumps (n,) across the 4-neighbour
+    pixel pairs where a layer a pixel touches a layer b pixel, a < b}."""
+    pairs = []
+    for sl_a, sl_b in (((slice(None), slice(None, -1)), (slice(None), slice(1, None))),
+                       ((slice(None, -1), slice(None)), (slice(1, None), slice(None)))):
+        a, b = idx[sl_a], idx[sl_b]
+        sel = (a >= 0) & (b >= 0) & (a != b)
+        pairs.append((np.minimum(a, b)[sel], np.maximum(a, b)[sel], np.abs(inv[sl_a] - inv[sl_b])[sel]))
+    lo, hi, jump = (np.concatenate(x) for x in zip(*pairs))
+    order = np.lexsort((hi, lo))
+    lo, hi, jump = lo[order], hi[order], jump[order]
+    cut = np.flatnonzero((np.diff(lo) != 0) | (np.diff(hi) != 0)) + 1
+    return {(int(a[0]), int(b_[0])): j for a, b_, j in zip(np.split(lo, cut), np.split(hi, cut), np.split(jump, cut))
+            if len(a)}
+
+
+def _layer_order(sc: _BokehScene, n_layers: int, seam_tol: float | None = None) -> list[tuple[np.ndarray, bool]]:
     """The layers far to near, as (mask, sharp): the blurred depth layers,
     and the kept (sharp) pixels with the invalid ones as one layer at their
     depth (first when nothing is kept)."""
     sharp_mask = sc.kept | ~sc.valid
     blurred = sc.valid & ~sc.kept
-    layers = _layers(sc.inv, blurred, n_layers) if blurred.any() else []
+    layers = []
+    if blurred.any():
+        labelled, idx = _layer_masks(sc.inv, blurred, n_layers)
+        layers = [m_ for _, m_ in labelled] if seam_tol is None else _merge_continuous(sc, labelled, idx, seam_tol)
     order = [(float(sc.inv[m_].mean()), m_, False) for m_ in layers]
     if sharp_mask.any():
         order += [(float(sc.inv[sc.kept].mean()) if sc.kept.any() else -1.0, sharp_mask, True)]
@@ -292,7 +372,7 @@ def _layered_bokeh(sc: _BokehScene, options: BokehOptions, cancelled, layer_prog
     # continuous surface crosses from one layer to the next, no dark halo.
     col = np.zeros_like(sc.img)
     seen = np.zeros(sc.img.shape[:2] + (1,), bool)
-    order = _layer_order(sc, options.n_layers)
+    order = _layer_order(sc, options.n_layers, options.seam_tol if options.multires is None else None)
     table = None
     if options.multires is not None and sc.valid.any():
         sc.library.ensure(bins=sc.library.bins_needed(sc.depth[sc.valid], clamp_near=True))
@@ -304,12 +384,18 @@ def _layered_bokeh(sc: _BokehScene, options: BokehOptions, cancelled, layer_prog
         if cancelled is not None and not is_sharp and cancelled():
             raise Cancelled("bokeh cancelled")
         ys, xs = patch_box(mask, options.patch, sc.grow if not is_sharp else 0)
+        choice = None
+        if not is_sharp and options.interp_eps is not None and options.multires is None:
+            choice = _layer_patch(sc, options, mask)
+            info.setdefault("layer_patches", []).append(choice.info())
+            if choice.m != options.patch:
+                ys, xs = patch_box(mask, choice.m, box_reach(sc.library.kernel_size, choice.m))
         if is_sharp:
             a = mask[ys, xs][..., None]
             col[ys, xs] = np.where(a, sc.img[ys, xs], col[ys, xs])
             seen[ys, xs] |= a
             continue
-        blurred, levels = _blur_layer(sc, options, mask, ys, xs, table)
+        blurred, levels = _blur_layer(sc, options, mask, ys, xs, table, choice)
         if levels is not None:
             info["layer_levels"].append([int((levels == s_).sum()) for s_ in range(options.max_level + 1)])
             if int(levels.max()) > 0:
@@ -321,31 +407,43 @@ def _layered_bokeh(sc: _BokehScene, options: BokehOptions, cancelled, layer_prog
     return sc.result(col, info)
 
 
-def _blur_layer(sc: _BokehScene, options: BokehOptions, mask, ys: slice, xs: slice, table):
+def _layer_patch(sc: _BokehScene, options: BokehOptions, mask) -> layer_patch.PatchChoice:
+    """The layer's patch size and blend (``layer_patch.choose``), its
+    diopters as its blur sees them (the layer's mean outside it)."""
+    sc.library.ensure(bins=sc.library.bins_needed(sc.depth[mask], clamp_near=True))
+    return layer_patch.choose(sc.library, sc.geometry, sc.img, mask, sc.inv, options.patch, options.interp_eps)
+
+
+def _blur_layer(sc: _BokehScene, options: BokehOptions, mask, ys: slice, xs: slice, table, choice=None):
     """The layer ``mask``'s premultiplied colour and coverage, blurred on its
-    box (ys, xs): (float32 (h, w, 6): three colours, then the coverage blurred
-    with each colour's PSF; the multires levels of its patches, or None)."""
+    box (ys, xs) with the patches of ``choice`` (None: ``options.patch``
+    and the tent): (float32 (h, w, 6): three colours, then the coverage
+    blurred with each colour's PSF; the multires levels of its patches, or
+    None)."""
     af = mask[ys, xs][..., None].astype(np.float32)
     # each colour's coverage blurred with that colour's own PSF: the
     # normalisation of the composite is then exact for any colour fringe
     layer = np.concatenate([sc.img[ys, xs] * af, af], axis=-1)
-    # every patch of the box gets the layer's kernel, also those holding
-    # none of its pixels: a gather takes each output pixel's kernel from
-    # its own patch, so an identity there would cut the blur spilling out
-    # of the layer's patches (a bright light's halo ended after the tent)
-    fill_inv = float(sc.inv[ys, xs][mask[ys, xs]].mean())
-    d_layer = np.where(mask[ys, xs], sc.depth[ys, xs], np.inf if fill_inv <= 0 else 1.0 / fill_inv)
+    # every patch of the box gets a kernel of the layer, also those holding
+    # none of its pixels (that of the nearest ones: layer_depth): a gather
+    # takes each output pixel's kernel from its own patch, so an identity
+    # there would cut the blur spilling out of the layer's patches (a
+    # bright light's halo ended after the tent)
     sub = sc.geometry.crop(ys, xs)
     m = options.patch
+    conv = options.convolve_options()
+    if choice is not None:
+        m, conv = choice.m, replace(conv, blend=choice.b)
+    d_layer = layer_patch.layer_depth(sc.depth[ys, xs], sc.inv[ys, xs], mask[ys, xs], m,
+                                      layer_patch.fill_rings(sc.library.kernel_size, m, conv.blend_px(m)))
     if options.multires is None:
         # a patch whose window (the patch and its blend margin) lies beyond
         # the kernel's reach of every layer pixel gathers nothing whatever its
         # kernel: it gets none (NaN depth: the identity, copying zeros)
-        reach = sc.library.kernel_size // 2 + options.convolve_options().blend_px(m)
+        reach = sc.library.kernel_size // 2 + conv.blend_px(m)
         d_layer[~_within_reach(mask[ys, xs], m, reach)] = np.nan
         pm = psf_map(sc.library, sub, d_layer, m, crop=True)
-        blurred = patch_convolve(layer, pm.kernels, m, options.convolve_options(), identity=pm.identity,
-                                 pairs=LAYER_PAIRS)
+        blurred = patch_convolve(layer, pm.kernels, m, conv, identity=pm.identity, pairs=LAYER_PAIRS)
         return blurred, None
     every = np.ones(d_layer.shape, bool)                # every pixel has the layer's depth now
     no_copy = np.zeros((math.ceil(every.shape[0] / m), math.ceil(every.shape[1] / m)), bool)
@@ -380,13 +478,40 @@ COVER_EPS = 1e-6     # a layer's coverage below this is FFT round-off, not light
 
 def _composite(col: np.ndarray, seen: np.ndarray, ys: slice, xs: slice, blurred: np.ndarray) -> None:
     """A blurred layer (colour premultiplied, coverage) over the colour seen
-    behind it on its box; ``col`` and ``seen`` updated in place."""
+    behind it on its box; ``col`` and ``seen`` updated in place. Only the
+    rows and columns its coverage reaches change (below COVER_EPS nothing
+    does), in blocks of rows on the thread pool."""
+    reach = (blurred[..., 3:] >= COVER_EPS).any(axis=-1)
+    rows, cols = np.flatnonzero(reach.any(axis=1)), np.flatnonzero(reach.any(axis=0))
+    if not len(rows):
+        return
+    r0, r1, c0, c1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+    step = max(8, -(-(r1 - r0) // (4 * workers())))
+    from ..parallel import thread_pool
+
+    def block(r):
+        sl = (slice(ys.start + r, ys.start + min(r1, r + step)), slice(xs.start + c0, xs.start + c1))
+        _composite_block(col[sl], seen[sl], blurred[r:min(r1, r + step), c0:c1])
+    list(thread_pool().map(block, range(r0, r1, step)))
+
+
+def _composite_block(col: np.ndarray, seen: np.ndarray, blurred: np.ndarray) -> None:
+    """``_composite`` on views of one block (col, seen written in place)."""
     # the FFT leaves ~1e-8 of coverage (and colour) where the layer's blur is
     # zero: below COVER_EPS it is zero, so what lies behind stays bit-exact there
     tiny = blurred[..., 3:] < COVER_EPS
-    cover = np.where(tiny, 0.0, np.clip(blurred[..., 3:], 0.0, 1.0))
-    behind = seen[ys, xs]
-    premultiplied = np.where(tiny, 0.0, blurred[..., :3]) + (1.0 - cover) * np.where(behind, col[ys, xs], 0.0)
-    total = np.where(behind, 1.0, cover)
-    seen[ys, xs] = (total > 1e-4).all(axis=-1, keepdims=True)
-    col[ys, xs] = np.where(total > 1e-4, premultiplied / np.maximum(total, 1e-4), 0.0)
+    cover = np.clip(blurred[..., 3:], 0.0, 1.0)
+    cover[tiny] = 0.0
+    front = blurred[..., :3].copy()
+    front[tiny] = 0.0
+    behind = seen
+    # premultiplied colour of the layer over what lies behind, and its total coverage
+    total = np.where(behind, np.float32(1.0), cover)
+    back = np.where(behind, col, np.float32(0.0))
+    back *= 1.0 - cover
+    front += back
+    ok = total > 1e-4
+    seen[...] = ok.all(axis=-1, keepdims=True)
+    np.divide(front, np.maximum(total, np.float32(1e-4)), out=front)
+    front[~ok] = 0.0
+    col[...] = front

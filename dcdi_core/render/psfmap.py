@@ -155,6 +155,51 @@ def rotate_radial_kernels(kernels: np.ndarray, outward: np.ndarray, chunk: int =
     return out.reshape(p, c, k, k)
 
 
+def outward_directions(geometry, rows, cols) -> np.ndarray:
+    """Unit (row, col) vectors (n, 2) from the optical axis to pixels (rows,
+    cols) of ``geometry``; (1, 0) on the axis."""
+    vec = np.stack([np.asarray(rows, np.float64) - geometry.center_px[0],
+                    np.asarray(cols, np.float64) - geometry.center_px[1]], -1)
+    norm = np.hypot(vec[:, 0], vec[:, 1])
+    return np.where(norm[:, None] > 1e-9, vec / np.maximum(norm, 1e-12)[:, None], [1.0, 0.0])
+
+
+def pixel_kernels(library, geometry, rows, cols, depth) -> np.ndarray:
+    """The PSFs (n, 3, k, k) of pixels (rows, cols) of ``geometry`` at depths
+    ``depth`` (metres, n): the library's, at the pixel's field, rotated to
+    its azimuth (every pixel of the kernel, the library's size); a unit
+    impulse for invalid depths. The per-pixel references' kernels
+    (``point_kernels``: the same, as the PSF map computes them)."""
+    rows, cols = np.asarray(rows), np.asarray(cols)
+    d = np.asarray(depth, np.float64)
+    valid = valid_depth_mask(d)
+    d = np.where(~valid, library.grid.far_m, d)
+    d = np.where(d >= library.grid.far_m, np.inf, np.maximum(d, library.grid.near_m))
+    field = np.minimum(geometry.field(rows, cols), 1.0)
+    kern = rotate_radial_kernels(library.at(field, d), outward_directions(geometry, rows, cols))
+    if not valid.all():
+        r = library.kernel_size // 2
+        kern[~valid] = 0.0
+        kern[~valid, :, r, r] = 1.0
+    return kern
+
+
+def point_kernels(library, geometry, rows, cols, depth, support_eps: float = 1e-3) -> np.ndarray:
+    """The kernels (n, 3, k', k') ``psf_map`` gives patches centred at (rows,
+    cols) of ``geometry`` with depths ``depth`` (metres > 0, inf; clamped to
+    the library's near limit): each over the square its energy needs (all
+    but ``support_eps``), k' the largest such square (<= the library's k)."""
+    d = np.maximum(np.asarray(depth, np.float64), library.grid.near_m)
+    field = np.minimum(geometry.field(rows, cols), 1.0)
+    plan = kernel_plan(library, field, d, support_eps)
+    k = 2 * int(plan[3].max()) + 1
+    out = np.zeros((len(d), 3, k, k), np.float32)
+    from ..parallel import one_blas_thread
+    with one_blas_thread():
+        _rotated_patch_kernels(plan, outward_directions(geometry, rows, cols), out, np.arange(len(d)))
+    return out
+
+
 def support_radius(psf: np.ndarray, eps: float) -> np.ndarray:
     """Radius rho (px, integer) of the disk about the kernel centre that holds
     all but ``eps`` of every channel's energy: psf (..., C, k, k) -> (...).
@@ -320,10 +365,7 @@ def psf_map(library, geometry, depth: np.ndarray, m: int = 16, *, fixed_depth_m:
     support = np.zeros((nph, npw), np.int64)
     if plan is not None:
         from ..parallel import one_blas_thread
-        vec = np.stack([rr[todo] - geometry.center_px[0], cc[todo] - geometry.center_px[1]], -1)
-        norm = np.hypot(vec[:, 0], vec[:, 1])
-        outward = np.where(norm[:, None] > 1e-9, vec / np.maximum(norm, 1e-12)[:, None], [1.0, 0.0])
-        args = (plan, outward, kernels.reshape(nph * npw, 3, k, k), np.flatnonzero(todo))
+        args = (plan, outward_directions(geometry, rr[todo], cc[todo]), kernels.reshape(nph * npw, 3, k, k), np.flatnonzero(todo))
         if accelerator == "torch":
             from .accel_torch import rotated_patch_kernels
             support[todo] = rotated_patch_kernels(*args)

@@ -1,5 +1,7 @@
 """Patch-wise simulation and bokeh: identity, energy, a point source, seams, depth handling."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -273,9 +275,16 @@ def test_layered_bokeh_leaves_no_seam_on_a_continuous_surface(lens):
     lib = _lib(lens, geom)
     depth = np.repeat(np.linspace(0.8, 9.0, h)[:, None], w, axis=1)
     img = np.full((h, w, 3), 0.5, np.float32)
-    r = bokeh(img, depth, lens, BokehOptions(keep=(20.0, 30.0), geometry=geom, occlusion=True, n_layers=6), library=lib)
+    opts = BokehOptions(keep=(20.0, 30.0), geometry=geom, occlusion=True, n_layers=6, seam_tol=None)
+    r = bokeh(img, depth, lens, opts, library=lib)
     assert r.info["layers"] == 6
     assert np.abs(r.image - 0.5).max() < 1e-3
+    # by default the layers of a surface without a depth edge are blurred as
+    # one (here 1/95 of the diopter range a row: 6 % of a layer's width)
+    even = np.repeat(1.0 / np.linspace(1 / 0.8, 1 / 9.0, h)[:, None], w, axis=1)
+    merged = bokeh(img, even, lens, replace(opts, seam_tol=0.25), library=lib)
+    assert merged.info["layers"] == 1
+    assert np.abs(merged.image - 0.5).max() < 1e-3
 
 
 def test_open_library_fits_the_kernel_to_the_psfs_the_depths_need(lens):
