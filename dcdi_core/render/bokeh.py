@@ -22,7 +22,7 @@ import numpy as np
 
 from ..errors import InputRangeError
 from ..psf.compute import PSFSettings
-from ..parallel import workers
+from ..parallel import thread_pool, workers
 from ..psf.library import PSFLibrary
 from . import layer_patch
 from . import multires as mr
@@ -81,10 +81,10 @@ class BokehOptions:
     convolution 'lowrank' (its groups are convolved by windows).
 
     interp_eps: each depth layer is blurred with the cheapest patches
-    (``patch`` with the tent, or 32 or 64 px with 8-px ramps) whose kernel
-    interpolation keeps the blur of sampled layer pixels within this RMS
-    fraction of it, against their own PSFs (``render.layer_patch``), in
-    (0, 1); None: every layer at ``patch`` with the tent (the exact
+    (``patch`` with the tent, or 32 or 64 px with 8-px ramps) whose blur of
+    sampled layer pixels lies at most this RMS fraction of it further from
+    their blur with their own PSFs than the tent's (``render.layer_patch``),
+    in (0, 1); None: every layer at ``patch`` with the tent (the exact
     path). seam_tol: adjacent layers that meet without a depth edge (99 %
     of their touching pixels within this fraction of a layer's width in
     diopters) are blurred as one (a floor is not cut into bands), in [0,
@@ -276,12 +276,6 @@ def _plain_bokeh(sc: _BokehScene, options: BokehOptions, cancelled) -> RenderRes
     return sc.result(out, dict(sc.info, **pm.info), pm)
 
 
-def _layers(inv: np.ndarray, valid: np.ndarray, n_layers: int):
-    """Split valid pixels into depth layers of equal width in diopters,
-    ordered far to near: list of boolean masks."""
-    return [m_ for _, m_ in _layer_masks(inv, valid, n_layers)[0]]
-
-
 def _layer_masks(inv: np.ndarray, valid: np.ndarray, n_layers: int):
     """([(layer index, mask)] of the non-empty depth layers of equal width in
     diopters, far to near; the (H, W) layer index, -1 off ``valid``)."""
@@ -408,9 +402,7 @@ def _layered_bokeh(sc: _BokehScene, options: BokehOptions, cancelled, layer_prog
 
 
 def _layer_patch(sc: _BokehScene, options: BokehOptions, mask) -> layer_patch.PatchChoice:
-    """The layer's patch size and blend (``layer_patch.choose``), its
-    diopters as its blur sees them (the layer's mean outside it)."""
-    sc.library.ensure(bins=sc.library.bins_needed(sc.depth[mask], clamp_near=True))
+    """The layer's patch size and blend (``layer_patch.choose``)."""
     return layer_patch.choose(sc.library, sc.geometry, sc.img, mask, sc.inv, options.patch, options.interp_eps)
 
 
@@ -487,7 +479,6 @@ def _composite(col: np.ndarray, seen: np.ndarray, ys: slice, xs: slice, blurred:
         return
     r0, r1, c0, c1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
     step = max(8, -(-(r1 - r0) // (4 * workers())))
-    from ..parallel import thread_pool
 
     def block(r):
         sl = (slice(ys.start + r, ys.start + min(r1, r + step)), slice(xs.start + c0, xs.start + c1))

@@ -10,14 +10,13 @@ patches and 8-px ramps. Larger patches interpolate the kernel over a longer
 distance, though; inside one depth layer the kernel varies with field and
 azimuth only (and the layer's narrow depth range), often slowly.
 
-:func:`choose` measures, for each candidate (m, b), how far the interpolated
-kernel lies from each sampled layer pixel's own PSF (at its depth, field
-and azimuth: the per-pixel reference's kernel), in L1 relative to the PSF's
-sum, worst channel; the output's error at x is at most that times the
-image's largest value near x. The cheapest candidate whose worst sampled
-error is within the budget ``eps`` (or within that of the finest candidate,
-when even that one is beyond it) is chosen. Its cost is counted in FFT
-points of the windows the layer needs.
+:func:`choose` blurs a sample of the layer's pixels two ways: with the
+kernel a candidate (m, b) would give them (the ramp-weighted kernels of the
+patches covering them, each at its patch's diopters) and with their own PSF
+(their depth, field and azimuth: the per-pixel reference's kernel). The
+cheapest candidate, counted in FFT points of the windows the layer needs,
+whose RMS difference, relative to the RMS of the blurred values, is at most
+``eps`` more than the finest candidate's is chosen.
 """
 from __future__ import annotations
 
@@ -37,12 +36,13 @@ SAMPLES = 48            # layer pixels whose kernel is compared
 
 @dataclass(frozen=True)
 class PatchChoice:
-    """A layer's patch size m (px), blend half-width b (px), the worst sampled
-    kernel error (L1 fraction) and cost (FFT points) of each candidate."""
+    """A layer's patch size m (px), blend half-width b (px), and the sampled
+    relative RMS error (of the candidates measured) and cost (FFT points) of
+    each candidate."""
 
     m: int
     b: int
-    error: dict            # {(m, b): worst sampled L1 error}
+    error: dict            # {(m, b): sampled relative RMS error}, the candidates measured
     cost: dict             # {(m, b): FFT points}
 
     def info(self) -> dict:
@@ -57,7 +57,7 @@ def candidates(patch: int) -> list[tuple[int, int]]:
 
 def sample_pixels(mask: np.ndarray, n: int = SAMPLES) -> tuple[np.ndarray, np.ndarray]:
     """Up to ``n`` pixels (rows, cols) of ``mask`` spread evenly along its
-    raster order, plus its extreme rows and columns (the field's ends)."""
+    raster order."""
     flat = np.flatnonzero(mask)
     pick = flat[np.unique(np.linspace(0, len(flat) - 1, min(n, len(flat))).round().astype(np.int64))]
     rows, cols = np.divmod(pick, mask.shape[1])
