@@ -146,7 +146,8 @@ def _float_image(name: str, pixels: np.ndarray, colorspace: str):
 def build_scene(img: np.ndarray, z: np.ndarray, settings: dict, threads: int):
     """An empty scene: the camera of ``settings['camera']``, a compositor
     Image -> Defocus (Z from a second image's red channel) -> output."""
-    bpy.ops.wm.read_factory_settings(use_empty=True)
+    # not read_factory_settings: it re-registers every add-on (factory.batch.empty_scene says why)
+    bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
     scene = bpy.context.scene
     h, w = img.shape[:2]
     r = scene.render

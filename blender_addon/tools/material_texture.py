@@ -29,7 +29,7 @@ import numpy as np
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from blender_addon.factory.batch import RenderSettings, _cpu_s, sample_seed, setup_render  # noqa: E402
+from blender_addon.factory.batch import RenderSettings, _cpu_s, empty_scene, sample_seed, setup_render  # noqa: E402
 
 OLD = "old"                 # the former recipes.material, for comparison
 DRAWN = "drawn"             # each surface's kind drawn by surface_material (kind=None), as the recipes do
@@ -99,7 +99,7 @@ def render_kind(kind: str, seed: int, height: int, width: int, textures=None, re
     from dcdi_core.io.images import read_image
     from dcdi_core.optics.lens import load_lens
 
-    bpy.ops.wm.read_factory_settings(use_empty=True)
+    empty_scene()
     scene = bpy.context.scene
     build_scene(kind, np.random.default_rng(seed), textures)
     setup_render(scene, load_lens("mos-s1"), height, width, render, seed)
