@@ -9,6 +9,8 @@
                                       # Xvfb, --background): $BLENDER, else `blender` on PATH, else one
                                       # provisioned by blender_addon/tools/real_blender.sh (Debian, root)
     python build.py bench ARGS        # `dcdi bench ARGS` inside the environment
+    python build.py bench trace       # `dcdi bench trace`, beside Optiland 0.6.3 (its own venv
+                                      # .venv-optiland/, made here once: it needs numpy 2)
     python build.py bench factory [--quick] [--recipe R]  # the dataset factory's samples per hour
     python build.py bench render [--quick]    # `dcdi bench render`, then the lens bokeh beside
                                               # Blender's Defocus node (time, memory, distance)
@@ -126,6 +128,23 @@ def ensure_environment() -> Path:
     tmp = STAMP.with_suffix(".tmp")
     tmp.write_text(wanted + "\n")
     os.replace(tmp, STAMP)
+    return py
+
+
+OPTILAND_VENV = ROOT / ".venv-optiland"
+OPTILAND = "optiland==0.6.3"
+
+
+def ensure_optiland() -> Path:
+    """The python of `.venv-optiland/` (made with Optiland 0.6.3 when missing):
+    the benchmark's other tracer, kept out of `.venv/` since it needs numpy 2."""
+    py = OPTILAND_VENV / ("Scripts/python.exe" if os.name == "nt" else "bin/python")
+    if py.exists() and subprocess.run([py, "-c", "import optiland"], capture_output=True).returncode == 0:
+        return py
+    print(f"build.py: making {OPTILAND_VENV.name}/ with {OPTILAND} (once; a minute or two)", flush=True)
+    if _run([find_python311(), "-m", "venv", "--clear", OPTILAND_VENV]) != 0 or \
+            _run([py, "-m", "pip", "install", "-q", "--disable-pip-version-check", OPTILAND]) != 0:
+        sys.exit(f"build.py: installing {OPTILAND} into {OPTILAND_VENV.name}/ failed (see pip's message above)")
     return py
 
 
@@ -492,6 +511,8 @@ def main(argv: list[str]) -> int:
         if rest[:1] == ["factory"]:
             picked = [rest[i + 1] for i, x in enumerate(rest[:-1]) if x == "--recipe"]
             return bench_factory(py, quick="--quick" in rest, recipes=picked or ("room", "leaves"))
+        if rest[:1] == ["trace"] and "--optiland" not in rest:
+            rest = [*rest, "--optiland", str(ensure_optiland())]
         code = _run([py, "-m", "dcdi_core", "bench", *rest])
         if code != 0 or rest[:1] != ["render"]:
             return code

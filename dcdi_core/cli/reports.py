@@ -235,6 +235,9 @@ def add_commands(sub) -> None:
     q.add_argument("--repeat", type=positive_int, default=3, help="timed repetitions (best is kept)")
     q.add_argument("--quick", action="store_true", help="psflib, render, dacn, correction: smaller (for tests)")
     q.add_argument("--threads", type=positive_int, default=1, help="dacn: torch threads (default 1)")
+    q.add_argument("--optiland", default=None, metavar="PYTHON",
+                   help="trace: also the MOS-S1 spot work beside Optiland 0.6.3, run by this interpreter (one with "
+                        "optiland==0.6.3: python build.py bench trace makes .venv-optiland/)")
     q.set_defaults(func=cmd_bench)
 
     q = sub.add_parser("demo", help="the demo job: DCDI end to end on a synthetic scene (a MOS-S1 capture, its correction "

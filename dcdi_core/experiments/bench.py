@@ -23,9 +23,11 @@ def _best(fn, repeat):
     return best, out
 
 
-def bench_trace(n_rays: int, repeat: int) -> int:
+def bench_trace(n_rays: int, repeat: int, optiland=None) -> int:
     """Trace n_rays through the double Gauss (11 surfaces + sensor), field 0.7, depth 2 m,
-    at 3 wavelengths; float64 and float32; baseline: the same kernel, unchunked, one thread."""
+    at 3 wavelengths; float64 and float32; baseline: the same kernel, unchunked, one thread. With
+    ``optiland`` (the python of an Optiland 0.6.3 environment) the MOS-S1 spot work beside
+    Optiland's (:func:`bench_trace_optiland`)."""
     from ..optics import trace as T
     from ..optics.aiming import pupil_rays, sources, stop_grid
     from ..optics.lens import load_lens
@@ -63,6 +65,113 @@ def bench_trace(n_rays: int, repeat: int) -> int:
     print(f"  float32 vs float64 on the sensor: max |dx,dy| = {diff.max() * 1e3:.4f} um, "
           f"rms = {np.sqrt((diff ** 2).mean()) * 1e3:.4f} um; "
           f"status disagreements: {int((b64.status != b32.status).sum())} of {n:,}")
+    if optiland is None:
+        print("  beside Optiland 0.6.3 (same spot work, goal dcdi >= 4x): python build.py bench trace, or "
+              "--optiland PYTHON (an interpreter with optiland==0.6.3)")
+        return 0
+    return bench_trace_optiland(n_rays, repeat, optiland)
+
+
+# `dcdi bench trace --optiland`: dcdi's spot work at least this many times Optiland 0.6.3's speed
+TRACE_GOAL = 4.0
+
+
+def check_optiland(python) -> None:
+    """Refuse an --optiland interpreter that is not there (before any work)."""
+    from ..errors import InputRangeError
+    if not (os.path.isfile(python) and os.access(python, os.X_OK)):
+        raise InputRangeError("--optiland", str(python), "an existing Python interpreter with optiland==0.6.3 "
+                                                         "(python build.py bench trace makes .venv-optiland/)")
+
+
+def optiland_spec(lens, aimed, wavelength_nm: float, side: int, repeat: int = 1) -> dict:
+    """The spec of optiland_spot.py for ``lens``'s spot work: its surfaces
+    (mm) with our material model's indices at ``wavelength_nm`` as constant
+    indices, the object distance (mm, object plane to the first vertex, as
+    our depths) and object heights (mm) of the sources ``aimed`` (one
+    depth), the stop grid's side and the timed repeats."""
+    if any(s.aspheric_coefficients or s.odd_aspheric_coefficients for s in lens.surfaces):
+        raise ValueError(f"lens {lens.id}: optiland_spot.py takes spheres and conics only")
+    if aimed.depth_mm.shape[1] != 1 or not aimed.ok.all():
+        raise ValueError("one depth, every field's chief ray aimed")
+    n = lens.refractive_indices([wavelength_nm])[:, 0]
+    z_obj = aimed.depth_mm[:, 0]
+    return {"surfaces": [{"radius_mm": None if math.isinf(s.radius_mm) else s.radius_mm, "conic": s.conic,
+                          "thickness_mm": s.thickness_mm, "semi_diameter_mm": s.semi_diameter_mm,
+                          "index": float(n[i + 1])} for i, s in enumerate(lens.surfaces)],
+            "stop_index": lens.stop_index, "object_distance_mm": float(z_obj[0]), "object_index": float(n[0]),
+            # launch()'s object point: y = -p (depth + z_EP), so that the image lands at +y
+            "field_heights_mm": (-aimed.p[:, 0] * (z_obj + aimed.z_ep)).tolist(),
+            "wavelength_nm": float(wavelength_nm), "pupil_samples": side, "repeat": repeat}
+
+
+def _spot(pos, ok) -> tuple[float, float, float]:
+    """Centroid x, y and RMS radius about it (mm) of one spot's valid rays."""
+    x, y = pos[ok, 0], pos[ok, 1]
+    cx, cy = x.mean(), y.mean()
+    return float(cx), float(cy), float(np.sqrt(np.mean((x - cx) ** 2 + (y - cy) ** 2)))
+
+
+def bench_trace_optiland(n_rays: int, repeat: int, python) -> int:
+    """dcdi beside Optiland 0.6.3 (``python``: its interpreter) on the same
+    spot work: MOS-S1, object at 2 m, fields 0 and 0.7, the design wavelength
+    (Optiland traces one wavelength per call), about n_rays rays on a square
+    grid over the stop (the same points); each side aims and traces (dcdi:
+    pupil_rays + trace; Optiland: Optic.trace, paraxial aiming, which is
+    exact for a stop in front, record=False), float64. Runs alternated, best
+    of ``repeat``; each Optiland run is a process of its own (numba warm-up
+    untimed). The spots (centroid, RMS radius) show the work is the same."""
+    import json
+    import subprocess
+    from pathlib import Path
+
+    from ..optics import trace as T
+    from ..optics.aiming import pupil_rays, sources, stop_grid
+    from ..optics.lens import load_lens
+
+    lens = load_lens("mos-s1")
+    wl, fields = lens.wavelength_nm, [0.0, 0.7]
+    side = max(1, int(round(math.sqrt(n_rays / len(fields) * 4 / math.pi))))
+    aimed = sources(lens, [2.0], field=fields, wavelength_nm=wl)
+    targets = stop_grid(lens, side)
+    spec = json.dumps(optiland_spec(lens, aimed, wl, side))
+    script = str(Path(__file__).with_name("optiland_spot.py"))
+
+    def ours():
+        o, d, st, _ = pupil_rays(lens, aimed, targets, wl)
+        return T.trace(lens, o, d, wl, status=st)
+
+    def theirs():
+        p = subprocess.run([str(python), script], input=spec, capture_output=True, text=True)
+        if p.returncode != 0:
+            raise RuntimeError(f"{python} {script} failed: {p.stderr[-800:]}")
+        return json.loads(p.stdout)
+
+    ours()                                           # warms the thread pool
+    t_ours, t_theirs = math.inf, math.inf
+    for _ in range(repeat):                          # alternated: the load changes both alike
+        t, b = _best(ours, 1)
+        t_ours = min(t_ours, t)
+        r = theirs()
+        t_theirs = min(t_theirs, r["seconds"])
+    n_ours, n_theirs = b.status.size, r["rays"]
+    print(f"bench trace beside Optiland 0.6.3: mos-s1 ({len(lens.surfaces)} surfaces + sensor), object at 2 m, "
+          f"fields {fields[0]:g} and {fields[1]:g}, {wl:g} nm, a {side}^2 grid over the stop, float64, aiming + "
+          f"trace, {os.cpu_count()} CPU(s), best of {repeat}, runs alternated")
+    for name, t, n in (("dcdi", t_ours, n_ours), ("Optiland 0.6.3", t_theirs, n_theirs)):
+        print(f"  {name:15s} {t * 1e3:8.1f} ms  {n:,} rays  {n / t / 1e6:6.2f} M rays/s")
+    ratio = (n_ours / t_ours) / (n_theirs / t_theirs)
+    print(f"  dcdi / Optiland (rays/s): x{ratio:.2f}  goal >= {TRACE_GOAL:.1f}x: "
+          f"{'met' if ratio >= TRACE_GOAL else 'NOT met'}; load average {os.getloadavg()[0]:.2f}")
+    pos, valid = b.position_mm[:, 0], b.valid[:, 0]
+    for i, f in enumerate(fields):
+        cx, cy, rms = _spot(pos[i], valid[i])
+        s = r["spots"][i]
+        dc = math.hypot(cx - s["centroid_mm"][0], cy - s["centroid_mm"][1])
+        print(f"  spot at field {f:g}: RMS radius {rms * 1e3:.4f} um (Optiland {s['rms_radius_mm'] * 1e3:.4f}), "
+              f"centroid ({cx:.6f}, {cy:.6f}) mm (Optiland ({s['centroid_mm'][0]:.6f}, {s['centroid_mm'][1]:.6f})); "
+              f"differ by {abs(rms - s['rms_radius_mm']) * 1e3:.2g} and {dc * 1e3:.2g} um; "
+              f"rays reaching the sensor {int(valid[i].sum()):,} ({s['valid']:,})")
     return 0
 
 
@@ -676,7 +785,10 @@ def run(what: str, args) -> int:
     if what == "render":
         return bench_render(getattr(args, "quick", False))
     if what == "trace":
-        return bench_trace(args.rays, args.repeat)
+        optiland = getattr(args, "optiland", None)
+        if optiland is not None:
+            check_optiland(optiland)
+        return bench_trace(args.rays, args.repeat, optiland)
     if what == "psflib":
         return bench_psflib(getattr(args, "quick", False))
     raise ValueError(f"unknown benchmark {what!r}")

@@ -91,3 +91,38 @@ def test_bench_trace_runs_and_reports(capsys):
     code, out, _ = _run(capsys, "bench", "trace", "--rays", "3000", "--repeat", "1")
     assert code == 0
     assert "M ray-surface/s" in out and "baseline" in out and "float32 vs float64" in out
+    assert "python build.py bench trace" in out and "--optiland" in out
+
+
+def test_bench_trace_optiland_spec_is_mos_s1():
+    import ast
+    from pathlib import Path
+
+    from dcdi_core.experiments.bench import optiland_spec
+    from dcdi_core.optics.aiming import sources
+    from dcdi_core.optics.lens import load_lens
+
+    lens = load_lens("mos-s1")
+    aimed = sources(lens, [2.0], field=[0.0, 0.7])
+    spec = json.loads(json.dumps(optiland_spec(lens, aimed, 587.5618, 64)))   # what the script reads
+    surfs = spec["surfaces"]
+    assert len(surfs) == 5 and spec["stop_index"] == 0 and spec["surfaces"][0]["semi_diameter_mm"] == 1.995
+    assert [s["index"] for s in surfs] == pytest.approx(lens.refractive_indices([587.5618])[1:, 0].tolist())
+    assert surfs[1]["index"] == pytest.approx(1.5168, abs=1e-4) and spec["object_index"] == 1.0
+    assert [s["radius_mm"] for s in surfs] == [None, -37.536, -8.711, None, None]
+    assert sum(s["thickness_mm"] for s in surfs) == pytest.approx(lens.sensor_z_mm)
+    assert spec["object_distance_mm"] == 2000.0 and spec["pupil_samples"] == 64
+    # field 0 on axis; field 0.7 below it (its image above), the entrance pupil being the stop at z = 0
+    assert spec["field_heights_mm"][0] == 0.0 and spec["field_heights_mm"][1] == pytest.approx(-2000 * aimed.p[1, 0])
+    script = Path(__file__).parents[2] / "dcdi_core" / "experiments" / "optiland_spot.py"
+    tops = {a.name.split(".")[0] for n in ast.walk(ast.parse(script.read_text())) if isinstance(n, ast.Import)
+            for a in n.names}
+    tops |= {n.module.split(".")[0] for n in ast.walk(ast.parse(script.read_text())) if isinstance(n, ast.ImportFrom)}
+    assert tops == {"json", "sys", "time", "numpy", "optiland"}
+
+
+def test_bench_trace_refuses_a_missing_optiland_interpreter(capsys, tmp_path):
+    missing = str(tmp_path / "no-python")
+    code, out, err = _run(capsys, "bench", "trace", "--optiland", missing)
+    assert code == 2 and out == ""
+    assert err.count("\n") == 1 and "--optiland" in err and missing in err
