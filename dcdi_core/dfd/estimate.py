@@ -1,0 +1,235 @@
+"""Metric depth from a capture's own blur: for each tile, the depth of the
+lens's PSF library whose blur best explains the tile's spectrum
+(``evidence``), a confidence from how sharply the evidence picks it, and
+uncertain tiles filled from confident ones along the capture's edges
+(``fill``).
+
+Units: depths in metres, inverse depths (diopters) in 1/m, sizes in pixels.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import InputRangeError
+from . import evidence, fill
+
+
+@dataclass(frozen=True)
+class DepthFromBlurOptions:
+    """How :func:`estimate_depth` reads depth from blur, checked when made.
+
+    tile: px between evidence windows (one estimate per tile). window: the
+    side of each window (px, >= tile; about four PSF widths: larger windows
+    see more texture and blur less of a depth edge into their neighbours).
+    max_frequency: the highest spatial frequency used (cycles/px; above it
+    these lenses pass only noise). colour_residual: the colour texture's
+    power beside the shared texture's (0: grey scenes; the chromatic cue
+    then carries most). model_error: the share of the sharp texture's power
+    the PSFs may fail to explain (their error; see ``evidence``).
+    amplitude_steps: the texture amplitudes tried about
+    each window's own estimate (the likelihood is minimised over them).
+    hypothesis_step: every n-th depth bin of the library is a hypothesis.
+    kernel_share: one PSF for each kernel_share x kernel_share tiles (the
+    one at their block's centre).
+    temperature: the evidence's scale in the confidence (the windows'
+    frequencies are not independent: > 1 widens the posterior).
+    tolerance: the confidence is the posterior's mass within this relative
+    inverse-depth error of the estimate. fill_radius: the guided filter's
+    radius (px; None: the tile), fill_eps its edge threshold (the guide's
+    variance units)."""
+
+    tile: int = 32
+    window: int = 64
+    max_frequency: float = 0.71
+    colour_residual: float = 0.1
+    model_error: float = 0.03
+    amplitude_steps: tuple = (1.0, 4.0, 16.0, 64.0)
+    hypothesis_step: int = 2
+    kernel_share: int = 2
+    temperature: float = 30.0
+    tolerance: float = 0.15
+    fill_radius: int | None = None
+    fill_eps: float = 0.01
+
+    def __post_init__(self):
+        def integer(name, lo, hi):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
+                raise InputRangeError(name, v, f"an integer in [{lo}, {hi}]")
+
+        def number(name, lo, hi, lo_open=True):
+            v = getattr(self, name)
+            ok = isinstance(v, (int, float, np.floating)) and not isinstance(v, bool) and np.isfinite(v)
+            if not ok or not ((v > lo) if lo_open else (v >= lo)) or v > hi:
+                raise InputRangeError(name, v, f"a number in {'(' if lo_open else '['}{lo}, {hi}]")
+
+        integer("tile", 8, 256)
+        integer("window", 16, 512)
+        if self.window < self.tile:
+            raise InputRangeError("window", self.window, f">= the tile ({self.tile} px)")
+        integer("hypothesis_step", 1, 16)
+        integer("kernel_share", 1, 8)
+        number("max_frequency", 0.0, 0.71)
+        number("colour_residual", 0.0, 10.0, lo_open=False)
+        number("model_error", 0.0, 1.0, lo_open=False)
+        number("temperature", 0.0, 1e6)
+        number("tolerance", 0.0, 1.0)
+        number("fill_eps", 0.0, 1e3)
+        if self.fill_radius is not None:
+            integer("fill_radius", 1, 1024)
+        steps = np.asarray(self.amplitude_steps, dtype=float)
+        if steps.ndim != 1 or steps.size == 0 or not (np.isfinite(steps).all() and (steps > 0).all()):
+            raise InputRangeError("amplitude_steps", self.amplitude_steps, "one or more numbers > 0")
+
+
+@dataclass
+class DepthEstimate:
+    """``depth_m`` (H, W) float32 metres within the library's [near, far];
+    ``confidence`` (H, W) float32 in [0, 1] (the posterior's mass within
+    the tolerance of the estimate; 0 where the tile was clipped or had no
+    texture above the noise); the per-tile figures before filling
+    (``tile_diopters`` 1/m, ``tile_confidence``); ``info``: the hypotheses,
+    noise model and seconds."""
+
+    depth_m: np.ndarray
+    confidence: np.ndarray
+    tile_diopters: np.ndarray
+    tile_confidence: np.ndarray
+    info: dict = field(default_factory=dict)
+
+
+def check_capture(capture) -> np.ndarray:
+    img = np.asarray(capture)
+    if img.ndim != 3 or img.shape[2] != 3:
+        raise InputRangeError("capture shape", img.shape, "(H, W, 3) linear RGB")
+    if min(img.shape[:2]) < 16:
+        raise InputRangeError("capture size", img.shape[:2], "at least 16 x 16 px")
+    img = img.astype(np.float32, copy=False)
+    bad = ~np.isfinite(img)
+    if bad.any():
+        raise InputRangeError("capture", f"{int(bad.sum())} NaN or infinite values", "finite linear values")
+    return img
+
+
+def _posterior(nll: np.ndarray, depths_m: np.ndarray, temperature: float, tolerance: float):
+    """(estimate (n,) metres, confidence (n,)) from the NLL (hypotheses, n)
+    of hypotheses at ``depths_m`` (finite: the library's far limit for
+    infinity). The estimate minimises the expected relative depth error
+    under the posterior p ~ exp(-NLL / temperature): the median of the
+    hypotheses weighted by p / depth. The confidence: the posterior's mass
+    within ``tolerance`` relative error of the estimate."""
+    logp = -(nll - nll.min(0)) / temperature
+    p = np.exp(logp)
+    p /= p.sum(0)
+    order = np.argsort(depths_m)
+    z = depths_m[order]
+    wz = p[order] / z[:, None]
+    cum = np.cumsum(wz, 0)
+    k = (cum < 0.5 * cum[-1]).sum(0)
+    est = z[np.minimum(k, len(z) - 1)]
+    conf = (p * (np.abs(depths_m[:, None] - est) <= tolerance * est)).sum(0)
+    return est, conf
+
+
+def _profile(spectra, K, options, sel) -> np.ndarray:
+    """The profiled NLL of windows ``sel`` (indices) under ``K`` (all windows'), in chunks on the pool."""
+    from ..parallel import thread_pool, workers
+    steps = np.asarray(options.amplitude_steps, float)
+    chunks = [c for c in np.array_split(sel, workers()) if len(c)]
+    parts = thread_pool().map(lambda c: spectra.rows(c).profile_nll(K[c], options.colour_residual,
+                                                                    options.model_error, steps), chunks)
+    return np.concatenate(list(parts)) if chunks else np.empty(0)
+
+
+def _hypothesis_nll(spectra, transfer, n: int, options, progress) -> np.ndarray:
+    """NLL (n hypotheses, windows): every other hypothesis (and the last,
+    infinity) for every window; each one between them only for the windows
+    whose best so far is a neighbour of it, elsewhere the mean of its
+    neighbours' (far from the best: no posterior mass either way).
+    ``transfer(i)``: the transfer functions of hypothesis i."""
+    m = len(spectra.a0)
+    coarse = list(range(0, n, 2)) + ([n - 1] if (n - 1) % 2 else [])
+    nll = np.full((n, m), np.nan)
+    everyone = np.arange(m)
+    for done, i in enumerate(coarse):
+        nll[i] = _profile(spectra, transfer(i), options, everyone)
+        if progress is not None:
+            progress(done + 1, n)
+    best = np.asarray(coarse)[np.argmin(nll[coarse], 0)]
+    for done, i in enumerate(sorted(set(range(n)) - set(coarse))):
+        sel = np.nonzero(np.abs(best - i) <= 1)[0]
+        if len(sel):
+            nll[i, sel] = _profile(spectra, transfer(i), options, sel)
+        rest = np.isnan(nll[i])
+        nll[i, rest] = 0.5 * (nll[i - 1, rest] + nll[i + 1, rest])
+        if progress is not None:
+            progress(len(coarse) + done + 1, n)
+    return nll
+
+
+def estimate_depth(capture, library, geometry, options: DepthFromBlurOptions | None = None, *, noise=None,
+                   progress=None) -> DepthEstimate:
+    """Depth of ``capture`` (H, W, 3) float32 linear, taken through the lens
+    of ``library`` (its PSFs at the capture's pixel pitch) at ``geometry``
+    (``render.geometry.ImageGeometry``: the capture on the lens's sensor).
+    ``noise``: the sensor's ``correct.NoiseModel`` (None: estimated from the
+    capture). ``progress(done, total)``: called per depth hypothesis."""
+    from ..correct.noise import estimate_noise
+    from ..render.psfmap import psf_map
+
+    options = options or DepthFromBlurOptions()
+    img = check_capture(capture)
+    h, w = img.shape[:2]
+    if (geometry.height, geometry.width) != (h, w):
+        raise InputRangeError("geometry", (geometry.height, geometry.width), f"({h}, {w}), the capture's size")
+    t0 = time.perf_counter()
+    noise = noise if noise is not None else estimate_noise(img)
+    s, size = options.tile, options.window
+    blocks = evidence.bins(size, options.max_frequency)
+    index = evidence.block_index(size, blocks[0])
+    spectra = evidence.WindowSpectra(img, s, size, blocks, noise)
+    (nph, npw), clipped = spectra.tiles, spectra.clipped
+    t_spectra = time.perf_counter() - t0
+
+    grid = library.grid
+    idx = np.arange(0, len(grid.diopters), options.hypothesis_step)
+    if idx[-1] != len(grid.diopters) - 1:
+        idx = np.append(idx, len(grid.diopters) - 1)          # infinity is always a hypothesis
+    depths = grid.depths_m[idx]
+    library.ensure(bins=idx)
+    t_kernels = [0.0]
+
+    def transfer(i):
+        t = time.perf_counter()
+        # one kernel for each share x share tiles: a PSF changes little over a few tiles
+        m = s * options.kernel_share
+        pm = psf_map(library, geometry, np.full((h, w), depths[i]), m, clamp_field=True)
+        K = evidence.otfs(pm.kernels, size, index)                          # (kph, kpw, 3, B)
+        K = np.repeat(np.repeat(K, options.kernel_share, 0), options.kernel_share, 1)[:nph, :npw]
+        K = K.reshape((-1,) + K.shape[2:])
+        t_kernels[0] += time.perf_counter() - t
+        return K
+
+    nll = _hypothesis_nll(spectra, transfer, len(depths), options, progress)
+    t_kernels = t_kernels[0]
+    est, conf = _posterior(nll, np.minimum(depths, grid.far_m), options.temperature, options.tolerance)
+    conf = np.where(~np.isfinite(nll).all(0) | clipped, 0.0, conf)
+    tile_d, tile_c = (1.0 / est).reshape(nph, npw), conf.reshape(nph, npw)
+    t_evidence = time.perf_counter() - t0 - t_spectra
+
+    filled = fill.spread(tile_d, tile_c)
+    r = options.fill_radius or s
+    pixel_d = fill.guided(fill.luminance_guide(img), fill.upsample(filled, s, (h, w)), r, options.fill_eps)
+    pixel_c = np.clip(fill.upsample(tile_c, s, (h, w)), 0.0, 1.0)
+    near, far = grid.near_m, grid.far_m
+    pixel_d = np.clip(np.nan_to_num(pixel_d, nan=1.0 / far), 1.0 / far, 1.0 / near)
+    depth = (1.0 / pixel_d).astype(np.float32)
+    seconds = {"spectra": t_spectra, "kernels": t_kernels, "evidence": t_evidence - t_kernels,
+               "fill": time.perf_counter() - t0 - t_spectra - t_evidence}
+    info = {"hypotheses_m": [float(x) for x in depths], "tiles": [nph, npw], "tile_px": s, "window_px": size,
+            "noise": {"gain": noise.gain, "floor": noise.floor}, "seconds": seconds,
+            "confident_share": float((tile_c >= 0.5).mean())}
+    return DepthEstimate(depth, pixel_c.astype(np.float32), tile_d, tile_c, info)
