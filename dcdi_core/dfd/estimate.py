@@ -33,7 +33,9 @@ class DepthFromBlurOptions:
     each window's own estimate (the likelihood is minimised over them).
     hypothesis_step: every n-th depth bin of the library is a hypothesis.
     kernel_share: one PSF for each kernel_share x kernel_share tiles (the
-    one at their block's centre).
+    one at their block's centre). sharpness_px: the sharp image's own
+    softness tried (a Gaussian's sigma, px; the likelihood is minimised
+    over them): a render's pixel filter or a sensor's pixel is not defocus.
     temperature: the evidence's scale in the confidence (the windows'
     frequencies are not independent: > 1 widens the posterior).
     tolerance: the confidence is the posterior's mass within this relative
@@ -44,11 +46,15 @@ class DepthFromBlurOptions:
     tile: int = 32
     window: int = 64
     max_frequency: float = 0.71
-    colour_residual: float = 0.1
-    model_error: float = 0.03
-    amplitude_steps: tuple = (1.0, 4.0, 16.0, 64.0)
+    colour_residual: float = 0.02
+    model_error: float = 0.01
+    amplitude_steps: tuple = (2.0, 8.0, 32.0)
     hypothesis_step: int = 2
     kernel_share: int = 2
+    sharpness_px: tuple = (0.0, 0.7, 1.4)
+    aggregate: int = 1
+    prior: str = "diopter"
+    aggregate_colour: float = 0.2
     temperature: float = 30.0
     tolerance: float = 0.15
     fill_radius: int | None = None
@@ -72,6 +78,11 @@ class DepthFromBlurOptions:
             raise InputRangeError("window", self.window, f">= the tile ({self.tile} px)")
         integer("hypothesis_step", 1, 16)
         integer("kernel_share", 1, 8)
+        integer("aggregate", 0, 8)
+        number("aggregate_colour", 0.0, 1e3)
+        if self.prior not in ("log-depth", "diopter"):
+            raise InputRangeError("prior", self.prior, "'log-depth' (uniform in log depth) or 'diopter' (uniform in "
+                                  "inverse depth)")
         number("max_frequency", 0.0, 0.71)
         number("colour_residual", 0.0, 10.0, lo_open=False)
         number("model_error", 0.0, 1.0, lo_open=False)
@@ -80,6 +91,9 @@ class DepthFromBlurOptions:
         number("fill_eps", 0.0, 1e3)
         if self.fill_radius is not None:
             integer("fill_radius", 1, 1024)
+        sharp = np.asarray(self.sharpness_px, dtype=float)
+        if sharp.ndim != 1 or sharp.size == 0 or not (np.isfinite(sharp).all() and (sharp >= 0).all()):
+            raise InputRangeError("sharpness_px", self.sharpness_px, "one or more numbers >= 0 (px)")
         steps = np.asarray(self.amplitude_steps, dtype=float)
         if steps.ndim != 1 or steps.size == 0 or not (np.isfinite(steps).all() and (steps > 0).all()):
             raise InputRangeError("amplitude_steps", self.amplitude_steps, "one or more numbers > 0")
@@ -114,15 +128,26 @@ def check_capture(capture) -> np.ndarray:
     return img
 
 
-def _posterior(nll: np.ndarray, depths_m: np.ndarray, temperature: float, tolerance: float):
+def log_depth_prior(diopters: np.ndarray, far_m: float) -> np.ndarray:
+    """Prior log-weights of hypotheses at ``diopters`` (1/m, decreasing, the
+    last 0: infinity) uniform in log depth: each one's cell (half-way to its
+    neighbours, in diopters) times its depth (d log z = dD / D), infinity
+    counted as ``far_m``."""
+    d = np.asarray(diopters, float)
+    edges = np.concatenate([[d[0] + (d[0] - d[1]) / 2], (d[:-1] + d[1:]) / 2, [max(d[-1] - (d[-2] - d[-1]) / 2, 0.0)]])
+    width = np.abs(np.diff(edges))
+    return np.log(width * np.minimum(1.0 / np.maximum(d, 1e-12), far_m))
+
+
+def _posterior(nll: np.ndarray, depths_m: np.ndarray, temperature: float, tolerance: float, log_prior=0.0):
     """(estimate (n,) metres, confidence (n,)) from the NLL (hypotheses, n)
     of hypotheses at ``depths_m`` (finite: the library's far limit for
     infinity). The estimate minimises the expected relative depth error
     under the posterior p ~ exp(-NLL / temperature): the median of the
     hypotheses weighted by p / depth. The confidence: the posterior's mass
     within ``tolerance`` relative error of the estimate."""
-    logp = -(nll - nll.min(0)) / temperature
-    p = np.exp(logp)
+    logp = -(nll - nll.min(0)) / temperature + np.reshape(log_prior, (-1, 1))
+    p = np.exp(logp - logp.max(0))
     p /= p.sum(0)
     order = np.argsort(depths_m)
     z = depths_m[order]
@@ -132,6 +157,26 @@ def _posterior(nll: np.ndarray, depths_m: np.ndarray, temperature: float, tolera
     est = z[np.minimum(k, len(z) - 1)]
     conf = (p * (np.abs(depths_m[:, None] - est) <= tolerance * est)).sum(0)
     return est, conf
+
+
+def aggregate(nll: np.ndarray, colour: np.ndarray, radius: int, sigma: float) -> np.ndarray:
+    """The evidence of each tile (hypotheses, nph, npw) joined with its
+    neighbours' within ``radius`` tiles, each weighted by how alike the
+    tiles' mean colours are (log RGB distance, scale ``sigma``): a depth
+    edge is most often a colour edge too, so the weights keep them apart."""
+    logc = np.log(np.maximum(colour, 1e-4))
+    nh, h, w = nll.shape
+    pad = np.pad(nll, ((0, 0), (radius, radius), (radius, radius)), mode="edge")
+    padc = np.pad(logc, ((radius, radius), (radius, radius), (0, 0)), mode="edge")
+    out = np.zeros_like(nll)
+    total = np.zeros((h, w))
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            c = padc[radius + dy:radius + dy + h, radius + dx:radius + dx + w]
+            wgt = np.exp(-((c - logc) ** 2).sum(-1) / (2 * sigma ** 2))
+            out += wgt * pad[:, radius + dy:radius + dy + h, radius + dx:radius + dx + w]
+            total += wgt
+    return out / total
 
 
 def _profile(spectra, K, options, sel) -> np.ndarray:
@@ -190,7 +235,7 @@ def estimate_depth(capture, library, geometry, options: DepthFromBlurOptions | N
     s, size = options.tile, options.window
     blocks = evidence.bins(size, options.max_frequency)
     index = evidence.block_index(size, blocks[0])
-    spectra = evidence.WindowSpectra(img, s, size, blocks, noise)
+    spectra = evidence.WindowSpectra(img, s, size, blocks, noise, options.sharpness_px)
     (nph, npw), clipped = spectra.tiles, spectra.clipped
     t_spectra = time.perf_counter() - t0
 
@@ -214,8 +259,12 @@ def estimate_depth(capture, library, geometry, options: DepthFromBlurOptions | N
         return K
 
     nll = _hypothesis_nll(spectra, transfer, len(depths), options, progress)
+    if options.aggregate > 0:
+        nll = aggregate(nll.reshape(len(depths), nph, npw), spectra.mean.reshape(nph, npw, 3), options.aggregate,
+                        options.aggregate_colour).reshape(len(depths), -1)
     t_kernels = t_kernels[0]
-    est, conf = _posterior(nll, np.minimum(depths, grid.far_m), options.temperature, options.tolerance)
+    prior = log_depth_prior(grid.diopters[idx], grid.far_m) if options.prior == "log-depth" else 0.0
+    est, conf = _posterior(nll, np.minimum(depths, grid.far_m), options.temperature, options.tolerance, prior)
     conf = np.where(~np.isfinite(nll).all(0) | clipped, 0.0, conf)
     tile_d, tile_c = (1.0 / est).reshape(nph, npw), conf.reshape(nph, npw)
     t_evidence = time.perf_counter() - t0 - t_spectra

@@ -52,15 +52,15 @@ def bins(size: int, max_frequency: float):
     """The 2 x 2 blocks of a size x size window's rfft2 bins the likelihood
     sums over (a transfer function of a PSF a third of the window wide
     barely changes across a block): (members (B, 4) flat indices into the
-    rfft2 grid, -1 where a block has fewer, count (B,), shape (B,) the mean
-    of 1 / (|f|^2 + f0^2) over the members, f0 = 1 / size) of the blocks
-    whose first frequency lies within ``max_frequency``; the DC bin is in no
-    block. Block (i, j) is sampled at frequency (2i, 2j) / size: the
-    transfer function of a kernel folded onto size / 2 (:func:`otfs`)."""
+    rfft2 grid, -1 where a block has fewer; count (B,); f2 (B, 4) the
+    members' |f|^2, cycles^2/px^2, NaN where none) of the blocks whose first
+    frequency lies within ``max_frequency``; the DC bin is in no block.
+    Block (i, j) is sampled at frequency (2i, 2j) / size: the transfer
+    function of a kernel folded onto size / 2 (:func:`otfs`)."""
     half = size // 2
     cols = size // 2 + 1
     fy, fx = np.fft.fftfreq(size), np.fft.rfftfreq(size)
-    members, count, shape = [], [], []
+    members, count, f2 = [], [], []
     for i in range(half):
         for j in range(half // 2 + 1):
             if fy[2 * i] ** 2 + fx[2 * j] ** 2 > max_frequency ** 2:
@@ -69,8 +69,17 @@ def bins(size: int, max_frequency: float):
                  if c < cols and (r, c) != (0, 0)]
             members.append(m + [-1] * (4 - len(m)))
             count.append(len(m))
-            shape.append(np.mean([1.0 / (fy[k // cols] ** 2 + fx[k % cols] ** 2 + size ** -2.0) for k in m]))
-    return np.array(members), np.array(count, np.float32), np.array(shape, np.float32)
+            f2.append([fy[k // cols] ** 2 + fx[k % cols] ** 2 for k in m] + [np.nan] * (4 - len(m)))
+    return np.array(members), np.array(count, np.float32), np.array(f2)
+
+
+def prior_shape(f2: np.ndarray, size: int, sharpness_px: float) -> np.ndarray:
+    """The sharp texture's power spectrum's shape summed over each block
+    (B,): 1 / (|f|^2 + f0^2), f0 = 1 / size, times a Gaussian blur of
+    ``sharpness_px`` (the sharp image's own softness: a render's pixel
+    filter, a sensor's pixel), averaged over the block's members."""
+    g = np.exp(-(2 * np.pi * sharpness_px) ** 2 * f2) / (f2 + size ** -2.0)
+    return np.nanmean(g, axis=1).astype(np.float32)
 
 
 def block_index(size: int, members: np.ndarray) -> np.ndarray:
@@ -110,12 +119,14 @@ class WindowSpectra:
     value ``a0`` (n,), the blocks' ``count`` and prior ``shape`` (B,)."""
 
     def __init__(self, capture: np.ndarray, stride: int, size: int, blocks, noise_model,
-                 colour_floor: float = 0.05):
+                 sharpness_px=(0.0,), colour_floor: float = 0.05):
         """Of the windows of ``capture`` (H, W, 3) centred on its stride x
         stride tiles (:func:`windows`), a band of tile rows at a time on the
         pool."""
         from ..parallel import thread_pool
-        members, self.count, self.shape = blocks
+        members, self.count, f2 = blocks
+        self.shapes = [prior_shape(f2, size, sp) for sp in sharpness_px]
+        self.shape = self.shapes[0]
         h, w = capture.shape[:2]
         nph = -(-h // stride)
         pad = (size - stride) // 2
@@ -150,20 +161,21 @@ class WindowSpectra:
     def rows(self, sel) -> "WindowSpectra":
         """The same for the windows ``sel`` only."""
         part = object.__new__(WindowSpectra)
-        part.count, part.shape = self.count, self.shape
+        part.count, part.shape, part.shapes = self.count, self.shape, self.shapes
         for name in ("power", "cross", "noise", "a", "a0", "mean", "clipped"):
             setattr(part, name, getattr(self, name)[sel])
         return part
 
-    def nll(self, K: np.ndarray, amplitude: np.ndarray, rho: float, eta: float) -> np.ndarray:
+    def nll(self, K: np.ndarray, amplitude: np.ndarray, rho: float, eta: float, shape=None) -> np.ndarray:
         """Negative log-likelihood (n,) of each window under transfer
         functions ``K`` (n, 3, B) and texture amplitudes ``amplitude`` (n,);
         ``rho``: the colour residual's share, ``eta``: the PSF model's error,
         a share of the sharp texture's power that no hypothesis explains
         (without it a hypothesis whose transfer function has a zero where the
         true one has not is refused outright, and the evidence jumps from one
-        depth bin to the next)."""
-        P = amplitude[:, None] * self.shape                                  # (n, B)
+        depth bin to the next). ``shape``: the prior's (B,), default the
+        first of ``shapes``."""
+        P = amplitude[:, None] * (self.shape if shape is None else shape)                                 # (n, B)
         v = self.a[..., None] * K                                            # (n, 3, B)
         v2 = v.real ** 2 + v.imag ** 2
         D = (self.noise[..., None] + rho * P[:, None, :] * v2
@@ -178,5 +190,6 @@ class WindowSpectra:
         return (quad + self.count * logdet).sum(-1, dtype=np.float64)
 
     def profile_nll(self, K: np.ndarray, rho: float, eta: float, steps: np.ndarray) -> np.ndarray:
-        """The NLL (n,) minimised over the texture amplitude ``a0 * steps``."""
-        return np.min([self.nll(K, self.a0 * s, rho, eta) for s in steps], axis=0)
+        """The NLL (n,) minimised over the texture amplitude ``a0 * steps``
+        and the prior's shapes (the sharp image's softness)."""
+        return np.min([self.nll(K, self.a0 * s, rho, eta, shape) for s in steps for shape in self.shapes], axis=0)

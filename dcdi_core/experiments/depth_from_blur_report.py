@@ -53,15 +53,18 @@ def geometry(lens, where: str):
     return ImageGeometry.from_pixel_pitch(lens, h, w, PITCH_MM, ((sh - 1) / 2 - (sh - h), (sw - 1) / 2 - (sw - w)))
 
 
-def oracle_tiles(img, lens, g, library, capture, tile: int) -> np.ndarray:
-    """Per tile, the hypothesis depth whose simulation of the true sharp image is nearest the capture (SSE)."""
+def oracle_tiles(img, lens, g, library, capture, tile: int, distortion: bool = True) -> np.ndarray:
+    """Per tile, the hypothesis depth whose simulation of the true sharp image
+    is nearest the capture (SSE); ``distortion`` False for a sharp image
+    already on the sensor (a DA2T pair's target)."""
     from ..render.simulate import SimulateOptions, simulate
     depths = np.minimum(library.grid.depths_m[::2], library.grid.far_m)
     h, w = capture.shape[:2]
     nph, npw = -(-h // tile), -(-w // tile)
     err = []
     for d in depths:
-        sim = simulate(img, np.full((h, w), d, np.float32), lens, SimulateOptions(geometry=g), library=library).image
+        sim = simulate(img, np.full((h, w), d, np.float32), lens, SimulateOptions(geometry=g, distortion=distortion),
+                       library=library).image
         e = ((sim - capture) ** 2).sum(-1)
         e = np.pad(e, ((0, nph * tile - h), (0, npw * tile - w)))
         err.append(e.reshape(nph, tile, npw, tile).sum((1, 3)))
@@ -142,13 +145,78 @@ def tables(lenses, scenes, seeds, wheres) -> None:
     print("\n".join(detail))
 
 
+def pairs_table(pairs: dict, count: int, options=None, oracle: bool = True) -> None:
+    """The estimator on held-out DA2T pairs (``pairs`` {lens: folder}; the
+    factory's frames through the nominal lens at the pairs' pitch, with
+    noise): AbsRel against each frame's own median (the best constant) and
+    against the oracle that knows the sharp frame, over the pixels whose true
+    depth lies in the library's range."""
+    from ..app import PSFRequest, open_source
+    from ..dfd import estimate_depth
+    from ..models.dacn.data import finished_pairs, load_pair, pair_path
+    from ..optics.lens import load_lens
+    from ..render.geometry import ImageGeometry
+    print("| lens | pairs | scenes | AbsRel | constant (median) | ratio | oracle (sharp known) | "
+          "confident tiles (share) | wall s (CPU s) per frame |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for lens_id, folder in pairs.items():
+        lens = load_lens(lens_id)
+        recs = finished_pairs(folder)
+        ids = sorted(recs)[:count]
+        est_all, const_all, oracle_all, tiles, conf, secs = [], [], [], [], [], []
+        for pid in ids:
+            pair = load_pair(pair_path(folder, pid), recs[pid])
+            centre, pitch, _ = pair.geometry()
+            capture = np.nan_to_num(np.asarray(pair.capture, np.float32))
+            h, w = capture.shape[:2]
+            g = ImageGeometry.from_pixel_pitch(lens, h, w, pitch, centre)
+            library = open_source(lens, g, PSFRequest()).library
+            t, c = time.perf_counter(), time.process_time()
+            est = estimate_depth(capture, library, g, options)
+            secs.append((time.perf_counter() - t, time.process_time() - c))
+            depth = np.asarray(pair.depth)
+            ok = np.isfinite(depth) & (depth >= library.grid.near_m) & (depth <= library.grid.far_m)
+            truth = depth[ok]
+            est_all.append(np.abs(est.depth_m[ok] - truth) / truth)
+            const_all.append(np.abs(np.median(truth) - truth) / truth)
+            s = 32
+            sharp = np.nan_to_num(np.asarray(pair.target, np.float32))
+            orc = oracle_tiles(sharp, lens, g, library, capture, s, distortion=False) if oracle else np.nan
+            tt = np.pad(depth, ((0, -h % s), (0, -w % s)), constant_values=np.nan)[s // 2::s, s // 2::s]
+            good = np.isfinite(tt) & (tt >= library.grid.near_m) & (tt <= library.grid.far_m)
+            oracle_all.append((np.abs(orc - tt) / tt)[good])
+            tiles.append((np.abs(1.0 / est.tile_diopters - tt) / tt)[good])
+            conf.append(est.tile_confidence[good])
+        e, k, o = (np.concatenate(x) for x in (est_all, const_all, oracle_all))
+        t, c = np.concatenate(tiles), np.concatenate(conf)
+        sure = c >= 0.5
+        scenes = ", ".join(sorted({recs[p].get("scene", "").split("-")[0] or "?" for p in ids}))
+        print(f"| {lens_id} | {len(ids)} | {scenes} | {e.mean():.3f} | {k.mean():.3f} | {e.mean() / k.mean():.2f} | "
+              f"{o.mean():.3f} | {t[sure].mean() if sure.any() else float('nan'):.3f} ({sure.mean():.0%}) | "
+              f"{np.mean([x[0] for x in secs]):.1f} ({np.mean([x[1] for x in secs]):.1f}) |")
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--lenses", nargs="+", default=["mos-s1", "mos-s2"])
     p.add_argument("--scenes", nargs="+", default=["planes", "leaves"], choices=["planes", "leaves"])
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     p.add_argument("--where", nargs="+", default=["centre", "corner"], choices=["centre", "corner"])
+    p.add_argument("--pairs", action="append", default=None, metavar="LENS=DIR",
+                   help="held-out DA2T pairs of a lens (dcdi dacn pairs ... --perturb 0): the table on them "
+                        "instead of the synthetic one")
+    p.add_argument("--count", type=int, default=1000, help="pairs per lens at most")
+    p.add_argument("--set", action="append", default=[], metavar="OPTION=VALUE",
+                   help="an estimator option (DepthFromBlurOptions) other than its default, e.g. temperature=10")
+    p.add_argument("--no-oracle", action="store_true", help="pairs: leave out the oracle (it simulates 21 depths)")
     a = p.parse_args(argv)
+    if a.pairs:
+        import ast
+
+        from ..dfd import DepthFromBlurOptions
+        options = DepthFromBlurOptions(**{k: ast.literal_eval(v) for k, v in (x.split("=", 1) for x in a.set)})
+        pairs_table(dict(x.split("=", 1) for x in a.pairs), a.count, options, oracle=not a.no_oracle)
+        return 0
     tables(a.lenses, a.scenes, a.seeds, a.where)
     return 0
 
