@@ -107,6 +107,35 @@ def test_end_to_end_with_each_public_estimator_through_a_stand_in(scene, network
     assert np.isfinite(read_image(d / "p.exr")).all()
 
 
+def test_end_to_end_with_the_depth_from_blur(scene, capsys):
+    """--depth-backend blur: the depth read from the capture's own blur
+    through --camera (numpy, no checkpoint), finite, within the PSF
+    library's range, and the chain finishes."""
+    from dcdi_core.io.images import read_depth
+    d = scene
+    assert main(["dof", *_args(d, "--camera", "mos-s2", "--method", "deconv", "--depth-backend", "blur",
+                               "-o", str(d / "p.exr"), "--save-intermediates", str(d / "mid"))]) == 0
+    assert json.loads(capsys.readouterr().out)["depth_source"] == "blur"
+    depth = read_depth(d / "mid" / "depth.exr")
+    assert np.isfinite(depth).all() and 0.7 <= depth.min() and depth.max() <= 10.0
+    assert np.isfinite(read_image(d / "p.exr")).all()
+
+
+def test_without_depth_the_blur_runs_where_recorded_better_at_that_pitch(scene, capsys, monkeypatch):
+    """No --depth and no --depth-backend: the depth from blur runs unasked
+    for a lens the registry records 30 % better than a constant, at the
+    pixel pitch its shipped refinement learned; at another pitch, --depth is
+    asked for, naming the pitch."""
+    from dcdi_core.models import registry
+    monkeypatch.setattr(registry, "BLUR_DEPTH_BEATS_CONSTANT", ("mos-s1",))
+    d = scene
+    assert main(["dof", *_args(d, "--camera", "mos-s1", "--method", "deconv", "--image-pixel-pitch", "0.0122",
+                               "-o", str(d / "p.exr"))]) == 0
+    assert json.loads(capsys.readouterr().out)["depth_source"] == "blur"
+    assert main(["dof", *_args(d, "--camera", "mos-s1", "--method", "deconv", "-o", str(d / "q.exr"))]) != 0
+    assert "at this pixel pitch" in capsys.readouterr().err and not (d / "q.exr").exists()
+
+
 def test_what_is_missing_is_said_before_any_work(scene, networks, capsys):
     d = scene
     cases = [(["--camera", "6p", "--method", "dacn", "--depth", str(d / "depth.exr")], "no shipped DACN for lens 6p"),
@@ -114,7 +143,9 @@ def test_what_is_missing_is_said_before_any_work(scene, networks, capsys):
              (["--camera", "mos-s1", "--dacn", str(networks / "dacn.npz"), "--depth", str(d / "depth.exr")],
               "trained for lens mos-s2"),
              # a shipped depth network not recorded better than a constant depth is not used unasked
-             (["--camera", "mos-s2", "--method", "deconv"], "not recorded 30 % better than a constant depth")]
+             (["--camera", "mos-s2", "--method", "deconv"], "recorded 30 % better than a constant depth"),
+             (["--camera", "mos-s2", "--method", "deconv"], "--depth-backend blur"),
+             (["--camera", "none", "--depth-backend", "blur"], "give --camera LENS")]
     for extra, says in cases:
         assert main(["dof", *_args(d, *extra, "-o", str(d / "p.exr"))]) != 0
         assert says in capsys.readouterr().err

@@ -24,7 +24,10 @@ class DepthRequest:
     ``recorded`` says); ``psf``: its PSFs; ``options``: the estimator's
     ``dfd.DepthFromBlurOptions`` (None: defaults); ``noise``: the sensor's
     ``correct.NoiseModel`` (None: the record's, else estimated from the
-    capture); ``recorded``: what the capture file remembers."""
+    capture); ``recorded``: what the capture file remembers. ``refine``:
+    the learned refinement of the tiles' depths ('auto': the lens's shipped
+    one where the capture has the pixel pitch it learned; None: the evidence
+    alone; a path: that file)."""
 
     capture: np.ndarray
     lens: object
@@ -34,6 +37,7 @@ class DepthRequest:
     noise: object = None
     recorded: object = None
     image_name: str = "the capture"
+    refine: object = "auto"
 
 
 @dataclass
@@ -49,6 +53,54 @@ class DepthResult:
     info: dict
     notes: list
     seconds: dict
+
+
+def shipped_refinement(lens_id: str):
+    """The shipped refinement file of ``lens_id`` (weights/dfd-refine-<lens>.npz), or None."""
+    from ..models.registry import WEIGHTS_DIR
+    path = WEIGHTS_DIR / f"dfd-refine-{lens_id}.npz"
+    return path if path.is_file() else None
+
+
+def capture_pitch_mm(lens, render, recorded, shape, image_name="the capture") -> float:
+    """The pixel pitch (mm) of a capture of ``shape`` (H, W) through
+    ``lens``: ``render``'s, else the record's, else spanning the sensor."""
+    from ..render.request import RenderRequest
+    from .records import recorded_defaults
+    render, _ = recorded_defaults(render, lens, recorded, shape, image_name)
+    return (render or RenderRequest(lens)).plan(*shape, image=image_name).geometry.pixel_pitch_mm
+
+
+def recorded_better(lens_id: str, pitch_mm: float) -> bool:
+    """Whether the depth from blur of ``lens_id`` at ``pitch_mm`` is recorded
+    30 % better than a constant depth on held-out captures: the lens is in
+    the registry's ``BLUR_DEPTH_BEATS_CONSTANT`` and its shipped refinement
+    learned this pitch (the record is the refined estimator's)."""
+    from ..models.registry import BLUR_DEPTH_BEATS_CONSTANT
+    if lens_id not in BLUR_DEPTH_BEATS_CONSTANT:
+        return False
+    refiner, _ = refinement("auto", lens_id, pitch_mm)
+    return refiner is not None
+
+
+def refinement(refine, lens_id: str, pitch_mm: float):
+    """(a ``models.runtime.dfd_refine.DfdRefiner`` or None, a note or ''):
+    ``refine`` 'auto' takes the lens's shipped one where the capture has the
+    pixel pitch it learned (elsewhere its learned scene statistics do not
+    hold: the evidence alone, said in the note); a path is run as given."""
+    if refine is None or refine is False:
+        return None, ""
+    from ..models.runtime.dfd_refine import DfdRefiner
+    path = shipped_refinement(lens_id) if refine == "auto" else refine
+    if path is None:
+        return None, ""
+    refiner = DfdRefiner(path)
+    refiner.check_lens(lens_id)
+    learned = refiner.meta.get("pixel_pitch_mm")
+    if refine == "auto" and learned and abs(pitch_mm / learned - 1) > 0.01:
+        return None, (f"the depth is the evidence of the blur alone: the learned refinement of {lens_id} learned "
+                      f"{learned * 1000:.4g} um pixels and the capture has {pitch_mm * 1000:.4g} um")
+    return refiner, ""
 
 
 def estimate(request: DepthRequest, control: Control | None = None) -> DepthResult:
@@ -74,9 +126,12 @@ def estimate(request: DepthRequest, control: Control | None = None) -> DepthResu
     psf = request.psf if request.psf.settings is not None else replace(request.psf, settings=plan.settings)
     src = open_source(request.lens, plan.geometry, psf, control=control)
     t_psf = time.perf_counter() - t0
+    refiner, why = refinement(request.refine, request.lens.id, plan.geometry.pixel_pitch_mm)
+    if why:
+        notes = notes + [why]
     est = estimate_depth(capture, src.library, plan.geometry, request.options, noise=noise,
-                         progress=control.counter("depth hypotheses"))
-    info = {**est.info, "psf_source": src.kind, "noise_from": "given" if request.noise is not None else
+                         progress=control.counter("depth hypotheses"), refine=refiner)
+    info = {**est.info, "refined": None if refiner is None else str(refiner.path), "psf_source": src.kind, "noise_from": "given" if request.noise is not None else
             "the capture's record" if recorded_noise else "estimated from the capture"}
     share = info["confident_share"]
     if share < 0.25:
@@ -84,3 +139,20 @@ def estimate(request: DepthRequest, control: Control | None = None) -> DepthResu
                          "the noise): the rest is filled from them; check the confidence map"]
     seconds = {"psfs": t_psf, **est.info["seconds"]}
     return DepthResult(est.depth_m, est.confidence, plan.geometry, info, notes, seconds)
+
+
+def blur_estimator(lens, render=None, psf: PSFRequest | None = None, recorded=None, image_name="the capture"):
+    """A ``models.depth.estimators.DepthEstimator`` (name 'blur') that reads
+    a capture's depth from its own blur through ``lens`` (:func:`estimate`
+    with these settings), for ``app.dof`` and the demo."""
+    from ..models.depth.estimators import DepthEstimator
+
+    class BlurDepth(DepthEstimator):
+        name = "blur"
+
+        def _estimate(self, img):
+            request = DepthRequest(img, lens, render=render, psf=psf or PSFRequest(), recorded=recorded,
+                                   image_name=image_name)
+            return estimate(request).depth_m
+
+    return BlurDepth()

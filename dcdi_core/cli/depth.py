@@ -52,8 +52,10 @@ def cmd_depth_estimate(args) -> int:
     check_cache()
     check_image_fits(args, "correct")
     image = read_image(args.image)
+    refine = None if args.refine == "none" else args.refine
     request = job.DepthRequest(image, lens, render=_correct_render(args, lens), psf=psf_request(args),
-                               options=options, recorded=_recorded(args.image), image_name=f"the image {args.image}")
+                               options=options, recorded=_recorded(args.image), image_name=f"the image {args.image}",
+                               refine=refine)
     r = job.estimate(request, job_control("dcdi depth estimate", args))
     notes = in_cli_words(args, r.notes)
     for note in notes:
@@ -64,7 +66,7 @@ def cmd_depth_estimate(args) -> int:
     print(dump({"output": str(out), "confidence": str(conf_out) if conf_out else None,
                 "size": [image.shape[0], image.shape[1]], "lens": lens.id,
                 "pixel_pitch_mm": r.geometry.pixel_pitch_mm, "psf_source": r.info["psf_source"],
-                "noise": r.info["noise_from"], "confident_share": round(r.info["confident_share"], 3),
+                "noise": r.info["noise_from"], "refined": r.info["refined"], "confident_share": round(r.info["confident_share"], 3),
                 "depth_range_m": [round(float(r.depth_m.min()), 3), round(float(r.depth_m.max()), 3)],
                 "seconds": {k: round(v, 3) for k, v in r.seconds.items()}, "notes": notes}))
     return 0
@@ -89,6 +91,9 @@ def estimate_parser(subparsers):
                         "the sensor diagonal)")
     t.add_argument("--axis", type=float, nargs=2, default=None, metavar=("ROW", "COL"),
                    help="the optical axis's pixel position in the image (default: the record's, else its centre)")
+    t.add_argument("--refine", default="auto", metavar="FILE|none",
+                   help="the learned refinement of the tiles' depths: auto (default: --camera's shipped one, where "
+                        "the capture has the pixel pitch it learned), none (the blur's evidence alone), or a file")
     t.add_argument("--tile", type=positive_int, default=32,
                    help="px between estimates (default 32; each read from a window twice as wide)")
     add_psf_options(t, sensor_focus=True, render=True)

@@ -171,30 +171,51 @@ def cmd_correct(args) -> int:
 
 
 # ------------------------------------------------------------------ dcdi dof
-def _dof_estimator(args, camera):
-    """The depth estimator of `dcdi dof` (None with --depth), loaded and refused, by name, before any work."""
+BLUR_HINT = "the depth from the capture's own blur (--depth-backend blur: numpy, no checkpoint; docs/depth.md)"
+
+
+def _dof_estimator(args, camera, correct_request=None):
+    """The depth estimator of `dcdi dof` (None with --depth), loaded and refused, by name, before any work.
+    No --depth-backend: the depth from the capture's blur where the registry records it better than a
+    constant for --camera at the capture's pitch, else the shipped depth network where it is, else refused."""
     if args.depth is not None:
         return None
     from ..models.errors import ModelError
+    lens_id = camera.id if camera is not None else None
+    backend = args.depth_backend
+    if backend is None:
+        backend = "dcdi"
+        if camera is not None and args.depth_checkpoint is None and correct_request is not None:
+            from ..app.depth import capture_pitch_mm, recorded_better
+            r = correct_request
+            pitch = capture_pitch_mm(camera, r.render, r.recorded, r.capture.shape[:2], r.image_name)
+            backend = "blur" if recorded_better(lens_id, pitch) else "dcdi"
+    if backend == "blur":
+        if camera is None:
+            raise ModelError("--depth-backend blur reads depth from the camera lens's blur: give --camera LENS "
+                             "(--camera none: a sharp image has none), or --depth")
+        from ..app.depth import blur_estimator
+        r = correct_request
+        return blur_estimator(camera, r.render, r.psf, r.recorded, r.image_name)
     ck = args.depth_checkpoint
-    if ck is None and args.depth_backend == "dcdi":
+    if ck is None and backend == "dcdi":
         from ..models.registry import network
-        lens_id = camera.id if camera is not None else None
         ck = _shipped("depth", lens_id)
         if ck is None:
             raise ModelError("no depth map (--depth) and no shipped depth network for "
                              f"{'a sharp image (--camera none)' if camera is None else camera.id} (shipped: "
-                             f"{_shipped_for('depth')}); give --depth, or --depth-backend with "
+                             f"{_shipped_for('depth')}); give --depth, {BLUR_HINT}, or --depth-backend with "
                              "--depth-checkpoint")
         if lens_id not in network("depth").beats_constant_depth:
             # a guess worse than one number for the whole frame would blur the wrong things: ask instead
-            raise ModelError(f"no depth map (--depth): the shipped depth network of {lens_id} is not recorded 30 % "
-                             "better than a constant depth on held-out scenes (`dcdi report depth`); give --depth "
-                             "DEPTH.exr, or a public estimator (--depth-backend unidepth, depth-anything-v2 or "
-                             "depth-pro), or your own network (--depth-checkpoint)")
+            raise ModelError(f"no depth map (--depth): neither the shipped depth network of {lens_id} nor the "
+                             "depth from its blur at this pixel pitch is recorded 30 % better than a constant depth "
+                             "on held-out scenes; give --depth DEPTH.exr, or ask for an estimate: " + BLUR_HINT +
+                             ", a public estimator (--depth-backend unidepth, depth-anything-v2 or depth-pro), "
+                             "or your own network (--depth-checkpoint)")
     from ..models.depth.estimators import load_estimator
-    opts = {"threads": args.threads} if args.depth_backend == "dcdi" else {}
-    return load_estimator(args.depth_backend, ck, **opts)
+    opts = {"threads": args.threads} if backend == "dcdi" else {}
+    return load_estimator(backend, ck, **opts)
 
 
 def _refuse_correction_of_sharp(args) -> None:
@@ -237,8 +258,8 @@ def cmd_dof(args) -> int:
         img, depth, camera, args.method, args.dacn,
         render=_camera_render(args, camera) if camera is not None else None, deconv=_given_deconv(args),
         psf=psf_request(args, resp), recorded=_recorded(args.image), image_name=f"the image {args.image}")
-    estimator = _dof_estimator(args, camera)
-    if estimator is not None or args.method == "dacn" or args.dacn is not None:
+    estimator = _dof_estimator(args, camera, correct_request)
+    if (estimator is not None and estimator.name != "blur") or args.method == "dacn" or args.dacn is not None:
         import torch
         torch.set_num_threads(args.threads)
     with quiet_input_warnings():
@@ -353,9 +374,13 @@ def add_commands(sub) -> None:
                    help="the correction network (default: the shipped one of --camera, where --method picks a "
                         "network)")
     add_deconv_options(q)
-    q.add_argument("--depth-backend", default="dcdi", choices=["dcdi", "unidepth", "depth-anything-v2", "depth-pro"],
-                   help="the estimator when no --depth is given (default dcdi: the shipped depth network of "
-                        "--camera)")
+    q.add_argument("--depth-backend", default=None, choices=["blur", "dcdi", "unidepth", "depth-anything-v2",
+                                                              "depth-pro"],
+                   help="the estimator when no --depth is given: blur (the depth from the capture's own blur "
+                        "through --camera, numpy), dcdi (the shipped depth network of --camera, or "
+                        "--depth-checkpoint), or a public one (default: blur where it is recorded 30 %% better "
+                        "than a constant depth for --camera at the capture's pixel pitch (MOS-S1 at 12.2 um), "
+                        "else the shipped network where it is (none), else --depth is asked for)")
     q.add_argument("--depth-checkpoint", default=None, metavar="PATH",
                    help="the estimator's checkpoint on this disk (never downloaded)")
     q.add_argument("--save-intermediates", default=None, metavar="DIR",

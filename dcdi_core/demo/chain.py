@@ -68,25 +68,24 @@ class Networks:
     dacn: object
     dacn_info: dict
     dacn_file: Path
-    estimator: object              # models.depth.estimators.DepthEstimator
-    depth_file: Path
     pixel_pitch_mm: float          # the pitch the DACN learned
     noise: dict | None             # add_sensor_noise's keywords, as in its training pairs
     saturate: bool                 # captures and targets clipped to [0, 1] in its training pairs
 
     @classmethod
     def load(cls, settings: ChainSettings) -> "Networks":
-        """The shipped DACN and depth network of ``settings.camera``; refused
-        by name before any work when none ships."""
+        """The shipped DACN of ``settings.camera``; refused by name before
+        any work when none ships. The depth is read from each capture's own
+        blur (``app.depth``), not by the shipped depth network: that one is
+        recorded worse than a constant depth."""
         from ..models.dacn.correct import load_dacn
-        from ..models.depth.estimators import load_estimator
         from ..models.errors import ModelError
         from ..optics.lens import load_lens
         from ..pipeline import shipped_lenses, shipped_model
 
         camera, target = load_lens(settings.camera), load_lens(settings.target)
         paths = {}
-        for kind in ("dacn", "depth"):
+        for kind in ("dacn",):
             paths[kind] = shipped_model(kind, camera.id)
             if paths[kind] is None:
                 raise ModelError(f"no shipped {kind} network for the demo's camera lens {camera.id} (shipped: "
@@ -97,8 +96,7 @@ class Networks:
         if not pitch:
             raise ModelError(f"{paths['dacn']}: no pixel_pitch_mm in its meta: the demo places its scenes at "
                              "the pitch the network learned")
-        estimator = load_estimator("dcdi", paths["depth"], threads=settings.threads)
-        return cls(camera, target, dacn, info, paths["dacn"], estimator, paths["depth"], float(pitch),
+        return cls(camera, target, dacn, info, paths["dacn"], float(pitch),
                    da2t.get("noise"), bool(da2t.get("saturate", False)))
 
 
@@ -196,8 +194,9 @@ def run_chain(scene: Scene, nets: Networks, settings: ChainSettings, out: Path, 
         fix = CorrectRequest(image, depth_m, nets.camera if corrected else None, render=camera if corrected else None)
         return dof(DofRequest(fix, target, estimator))
 
-    # the depth is the estimated one, as a user has
-    r = chain(cap.image, estimator=nets.estimator)
+    # the depth is the estimated one, as a user without an RGB-D camera has: from the capture's own blur
+    from ..app.depth import blur_estimator
+    r = chain(cap.image, estimator=blur_estimator(nets.camera, render=camera))
     seconds.update(r.seconds)
     log(f"  {scene.key}: depth {r.seconds.get('depth', 0):.1f} s, correction {r.seconds.get('correction', 0):.1f} s, "
         f"{nets.target.id} depth of field {r.seconds.get('psfs and bokeh', 0):.1f} s ({r.bokeh.source.message})")

@@ -75,32 +75,43 @@ def dcdi_section(results, nets: Networks, settings: ChainSettings, factory_missi
     lines = [f"## DCDI: a {cam} capture -> the {tgt} lens's depth of field", "",
              f"Each scene through the camera lens {cam} (depth-aware aberrations and distortion, sensor noise as "
              f"in the correction network's training pairs), corrected by {_method(results, nets, cfg)}, "
-             f"its depth estimated by the shipped depth network (`{nets.depth_file.name}`), "
+             "its depth read from the capture's own blur (`dcdi depth estimate`: the camera lens's PSFs at "
+             "every depth, docs/depth.md), "
              f"then the {tgt} lens's depth of field focused at {settings.focus_m:g} m rendered on the corrected "
              "image with the estimated depth (`dcdi_core.app.dof`). The *ideal* is the same bokeh of the "
              "true sharp frame with the true depth; the truth of the capture is the sharp frame on the same "
-             "sensor (distorted alike).", "",
-             "| scene | capture vs truth, dB | corrected vs truth, dB | "
-             f"{tgt} DoF of the uncorrected capture vs ideal, dB | pipeline's {tgt} DoF vs ideal, dB | "
-             "estimated depth AbsRel / delta<1.25 |",
-             "|---|---|---|---|---|---|"]
+             "sensor (distorted alike).", ""]
+    estimated = ["| scene | capture vs truth, dB | corrected vs truth, dB | "
+                 f"{tgt} DoF of the uncorrected capture vs ideal, dB | pipeline's {tgt} DoF vs ideal, dB | "
+                 "estimated depth AbsRel / delta<1.25 |",
+                 "|---|---|---|---|---|---|"]
     for r in results:
         s = r.scores
-        lines.append(f"| {r.key} | {_db(s['capture_psnr'])} | {_db(s['corrected_psnr'])} | "
-                     f"{_db(s['dof_uncorrected_psnr'])} | {_db(s['dof_psnr'])} | "
-                     f"{s['depth_abs_rel']:.3f} / {s['depth_delta1']:.3f} |")
-    lines += ["", "PSNR over the imaged pixels; the depth over those whose true depth is below "
-              f"{DEPTH_SCORED_BELOW_M:g} m. The uncorrected capture's depth of field uses the same estimated "
-              "depth, so the two DoF columns differ by the correction alone.", ""]
-    lines += [f"- {verdict(r)}" for r in results]
-    lines += ["", "With the true depth (an RGB-D camera's) for the correction and both bokehs:", "",
-              f"| scene | corrected vs truth, dB | {tgt} DoF of the uncorrected capture vs ideal, dB | "
-              f"pipeline's {tgt} DoF vs ideal, dB |", "|---|---|---|---|"]
+        estimated.append(f"| {r.key} | {_db(s['capture_psnr'])} | {_db(s['corrected_psnr'])} | "
+                         f"{_db(s['dof_uncorrected_psnr'])} | {_db(s['dof_psnr'])} | "
+                         f"{s['depth_abs_rel']:.3f} / {s['depth_delta1']:.3f} |")
+    estimated += ["", "PSNR over the imaged pixels; the depth over those whose true depth is below "
+                  f"{DEPTH_SCORED_BELOW_M:g} m. The uncorrected capture's depth of field uses the same estimated "
+                  "depth, so the two DoF columns differ by the correction alone.", ""]
+    estimated += [f"- {verdict(r)}" for r in results]
+    known = [f"| scene | corrected vs truth, dB | {tgt} DoF of the uncorrected capture vs ideal, dB | "
+             f"pipeline's {tgt} DoF vs ideal, dB |", "|---|---|---|---|"]
     for r in results:
         s = r.scores
         if "true_depth_dof_psnr" in s:
-            lines.append(f"| {r.key} | {_db(s['true_depth_corrected_psnr'])} | "
+            known.append(f"| {r.key} | {_db(s['true_depth_corrected_psnr'])} | "
                          f"{_db(s['true_depth_dof_uncorrected_psnr'])} | {_db(s['true_depth_dof_psnr'])} |")
+    worse = [r.key for r in results if r.scores["dof_psnr"] <= r.scores["dof_uncorrected_psnr"]]
+    if worse:
+        # the estimate costs more than the correction gains: say so, and lead with the chain that works
+        lines += [f"**DCDI needs a depth map here.** With the depth read from the capture's own blur, the "
+                  f"pipeline's {tgt} depth of field is no closer to the ideal than that of the uncorrected capture "
+                  f"({', '.join(worse)}): give `dcdi dof` a depth map (`--depth`, an RGB-D camera's or a metric "
+                  "estimator's). With the true depth (an RGB-D camera's) for the correction and both bokehs:", ""]
+        lines += known + ["", "With the depth read from the capture's own blur:", ""] + estimated
+    else:
+        lines += estimated + ["", "With the true depth (an RGB-D camera's) for the correction and both bokehs:",
+                              ""] + known
     lines += ["", "Pictures, one strip per scene: capture | corrected | estimated depth | true depth | "
               f"pipeline's {tgt} depth of field | ideal (depth: near bright, far dark, log scale 0.5-20 m; "
               "grey: not imaged)", ""]

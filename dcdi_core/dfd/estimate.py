@@ -53,12 +53,11 @@ class DepthFromBlurOptions:
     kernel_share: int = 2
     sharpness_px: tuple = (0.0, 0.7, 1.4)
     aggregate: int = 1
-    prior: str = "diopter"
     aggregate_colour: float = 0.2
     temperature: float = 30.0
     tolerance: float = 0.15
     fill_radius: int | None = None
-    fill_eps: float = 0.01
+    fill_eps: float = 0.1
 
     def __post_init__(self):
         def integer(name, lo, hi):
@@ -80,9 +79,6 @@ class DepthFromBlurOptions:
         integer("kernel_share", 1, 8)
         integer("aggregate", 0, 8)
         number("aggregate_colour", 0.0, 1e3)
-        if self.prior not in ("log-depth", "diopter"):
-            raise InputRangeError("prior", self.prior, "'log-depth' (uniform in log depth) or 'diopter' (uniform in "
-                                  "inverse depth)")
         number("max_frequency", 0.0, 0.71)
         number("colour_residual", 0.0, 10.0, lo_open=False)
         number("model_error", 0.0, 1.0, lo_open=False)
@@ -113,6 +109,29 @@ class DepthEstimate:
     tile_diopters: np.ndarray
     tile_confidence: np.ndarray
     info: dict = field(default_factory=dict)
+    tile_features: np.ndarray | None = None
+
+
+# what `tile_features` stacks, in order: a learned refinement reads them by position
+FEATURES = ("posterior (one per hypothesis)", "log depth of the estimate", "confidence", "field",
+            "log texture power over noise", "log mean colour R", "G", "B")
+
+
+def tile_features(post, est, conf, spectra, geometry, tile: int) -> np.ndarray:
+    """Per tile (C, nph, npw) float32: the posterior over the hypotheses,
+    the estimate's log depth (m), its confidence, the field of the tile's
+    centre, the log of the window's texture power over its noise, and the
+    log of its mean colour (``FEATURES``)."""
+    nph, npw = spectra.tiles
+    rows = (np.arange(nph) + 0.5) * tile
+    cols = (np.arange(npw) + 0.5) * tile
+    rr, cc = np.meshgrid(rows, cols, indexing="ij")
+    fld = np.minimum(geometry.field(rr.ravel(), cc.ravel()), 1.5)
+    over = spectra.power.sum((1, 2)) / np.maximum((spectra.noise.sum(1) * spectra.count.sum()), 1e-12)
+    colour = np.log(np.maximum(spectra.mean, 1e-4)).T
+    stack = np.concatenate([post, np.log(est)[None], conf[None], fld[None], np.log(np.maximum(over, 1e-6))[None],
+                            colour], 0)
+    return stack.reshape(len(stack), nph, npw).astype(np.float32)
 
 
 def check_capture(capture) -> np.ndarray:
@@ -128,26 +147,14 @@ def check_capture(capture) -> np.ndarray:
     return img
 
 
-def log_depth_prior(diopters: np.ndarray, far_m: float) -> np.ndarray:
-    """Prior log-weights of hypotheses at ``diopters`` (1/m, decreasing, the
-    last 0: infinity) uniform in log depth: each one's cell (half-way to its
-    neighbours, in diopters) times its depth (d log z = dD / D), infinity
-    counted as ``far_m``."""
-    d = np.asarray(diopters, float)
-    edges = np.concatenate([[d[0] + (d[0] - d[1]) / 2], (d[:-1] + d[1:]) / 2, [max(d[-1] - (d[-2] - d[-1]) / 2, 0.0)]])
-    width = np.abs(np.diff(edges))
-    return np.log(width * np.minimum(1.0 / np.maximum(d, 1e-12), far_m))
-
-
-def _posterior(nll: np.ndarray, depths_m: np.ndarray, temperature: float, tolerance: float, log_prior=0.0):
-    """(estimate (n,) metres, confidence (n,)) from the NLL (hypotheses, n)
+def _posterior(nll: np.ndarray, depths_m: np.ndarray, temperature: float, tolerance: float):
+    """(estimate (n,) metres, confidence (n,), posterior (hypotheses, n)) from the NLL (hypotheses, n)
     of hypotheses at ``depths_m`` (finite: the library's far limit for
     infinity). The estimate minimises the expected relative depth error
     under the posterior p ~ exp(-NLL / temperature): the median of the
     hypotheses weighted by p / depth. The confidence: the posterior's mass
     within ``tolerance`` relative error of the estimate."""
-    logp = -(nll - nll.min(0)) / temperature + np.reshape(log_prior, (-1, 1))
-    p = np.exp(logp - logp.max(0))
+    p = np.exp(-(nll - nll.min(0)) / temperature)
     p /= p.sum(0)
     order = np.argsort(depths_m)
     z = depths_m[order]
@@ -156,7 +163,7 @@ def _posterior(nll: np.ndarray, depths_m: np.ndarray, temperature: float, tolera
     k = (cum < 0.5 * cum[-1]).sum(0)
     est = z[np.minimum(k, len(z) - 1)]
     conf = (p * (np.abs(depths_m[:, None] - est) <= tolerance * est)).sum(0)
-    return est, conf
+    return est, conf, p
 
 
 def aggregate(nll: np.ndarray, colour: np.ndarray, radius: int, sigma: float) -> np.ndarray:
@@ -216,12 +223,15 @@ def _hypothesis_nll(spectra, transfer, n: int, options, progress) -> np.ndarray:
 
 
 def estimate_depth(capture, library, geometry, options: DepthFromBlurOptions | None = None, *, noise=None,
-                   progress=None) -> DepthEstimate:
+                   progress=None, refine=None) -> DepthEstimate:
     """Depth of ``capture`` (H, W, 3) float32 linear, taken through the lens
     of ``library`` (its PSFs at the capture's pixel pitch) at ``geometry``
     (``render.geometry.ImageGeometry``: the capture on the lens's sensor).
     ``noise``: the sensor's ``correct.NoiseModel`` (None: estimated from the
-    capture). ``progress(done, total)``: called per depth hypothesis."""
+    capture). ``progress(done, total)``: called per depth hypothesis.
+    ``refine``: a learned refinement, (``tile_features`` (C, nph, npw), the
+    hypotheses' depths m) -> log depth (nph, npw) metres (None: the
+    evidence alone)."""
     from ..correct.noise import estimate_noise
     from ..render.psfmap import psf_map
 
@@ -263,9 +273,14 @@ def estimate_depth(capture, library, geometry, options: DepthFromBlurOptions | N
         nll = aggregate(nll.reshape(len(depths), nph, npw), spectra.mean.reshape(nph, npw, 3), options.aggregate,
                         options.aggregate_colour).reshape(len(depths), -1)
     t_kernels = t_kernels[0]
-    prior = log_depth_prior(grid.diopters[idx], grid.far_m) if options.prior == "log-depth" else 0.0
-    est, conf = _posterior(nll, np.minimum(depths, grid.far_m), options.temperature, options.tolerance, prior)
+    est, conf, post = _posterior(nll, np.minimum(depths, grid.far_m), options.temperature, options.tolerance)
     conf = np.where(~np.isfinite(nll).all(0) | clipped, 0.0, conf)
+    features = tile_features(post, est, conf, spectra, geometry, s)
+    if refine is not None:
+        # a learned refinement of the tiles' depths from their evidence (models.runtime.dfd_refine)
+        if hasattr(refine, "check"):
+            refine.check(len(features), s, len(depths))
+        est = np.clip(np.exp(np.asarray(refine(features, depths), np.float64).reshape(-1)), grid.near_m, grid.far_m)
     tile_d, tile_c = (1.0 / est).reshape(nph, npw), conf.reshape(nph, npw)
     t_evidence = time.perf_counter() - t0 - t_spectra
 
@@ -281,4 +296,4 @@ def estimate_depth(capture, library, geometry, options: DepthFromBlurOptions | N
     info = {"hypotheses_m": [float(x) for x in depths], "tiles": [nph, npw], "tile_px": s, "window_px": size,
             "noise": {"gain": noise.gain, "floor": noise.floor}, "seconds": seconds,
             "confident_share": float((tile_c >= 0.5).mean())}
-    return DepthEstimate(depth, pixel_c.astype(np.float32), tile_d, tile_c, info)
+    return DepthEstimate(depth, pixel_c.astype(np.float32), tile_d, tile_c, info, features)

@@ -71,7 +71,7 @@ def oracle_tiles(img, lens, g, library, capture, tile: int, distortion: bool = T
     return depths[np.argmin(err, 0)]
 
 
-def frame(lens, library, scene: str, seed: int, where: str):
+def frame(lens, library, scene: str, seed: int, where: str, refine=None):
     from ..dfd import estimate_depth
     from ..render.noise import add_sensor_noise
     from ..render.simulate import SimulateOptions, simulate
@@ -80,7 +80,7 @@ def frame(lens, library, scene: str, seed: int, where: str):
     capture = add_sensor_noise(simulate(img, depth, lens, SimulateOptions(geometry=g), library=library).image,
                                seed=seed + 1)
     t, c = time.perf_counter(), time.process_time()
-    est = estimate_depth(capture, library, g)
+    est = estimate_depth(capture, library, g, refine=refine)
     seconds = (time.perf_counter() - t, time.process_time() - c)
     tile = est.tile_diopters.shape
     s = SIZE[0] // tile[0] if SIZE[0] % tile[0] == 0 else 32
@@ -102,7 +102,7 @@ def frame(lens, library, scene: str, seed: int, where: str):
             "seconds": seconds}
 
 
-def tables(lenses, scenes, seeds, wheres) -> None:
+def tables(lenses, scenes, seeds, wheres, refine=None) -> None:
     from ..app import PSFRequest, open_source
     from ..optics.lens import load_lens
     rows, detail = [], []
@@ -112,7 +112,11 @@ def tables(lenses, scenes, seeds, wheres) -> None:
             frames = []
             for where in wheres:
                 library = open_source(lens, geometry(lens, where), PSFRequest()).library
-                frames += [frame(lens, library, scene, seed, where) for seed in seeds]
+                refiner = None
+                if refine:
+                    from ..app.depth import refinement
+                    refiner, _ = refinement("auto" if refine == "shipped" else refine, lens_id, PITCH_MM)
+                frames += [frame(lens, library, scene, seed, where, refiner) for seed in seeds]
             cat = {k: np.concatenate([np.ravel(f[k]) for f in frames]) for k in
                    ("est", "const", "oracle", "tiles", "conf", "tile_truth", "field", "texture")}
             est, const = cat["est"].mean(), cat["const"].mean()
@@ -145,7 +149,7 @@ def tables(lenses, scenes, seeds, wheres) -> None:
     print("\n".join(detail))
 
 
-def pairs_table(pairs: dict, count: int, options=None, oracle: bool = True) -> None:
+def pairs_table(pairs: dict, count: int, options=None, oracle: bool = True, refine=None) -> None:
     """The estimator on held-out DA2T pairs (``pairs`` {lens: folder}; the
     factory's frames through the nominal lens at the pairs' pitch, with
     noise): AbsRel against each frame's own median (the best constant) and
@@ -161,6 +165,10 @@ def pairs_table(pairs: dict, count: int, options=None, oracle: bool = True) -> N
     print("|---|---|---|---|---|---|---|---|---|")
     for lens_id, folder in pairs.items():
         lens = load_lens(lens_id)
+        refiner = None
+        if refine:
+            from ..app.depth import refinement
+            refiner, _ = refinement("auto" if refine == "shipped" else refine, lens_id, PITCH_MM)
         recs = finished_pairs(folder)
         ids = sorted(recs)[:count]
         est_all, const_all, oracle_all, tiles, conf, secs = [], [], [], [], [], []
@@ -172,18 +180,19 @@ def pairs_table(pairs: dict, count: int, options=None, oracle: bool = True) -> N
             g = ImageGeometry.from_pixel_pitch(lens, h, w, pitch, centre)
             library = open_source(lens, g, PSFRequest()).library
             t, c = time.perf_counter(), time.process_time()
-            est = estimate_depth(capture, library, g, options)
+            est = estimate_depth(capture, library, g, options, refine=refiner)
             secs.append((time.perf_counter() - t, time.process_time() - c))
             depth = np.asarray(pair.depth)
             ok = np.isfinite(depth) & (depth >= library.grid.near_m) & (depth <= library.grid.far_m)
             truth = depth[ok]
             est_all.append(np.abs(est.depth_m[ok] - truth) / truth)
             const_all.append(np.abs(np.median(truth) - truth) / truth)
-            s = 32
+            s = est.info["tile_px"]
             sharp = np.nan_to_num(np.asarray(pair.target, np.float32))
             orc = oracle_tiles(sharp, lens, g, library, capture, s, distortion=False) if oracle else np.nan
             tt = np.pad(depth, ((0, -h % s), (0, -w % s)), constant_values=np.nan)[s // 2::s, s // 2::s]
             good = np.isfinite(tt) & (tt >= library.grid.near_m) & (tt <= library.grid.far_m)
+            tt = np.where(good, tt, 1.0)
             oracle_all.append((np.abs(orc - tt) / tt)[good])
             tiles.append((np.abs(1.0 / est.tile_diopters - tt) / tt)[good])
             conf.append(est.tile_confidence[good])
@@ -209,15 +218,18 @@ def main(argv=None) -> int:
     p.add_argument("--set", action="append", default=[], metavar="OPTION=VALUE",
                    help="an estimator option (DepthFromBlurOptions) other than its default, e.g. temperature=10")
     p.add_argument("--no-oracle", action="store_true", help="pairs: leave out the oracle (it simulates 21 depths)")
+    p.add_argument("--refine", default=None, metavar="shipped|FILE",
+                   help="with the learned refinement: each lens's shipped one, or a file (default: the evidence alone)")
     a = p.parse_args(argv)
     if a.pairs:
         import ast
 
         from ..dfd import DepthFromBlurOptions
         options = DepthFromBlurOptions(**{k: ast.literal_eval(v) for k, v in (x.split("=", 1) for x in a.set)})
-        pairs_table(dict(x.split("=", 1) for x in a.pairs), a.count, options, oracle=not a.no_oracle)
+        pairs_table(dict(x.split("=", 1) for x in a.pairs), a.count, options, oracle=not a.no_oracle,
+                    refine=a.refine)
         return 0
-    tables(a.lenses, a.scenes, a.seeds, a.where)
+    tables(a.lenses, a.scenes, a.seeds, a.where, a.refine)
     return 0
 
 

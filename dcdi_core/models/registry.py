@@ -49,6 +49,16 @@ NETWORKS = {
                      "depth-"),
 }
 
+# lens ids whose depth from the capture's own blur (dcdi_core.dfd, `dcdi depth
+# estimate`, with the lens's shipped refinement weights/dfd-refine-<lens>.npz)
+# beat the best constant depth (each frame's own median) by at least 30 % in
+# AbsRel on held-out factory captures at the pixel pitch the refinement
+# learned, with noise (`python -m dcdi_core.experiments.dfd_refine_study`,
+# docs/depth.md): `dcdi dof` without a depth map estimates depth this way for
+# these lenses at that pitch unasked. MOS-S1: 0.242 against 0.364 (0.66x).
+BLUR_DEPTH_BEATS_CONSTANT: tuple[str, ...] = ("mos-s1",)
+
+
 def network(name: str) -> Network:
     try:
         return NETWORKS[name]

@@ -139,3 +139,12 @@ def test_cli_estimate_writes_depth_and_confidence(tmp_path, camera):
                          capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "Traceback" not in bad.stderr, bad.stderr
     assert not (tmp_path / "x.exr").exists()
+
+
+def test_bench_depth_quick_prints_the_whole_process_and_its_stages(capsys):
+    from dcdi_core.cli import main
+    assert main(["bench", "depth", "--quick"]) == 0
+    out = capsys.readouterr().out
+    line = next(ln for ln in out.splitlines() if ln.strip().startswith("dcdi depth estimate"))
+    assert " s (" in line and "s CPU" in line and "goal" not in line          # no goal at the quick size
+    assert "in process:" in out and "evidence" in out
