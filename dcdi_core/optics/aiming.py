@@ -55,6 +55,13 @@ def launch(lens: Lens, depth_mm, p, u, v, z_ep: float):
     return o, d
 
 
+def _stop_is_first_plane(lens) -> bool:
+    """The stop is the lens's first surface and a plane (a stop in front)."""
+    import math
+    stop = lens.surfaces[lens.stop_index]
+    return lens.stop_index == 0 and math.isinf(stop.radius_mm) and not getattr(stop, "aspheric_coefficients", None)
+
+
 def _stop_xy(lens, depth_mm, p, u, v, z_ep, wl):
     o, d = launch(lens, depth_mm, p, u, v, z_ep)
     b = trace(lens, o, d, wl, apertures=False, upto_surface=lens.stop_index)
@@ -256,6 +263,10 @@ def pupil_rays(lens: Lens, aimed: Aimed, targets: np.ndarray, wavelength_nm=None
     ty_f = np.broadcast_to(ty, shape).ravel()
     active = np.flatnonzero(np.broadcast_to(good[..., None], shape).ravel())
     residual = 0.0
+    if _stop_is_first_plane(lens):
+        # the launch's (u, v) lie on the first vertex plane, which is the stop: the linear start is each
+        # target itself, and checking it would trace every ray to the stop a second time for nothing
+        active = active[:0]
     for it in range(max_iter + 1):
         if active.size == 0:
             break
