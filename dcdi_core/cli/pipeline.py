@@ -379,7 +379,7 @@ def add_commands(sub) -> None:
                    help="the estimator when no --depth is given: blur (the depth from the capture's own blur "
                         "through --camera, numpy), dcdi (the shipped depth network of --camera, or "
                         "--depth-checkpoint), or a public one (default: blur where it is recorded 30 %% better "
-                        "than a constant depth for --camera at the capture's pixel pitch (MOS-S1 at 12.2 um), "
+                        "than a constant depth for --camera at the capture's pixel pitch (MOS-S1 and MOS-S2 at 12.2 um), "
                         "else the shipped network where it is (none), else --depth is asked for)")
     q.add_argument("--depth-checkpoint", default=None, metavar="PATH",
                    help="the estimator's checkpoint on this disk (never downloaded)")
