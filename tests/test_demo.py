@@ -32,10 +32,18 @@ def test_demo_writes_the_strip_the_side_pictures_and_the_table(demo_out):
         assert (demo_out / name).stat().st_size > 1000
     report = (demo_out / "report.md").read_text()
     rows = [line for line in report.splitlines() if line.startswith("| synthetic |")]
-    assert len(rows) == 2                                       # estimated depth, then the true depth
-    cells = [c.strip() for c in rows[0].strip("|").split("|")]
+    assert len(rows) == 2                                       # the estimated depth's and the true depth's
+    estimated = next(r for r in rows if len(r.strip("|").split("|")) == 6)
+    known = next(r for r in rows if len(r.strip("|").split("|")) == 4)
+    cells = [c.strip() for c in estimated.strip("|").split("|")]
     assert all(math.isfinite(float(c)) for c in cells[1:5])
-    assert all(math.isfinite(float(c)) for c in rows[1].strip("|").split("|")[1:])
+    assert all(math.isfinite(float(c)) for c in known.strip("|").split("|")[1:])
+    # where the estimated depth's chain is no closer to the ideal than the uncorrected capture's, the report
+    # says that DCDI needs a depth map and leads with the true depth's chain
+    s = json.loads((demo_out / "dcdi_scores.json").read_text())["synthetic"]
+    worse = s["dof_psnr"] <= s["dof_uncorrected_psnr"]
+    assert ("DCDI needs a depth map here" in report) == worse
+    assert (report.index(known) < report.index(estimated)) == worse
     assert "no factory scene: no Blender in this test" in report
     assert "dcdi_synthetic.png" in report and "Omni-Lens-Field" in report
     assert "## The lenses" not in report                      # lenses=False
