@@ -55,8 +55,8 @@ NETWORKS = {
 # AbsRel on held-out factory captures at the pixel pitch the refinement
 # learned, with noise (`python -m dcdi_core.experiments.dfd_refine_study`,
 # docs/depth.md): `dcdi dof` without a depth map estimates depth this way for
-# these lenses at that pitch unasked. MOS-S1: 0.242 against 0.364 (0.66x);
-# MOS-S2: 0.204 against 0.364 (0.56x).
+# these lenses at that pitch unasked. MOS-S1: 0.241 against 0.364 (0.66x);
+# MOS-S2: 0.219 against 0.364 (0.60x).
 BLUR_DEPTH_BEATS_CONSTANT: tuple[str, ...] = ("mos-s1", "mos-s2")
 
 
