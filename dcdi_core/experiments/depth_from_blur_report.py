@@ -155,11 +155,10 @@ def pairs_table(pairs: dict, count: int, options=None, oracle: bool = True, refi
     noise): AbsRel against each frame's own median (the best constant) and
     against the oracle that knows the sharp frame, over the pixels whose true
     depth lies in the library's range."""
-    from ..app import PSFRequest, open_source
     from ..dfd import estimate_depth
-    from ..models.dacn.data import finished_pairs, load_pair, pair_path
+    from ..models.dacn.data import finished_pairs
+    from ..models.depth.refine import pair_inputs
     from ..optics.lens import load_lens
-    from ..render.geometry import ImageGeometry
     print("| lens | pairs | scenes | AbsRel | constant (median) | ratio | oracle (sharp known) | "
           "confident tiles (share) | wall s (CPU s) per frame |")
     print("|---|---|---|---|---|---|---|---|---|")
@@ -172,13 +171,8 @@ def pairs_table(pairs: dict, count: int, options=None, oracle: bool = True, refi
         recs = finished_pairs(folder)
         ids = sorted(recs)[:count]
         est_all, const_all, oracle_all, tiles, conf, secs = [], [], [], [], [], []
-        for pid in ids:
-            pair = load_pair(pair_path(folder, pid), recs[pid])
-            centre, pitch, _ = pair.geometry()
-            capture = np.nan_to_num(np.asarray(pair.capture, np.float32))
+        for pid, pair, capture, g, library in pair_inputs(folder, lens, count):
             h, w = capture.shape[:2]
-            g = ImageGeometry.from_pixel_pitch(lens, h, w, pitch, centre)
-            library = open_source(lens, g, PSFRequest()).library
             t, c = time.perf_counter(), time.process_time()
             est = estimate_depth(capture, library, g, options, refine=refiner)
             secs.append((time.perf_counter() - t, time.process_time() - c))

@@ -115,22 +115,13 @@ def main(argv=None) -> int:
                  {"trained_on": [str(x) for x in a.train], "pixel_pitch_mm": sets["train"][0]["pixel_pitch_mm"], "tile_px": 32,
                   "hypotheses_m": sets["train"][0]["hypotheses_m"],
                   "validation_abs_rel": rows[f"refined, seed {a.seeds[0]}"]["val"]})
-        from ..models.runtime.dfd_refine import DfdRefiner
         from ..dfd import estimate_depth
-        from ..app import PSFRequest, open_source
-        from ..models.dacn.data import finished_pairs, load_pair, pair_path
+        from ..models.runtime.dfd_refine import DfdRefiner
         from ..optics.lens import load_lens
-        from ..render.geometry import ImageGeometry
         refiner, lens = DfdRefiner(a.export), load_lens(a.lens)
         alone, refined = [], []
         for d in a.test:
-            recs = finished_pairs(d)
-            for pid in sorted(recs):
-                pair = load_pair(pair_path(d, pid), recs[pid])
-                centre, pitch, _ = pair.geometry()
-                cap = np.nan_to_num(np.asarray(pair.capture, np.float32))
-                g = ImageGeometry.from_pixel_pitch(lens, *cap.shape[:2], pitch, centre)
-                lib = open_source(lens, g, PSFRequest()).library
+            for _, _, cap, g, lib in R.pair_inputs(d, lens):
                 alone.append(estimate_depth(cap, lib, g).depth_m)
                 refined.append(estimate_depth(cap, lib, g, refine=refiner).depth_m)
         lines += ["", f"Pixels of the test pairs (AbsRel): blur alone {pixel_abs_rel(sets['test'], alone):.3f}, "

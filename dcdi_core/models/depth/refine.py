@@ -27,25 +27,32 @@ class RefineConfig:
     seed: int = 0
 
 
-def pair_features(pairs_dir, lens_id: str, count: int = 10_000, options=None, log=print) -> list[dict]:
-    """Per pair of ``pairs_dir`` (at most ``count``): the estimator's tile
-    features, the true depth of each tile (the median of its pixels within
-    the library's range; NaN where fewer than half are) and the scene."""
+def pair_inputs(pairs_dir, lens, count: int = 10_000):
+    """Per pair of ``pairs_dir`` (at most ``count``, by id): (id, the pair,
+    its capture (H, W, 3) float32 with NaN as 0, its geometry on ``lens``'s
+    sensor, ``lens``'s PSF library at that pitch)."""
     from ...app import PSFRequest, open_source
-    from ...dfd import estimate_depth
-    from ...optics.lens import load_lens
     from ...render.geometry import ImageGeometry
     from ..dacn.data import finished_pairs, load_pair, pair_path
-    lens = load_lens(lens_id)
     recs = finished_pairs(pairs_dir)
-    out = []
     for pid in sorted(recs)[:count]:
         pair = load_pair(pair_path(pairs_dir, pid), recs[pid])
         centre, pitch, _ = pair.geometry()
         capture = np.nan_to_num(np.asarray(pair.capture, np.float32))
+        g = ImageGeometry.from_pixel_pitch(lens, *capture.shape[:2], pitch, centre)
+        yield pid, pair, capture, g, open_source(lens, g, PSFRequest()).library
+
+
+def pair_features(pairs_dir, lens_id: str, count: int = 10_000, options=None, log=print) -> list[dict]:
+    """Per pair of ``pairs_dir`` (at most ``count``): the estimator's tile
+    features, the true depth of each tile (the median of its pixels within
+    the library's range; NaN where fewer than half are) and the scene."""
+    from ...dfd import estimate_depth
+    from ...optics.lens import load_lens
+    out = []
+    for pid, pair, capture, g, library in pair_inputs(pairs_dir, load_lens(lens_id), count):
         h, w = capture.shape[:2]
-        g = ImageGeometry.from_pixel_pitch(lens, h, w, pitch, centre)
-        library = open_source(lens, g, PSFRequest()).library
+        pitch = g.pixel_pitch_mm
         est = estimate_depth(capture, library, g, options)
         s = est.info["tile_px"]
         nph, npw = est.tile_diopters.shape
