@@ -36,10 +36,13 @@ class DepthFromBlurOptions:
     one at their block's centre). sharpness_px: the sharp image's own
     softness tried (a Gaussian's sigma, px; the likelihood is minimised
     over them): a render's pixel filter or a sensor's pixel is not defocus.
+    aggregate: each tile's evidence joined with its neighbours' within
+    this many tiles (0: none), weighted by how alike their mean colours
+    are (``aggregate_colour``: the log-RGB distance's scale).
     temperature: the evidence's scale in the confidence (the windows'
     frequencies are not independent: > 1 widens the posterior).
     tolerance: the confidence is the posterior's mass within this relative
-    inverse-depth error of the estimate. fill_radius: the guided filter's
+    depth error of the estimate. fill_radius: the guided filter's
     radius (px; None: the tile), fill_eps its edge threshold (the guide's
     variance units)."""
 
