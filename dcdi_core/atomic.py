@@ -77,8 +77,15 @@ def atomic_path(path: str | os.PathLike):
     process is gone (:func:`remove_dead_temporaries`,
     :func:`remove_stale_temporaries`). An OSError (a read-only folder, a
     file where a folder should be, a full disk) becomes an
-    :class:`~dcdi_core.errors.OutputError` naming ``path``."""
+    :class:`~dcdi_core.errors.OutputError` naming ``path``.
+
+    Inside a job's ``outputs.JobFiles.together`` block, a declared output's
+    temporary is kept and renamed with the job's other outputs when the job
+    succeeds (``outputs``)."""
+    from .outputs import active
     path = Path(path)
+    job = active()
+    later = job is not None and job.admit(path)      # a declared output: renamed with the job's others
     tmp = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -86,7 +93,11 @@ def atomic_path(path: str | os.PathLike):
         os.close(fd)
         yield Path(tmp)
         os.chmod(tmp, 0o644)  # mkstemp makes files owner-only
-        os.replace(tmp, path)
+        if later:
+            job.stage(tmp, path)
+            tmp = None
+        else:
+            os.replace(tmp, path)
     except DcdiError:
         raise
     except OSError as e:
@@ -124,6 +135,32 @@ def remove_stale_temporaries(folder, *, older_than_s: float = 0.0, recursive: bo
         except OSError:
             continue
     return gone
+
+
+def backup_name(path) -> Path:
+    """A name beside ``path`` for its previous version while a job's outputs
+    are renamed together (a temporary's form: removed by the next run once
+    this process is gone)."""
+    import secrets
+    path = Path(path)
+    return path.with_name(f".{path.name}.p{os.getpid()}_h{_HOST}_{secrets.token_hex(4)}.tmp.bak")
+
+
+def remove_file(path) -> None:
+    """Remove ``path`` if it exists (a stale sidecar); inside a job's
+    ``outputs.JobFiles.together`` block, when the job's outputs are renamed."""
+    from .outputs import active
+    job = active()
+    if job is not None:
+        if os.path.lexists(path):
+            job.remove_later(path)
+        return
+    try:
+        os.unlink(path)
+    except FileNotFoundError:
+        pass
+    except OSError as e:
+        raise output_error(path, e, "cannot remove the stale file") from None
 
 
 def write_text(path, text: str) -> None:

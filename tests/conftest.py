@@ -4,6 +4,9 @@ import os
 import numpy as np
 import pytest
 
+# a job that writes a path it did not declare (dcdi_core.outputs) fails here, not silently
+os.environ.setdefault("DCDI_CHECK_OUTPUTS", "1")
+
 try:                                     # property-based tests: a few fixed examples by default, many in test-slow
     from hypothesis import settings as _hypothesis_settings
     _hypothesis_settings.register_profile("quick", max_examples=12, deadline=None, derandomize=True,

@@ -210,7 +210,7 @@ def bokeh(request: BokehRequest, control: Control | None = None, *, cache: Sourc
     img = _array("image", request.image, 3)
     depth = _array("depth_m", request.depth_m, 2)
     render, notes = recorded_defaults(request.render, request.lens, request.recorded, img.shape[:2],
-                                      request.image_name, focus=False)
+                                      request.image_name, focus=False, lens_bound=False)
     render = render or RenderRequest(request.lens)
     t0 = time.perf_counter()
     plan = render.plan(*img.shape[:2], image=request.image_name)

@@ -16,8 +16,8 @@ import argparse
 import sys
 
 from . import dacn, depth, info, lens, olf, pipeline, psf, render, reports
-from .common import (UNITS, deprecated, error_words, one_line, refuse_overwriting_inputs, remove_dead_temporaries_of,
-                     show_warning)
+from .common import UNITS, deprecated, error_words, one_line, show_warning
+from .files import attach, job_files
 
 # old spelling -> new, kept for one release (a note on stderr says so)
 DEPRECATED = {"dcdi train dacn": "dcdi dacn train", "dcdi train depth": "dcdi depth train",
@@ -40,6 +40,7 @@ def build_parser() -> argparse.ArgumentParser:
     for group in (lens, psf, render, pipeline, info, olf, dacn, depth, reports):
         group.add_commands(sub)
     _add_deprecated(sub)
+    attach(p)
     return p
 
 
@@ -63,9 +64,12 @@ def main(argv=None) -> int:
     with warnings.catch_warnings(), stop_on_signals():
         warnings.showwarning = show_warning          # one line each, no source line
         try:
-            refuse_overwriting_inputs(args)
-            remove_dead_temporaries_of(args)
-            return args.func(args)
+            files = job_files(args)          # every path it reads and writes, checked before any work
+            if files is None:
+                return args.func(args)
+            files.check()
+            with files.together():           # its output files appear together, or none does
+                return args.func(args)
         except DcdiError as e:
             print(f"dcdi: error: {one_line(e.in_words(error_words(args)))}", file=sys.stderr)
             return 2

@@ -189,50 +189,6 @@ def check_output(path, option: str, *, image: bool = False, suffix: str | None =
     check_writable_folder(Path(path).resolve().parent, f"{option} {path}")
 
 
-# the options that name a file a command reads, and those that name one it writes
-INPUT_OPTIONS = {"image": "--image", "depth": "--depth", "model": "--model", "dacn": "--dacn", "basis": "--basis",
-                 "olf": "--olf", "response": "--response", "weights_file": "--weights"}
-OUTPUT_OPTIONS = {"output": "-o", "sharp_out": "--sharp-out", "side_by_side": "--side-by-side", "png": "--png"}
-
-
-def refuse_overwriting_inputs(args) -> None:
-    """Refuse, before any work, an output that is one of the command's
-    inputs (the same file, by any path): writing it would replace what the
-    command reads, silently."""
-    import os
-    from pathlib import Path
-
-    from ..errors import InputRangeError
-    inputs = {}
-    for name, option in INPUT_OPTIONS.items():
-        value = getattr(args, name, None)
-        if isinstance(value, (str, os.PathLike)) and str(value):
-            inputs[os.path.realpath(value)] = (option, value)
-    for name, option in OUTPUT_OPTIONS.items():
-        value = getattr(args, name, None)
-        if not isinstance(value, (str, os.PathLike)) or not str(value):
-            continue
-        real = os.path.realpath(value)
-        hit = inputs.get(real)
-        if hit is None and Path(value).exists():
-            hit = next((v for p, v in inputs.items() if Path(p).exists() and os.path.samefile(p, value)), None)
-        if hit is not None:
-            raise InputRangeError(option, str(value), f"a file other than the input {hit[0]} {hit[1]} (writing it "
-                                  "would replace what this command reads)")
-
-
-def remove_dead_temporaries_of(args) -> None:
-    """Remove the temporaries a killed earlier run left beside this command's
-    outputs (``atomic.remove_dead_temporaries``: never a live run's)."""
-    import os
-
-    from ..atomic import remove_dead_temporaries
-    for name in OUTPUT_OPTIONS:
-        value = getattr(args, name, None)
-        if isinstance(value, (str, os.PathLike)) and str(value):
-            remove_dead_temporaries(value)
-
-
 def check_cache(args=None) -> None:
     """Refuse, before any work, a PSF cache folder that cannot be written."""
     if args is not None and getattr(args, "no_cache", False):
@@ -412,8 +368,8 @@ def run_training(desc: str, run, train_fn, every: int = 0):
 
 def exported(args, meta: dict) -> int:
     """The line both export commands print about the file they wrote."""
-    from pathlib import Path
-    print(f"wrote {args.output} ({Path(args.output).stat().st_size / 1e6:.2f} MB, {args.dtype}, {meta['weights']} "
+    from ..outputs import size_of
+    print(f"wrote {args.output} ({size_of(args.output) / 1e6:.2f} MB, {args.dtype}, {meta['weights']} "
           f"weights, lens {meta['lens']}, {meta['step']} iterations)")
     return 0
 

@@ -37,16 +37,13 @@ def cmd_depth_estimate(args) -> int:
     """`dcdi depth estimate`: metric depth of a capture from its own lens's blur."""
     from ..app import depth as job
     from ..dfd import DepthFromBlurOptions
-    from ..io.images import check_image_output, read_image, write_depth
+    from ..io.images import check_depth_output, read_image, write_depth
     from ..optics.lens import load_lens
     from .common import check_cache, dump, in_cli_words, job_control, psf_request, say
     from .pipeline import _correct_render, _recorded
     from .render import check_image_fits
-    out = check_image_output(args.output)
-    conf_out = check_image_output(args.confidence) if args.confidence else None
-    if conf_out is not None and conf_out.resolve() == out.resolve():
-        from ..errors import InputRangeError
-        raise InputRangeError("--confidence", args.confidence, "another file than -o")
+    out = check_depth_output(args.output)                   # -o and --confidence apart: outputs.JobFiles
+    conf_out = check_depth_output(args.confidence) if args.confidence else None
     lens = load_lens(args.camera)
     options = DepthFromBlurOptions(tile=args.tile, window=2 * args.tile)
     check_cache()
@@ -85,7 +82,7 @@ def estimate_parser(subparsers):
     t.add_argument("--image", required=True, help="the capture (EXR linear, or PNG/JPEG sRGB)")
     t.add_argument("--camera", required=True, help="the lens that took it (a shipped id or a lens file)")
     t.add_argument("-o", "--output", required=True, help="the depth map (EXR 'Z' or .npy), metres")
-    t.add_argument("--confidence", default=None, metavar="FILE", help="also write the confidence map (0-1) there")
+    t.add_argument("--confidence", default=None, metavar="FILE", help="also write the confidence map (0-1) there (EXR 'Z' or .npy)")
     t.add_argument("--image-pixel-pitch", type=float, default=None, metavar="MM",
                    help="size of one image pixel on the sensor (default: the file's record, else the image spans "
                         "the sensor diagonal)")
@@ -98,7 +95,7 @@ def estimate_parser(subparsers):
                    help="px between estimates (default 32; each read from a window twice as wide)")
     add_psf_options(t, sensor_focus=True, render=True)
     add_psf_source_options(t)
-    t.set_defaults(func=cmd_depth_estimate)
+    t.set_defaults(func=cmd_depth_estimate, words={"lens": "--camera", "camera": "--camera"})
     return t
 
 

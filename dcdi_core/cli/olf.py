@@ -44,9 +44,10 @@ def cmd_olf_train(args) -> int:
     if torchrun_worker():
         return 0                                        # rank 0 exports and reports
     meta = export_olf(result, args.output, weights=args.weights, dtype=args.dtype)
+    from ..outputs import size_of
     h = meta["held_out"]["mean"]
     rate = result.step / result.seconds if result.seconds > 0 else float("nan")
-    print(f"wrote {args.output} ({meta['parameters']} parameters, {os.path.getsize(args.output)} bytes; "
+    print(f"wrote {args.output} ({meta['parameters']} parameters, {size_of(args.output)} bytes; "
           f"run folder {run})")
     print(f"held-out ({args.weights}): PSNR {h['psnr_8bit']:.2f} dB (8-bit, peak scale), SSIM "
           + (f"{h['ssim_8bit']:.4f}" if h["ssim_8bit"] is not None else "n/a")

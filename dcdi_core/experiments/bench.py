@@ -195,7 +195,7 @@ def bench_psflib(quick: bool = False) -> int:
 
 
 def _bench_library(lens, settings, grid):
-    import tempfile
+    from ..outputs import scratch_folder
 
     from ..optics.aiming import stop_grid
     from ..psf.compute import spectral_samples
@@ -213,7 +213,7 @@ def _bench_library(lens, settings, grid):
     t = time.perf_counter()
     lib.build(progress=psf_progress("  building"))
     total = time.perf_counter() - t
-    with tempfile.TemporaryDirectory() as d:
+    with scratch_folder() as d:
         t = time.perf_counter()
         lib.save(os.path.join(d, "lib.npz"))
         io_s = time.perf_counter() - t
@@ -682,8 +682,8 @@ def _run_rows(jobs: dict, repeat: int, quick: bool, base: float | None = None) -
 def goal_rows(repeat: int = 2) -> int:
     """The whole-process rows the speed goals are set on (1280 x 1920, warm), each beside its goal."""
     import sys
-    import tempfile
-    with tempfile.TemporaryDirectory() as d:
+    from ..outputs import scratch_folder
+    with scratch_folder() as d:
         base, _ = min(_process([sys.executable, "-m", "dcdi_core", "--help"]) for _ in range(2))
         _run_rows(_goal_jobs(d, _cli_inputs(d, False)), repeat, False, base)
     return 0
@@ -696,11 +696,11 @@ def bench_cli(quick: bool = False, repeat: int = 2) -> int:
     `dcdi bokeh --focus 1.5`, each run once to warm the caches, then
     ``repeat`` times (best kept). Baseline: `dcdi --help` (Python and the
     CLI's own start-up)."""
-    import tempfile
+    from ..outputs import scratch_folder
     h, w = (320, 480) if quick else (1280, 1920)
     print(f"whole processes on a {h} x {w} synthetic RGB-D (seed 0), 6P, {os.cpu_count()} CPU(s), "
           f"load average {os.getloadavg()[0]:.1f}; wall (CPU) seconds, best of {repeat} after a warm-up run")
-    with tempfile.TemporaryDirectory() as d:
+    with scratch_folder() as d:
         inputs = _cli_inputs(d, quick)
         py, io = inputs[0], inputs[2]
         jobs = {"dcdi --help (start-up)": (py + ["--help"], None),
@@ -747,7 +747,7 @@ def bench_memory(quick: bool = False) -> int:
     beside ``memory.JOB_BYTES_PER_PIXEL`` (the estimate that refuses an image
     too large before it is read)."""
     import sys
-    import tempfile
+    from ..outputs import scratch_folder
     from ..io.images import write_depth, write_image
     from ..memory import JOB_BYTES_PER_PIXEL, gib
     from ..render.synthetic import synthetic_rgbd
@@ -758,7 +758,7 @@ def bench_memory(quick: bool = False) -> int:
           f"{sizes[0][0]} x {sizes[0][1]} and {sizes[1][0]} x {sizes[1][1]}")
     print("| job | small | large | bytes per pixel (growth) | estimate used |")
     print("|---|---|---|---|---|")
-    with tempfile.TemporaryDirectory() as d:
+    with scratch_folder() as d:
         for h, w in sizes:
             img, depth = synthetic_rgbd(h, w, seed=1)
             write_image(f"{d}/{h}.exr", img)
@@ -782,7 +782,7 @@ def bench_depth(quick: bool = False, repeat: int = 2) -> int:
     with --quick), once to warm the caches then the best of ``repeat``,
     beside its goal and the start-up; then one run in process, its stages."""
     import sys
-    import tempfile
+    from ..outputs import scratch_folder
 
     from ..dfd import estimate_depth
     from ..io.images import write_image
@@ -801,7 +801,7 @@ def bench_depth(quick: bool = False, repeat: int = 2) -> int:
     print(f"bench depth: dcdi depth estimate, MOS-S1, a {h} x {w} synthetic capture at 12.2 um with noise, "
           f"{os.cpu_count()} CPU(s), load average {os.getloadavg()[0]:.1f}; wall (CPU) seconds, best of {repeat} "
           "after a warm-up run")
-    with tempfile.TemporaryDirectory() as d:
+    with scratch_folder() as d:
         write_image(f"{d}/cap.exr", capture)
         py = [sys.executable, "-m", "dcdi_core"]
         base, _ = min(_process(py + ["--help"]) for _ in range(2))

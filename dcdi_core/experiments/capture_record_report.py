@@ -13,12 +13,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import tempfile
 from contextlib import redirect_stdout
 from io import StringIO
 from pathlib import Path
 
 import numpy as np
+
+from ..outputs import scratch_folder
 
 
 def _dcdi(*argv) -> dict:
@@ -72,7 +73,7 @@ def main(argv=None) -> int:
         a.out.mkdir(parents=True, exist_ok=True)
         rows = run(a.out, tuple(a.size), a.seed)
     else:
-        with tempfile.TemporaryDirectory() as tmp:
+        with scratch_folder() as tmp:
             rows = run(Path(tmp), tuple(a.size), a.seed)
     print("\n".join(rows))
     return 0

@@ -58,8 +58,9 @@ def test_dacn_correct_is_correct_with_the_network_and_its_options_only():
     top = vars(p.parse_args(["correct", "--image", "i", "-o", "o.exr", "--method", "dacn"]))
     assert net["func"] is top["func"] and net["method"] == top["method"] == "dacn"
     assert vars(p.parse_args(["correct", "--image", "i", "-o", "o.exr"]))["method"] == "auto"
-    assert {k: v for k, v in top.items() if k in net and k not in ("command", "dacn_command", "words")} == \
-        {k: v for k, v in net.items() if k not in ("command", "dacn_command", "words")}
+    own = ("command", "dacn_command", "words", "files", "files_labels")      # each verb's own paths declared
+    assert {k: v for k, v in top.items() if k in net and k not in own} == \
+        {k: v for k, v in net.items() if k not in own}
     # the deconvolution's options and the PSF options are `dcdi correct`'s alone
     assert {"deconv_weight", "one_depth", "noise_full_well", "noise_read", "image_pixel_pitch", "rays",
             "psf_source"} <= set(top) - set(net)
