@@ -54,14 +54,11 @@ def add_focus_options(q, focus_help: str) -> None:
 
 
 def check_image_fits(args, job: str) -> None:
-    """Refuse, from the image's header alone (before any pixel is read), an
-    image too large for this machine's memory for ``job``."""
-    from ..io.images import image_size
-    from ..memory import JOB_BYTES_PER_PIXEL, check_image_job
-    if job not in JOB_BYTES_PER_PIXEL:
-        job = max(JOB_BYTES_PER_PIXEL, key=JOB_BYTES_PER_PIXEL.get)
-    h, w = image_size(args.image)
-    check_image_job(h, w, job, f"the image {args.image}")
+    """Refuse, from the headers alone (before any pixel is read), an image
+    or depth map too large for this machine's memory for ``job``, or a depth
+    map of another size than the image (``io.images.check_job_inputs``)."""
+    from ..io.images import check_job_inputs
+    check_job_inputs(job, args.image, getattr(args, "depth", None), depth_channel=getattr(args, "depth_channel", None))
 
 
 def read_rgbd(args, *, check_depth: bool = True):
@@ -105,9 +102,14 @@ def render_request(args, lens, *, sensor_focus: bool):
 
 
 def check_render_outputs(args) -> None:
+    """Refuse, before any work, outputs that cannot be written or drawn
+    (--side-by-side needs matplotlib), and an unwritable PSF cache."""
     check_output(args.output, "-o", image=True)
     check_output(getattr(args, "sharp_out", None), "--sharp-out", image=True)
     check_output(getattr(args, "side_by_side", None), "--side-by-side", suffix=".png")
+    if getattr(args, "side_by_side", None):
+        from ..render.pictures import require_matplotlib
+        require_matplotlib("--side-by-side")
     check_cache()
 
 

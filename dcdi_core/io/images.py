@@ -34,12 +34,18 @@ JPEG, TIFF, HDR; EXR with PIZ or another compression) is refused by
 """
 from __future__ import annotations
 
+import os
+import sys
+import tempfile
+import threading
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from . import rawexr
+from .. import memory
 from ..atomic import atomic_path
 from ..errors import DcdiError
 
@@ -54,6 +60,8 @@ __all__ = [
     "linear_to_srgb",
     "have_openimageio",
     "image_size",
+    "depth_size",
+    "check_job_inputs",
 ]
 
 #: Depth channel names tried in this order (in every part of the file) when
@@ -78,6 +86,19 @@ _WRITE_FORMATS = {
 
 _HALF_MAX = 65504.0
 _MAX_LISTED_CHANNELS = 24
+
+#: a display window may pad its data window up to this many pixels (an
+#: 8192 x 8192 frame), and beyond that up to DISPLAY_PAD_FACTOR times the
+#: data window: 4 x 4 pixels in a 20000 x 20000 display window (a 3 KB
+#: file) would otherwise allocate 4.8 GB of padding
+DISPLAY_PAD_MAX_PX = 1 << 26
+DISPLAY_PAD_FACTOR = 4
+# Bytes held while a part is read, for the memory guard: per sample (pixel x
+# channel read) of the data window the decoded float32 and its channel
+# selection (8) and the sRGB decode's float64 temporaries (48); per pixel
+# of a display window, the placed float32 RGB and its contiguous copy.
+_READ_BYTES_PER_SAMPLE = 56
+_PLACE_BYTES_PER_PX = 24
 
 
 class ImageFileError(DcdiError, ValueError):
@@ -186,10 +207,74 @@ def _open(path: Path, oiio):
     config = oiio.ImageSpec()
     # PNG: keep colour as stored instead of multiplying it by alpha.
     config.attribute("oiio:UnassociatedAlpha", 1)
-    inp = oiio.ImageInput.open(str(path), config)
-    if inp is None:
-        raise ImageFileError(path, f"cannot be read as an image ({oiio.geterror() or 'unknown format'})")
+    with _held_stderr() as held:
+        inp = oiio.ImageInput.open(str(path), config)
+        if inp is None:
+            why = _said(oiio.geterror(), held) or "unknown format"
+            raise ImageFileError(path, f"cannot be read as an image ({why})")
     return inp
+
+
+def _one_line(text: str) -> str:
+    """OpenImageIO's error text (several lines for one error) on one line."""
+    return " ".join(str(text).split())
+
+
+class _Held:
+    """What the C libraries wrote to standard error (:func:`_held_stderr`)."""
+    file = None
+
+    def text(self) -> str:
+        if self.file is None:
+            return ""
+        self.file.seek(0)
+        return self.file.read().decode("utf-8", "replace")
+
+
+@contextmanager
+def _held_stderr():
+    """Hold what C libraries write to the process's standard error while
+    OpenImageIO works (OpenEXR's and libpng's own lines about a damaged
+    file), so that the file's refusal is one line: an ImageFileError drops
+    it (its message says it, :func:`_said`), anything else writes it back.
+    Only in the main thread (the dcdi command's): file descriptor 2 is the
+    process's, and redirections from two threads could interleave."""
+    held = _Held()
+    if threading.current_thread() is not threading.main_thread():
+        yield held
+        return
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError, AttributeError):
+        yield held
+        return
+    with tempfile.TemporaryFile() as held.file:
+        os.dup2(held.file.fileno(), 2)
+        refused = False
+        try:
+            yield held
+        except ImageFileError:
+            refused = True
+            raise
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            text = held.text()
+            if text and not refused:
+                os.write(2, text.encode("utf-8", "replace"))
+
+
+def _said(message: str, held: _Held) -> str:
+    """OpenImageIO's error ``message`` on one line, followed by what the C
+    libraries wrote meanwhile where it adds to it (OpenEXR says why a chunk
+    is damaged; OpenImageIO relays less), at most 400 characters."""
+    text = _one_line(message)
+    for line in held.text().splitlines():
+        said = _one_line(line.split(": ", 1)[-1])          # without the file's name the library puts first
+        if said and said not in text:
+            text = f"{text}; {said}" if text else said
+    return text if len(text) <= 400 else text[:400] + "..."
 
 
 def _parts(inp, path):
@@ -197,8 +282,13 @@ def _parts(inp, path):
     s = 0
     while inp.seek_subimage(s, 0):
         spec = inp.spec(s, 0)
-        name = spec.getattribute("oiio:subimagename") or ""
-        parts.append(_Part(s, str(name), tuple(spec.channelnames), spec))
+        try:                        # OpenImageIO's binding decodes names as UTF-8
+            name = spec.getattribute("oiio:subimagename") or ""
+            channels = tuple(spec.channelnames)
+        except UnicodeDecodeError as e:
+            raise ImageFileError(path, f"part {s}: a part or channel name is not UTF-8 text ({e.reason} at byte "
+                                       f"{e.start}): a damaged header?") from None
+        parts.append(_Part(s, str(name), channels, spec))
         s += 1
     if not parts:
         raise ImageFileError(path, "contains no image")
@@ -223,9 +313,10 @@ def _read_channels(inp, part, indices, path):
     # Always the explicit (subimage, miplevel, chbegin, chend) form: in the
     # OpenImageIO 3.0 Python binding, read_image(chbegin, chend, format) after
     # seek_subimage() reads the wrong subimage or crashes.
-    data = inp.read_image(part.index, 0, lo, hi, "float")
-    if data is None:
-        raise ImageFileError(path, f"pixels of {part.label} cannot be read ({inp.geterror()})")
+    with _held_stderr() as held:
+        data = inp.read_image(part.index, 0, lo, hi, "float")
+        if data is None:
+            raise ImageFileError(path, f"pixels of {part.label} cannot be read ({_said(inp.geterror(), held)})")
     data = np.asarray(data, dtype=np.float32)
     if data.ndim == 2:
         data = data[..., None]
@@ -335,7 +426,7 @@ def _raw_read_channels(f, part, indices, path, *, normalise_uint=True):
         planes = f.read(part.index, names, raw_types=True)
     except rawexr.RawExrError as e:
         raise ImageFileError(path, f"pixels of {part.label} cannot be read without OpenImageIO ({e.why}); "
-                                   f"{NO_OPENIMAGEIO}, or write the file uncompressed or ZIP-compressed") from None
+                                   f"{NO_OPENIMAGEIO}, or write it as a scanline EXR, uncompressed or ZIP-compressed") from None
     out = []
     for n in names:
         a = planes[n]
@@ -345,11 +436,45 @@ def _raw_read_channels(f, part, indices, path, *, normalise_uint=True):
     return np.stack(out, axis=-1)
 
 
+def _displayed(spec) -> bool:
+    """Whether the readers return the display window (EXR may differ from
+    the data window) rather than the data window itself."""
+    same = (spec.x, spec.y, spec.width, spec.height) == (spec.full_x, spec.full_y, spec.full_width, spec.full_height)
+    return not same and spec.full_width > 0 and spec.full_height > 0
+
+
+def _returned_size(spec) -> tuple[int, int]:
+    """(height, width) px of what the readers return for a part: the
+    display window where :func:`_to_display_window` places the data in it,
+    else the data window."""
+    return (spec.full_height, spec.full_width) if _displayed(spec) else (spec.height, spec.width)
+
+
+def _check_read(path, part, n_channels: int) -> None:
+    """Refuse, before a pixel is read, a part whose reading cannot be done
+    within bounds: a display window absurdly larger than its data window
+    (:data:`DISPLAY_PAD_MAX_PX`, :data:`DISPLAY_PAD_FACTOR`), or bytes the
+    memory guard refuses (``n_channels`` read, :data:`_READ_BYTES_PER_SAMPLE`;
+    rawexr also decodes every channel of the part: their stored bytes)."""
+    spec = part.spec
+    h, w = spec.height, spec.width
+    fh, fw = _returned_size(spec)
+    shown = fh * fw if _displayed(spec) else 0
+    if shown > max(DISPLAY_PAD_MAX_PX, DISPLAY_PAD_FACTOR * h * w):
+        raise ImageFileError(path, f"{part.label}: display window {fw} x {fh} px around a data window of {w} x {h} "
+                                   f"px; a display window over {DISPLAY_PAD_MAX_PX} px may be at most "
+                                   f"{DISPLAY_PAD_FACTOR} times its data window (a damaged header?)")
+    stored = sum(2 if t == 1 else 4 for t in spec.types) if isinstance(spec, _RawSpec) else 0
+    need = h * w * (n_channels * _READ_BYTES_PER_SAMPLE + stored) + shown * _PLACE_BYTES_PER_PX
+    memory.check_fits(need, f"{path}: reading {part.label} ({w} x {h} px, {n_channels} channel(s), returned as "
+                            f"{fw} x {fh} px)", "use a smaller image (or crop it into parts)")
+
+
 def _to_display_window(data, spec, fill):
     """Place the data window's pixels in the display window (EXR may differ)."""
     x, y, w, h = spec.x, spec.y, spec.width, spec.height
     fx, fy, fw, fh = spec.full_x, spec.full_y, spec.full_width, spec.full_height
-    if (x, y, w, h) == (fx, fy, fw, fh) or fw <= 0 or fh <= 0:
+    if not _displayed(spec):
         return data
     out = np.full((fh, fw, data.shape[2]), fill, dtype=np.float32)
     x0, x1 = max(x, fx), min(x + w, fx + fw)
@@ -426,6 +551,7 @@ def read_image(path) -> np.ndarray:
     if oiio is None:
         f, parts = _raw_exr(path)
         part, indices = _choose_colour(parts, "openexr", path)
+        _check_read(path, part, len(indices))
         data = _to_display_window(_raw_read_channels(f, part, indices, path), part.spec, 0.0)
         if data.shape[2] == 1:
             data = np.repeat(data, 3, axis=2)
@@ -435,6 +561,7 @@ def read_image(path) -> np.ndarray:
         parts = _parts(inp, path)
         fmt = inp.format_name()
         part, indices = _choose_colour(parts, fmt, path)
+        _check_read(path, part, max(indices) - min(indices) + 1)
         data = _read_channels(inp, part, indices, path)
     finally:
         inp.close()
@@ -483,9 +610,39 @@ def _choose_depth(parts, channel, path):
               f"{_describe(parts)}; choose one (--depth-channel in the dcdi command, channel= in read_depth)")
 
 
-def _read_depth_npy(path: Path):
+def _npy_header(path: Path) -> tuple[tuple, np.dtype]:
+    """(shape, dtype) of a .npy depth map from its header alone, refused
+    unless a 2-D (or H x W x 1) array of real numbers whose bytes the file
+    holds: a damaged header must not make np.load allocate its shape."""
     if not path.exists():
         raise ImageFileError(path, "file not found")
+    _check_file(path)
+    fmt = np.lib.format
+    try:
+        with open(path, "rb") as f:
+            version = fmt.read_magic(f)
+            if version not in ((1, 0), (2, 0)):
+                raise ValueError(f"format version {version[0]}.{version[1]}; 1.0 and 2.0 are read")
+            read = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+            shape, _, dtype = read(f)
+            held = os.fstat(f.fileno()).st_size - f.tell()
+    except (OSError, ValueError, TypeError, SyntaxError) as exc:
+        raise ImageFileError(path, f"cannot be read as a .npy array ({_one_line(exc)})") from None
+    if len(shape) not in (2, 3) or (len(shape) == 3 and shape[2] != 1) or min(shape) < 1:
+        raise ImageFileError(path, f"a depth map must be a 2-D (H, W) array; got shape {shape}")
+    if dtype.kind not in "fiu":
+        raise ImageFileError(path, f"a depth map must hold real numbers (metres); got dtype {dtype}")
+    declared = int(np.prod(shape, dtype=object)) * dtype.itemsize
+    if declared > held:
+        raise ImageFileError(path, f"its header declares a {' x '.join(map(str, shape))} array of {dtype} "
+                                   f"({declared} bytes) but the file holds {held}: truncated or damaged")
+    return tuple(shape[:2]), dtype
+
+
+def _read_depth_npy(path: Path):
+    (h, w), dtype = _npy_header(path)
+    memory.check_fits(h * w * (dtype.itemsize + 8), f"{path}: reading a {w} x {h} px depth map",
+                      "use a smaller depth map")
     try:
         arr = np.load(path, allow_pickle=False)
     except (OSError, ValueError) as exc:
@@ -528,6 +685,7 @@ def read_depth(path, *, channel=None) -> np.ndarray:
                 path, f"depth channel '{part.qualified(index)}' ({part.label}) holds "
                       f"{rawexr.PIXEL_TYPE_NAMES[ptype]} values; depth must be stored as floating-point metres "
                       f"(EXR or .npy)")
+        _check_read(path, part, 1)
         data = _raw_read_channels(f, part, [index], path)
         data = _to_display_window(data, part.spec, np.nan)[..., 0]
         return np.ascontiguousarray(data, dtype=np.float32)
@@ -541,6 +699,7 @@ def read_depth(path, *, channel=None) -> np.ndarray:
             raise ImageFileError(
                 path, f"depth channel '{part.qualified(index)}' ({part.label}) holds {ctype} values; "
                       f"depth must be stored as floating-point metres (EXR or .npy)")
+        _check_read(path, part, 1)
         data = _read_channels(inp, part, [index], path)
     finally:
         inp.close()
@@ -549,11 +708,14 @@ def read_depth(path, *, channel=None) -> np.ndarray:
 
 
 def _png_jpeg_size(path: Path):
-    """(height, width) from a PNG's IHDR or a JPEG's SOF marker; None if neither."""
+    """(height, width) from a PNG's IHDR or a JPEG's SOF marker; None if
+    neither (or the header is cut short)."""
     import struct
     with open(path, "rb") as f:
         head = f.read(24)
-        if head.startswith(b"\x89PNG\r\n\x1a\n") and head[12:16] == b"IHDR":
+        if head.startswith(b"\x89PNG\r\n\x1a\n"):
+            if len(head) < 24 or head[12:16] != b"IHDR":
+                return None
             w, h = struct.unpack(">II", head[16:24])
             return h, w
         if not head.startswith(b"\xff\xd8"):
@@ -570,24 +732,44 @@ def _png_jpeg_size(path: Path):
                     return None
                 h, w = struct.unpack(">HH", seg[1:5])
                 return h, w
+            if size < 2:                                # a segment's size counts its own 2 bytes
+                return None
             f.seek(size - 2, 1)
 
 
+def _oiio_header(path: Path, oiio):
+    """(parts, format name) of a file, from its header through OpenImageIO."""
+    inp = _open(path, oiio)
+    try:
+        return _parts(inp, path), inp.format_name()
+    finally:
+        inp.close()
+
+
+def _colour_part(parts, fmt, path, strict: bool):
+    """The part :func:`read_image` reads; where none holds colour, the first
+    (its size is still the file's), unless ``strict``."""
+    try:
+        return _choose_colour(parts, fmt, path)[0]
+    except ImageFileError:
+        if strict:
+            raise
+        return parts[0]
+
+
 def image_size(path, *, pixels: bool = False) -> tuple[int, int]:
-    """(height, width) of an image file from its header only (the data window
-    of an EXR's colour part), or :class:`ImageFileError` naming it when it
-    cannot be read. ``pixels``: refuse also a file whose pixels
+    """(height, width) px of the image :func:`read_image` returns, from the
+    file's header only: an EXR colour part's display window where the data
+    is placed in it, else its data window (the size the memory guard must
+    see: what is allocated); :class:`ImageFileError` naming the file when
+    it cannot be read. ``pixels``: refuse also a file whose pixels
     :func:`read_image` could not decode here (without OpenImageIO: anything
-    but an EXR that rawexr reads)."""
+    but a scanline EXR that rawexr reads)."""
     path = Path(path)
     oiio = _oiio()
     if oiio is not None:
-        inp = _open(path, oiio)
-        try:
-            spec = inp.spec()
-            return spec.height, spec.width
-        finally:
-            inp.close()
+        parts, fmt = _oiio_header(path, oiio)
+        return _returned_size(_colour_part(parts, fmt, path, pixels).spec)
     _check_file(path)
     if _kind_of(path) != "exr" and not pixels:
         try:
@@ -599,14 +781,56 @@ def image_size(path, *, pixels: bool = False) -> tuple[int, int]:
                                        f"{NO_OPENIMAGEIO}")
         return size
     f, parts = _raw_exr(path, header_only=True)
-    part, _ = _choose_colour(parts, "openexr", path)
+    part = _colour_part(parts, "openexr", path, pixels)
     if pixels:
-        comp = f.parts[part.index].compression
-        if comp not in rawexr.READ_COMPRESSIONS:
-            raise ImageFileError(path, f"{part.label} is compressed with {f.parts[part.index].compression_name}, "
+        raw = f.parts[part.index]
+        if raw.kind != "scanlineimage":
+            raise ImageFileError(path, f"{part.label} is a {raw.kind} part, which dcdi's own EXR reader does not "
+                                       f"read: {NO_OPENIMAGEIO}, or write it as a scanline EXR")
+        if raw.compression not in rawexr.READ_COMPRESSIONS:
+            raise ImageFileError(path, f"{part.label} is compressed with {raw.compression_name}, "
                                        f"which dcdi's own EXR reader does not read: {NO_OPENIMAGEIO}, or write "
                                        "it uncompressed or ZIP-compressed")
-    return part.spec.height, part.spec.width
+    return _returned_size(part.spec)
+
+
+def depth_size(path, *, channel=None) -> tuple[int, int]:
+    """(height, width) px of the depth map :func:`read_depth` returns (or
+    ``dataset.rgbd.read_any_depth``), from the header only: a .npy's shape,
+    an EXR depth part's display or data window (the part and channel chosen
+    as :func:`read_depth` chooses them), another format's first image."""
+    path = Path(path)
+    if path.suffix.lower() == ".npy":
+        return _npy_header(path)[0]
+    _check_file(path)
+    if _kind_of(path) != "exr":
+        return image_size(path)
+    oiio = _oiio()
+    parts = _raw_exr(path, header_only=True)[1] if oiio is None else _oiio_header(path, oiio)[0]
+    part, _ = _choose_depth(parts, channel, path)
+    return _returned_size(part.spec)
+
+
+def check_job_inputs(job: str, image, depth=None, *, depth_channel=None) -> None:
+    """Refuse, from the headers alone (before any pixel is read), a job's
+    inputs that cannot be read together: the image too large for ``job``
+    (``memory.check_image_job``; a job it does not know counts as the
+    hungriest), the depth map too large to read, or a depth map whose size
+    differs from the image's (the error names both files and sizes).
+    ``depth``: the depth map's path, or None; ``depth_channel`` as
+    :func:`read_depth`'s ``channel``."""
+    if job not in memory.JOB_BYTES_PER_PIXEL:
+        job = max(memory.JOB_BYTES_PER_PIXEL, key=memory.JOB_BYTES_PER_PIXEL.get)
+    h, w = image_size(image)
+    memory.check_image_job(h, w, job, f"the image {image}")
+    if depth is None:
+        return
+    dh, dw = depth_size(depth, channel=depth_channel)
+    memory.check_fits(dh * dw * _READ_BYTES_PER_SAMPLE, f"the depth map {depth}: {dw} x {dh} px",
+                      "use a smaller depth map")
+    if (dh, dw) != (h, w):
+        raise ImageFileError(depth, f"the depth map is {dw} x {dh} px (width x height) but the image {image} is "
+                                    f"{w} x {h} px; they must be the same size")
 
 
 # --------------------------------------------------------------------------
@@ -758,6 +982,18 @@ def write_image(path, image, *, bit_depth=None, record=None) -> None:
         write_sidecar(path, record)
 
 
+DEPTH_SUFFIXES = (".exr", ".npy")
+
+
+def check_depth_output(path) -> Path:
+    """Refuse, before any work, a depth map's output path that
+    :func:`write_depth` cannot write (.exr or .npy)."""
+    path = Path(path)
+    if path.suffix.lower() not in DEPTH_SUFFIXES:
+        raise ImageFileError(path, f"depth maps are written as .exr (or .npy); got extension '{path.suffix}'")
+    return path
+
+
 def write_depth(path, depth) -> None:
     """Write a float32 ``(H, W)`` depth map (metres) as a one-channel 'Z' EXR.
 
@@ -773,7 +1009,6 @@ def write_depth(path, depth) -> None:
             with open(tmp, "wb") as f:
                 np.save(f, d, allow_pickle=False)
         return
-    if ext != ".exr":
-        raise ImageFileError(path, f"depth maps are written as .exr (or .npy); got extension '{path.suffix}'")
+    check_depth_output(path)
     _write(path, "openexr", d[..., None], "float", ("Z",), {"compression": "zip"})
 

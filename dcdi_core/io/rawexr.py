@@ -12,10 +12,17 @@ What it does:
 * reads flat scanline files, single-part (Blender 3.x / 4.x multilayer) or
   multi-part (Blender 5 writes one part per pass), compressed with NONE,
   ZIPS (one scanline a chunk) or ZIP (16 scanlines a chunk); channels of
-  type UINT, HALF or FLOAT, not subsampled. Anything else (tiled or deep
-  files, RLE, PIZ, PXR24, B44, DWA and other compressions) is refused by
-  name (:class:`RawExrError`), as is a chunk that is truncated, corrupt or
-  missing;
+  type UINT, HALF or FLOAT, not subsampled. The pixels of anything else
+  (tiled or deep parts, RLE, PIZ, PXR24, B44, DWA and other compressions)
+  are refused by name (:class:`RawExrError`), as is a chunk that is
+  truncated, corrupt or missing; their headers (windows, channels, string
+  attributes) are read all the same;
+* reads hostile files within bounds: every attribute this module uses is
+  checked for its type and size, a header-only read stops at
+  :data:`HEADER_MAX_BYTES`, a part whose data window holds more bytes than
+  its chunks could inflate to is refused before anything is allocated
+  (zlib expands at most :data:`ZLIB_MAX_RATIO`:1, NONE 1:1), and a chunk
+  is inflated to at most one byte more than its scanlines hold;
 * writes one-part scanline files (:func:`encode_exr`, :func:`write_exr`),
   HALF or FLOAT (or UINT) channels, compression NONE, ZIPS or ZIP. The bytes depend
   on the pixels and the options only (no time stamp, no host name), so the
@@ -49,6 +56,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import DcdiError
+
 MAGIC = 20000630
 _PIXEL_TYPES = {0: ("<u4", 4), 1: ("<f2", 2), 2: ("<f4", 4)}      # UINT, HALF, FLOAT
 PIXEL_TYPE_NAMES = {0: "uint", 1: "half", 2: "float"}
@@ -69,12 +78,25 @@ _LONG_NAME_MAX = 255
 #: float32, 3.69 MB raw) levels 1 to 6 give 3.27-3.28 MB in 0.09-0.12 s.
 ZIP_LEVEL = 4
 _HEADER_PROBE = 1 << 20
+#: a header-only read reads at most this much of the file (Blender's largest
+#: multilayer headers are tens of KiB; a longer header is refused)
+HEADER_MAX_BYTES = 16 << 20
+#: deflate's largest expansion: a 258-byte match costs at least 2 bits
+#: (RFC 1951), so n compressed bytes inflate to at most about 1032 n
+ZLIB_MAX_RATIO = 1032
+#: the standard attributes this module reads: name -> (type name, size in bytes, None: any)
+_ATTRIBUTE_FORMS = {"channels": ("chlist", None), "compression": ("compression", 1), "dataWindow": ("box2i", 16),
+                    "displayWindow": ("box2i", 16), "chunkCount": ("int", 4), "name": ("string", None),
+                    "type": ("string", None)}
+#: part types (the 'type' attribute) whose pixels this module reads; the others' headers only
+_SCANLINE = "scanlineimage"
 _PARALLEL_BYTES = 1 << 20         # files from this size on deflate their chunks on the thread pool
 
 
-class RawExrError(ValueError):
+class RawExrError(DcdiError, ValueError):
     """An EXR file this module cannot read or write; the message names the
-    file and why (``why``: the reason alone)."""
+    file and why (``why``: the reason alone). A project error (DcdiError):
+    every user-caused failure of this module's readers is one."""
 
     def __init__(self, path, why: str):
         self.path = str(path)
@@ -110,6 +132,7 @@ class ExrPart:
     compression: int
     chunk_count: int
     strings: dict = field(default_factory=dict)     # the header's 'string' attributes {name: text}
+    kind: str = _SCANLINE           # the part's type: scanlineimage, tiledimage, deepscanline, deeptile
 
     @property
     def width(self) -> int:
@@ -185,11 +208,38 @@ def _channels(raw: bytes, path, label: str) -> tuple:
     return tuple(sorted(out, key=lambda c: c.name.encode("utf-8")))
 
 
-def _box(h: dict, key: str, path, label: str) -> tuple:
+def _attribute(h: dict, key: str, path, label: str) -> bytes:
+    """The value of standard attribute ``key``, refused unless of its type
+    and size (:data:`_ATTRIBUTE_FORMS`): a damaged header must not reach a
+    struct.unpack of the wrong size."""
     typ, raw = h[key]
-    if typ != "box2i" or len(raw) != 16:
-        raise RawExrError(path, f"{label}: attribute {key!r} is not a box2i")
-    return struct.unpack("<iiii", raw)
+    want, size = _ATTRIBUTE_FORMS[key]
+    if typ != want or (size is not None and len(raw) != size):
+        need = f"{want} of {size} bytes" if size is not None else want
+        raise RawExrError(path, f"{label}: attribute {key!r} is {typ!r} of {len(raw)} bytes; allowed: {need}")
+    return raw
+
+
+def _box(h: dict, key: str, path, label: str) -> tuple:
+    """A box2i attribute: (x0, y0, x1, y1), inclusive pixel coordinates."""
+    return struct.unpack("<iiii", _attribute(h, key, path, label))
+
+
+def _chunk_count(h: dict, path, label: str) -> int:
+    """The 'chunkCount' attribute: the part's chunks (>= 1)."""
+    (n,) = struct.unpack("<i", _attribute(h, "chunkCount", path, label))
+    if n < 1:
+        raise RawExrError(path, f"{label}: attribute 'chunkCount' = {n}; allowed: 1 .. {2 ** 31 - 1}")
+    return n
+
+
+def _part_kind(h: dict, flags: int, path, label: str) -> str:
+    """The part's type: its 'type' attribute, else what the version flags say."""
+    if "type" in h:
+        return _text(_attribute(h, "type", path, label).rstrip(b"\0"))
+    if flags & _DEEP:
+        return "deeptile" if flags & _TILED else "deepscanline"
+    return "tiledimage" if flags & _TILED else _SCANLINE
 
 
 class ExrFile:
@@ -198,7 +248,8 @@ class ExrFile:
 
     def __init__(self, path: str | os.PathLike, data: bytes | None = None, *, header_only: bool = False):
         """``header_only``: read the headers only (the first MiB of the file,
-        more if they are longer); :meth:`read` is then refused."""
+        up to :data:`HEADER_MAX_BYTES` if they are longer); :meth:`read` is
+        then refused. Tiled and deep files' headers are read too."""
         self.path = Path(path)
         self.header_only = header_only
         if data is None:
@@ -209,8 +260,14 @@ class ExrFile:
         except RawExrError:
             if not (header_only and len(data) == _HEADER_PROBE):
                 raise
-            self.buf = self._bytes(None)
-            self.parts, self._tables = self._parse(tables=False)
+            self.buf = self._bytes(HEADER_MAX_BYTES)
+            try:
+                self.parts, self._tables = self._parse(tables=False)
+            except RawExrError as again:
+                if len(self.buf) < HEADER_MAX_BYTES:
+                    raise
+                raise RawExrError(self.path, f"{again.why}; a header longer than {HEADER_MAX_BYTES >> 20} MiB "
+                                             "is not read") from None
 
     def _bytes(self, n):
         try:
@@ -227,57 +284,71 @@ class ExrFile:
         if flags & 0xFF != 2:
             raise RawExrError(path, f"OpenEXR format version {flags & 0xFF}; only version 2 is read")
         self.multipart = multi = bool(flags & _MULTIPART)
-        if flags & _TILED:
-            raise RawExrError(path, "a tiled EXR; only scanline files are read")
-        if flags & _DEEP:
-            raise RawExrError(path, "a deep EXR; only flat scanline files are read")
-        pos = 8
+        headers, pos = self._headers(multi)
+        parts = tuple(self._part(i, h, flags) for i, h in enumerate(headers))
+        # a single-part tiled or deep file has no chunkCount to size its table
+        # by: its headers are read, its pixels refused (read)
+        if not tables or (not multi and parts[0].kind != _SCANLINE):
+            self._chunks_start = None
+            return parts, []
+        out_tables = []
+        for p in parts:
+            if pos + 8 * p.chunk_count > len(buf):
+                raise RawExrError(path, f"{p.label}: truncated offset table ({p.chunk_count} chunks)")
+            out_tables.append(np.frombuffer(buf, "<u8", p.chunk_count, pos))
+            pos += 8 * p.chunk_count
+        self._chunks_start = pos
+        return parts, out_tables
+
+    def _headers(self, multi: bool) -> tuple[list, int]:
+        """Every part's attributes {name: (type, bytes)}, and where the offset tables start."""
+        buf, path, pos = self.buf, self.path, 8
         headers = []
         while True:
             h, pos = _header(buf, pos, path)
             headers.append(h)
             if not multi:
-                break
+                return headers, pos
             if pos >= len(buf):
                 raise RawExrError(path, "truncated header")
             if buf[pos] == 0:           # the empty header ends the list
-                pos += 1
-                break
-        parts = []
-        for i, h in enumerate(headers):
-            label = f"part {i}"
-            for key in ("channels", "compression", "dataWindow", "displayWindow"):
-                if key not in h:
-                    raise RawExrError(path, f"{label} has no {key!r} attribute")
-            kind = _text(h["type"][1].rstrip(b"\0")) if "type" in h else "scanlineimage"
-            if kind != "scanlineimage":
-                raise RawExrError(path, f"{label} is of type {kind!r}; only scanlineimage parts are read")
-            name = _text(h["name"][1].rstrip(b"\0")) if "name" in h else ""
-            label = f"part {i} '{name}'" if name else label
-            comp = h["compression"][1][0] if h["compression"][1] else -1
-            dw, disp = _box(h, "dataWindow", path, label), _box(h, "displayWindow", path, label)
-            ny, nx = dw[3] - dw[1] + 1, dw[2] - dw[0] + 1
-            if ny < 1 or nx < 1:
-                raise RawExrError(path, f"{label}: empty data window {dw}")
-            lines = COMPRESSIONS.get(comp, ("", 1))[1]
-            n_chunks = -(-ny // lines)
-            if "chunkCount" in h:
-                n_chunks = struct.unpack("<i", h["chunkCount"][1])[0]
-            elif multi:
-                raise RawExrError(path, f"{label} has no 'chunkCount' attribute")
-            strings = {k: _text(v) for k, (t, v) in h.items() if t == "string"}
-            parts.append(ExrPart(i, name, _channels(h["channels"][1], path, label), dw, disp, comp, n_chunks,
-                                 strings))
-        out_tables = []
-        if not tables:
-            return tuple(parts), out_tables
-        for p in parts:
-            if p.chunk_count < 0 or pos + 8 * p.chunk_count > len(buf):
-                raise RawExrError(path, f"{p.label}: truncated offset table")
-            out_tables.append(np.frombuffer(buf, "<u8", p.chunk_count, pos))
-            pos += 8 * p.chunk_count
-        self._chunks_start = pos
-        return tuple(parts), out_tables
+                return headers, pos + 1
+
+    def _part(self, i: int, h: dict, flags: int) -> ExrPart:
+        """Part ``i``'s header, every attribute used checked for type and size."""
+        path, label = self.path, f"part {i}"
+        for key in ("channels", "compression", "dataWindow", "displayWindow"):
+            if key not in h:
+                raise RawExrError(path, f"{label} has no {key!r} attribute")
+        name = _text(_attribute(h, "name", path, label).rstrip(b"\0")) if "name" in h else ""
+        label = f"part {i} '{name}'" if name else label
+        kind = _part_kind(h, flags, path, label)
+        comp = _attribute(h, "compression", path, label)[0]
+        dw, disp = _box(h, "dataWindow", path, label), _box(h, "displayWindow", path, label)
+        ny, nx = dw[3] - dw[1] + 1, dw[2] - dw[0] + 1
+        if ny < 1 or nx < 1:
+            raise RawExrError(path, f"{label}: empty data window {dw}")
+        n_chunks = -(-ny // COMPRESSIONS.get(comp, ("", 1))[1])
+        if "chunkCount" in h:
+            n_chunks = _chunk_count(h, path, label)
+        elif self.multipart:
+            raise RawExrError(path, f"{label} has no 'chunkCount' attribute")
+        strings = {k: _text(v) for k, (t, v) in h.items() if t == "string"}
+        channels = _channels(_attribute(h, "channels", path, label), path, label)
+        return ExrPart(i, name, channels, dw, disp, comp, n_chunks, strings, kind)
+
+    def _check_declared_bytes(self, p: ExrPart, declared: int) -> None:
+        """Refuse, before allocating them, ``declared`` raw bytes of part ``p``
+        that the file's chunks cannot hold: NONE stores them 1:1, zlib
+        inflates at most :data:`ZLIB_MAX_RATIO`:1 (a damaged or hostile
+        header: a 3 KB file declaring a 2 GB data window)."""
+        held = max(0, len(self.buf) - self._chunks_start)
+        ratio = 1 if p.compression == 0 else ZLIB_MAX_RATIO
+        if declared > ratio * held:
+            raise RawExrError(self.path, f"{p.label}: its data window ({p.width} x {p.height} px, "
+                                         f"{len(p.channels)} channel(s)) holds {declared} bytes, but the file's "
+                                         f"{held} bytes of chunks hold at most {ratio * held} ({p.compression_name}: "
+                                         f"at most {ratio}:1): the header is damaged")
 
     def read(self, part: int = 0, names=None, *, raw_types: bool = False) -> dict[str, np.ndarray]:
         """{channel name: (H, W) array} of part ``part`` (the data window,
@@ -289,6 +360,10 @@ class ExrFile:
             raise ValueError("ExrFile(header_only=True) reads no pixels")
         p = self.parts[part]
         path, buf = self.path, self.buf
+        if p.kind != _SCANLINE:
+            what = "deep" if p.kind.startswith("deep") else "tiled"
+            raise RawExrError(path, f"{p.label} is a {what} image (type {p.kind!r}); only scanline images' pixels "
+                                    "are read")
         if p.compression not in READ_COMPRESSIONS:
             raise RawExrError(path, f"{p.label} is compressed with {p.compression_name}; only NONE, ZIPS and ZIP "
                                     "are read without OpenImageIO")
@@ -303,6 +378,7 @@ class ExrFile:
         if len(self._tables[part]) != n_blocks:
             raise RawExrError(path, f"{p.label}: {len(self._tables[part])} chunks in the offset table, "
                                     f"expected {n_blocks} ({ny} scanlines, {lines} a chunk)")
+        self._check_declared_bytes(p, ny * line_bytes)
         raw = np.empty((ny, line_bytes), np.uint8)
         seen = np.zeros(n_blocks, bool)
         head = 12 if self.multipart else 8
@@ -351,13 +427,20 @@ class ExrFile:
 
 
 def _zip_decode(data: bytes, expect: int, path, where: str) -> np.ndarray:
-    """zlib, then the predictor and the interleave undone: the raw bytes."""
+    """zlib, then the predictor and the interleave undone: the ``expect``
+    raw bytes. Inflates at most one byte more than ``expect``, so a chunk
+    that would inflate to gigabytes (a zlib bomb) costs ``expect`` bytes."""
+    inflater = zlib.decompressobj()
     try:
-        flat = zlib.decompress(data)
+        flat = inflater.decompress(data, expect + 1)
     except zlib.error as e:
         raise RawExrError(path, f"{where} is corrupt (zlib: {e})") from None
-    if len(flat) != expect:
-        raise RawExrError(path, f"{where} decompresses to {len(flat)} bytes, expected {expect}: the file is "
+    if len(flat) > expect:
+        raise RawExrError(path, f"{where} inflates to more than the {expect} bytes its scanlines hold: the file "
+                                "is damaged")
+    if len(flat) != expect or not inflater.eof:
+        raise RawExrError(path, f"{where} decompresses to {len(flat)} bytes (the zlib stream "
+                                f"{'ends' if inflater.eof else 'is cut short'}), expected {expect}: the file is "
                                 "damaged")
     d = np.frombuffer(flat, np.uint8).copy()
     d[1:] -= np.uint8(128)                       # wraps modulo 256

@@ -1,0 +1,95 @@
+"""No input file of under 10 MB makes a verb use more than 1.5 GB: each
+crafted file (small on disk, huge in what it claims) is refused with one
+line, exit 2, and the `dcdi` process's peak resident memory measured by the
+kernel (``wait4``) stays under the bound."""
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from support.hostile import constant_exr, display_window_exr, huge_npy, huge_png, zip_bomb_exr
+
+ROOT = Path(__file__).resolve().parents[1]
+BOUND = 1.5e9           # bytes of peak resident memory
+SMALL = 10e6            # bytes on disk
+
+
+def _dcdi(tmp_path, *argv):
+    """(exit code, standard error, peak RSS in bytes) of `dcdi ARGV` in a process of its own."""
+    env = {**os.environ, "DCDI_CACHE_DIR": str(tmp_path / "cache"), "PYTHONPATH": str(ROOT)}
+    with open(tmp_path / "err.txt", "wb") as err:
+        p = subprocess.Popen([sys.executable, "-m", "dcdi_core.cli", *map(str, argv)], cwd=tmp_path, env=env,
+                             stdout=subprocess.DEVNULL, stderr=err)
+        _, status, usage = os.wait4(p.pid, 0)
+        p.returncode = os.waitstatus_to_exitcode(status)
+    return p.returncode, (tmp_path / "err.txt").read_text(), usage.ru_maxrss * 1024
+
+
+@pytest.fixture
+def small(tmp_path):
+    """A 32 x 48 image and depth map beside the crafted files."""
+    from dcdi_core.io.images import write_depth, write_image
+    write_image(tmp_path / "img.exr", np.full((32, 48, 3), 0.5, np.float32))
+    write_depth(tmp_path / "depth.exr", np.full((32, 48), 2.0, np.float32))
+    return tmp_path
+
+
+def _refused(tmp_path, crafted: Path, *argv, words=()):
+    assert crafted.stat().st_size < SMALL
+    code, err, peak = _dcdi(tmp_path, *argv)
+    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+    assert peak < BOUND, f"peak {peak / 1e9:.2f} GB: {err}"
+    for w in words:
+        assert w in err, err
+    return err
+
+
+def test_an_exr_whose_chunk_inflates_far_past_its_scanlines(small):
+    bomb = zip_bomb_exr(small / "bomb.exr", 768 << 20)
+    _refused(small, bomb, "bokeh", "--image", bomb, "--depth", small / "depth.exr", "--lens", "mos-s1",
+             "--focus", "2", "-o", small / "out.exr", words=("bomb.exr",))
+
+
+def test_a_tiny_data_window_in_a_huge_display_window(small):
+    f = display_window_exr(small / "window.exr", 20000)
+    _refused(small, f, "bokeh", "--image", f, "--depth", small / "depth.exr", "--lens", "mos-s1", "--focus", "2",
+             "-o", small / "out.exr", words=("window.exr",))
+
+
+def test_a_huge_depth_map_beside_a_small_image(small):
+    f = constant_exr(small / "big-depth.exr", 20000, 20000)
+    _refused(small, f, "bokeh", "--image", small / "img.exr", "--depth", f, "--lens", "mos-s1", "--focus", "2",
+             "-o", small / "out.exr", words=("big-depth.exr",))
+
+
+def test_a_png_whose_header_claims_ten_gigapixels(small):
+    f = huge_png(small / "huge.png", 100000, 100000)
+    _refused(small, f, "correct", "--image", f, "--lens", "mos-s1", "--method", "deconv", "--one-depth", "2",
+             "-o", small / "out.exr", words=("huge.png",))
+
+
+def test_a_npy_depth_whose_header_claims_more_than_it_holds(small):
+    f = huge_npy(small / "huge.npy", 30000, 30000)
+    _refused(small, f, "bokeh", "--image", small / "img.exr", "--depth", f, "--lens", "mos-s1", "--focus", "2",
+             "-o", small / "out.exr", words=("huge.npy",))
+
+
+def test_a_capture_record_nested_a_million_deep(small):
+    from dcdi_core.io.images import write_image
+    write_image(small / "cap.png", np.full((32, 48, 3), 0.5, np.float32))
+    side = small / "cap.png.dcdi.json"
+    side.write_text("[" * 1_000_000 + "]" * 1_000_000)
+    _refused(small, side, "correct", "--image", small / "cap.png", "--depth", small / "depth.exr", "--lens",
+             "mos-s1", "--method", "deconv", "-o", small / "out.exr", words=("cap.png",))
+
+
+def test_a_lens_file_with_sixty_thousand_surfaces(small):
+    text = (ROOT / "lenses" / "mos-s1.toml").read_text()
+    head, first, rest = text.partition("[[surface]]")
+    block = first + rest.split("[[surface]]")[1]
+    f = small / "many.toml"
+    f.write_text(head.replace('id = "mos-s1"', 'id = "many"') + block * 60_000)
+    _refused(small, f, "lens", "info", f, words=("many.toml",))
