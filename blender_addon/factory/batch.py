@@ -27,12 +27,26 @@ set with
 
 (``merge_shards``: refuses shards of other settings, an index doubled,
 missing or out of range).
+
+Stops and faults. SIGINT (Ctrl-C) and SIGTERM (timeout, Slurm) stop the
+run at any stage with one line ("factory: interrupted; the finished samples
+are kept: ...") and exit 130 / 143; under ``blender --background`` the
+factory takes SIGINT from Blender's own handler for the run
+(``signals.stop_on_signals(take_over=True)``), and a stop while Blender
+works (scene, render) waits for Blender to return (``signals.deferred``).
+A sample's files are written as temporaries and renamed into place together
+with its manifest line (``commit_sample``): stopped, killed or out of disk
+space, a sample is in the folder whole with its line, or not at all (a
+resume removes what a SIGKILL left half-way). The sample folders are made
+and probed before any render (``check_sample_folders``). For tests,
+``DCDI_FACTORY_STOP_AFTER=N`` ends the run after N samples (exit 3).
 """
 from __future__ import annotations
 
 import argparse
 import math
 import os
+import signal
 import sys
 import time
 from dataclasses import asdict, dataclass
@@ -392,7 +406,8 @@ def _lock(out: Path):
 def prepare_folder(out: Path, settings: dict, add_lens: bool = False) -> tuple[list[dict], list[str], list[str]]:
     """Record the run's settings before the first sample, or compare them with
     the folder's (refusing a mismatch by name); repair a torn manifest
-    record; remove stale temporaries. Returns (finished records, notes, the
+    record; remove stale temporaries and the files of samples without a
+    manifest line. Returns (finished records, notes, the
     lenses to add to the finished samples: only with ``add_lens``, when the
     run's lenses are the folder's followed by new ones and nothing else
     differs; the settings record is then rewritten once they are added)."""
@@ -424,6 +439,10 @@ def prepare_folder(out: Path, settings: dict, add_lens: bool = False) -> tuple[l
     gone = remove_stale_files(out)
     if gone:
         notes.append(f"removed {len(gone)} stale temporary file(s) of a killed run")
+    unfinished = remove_unfinished_files(out, {r["id"] for r in records})
+    if unfinished:
+        notes.append(f"removed {len(unfinished)} file(s) of {len({p.stem for p in unfinished})} sample(s) without "
+                     "a manifest line (a killed run's): they are done again")
     return records, notes, added
 
 
@@ -585,32 +604,67 @@ def render_rgbd(recipe: str, lens, seed: int, height: int, width: int, render: R
     seconds as "cpu_scene", "cpu_render", "cpu_read". ``textures``: a
     TextureLibrary for a share of the surfaces; ``scene_info``, if given,
     receives what the scene holds (objects placed, materials by kind, the
-    texture sets used)."""
+    texture sets used).
+
+    A SIGINT or SIGTERM while Blender works (scene and render) stops the job
+    once Blender returns (``signals.deferred``: Blender runs Python of its
+    own, Cycles' engine and the handlers, and drops an exception raised
+    there); the hand-over file ``tmp`` is removed whatever happens."""
     import bpy
 
     from dcdi_core.io.images import read_depth, read_image
     from dcdi_core.render.camera import depth_from_planar_z
+    from dcdi_core.signals import deferred
     from scenes.recipes import build
 
     t, c = [time.perf_counter()], [_cpu_s()]
-    empty_scene()
-    scene = bpy.context.scene
-    builder = build(recipe, np.random.default_rng(seed), textures)
-    if scene_info is not None:
-        scene_info.update(scene_summary(builder))
-    pinhole = setup_render(scene, lens, height, width, render, seed)
-    scene.render.filepath = str(tmp)
-    t.append(time.perf_counter()), c.append(_cpu_s())
-    bpy.ops.render.render(write_still=True)
-    t.append(time.perf_counter()), c.append(_cpu_s())
-    img = read_image(tmp)
-    z = read_depth(tmp)
-    tmp.unlink()
+    try:
+        with deferred():
+            empty_scene()
+            scene = bpy.context.scene
+            builder = build(recipe, np.random.default_rng(seed), textures)
+            if scene_info is not None:
+                scene_info.update(scene_summary(builder))
+            pinhole = setup_render(scene, lens, height, width, render, seed)
+            scene.render.filepath = str(tmp)
+            t.append(time.perf_counter()), c.append(_cpu_s())
+            render_still(tmp)
+            t.append(time.perf_counter()), c.append(_cpu_s())
+        img = read_image(tmp)
+        z = read_depth(tmp)
+    finally:
+        tmp.unlink(missing_ok=True)        # read, or left behind by a stop or a failure
     t.append(time.perf_counter()), c.append(_cpu_s())
     if timings is not None:
         timings.update(scene=t[1] - t[0], render=t[2] - t[1], read=t[3] - t[2])
         timings.update({"cpu_" + k: c[i + 1] - c[i] for i, k in enumerate(("scene", "render", "read"))})
     return img, depth_from_planar_z(z, pinhole.entrance_pupil_mm)
+
+
+def render_still(path: Path) -> None:
+    """Render the current scene's frame; Blender writes it to ``path``.
+    Raises ``Stopped`` (SIGINT) when Blender's own break event cancelled the
+    render (Ctrl-C reaching Blender's handler, where the factory could not
+    take SIGINT: Blender then writes no file), and RenderError when Blender
+    finished without writing the file."""
+    import bpy
+
+    from dcdi_core.errors import RenderError
+    from dcdi_core.signals import Stopped
+    cancelled = []
+
+    def on_cancel(*_):
+        cancelled.append(True)
+    bpy.app.handlers.render_cancel.append(on_cancel)
+    try:
+        bpy.ops.render.render(write_still=True)
+    finally:
+        bpy.app.handlers.render_cancel.remove(on_cancel)
+    if cancelled:
+        raise Stopped(signal.SIGINT)
+    if not path.is_file():
+        raise RenderError(f"{path}: Blender finished the render but wrote no file (see its messages above: "
+                          "a full disk?)")
 
 
 def scene_summary(builder) -> dict:
@@ -649,7 +703,9 @@ def frame(a, lens, seed: int, tmp: Path, stages: dict):
 def run(argv=None) -> int:
     """The factory: exit 0 when every sample of this shard is done, 2 with one
     line ("factory: error: ...") for any error a user can cause (options,
-    lens files, the output folder, memory), 3 when stopped early by
+    lens files, the output folder, memory, a full disk), 130 / 143 with one
+    line when stopped by SIGINT / SIGTERM at any stage (the finished samples
+    kept, nothing half-written), 3 when stopped early by
     DCDI_FACTORY_STOP_AFTER (tests). A failed run leaves no folder it
     created without a finished sample."""
     import shutil
@@ -665,7 +721,11 @@ def run(argv=None) -> int:
     from dcdi_core.signals import stop_code, stop_on_signals
     created, lock = False, None
     try:
-        with stop_on_signals():          # SIGINT and SIGTERM: stop, remove this run's temporaries, one line
+        # SIGINT and SIGTERM: stop, remove this run's temporaries, one line. take_over: under `blender
+        # --background` SIGINT has Blender's own handler, which Python code never hears of (a Ctrl-C in the
+        # simulation was lost) and which cancels a render only late, leaving no file; a batch job owns its
+        # process, so the factory takes SIGINT for the whole run
+        with stop_on_signals(take_over=True):
             check_arguments(a)
             check_output_folder(out)
             try:
@@ -703,21 +763,13 @@ def check_output_folder(out: Path) -> None:
 
 
 def _run(a, out: Path) -> int:
-    from dcdi_core.progress import psf_progress
-    from dcdi_core.render.geometry import ImageGeometry
-    from dcdi_core.render.simulate import LensSimulator, SimulateOptions
-    from scenes.recipes import RECIPES
-
     layout = ff.FolderLayout(out)
-    lenses = a.lenses
-    h, w = a.resolution
-    settings = a.psf_settings
-    render = a.render
     records, notes, added = prepare_folder(out, run_settings(a), a.add_lens)
     for note in notes:
         print(f"factory: {note}", flush=True)
+    check_sample_folders(layout, [lens.id for lens in a.lenses])      # before any render or simulation
     if added:
-        add_lenses(out, records, [lens for lens in lenses if lens.id in added], a, run_settings(a))
+        add_lenses(out, records, [lens for lens in a.lenses if lens.id in added], a, run_settings(a))
     done = {r["id"] for r in records}
     todo = [i for i in range(a.count) if i % a.shard_count == a.shard_index
             and ff.sample_id(a.recipe, i) not in done]
@@ -726,56 +778,218 @@ def _run(a, out: Path) -> int:
     t_start = time.perf_counter()
     sims = {}                          # built on the first sample to do: no PSF work for a finished run
     for n, i in enumerate(todo):
-        sid = ff.sample_id(a.recipe, i)
-        seed = sample_seed(a.seed, i)
-        t0, c0 = time.perf_counter(), _cpu_s()
-        stages = {}
-        img, depth, scene_info = frame(a, lenses[0], seed, layout.render_handover(sid), stages)
-        t_render = time.perf_counter() - t0
-        t1 = time.perf_counter()
-        ff.write_rgbd(layout, sid, img, depth)
-        stages["write"] = time.perf_counter() - t1
-        lens_records = {}
-        for lens in lenses:
-            t1 = time.perf_counter()
-            if lens.id not in sims:
-                options = SimulateOptions(geometry=ImageGeometry.full_sensor(lens, h, w), settings=settings,
-                                          baseline_depth_m=a.baseline_depth)
-                sims[lens.id] = LensSimulator(lens, options, progress=psf_progress(f"factory: PSFs of {lens.id}"))
-                stages["setup"] = stages.get("setup", 0.0) + time.perf_counter() - t1
-            t2, c2 = time.perf_counter(), _cpu_s()
-            r = sims[lens.id](img, depth)
-            aberrated, baseline, sharp, info = r.image, r.baseline, r.sharp, r.info
-            t3 = time.perf_counter()
-            stages["cpu_simulate"] = stages.get("cpu_simulate", 0.0) + _cpu_s() - c2
-            ff.write_lens_images(layout, lens.id, sid, aberrated=aberrated, baseline=baseline, sharp=sharp,
-                                 record=capture_record(sims[lens.id]))
-            t4 = time.perf_counter()
-            stages["simulate"] = stages.get("simulate", 0.0) + t3 - t2
-            stages["write"] += t4 - t3
-            lens_records[lens.id] = {"seconds": round(t4 - t1, 3), **info}
-        finite = depth[np.isfinite(depth)]
-        record = {"id": sid, "index": i, "recipe": a.recipe, "seed": seed, "dataset_seed": a.seed,
-                  "resolution": [h, w], "camera_lens": lenses[0].id,
-                  "render": ({"engine": "CYCLES", "device": "CPU", **render.as_dict(), "seconds": round(t_render, 3)}
-                             if RECIPES[a.recipe].build is not None else
-                             {"engine": "numpy", "seconds": round(t_render, 3)}),
-                  "scene": scene_info,
-                  "depth_m": {"min": float(finite.min()) if finite.size else None,
-                              "max": float(finite.max()) if finite.size else None,
-                              "infinite_fraction": float(np.isinf(depth).mean())},
-                  "stage_seconds": {k: round(v, 3) for k, v in stages.items()},
-                  "seconds": round(time.perf_counter() - t0, 3), "cpu_seconds": round(_cpu_s() - c0, 3),
-                  "lenses": lens_records, "psf_settings": settings.as_dict(), "versions": _versions()}
-        append_record(layout.manifest, record)
+        t0 = time.perf_counter()
+        record = make_sample(a, layout, sims, i)
         el = time.perf_counter() - t_start
         rate = (n + 1) / el
-        print(f"  {sid}: {time.perf_counter() - t0:.1f} s (render {t_render:.1f} s); {rate * 3600:.0f} samples/h, "
-              f"ETA {(len(todo) - n - 1) / rate:.0f} s, RSS {_rss_mib():.0f} MiB", flush=True)
+        print(f"  {record['id']}: {time.perf_counter() - t0:.1f} s (render {record['render']['seconds']:.1f} s); "
+              f"{rate * 3600:.0f} samples/h, ETA {(len(todo) - n - 1) / rate:.0f} s, RSS {_rss_mib():.0f} MiB",
+              flush=True)
         if os.environ.get("DCDI_FACTORY_STOP_AFTER") and n + 1 >= int(os.environ["DCDI_FACTORY_STOP_AFTER"]):
             print("factory: stopping early (DCDI_FACTORY_STOP_AFTER)", flush=True)
             return 3
     return 0
+
+
+def make_sample(a, layout, sims: dict, i: int) -> dict:
+    """Sample ``i``: render (or draw) its frame, simulate it through every
+    lens, and commit its files with its manifest line (``commit_sample``);
+    returns its manifest record. Its files are written as temporaries
+    first: a failure or a stop at any stage leaves nothing of it behind.
+    ``sims``: the run's LensSimulators by lens id, built on first use."""
+    sid, seed = ff.sample_id(a.recipe, i), sample_seed(a.seed, i)
+    t0, c0 = time.perf_counter(), _cpu_s()
+    stages = {}
+    files = StagedFiles(layout)
+    try:
+        img, depth, scene_info = frame(a, a.lenses[0], seed, layout.render_handover(sid), stages)
+        t_render = time.perf_counter() - t0
+        t1 = time.perf_counter()
+        ff.write_rgbd(files, sid, img, depth)
+        stages["write"] = time.perf_counter() - t1
+        lens_records = {lens.id: simulate_lens(a, files, sims, lens, sid, img, depth, stages) for lens in a.lenses}
+        record = sample_record(a, i, seed, depth, scene_info, stages, lens_records, t_render, t0, c0)
+        commit_sample(files, layout.manifest, record)
+    except BaseException:
+        files.discard()
+        raise
+    return record
+
+
+def simulate_lens(a, files, sims: dict, lens, sid: str, img, depth, stages: dict) -> dict:
+    """Simulate ``lens`` on a frame (image, depth in metres) and stage its
+    aberrated, baseline and sharp images in ``files``; adds the wall and
+    CPU seconds to ``stages``; returns the lens's manifest entry."""
+    from dcdi_core.progress import psf_progress
+    from dcdi_core.render.geometry import ImageGeometry
+    from dcdi_core.render.simulate import LensSimulator, SimulateOptions
+
+    t1 = time.perf_counter()
+    if lens.id not in sims:
+        h, w = a.resolution
+        options = SimulateOptions(geometry=ImageGeometry.full_sensor(lens, h, w), settings=a.psf_settings,
+                                  baseline_depth_m=a.baseline_depth)
+        sims[lens.id] = LensSimulator(lens, options, progress=psf_progress(f"factory: PSFs of {lens.id}"))
+        stages["setup"] = stages.get("setup", 0.0) + time.perf_counter() - t1
+    t2, c2 = time.perf_counter(), _cpu_s()
+    r = sims[lens.id](img, depth)
+    t3 = time.perf_counter()
+    stages["cpu_simulate"] = stages.get("cpu_simulate", 0.0) + _cpu_s() - c2
+    ff.write_lens_images(files, lens.id, sid, aberrated=r.image, baseline=r.baseline, sharp=r.sharp,
+                         record=capture_record(sims[lens.id]))
+    t4 = time.perf_counter()
+    stages["simulate"] = stages.get("simulate", 0.0) + t3 - t2
+    stages["write"] += t4 - t3
+    return {"seconds": round(t4 - t1, 3), **r.info}
+
+
+def sample_record(a, i: int, seed: int, depth, scene_info: dict, stages: dict, lens_records: dict,
+                  t_render: float, t0: float, c0: float) -> dict:
+    """A sample's manifest line: seed, recipe, camera, render settings, scene,
+    depth range (metres), stage seconds, the render's and the whole
+    sample's wall seconds (``t_render``; since ``t0``, a perf_counter) and
+    CPU seconds (since ``c0``), lenses, versions."""
+    from scenes.recipes import RECIPES
+    finite = depth[np.isfinite(depth)]
+    render = ({"engine": "CYCLES", "device": "CPU", **a.render.as_dict()} if RECIPES[a.recipe].build is not None
+              else {"engine": "numpy"})
+    return {"id": ff.sample_id(a.recipe, i), "index": i, "recipe": a.recipe, "seed": seed, "dataset_seed": a.seed,
+            "resolution": list(a.resolution), "camera_lens": a.lenses[0].id,
+            "render": {**render, "seconds": round(t_render, 3)},
+            "scene": scene_info,
+            "depth_m": {"min": float(finite.min()) if finite.size else None,
+                        "max": float(finite.max()) if finite.size else None,
+                        "infinite_fraction": float(np.isinf(depth).mean())},
+            "stage_seconds": {k: round(v, 3) for k, v in stages.items()},
+            "seconds": round(time.perf_counter() - t0, 3), "cpu_seconds": round(_cpu_s() - c0, 3),
+            "lenses": lens_records, "psf_settings": a.psf_settings.as_dict(), "versions": _versions()}
+
+
+# ------------------------------------------------------------------ a sample's files: staged, then committed
+class StagedFiles:
+    """A sample's files under hidden temporary names beside their places
+    (``.<name>.p<pid>_<random>.tmp.exr``: the form a resume removes as a
+    killed run's), renamed into place only with the sample's manifest line
+    (:func:`commit_sample`). It stands in for the folder's layout when the
+    folder format's writers (``factory_folder.write_rgbd``,
+    ``write_lens_images``) ask where each file goes."""
+
+    def __init__(self, layout):
+        self.layout = layout
+        self.moves: list[tuple[Path, Path]] = []        # (temporary, its place), in the order written
+
+    def aif(self, sid: str) -> Path:
+        return self._stage(self.layout.aif(sid))
+
+    def depth(self, sid: str) -> Path:
+        return self._stage(self.layout.depth(sid))
+
+    def lens_image(self, lens: str, kind: str, sid: str) -> Path:
+        return self._stage(self.layout.lens_image(lens, kind, sid))
+
+    def _stage(self, path: Path) -> Path:
+        import secrets
+        tmp = path.with_name(f".{path.name}.p{os.getpid()}_{secrets.token_hex(4)}.tmp{path.suffix}")
+        self.moves.append((tmp, path))
+        return tmp
+
+    def discard(self) -> None:
+        """Remove the temporaries not renamed (all of them, unless committed)."""
+        for tmp, _ in self.moves:
+            tmp.unlink(missing_ok=True)
+
+
+def commit_sample(files: StagedFiles, manifest: Path, record: dict) -> None:
+    """Rename a sample's staged files into place, then append its manifest
+    line: both or neither. A stop waits for the commit (``deferred``: a
+    few renames and one flushed line, milliseconds), then stops the run
+    with the sample kept. A failure (a full disk while appending) removes
+    the files already renamed and cuts the manifest back to its length
+    before, so the folder holds the sample whole with its line or not at
+    all. A kill (SIGKILL, a power cut) between the renames and the line
+    leaves files without a line: the next run removes them
+    (:func:`remove_unfinished_files`)."""
+    from dcdi_core.errors import output_error
+    from dcdi_core.signals import deferred
+    with deferred():
+        size = manifest.stat().st_size if manifest.exists() else None
+        placed = []
+        try:
+            for tmp, path in files.moves:
+                try:
+                    os.replace(tmp, path)
+                except OSError as e:
+                    raise output_error(path, e) from None
+                placed.append(path)
+            append_record(manifest, record)
+        except BaseException:
+            for path in placed:
+                path.unlink(missing_ok=True)
+            _cut_back(manifest, size)
+            raise
+
+
+def _cut_back(manifest: Path, size: int | None) -> None:
+    """The manifest back to ``size`` bytes (None: it did not exist), best
+    effort: a part of a line that stays is dropped as torn on resume."""
+    try:
+        if size is None:
+            manifest.unlink(missing_ok=True)
+        else:
+            os.truncate(manifest, size)
+    except OSError:
+        pass
+
+
+def remove_unfinished_files(out: Path, finished: set[str]) -> list[Path]:
+    """Remove the sample files (aif/, depth/, <lens>/<kind>/<id>.exr) whose
+    sample has no manifest line: a run killed between renaming a sample's
+    files and appending its line left them. Only names of the sample-id
+    form are touched; called with the folder's lock held. Returns them."""
+    folders = [out / ff.AIF_DIR, out / ff.DEPTH_DIR] + [d for d in out.glob("*/*")
+                                                        if d.name in ff.LENS_KINDS and d.is_dir()]
+    gone = []
+    for folder in folders:
+        for p in folder.glob("*" + ff.IMAGE_EXT):
+            if p.stem in finished or not _is_sample_id(p.stem):
+                continue
+            try:
+                p.unlink()
+                gone.append(p)
+            except OSError:
+                pass
+    return gone
+
+
+def _is_sample_id(name: str) -> bool:
+    try:
+        ff.parse_sample_id(name)
+        return True
+    except ValueError:
+        return False
+
+
+def check_sample_folders(layout, lenses: list[str]) -> None:
+    """Make the folders a sample's files go to and write (then remove) a
+    4 KiB probe file in each, before any render: an --out whose subfolders
+    cannot be written (read-only, a file in a folder's place, a read-only
+    file system, a disk already full) is refused now (OutputError naming
+    the folder), not after the first sample's render."""
+    import tempfile
+
+    from dcdi_core.errors import output_error
+    for folder in sorted({p.parent for p in layout.files(ff.sample_id("probe", 0), lenses)}):
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            fd, name = tempfile.mkstemp(prefix=".probe.", suffix=".tmp", dir=folder)   # a temporary's form
+            try:
+                os.write(fd, bytes(4096))
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+                os.unlink(name)
+        except OSError as e:
+            raise output_error(folder, e, "--out: a sample's files cannot be written here") from None
 
 
 def add_lenses(out: Path, records: list[dict], lenses, a, settings: dict) -> None:
