@@ -243,6 +243,9 @@ def cmd_dof(args) -> int:
     from ..optics.lens import load_lens
     from ..pipeline import check_correction
     from .render import bokeh_request
+    if args.side_by_side:                       # a picture needs matplotlib: refused before any work
+        from ..render.pictures import require_matplotlib
+        require_matplotlib("--side-by-side")
     camera = None if args.camera == "none" else load_lens(args.camera)
     if camera is not None:                              # refused before any image is read
         check_correction(camera.id, args.method, args.dacn)

@@ -51,6 +51,16 @@ def _psf_from_source(args, src):
     return kernel.astype("float32"), src.library.pixel_pitch_mm
 
 
+def check_psf_pitch(lens, settings) -> float:
+    """The pitch (mm) the PSFs are sampled at (--pixel-pitch, else the lens's
+    sensor), refused before any tracing where the kernel (--kernel) cannot
+    hold the lens's smallest spot or a pixel exceeds the sensor
+    (``psf.compute.check_pixel_pitch``)."""
+    from ..psf.compute import check_pixel_pitch, pixel_pitch_mm
+    name = "pixel_pitch_mm" if settings.pixel_pitch_mm is not None else f"the pixel pitch of {lens.id}'s sensor"
+    return check_pixel_pitch(lens, settings, pixel_pitch_mm(lens, settings), name=name)
+
+
 def _write_kernel(path, kernel, pitch) -> None:
     import numpy as np
 
@@ -64,11 +74,15 @@ def cmd_psf(args) -> int:
     from ..optics.lens import load_lens
     from ..psf.compute import check_psf_memory, pixel_pitch_mm, psf
     from ..psf.plots import depth_label, psf_grid_png
+    from ..render.pictures import require_matplotlib
     lens = load_lens(args.lens)
     check_output(args.out, "--out", suffix=".npz")
     check_output(args.png, "--png", suffix=".png")
+    if args.png:
+        require_matplotlib("--png")
     check_wavelength(lens, args)
     settings = psf_settings(args)
+    check_psf_pitch(lens, settings)
     check_psf_memory(settings, 1, 1 if args.wavelength is not None else None)
     check_olf_file(args)
     extra = ("a field angle (--angle) was given; the OLF takes a field (--field)" if args.angle is not None else
@@ -127,6 +141,7 @@ def cmd_psflib_build(args) -> int:
     check_cache(args)
     grid = LibraryGrid(n_fields=args.fields, n_depths=args.depths, near_m=args.near, far_m=args.far)
     settings = psf_settings(args)
+    check_psf_pitch(lens, settings)
     check_library_memory(settings, grid)
     lib = PSFLibrary.open(lens, settings, grid, response(args), cache=not args.no_cache)
     t = time.perf_counter()
@@ -155,11 +170,11 @@ def cmd_psflib_compress(args) -> int:
     store = build_store(lens, recipe, cache_dir=False if args.no_cache else None,
                         progress=psf_progress(f"psflib {lens.id}"), log=say)
     store.save(args.output)
-    import os
+    from ..outputs import size_of
     print(f"wrote {args.output}: {lens.id}, rank {store.rank} of {store.kernel_size} x {store.kernel_size} px "
           f"kernels at {store.pixel_pitch_mm * 1000:.4g} um, {recipe.n_depths + 1} depth bins x {recipe.n_fields} "
           f"fields, {recipe.rays} rays" + (f" ({recipe.near_rays} to {recipe.near_until_m:g} m)" if recipe.near_rays
-                                           else "") + f"; {os.path.getsize(args.output) / 1e6:.2f} MB; "
+                                           else "") + f"; {size_of(args.output) / 1e6:.2f} MB; "
           f"{time.perf_counter() - t:.1f} s")
     return 0
 
@@ -182,8 +197,10 @@ def cmd_psflib_show(args) -> int:
     from ..optics.lens import load_lens
     from ..psf.library import LibraryGrid, PSFLibrary
     from ..psf.plots import depth_label, psf_grid_png
+    from ..render.pictures import require_matplotlib
     from ..render.request import check_library_memory
     check_output(args.png, "--png", suffix=".png")
+    require_matplotlib("--png")
     if args.library.endswith(".npz") and _is_basis(args.library):
         from ..psf.basis import BasisLibrary, BasisStore
         store = BasisStore.load(args.library)
@@ -194,6 +211,7 @@ def cmd_psflib_show(args) -> int:
         lens = load_lens(args.library)
         check_cache()
         settings = psf_settings(args)
+        check_psf_pitch(lens, settings)
         check_library_memory(settings)
         near = LibraryGrid().near_m
         if min(args.show_depths) < near:
@@ -209,6 +227,7 @@ def cmd_psflib_show(args) -> int:
         fi = [int(np.argmin(np.abs(lib.fields - f))) for f in fields]
         kernels = lib.psf[np.ix_(di, fi)].swapaxes(0, 1)
         depths, fields = lib.depths_m[di], lib.fields[fi]
+        lib.warn_if_clipped(di)          # the file's clipped kernels say so, as the traced ones did
     else:
         kernels = lib.at(fields[:, None], depths[None, :], clamp_near=False)
     psf_grid_png(kernels, [f"field {f:.2f}" for f in fields], [depth_label(d) for d in depths],

@@ -75,6 +75,12 @@ def check_psf_memory(settings: "PSFSettings", n_sources: int, n_wavelengths: int
                available=available)
 
 
+def _finite_positive(v) -> bool:
+    """A real number (not a bool), finite and > 0."""
+    return (isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
+            and math.isfinite(v) and v > 0)
+
+
 class KernelTooSmallWarning(UserWarning):
     """The k x k kernel clips more than 1 % of a PSF's energy."""
 
@@ -118,8 +124,8 @@ class PSFSettings:
             raise InputRangeError("deposit_sigma_px", self.deposit_sigma_px, "0 <= sigma <= 3 pixels")
         if self.wavelength_nm is not None and not (200.0 < self.wavelength_nm < 2500.0):
             raise InputRangeError("wavelength_nm", self.wavelength_nm, "(200, 2500) nm, or None for the band")
-        if self.pixel_pitch_mm is not None and not (self.pixel_pitch_mm > 0):
-            raise InputRangeError("pixel_pitch_mm", self.pixel_pitch_mm, "> 0 mm")
+        if self.pixel_pitch_mm is not None and not _finite_positive(self.pixel_pitch_mm):
+            raise InputRangeError("pixel_pitch_mm", self.pixel_pitch_mm, "a finite number > 0 mm")
 
     def as_dict(self) -> dict:
         d = asdict(self)
@@ -138,6 +144,80 @@ def pixel_pitch_mm(lens: Lens, settings: PSFSettings) -> float:
         return 2.0 * s.semi_diagonal_mm / math.hypot(*s.resolution_px)
     raise OpticsError(f"{lens.path}: [sensor] has neither pixel_pitch_mm nor resolution_px; "
                       "give a pixel pitch (PSFSettings.pixel_pitch_mm / --pixel-pitch)")
+
+
+# The largest kernel side (px) the sane range of a pitch allows for, where the
+# kernel a run ends with is not known yet (a library grows its kernel to hold
+# the blur): a recorded PSF setting holds at most 4095 px (psf.basis), and one
+# 4095 px RGB kernel is 200 MB (a library of 1344 of them, 270 GB).
+LARGEST_KERNEL_PX = 4095
+# Airy's first dark ring: its diameter is AIRY_DIAMETER x wavelength x F-number
+AIRY_DIAMETER = 2.44
+# No F-number in air is below 0.5 (sin u' <= 1): the floor where a lens gives none
+SMALLEST_F_NUMBER = 0.5
+
+
+def shortest_wavelength_nm(settings: PSFSettings) -> float:
+    """The shortest wavelength (nm) PSFs of ``settings`` are traced at (or above):
+    the single wavelength, else the band's lower edge."""
+    return float(settings.wavelength_nm if settings.wavelength_nm is not None else settings.band_nm[0])
+
+
+def smallest_blur_mm(lens: Lens, settings: PSFSettings) -> float:
+    """Diameter (mm) of the smallest spot ``lens`` can form with ``settings``:
+    the diffraction-limited Airy disc (first dark ring) 2.44 lambda N at the
+    shortest wavelength traced and the lens's working F-number for an object
+    at infinity on the axis. A nearer object, a refocus or an off-axis field
+    raise the working F-number (a larger disc) in any ordinary lens, and no
+    real lens beats diffraction, so no PSF of the lens is smaller: a kernel
+    that cannot span this spot cannot hold any of them. (The tracer's geometric spot is no
+    floor: it ignores diffraction, and a well-corrected lens's is as small as
+    its aberrations.) One real ray is traced (milliseconds)."""
+    from ..optics.analysis import working_f_number
+    from ..optics.paraxial import first_order
+    wl = shortest_wavelength_nm(settings)
+    try:              # (a refocus moves the sensor, not the marginal ray's angle: the lens as it is)
+        n = working_f_number(lens, wl)
+        if not (math.isfinite(n) and n > 0):             # the marginal ray failed: the paraxial figure
+            n = first_order(lens, wl).f_number
+    except OpticsError:
+        n = SMALLEST_F_NUMBER
+    n = max(abs(n), SMALLEST_F_NUMBER) if math.isfinite(n) else SMALLEST_F_NUMBER
+    return AIRY_DIAMETER * wl * 1e-6 * n
+
+
+def pixel_pitch_range_mm(lens: Lens, settings: PSFSettings, kernel_size: int) -> tuple[float, float]:
+    """(smallest, largest) pixel pitch (mm) PSFs of ``lens`` may be sampled
+    at with kernels of at most ``kernel_size`` px: a kernel must span the
+    smallest spot of the lens (:func:`smallest_blur_mm`: below that every
+    kernel clips nearly all its light), and a pixel may be at most the
+    sensor's diagonal (a larger one holds the whole image: no geometry)."""
+    sd = lens.sensor.semi_diagonal_mm
+    return smallest_blur_mm(lens, settings) / kernel_size, (2.0 * sd if sd and math.isfinite(sd) else math.inf)
+
+
+def check_pixel_pitch(lens: Lens, settings: PSFSettings, pitch_mm: float, *, kernel_size: int | None = None,
+                      name: str = "pixel_pitch_mm") -> float:
+    """Refuse, before any tracing, a pixel pitch (mm) outside
+    :func:`pixel_pitch_range_mm` for kernels of at most ``kernel_size`` px
+    (default: the settings'); ``name`` is the field or option named in the
+    error. Every size derived from the pitch (kernel sizes, positions in
+    pixels) is then a bounded number. Returns the pitch."""
+    k = settings.kernel_size if kernel_size is None else int(kernel_size)
+    if not _finite_positive(pitch_mm):
+        raise InputRangeError(name, pitch_mm, "a finite number > 0 mm")
+    lo, hi = pixel_pitch_range_mm(lens, settings, k)
+    if not lo <= pitch_mm <= hi:
+        raise InputRangeError(name, pitch_mm, pitch_range_text(lens, settings, k, lo, hi))
+    return float(pitch_mm)
+
+
+def pitch_range_text(lens: Lens, settings: PSFSettings, kernel_size: int, lo: float, hi: float) -> str:
+    """The allowed range of :func:`check_pixel_pitch`, with why, on one line."""
+    blur_um = lo * kernel_size * 1000.0
+    return (f"{lo:.3g} to {hi:.4g} mm: a kernel of at most {kernel_size} px must span {lens.id}'s smallest "
+            f"spot ({blur_um:.3g} um, the diffraction limit at {shortest_wavelength_nm(settings):g} nm), and a "
+            "pixel cannot exceed the sensor's diagonal")
 
 
 def focused_lens(lens: Lens, settings: PSFSettings) -> Lens:
@@ -231,6 +311,10 @@ def compute_sources(lens: Lens, aimed: Aimed, settings: PSFSettings, wavelengths
     n = flat.p.size
     per_batch = max(1, BATCH_RAYS // (n_p * wl.size))
     check_psf_memory(settings, int(np.prod(aimed.p.shape)), wl.size)
+    # the sane range before a ray is traced: positions in pixels (and the
+    # kernel sizes derived from them) stay bounded numbers; callers that know
+    # the largest kernel of their run check the pitch against it first
+    check_pixel_pitch(lens, settings, pitch, kernel_size=max(k, LARGEST_KERNEL_PX))
     psf = np.zeros((n, 3, k, k), np.float32)
     outside = np.zeros((n, 3))
     vig = np.ones((n, 3))
@@ -310,13 +394,26 @@ def compute_sources(lens: Lens, aimed: Aimed, settings: PSFSettings, wavelengths
                     zero.reshape(shape), needed.reshape(shape), resid, times)
 
 
+def clip_message(energy_outside, kernel_size_needed, k: int, what: str = "PSF") -> str | None:
+    """The warning of kernels that clip more than :data:`CLIP_WARNING` of a
+    channel's energy (``energy_outside``: fractions, any shape;
+    ``kernel_size_needed``: px, 0 where not measured), or None where none
+    does. One text for the PSFs computed now and the same PSFs served later
+    (``psf.library``)."""
+    outside = np.asarray(energy_outside, dtype=np.float64)
+    worst = float(outside.max()) if outside.size else 0.0
+    if not worst > CLIP_WARNING:
+        return None
+    needed = np.asarray(kernel_size_needed)
+    need = int(needed.max()) if needed.size else 0
+    return (f"{what}: the {k} x {k} kernel clips up to {worst:.1%} of a channel's energy; "
+            f"a kernel of {need} x {need} holds 99 % of the rays")
+
+
 def warn_if_clipped(batch: PSFBatch, k: int, what: str = "PSF") -> None:
-    worst = float(batch.energy_outside.max()) if batch.energy_outside.size else 0.0
-    if worst > CLIP_WARNING:
-        need = int(batch.kernel_size_needed.max())
-        warnings.warn(f"{what}: the {k} x {k} kernel clips up to {worst:.1%} of a channel's energy; "
-                      f"a kernel of {need} x {need} holds 99 % of the rays", KernelTooSmallWarning,
-                      stacklevel=3)
+    text = clip_message(batch.energy_outside, batch.kernel_size_needed, k, what)
+    if text:
+        warnings.warn(text, KernelTooSmallWarning, stacklevel=3)
 
 
 def psf(lens: Lens, *, depth_m: float, field: float | None = None, angle_deg: float | None = None,

@@ -11,7 +11,15 @@ Interpolation is linear in field and in inverse depth. Only the depth bins
 that a query (a list of depths or a depth map) touches are computed; results
 are cached in a file keyed by the lens's optical content and every setting,
 written atomically and checked on load (checksum, key, shapes, finiteness):
-a corrupt or stale cache is rebuilt, never used.
+a corrupt or stale cache is rebuilt, never used. A cache that cannot be
+written (a full disk, a read-only folder) costs the job nothing but the
+time next run: one warning, and the PSFs stay in memory.
+
+What the normalisation of each kernel hides travels with it: the energy
+outside the k x k window (``energy_outside``) and the kernel that would
+hold 99 % of the rays (``kernel_size_needed``) are arrays of the cache file
+and of a library file like the kernels, so a library that serves clipped
+kernels says so whether it traced them now or read them (``ensure``).
 """
 from __future__ import annotations
 
@@ -19,8 +27,10 @@ import hashlib
 import json
 import math
 import os
+import sys
 import time
 import warnings
+import weakref
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -28,10 +38,11 @@ import numpy as np
 
 from ..atomic import atomic_path
 from ..optics.aiming import sources
-from ..errors import InputRangeError, field
+from ..errors import InputRangeError, OutputError, field, output_error
 from ..optics.errors import OpticsError
 from ..optics.lens import Lens
-from .compute import PSFSettings, compute_sources, focused_lens, pixel_pitch_mm, spectral_samples, warn_if_clipped
+from .compute import (KernelTooSmallWarning, PSFSettings, clip_message, compute_sources, focused_lens, pixel_pitch_mm,
+                      spectral_samples)
 from .spectral import SpectralResponse, default_response
 
 FORMAT_VERSION = 1
@@ -40,7 +51,8 @@ ALGORITHM_VERSION = 2     # 2: rays into the pixel they land in (deposit_sigma_p
 
 
 class CacheWarning(UserWarning):
-    """A cache file was unusable (corrupt or stale) and is being rebuilt."""
+    """A cache file was unusable (corrupt or stale) and is being rebuilt, or
+    could not be written (the PSFs then stay in memory)."""
 
 
 @dataclass(frozen=True)
@@ -105,7 +117,8 @@ class PSFLibrary:
     ``psf`` (D+1, F, 3, k, k) float32; ``energy_outside`` and
     ``vignetted_fraction`` (D+1, F, 3); ``relative_illumination``,
     ``chief_ray_height_mm``, ``zero_energy``, ``kernel_size_needed`` (D+1, F);
-    ``computed`` (D+1,) says which bins hold data.
+    ``computed`` (D+1,) says which bins hold data, ``served`` which of them
+    :meth:`ensure` has served (what its clipping warning speaks of).
     """
 
     ARRAYS = ("psf", "energy_outside", "vignetted_fraction", "relative_illumination",
@@ -148,6 +161,10 @@ class PSFLibrary:
         self.zero_energy = np.zeros((nd, nf), bool)
         self.kernel_size_needed = np.zeros((nd, nf), np.int64)
         self.computed = np.zeros(nd, bool)
+        # the bins this library has served (ensure): what its clipping warning speaks of
+        self.served = np.zeros(nd, bool)
+        self._cache_failed = False          # a cache write failed: not tried again
+        self._told: set[str] = set()        # what this library has warned outside a job
         # progress(done, total) of the bins computed by ensure() calls that pass none of their own
         self.progress = None
         self.cache_path = None
@@ -211,8 +228,13 @@ class PSFLibrary:
             raise OpticsError("this library was loaded without its lens: it can only serve computed bins")
         want = np.asarray(bins if bins is not None else self.bins_needed(depth_m, clamp_near=clamp_near), int)
         todo = [int(b) for b in want if not self.computed[b]]
-        if not todo:
-            return []
+        if todo:
+            self._compute(todo, progress)
+        self.warn_if_clipped(want)
+        return todo
+
+    def _compute(self, todo: list[int], progress) -> None:
+        """Trace the depth bins ``todo`` and write the cache."""
         lens_f = focused_lens(self.lens, self.settings)
         aimed = sources(lens_f, self.depths_m[todo], field=self.fields)     # (F, n_todo)
         wl, w = np.asarray(self.meta["wavelengths_nm"]), np.asarray(self.meta["channel_weights"])
@@ -228,12 +250,57 @@ class PSFLibrary:
             self.kernel_size_needed[b] = batch.kernel_size_needed[:, j]
             self.computed[b] = True
         self.last_timings_s = batch.timings_s
-        warn_if_clipped(batch, self.kernel_size, f"PSF library of {self.meta['lens_id']}")
-        if self.cache_path is not None:
+        if self.cache_path is not None and not self._cache_failed:
             t = time.perf_counter()
-            self.save(self.cache_path)
+            self._write_cache()
             self.last_timings_s["io"] = time.perf_counter() - t
-        return todo
+
+    def _write_cache(self) -> None:
+        """Save to the cache file. A cache is an optimisation: where it cannot
+        be written (disk full, a read-only folder) the job goes on with the
+        PSFs in memory, with one warning (the same text for every library of
+        the folder: shown once per job) and no further try by this library."""
+        try:
+            self.save(self.cache_path)
+        except OSError as e:            # OutputError included; a bug's AssertionError is not
+            self._cache_failed = True
+            err = e if isinstance(e, OutputError) else output_error(self.cache_path, e)
+            why = err.raw().removeprefix(f"{err.path}: ")          # the folder named, not each library's file
+            self._tell(f"the PSF cache {self.cache_path.parent} could not be written ({why}); the PSFs stay in "
+                       "memory for this job", CacheWarning)
+
+    def warn_if_clipped(self, bins=None) -> None:
+        """Warn (:class:`~dcdi_core.psf.compute.KernelTooSmallWarning`) when a
+        bin this library has served (with ``bins``, served now) holds a
+        kernel that clips more than ``CLIP_WARNING`` of a channel's energy:
+        the same text whether the bins were traced now or read from the cache
+        or a library file, with the worst fraction of the bins served; once
+        per job (:meth:`_tell`), again only when worse bins are served."""
+        if bins is not None:
+            b = np.asarray(bins, int).ravel()
+            self.served[b[self.computed[b]]] = True
+        held = self.served & self.computed
+        text = clip_message(self.energy_outside[held], self.kernel_size_needed[held], self.kernel_size,
+                            f"PSF library of {self.meta['lens_id']}")
+        if text:
+            self._tell(text, KernelTooSmallWarning)
+
+    def _tell(self, text: str, category) -> None:
+        """Warn ``text`` once per job: in a `dcdi` command's job
+        (``outputs.active()``) once whichever of its libraries repeats it
+        (a kernel grown to fit opens a second library in the same cache
+        folder); outside one, once per library."""
+        from ..outputs import active
+        job = active()
+        told = _job_told(job) if job is not None else self._told
+        if text in told:
+            return
+        told.add(text)
+        # a fresh registry: this rule, not the warnings module's once-per-line memory (which a
+        # process keeps across jobs), decides; the filters (ignore, error) still apply
+        caller = _frame(3)                   # who asked for the PSFs (ensure's caller), as stacklevel would
+        warnings.warn_explicit(text, category, caller.f_code.co_filename, caller.f_lineno,
+                               module=caller.f_globals.get("__name__"), registry={})
 
     def build(self, progress=None) -> list[int]:
         """Compute every bin."""
@@ -324,6 +391,32 @@ class PSFLibrary:
         if not lib._load_into(path):
             raise OpticsError(f"{path}: corrupt PSF library file")
         return lib
+
+
+def _frame(depth: int):
+    """The frame ``depth`` calls above the caller's, or the outermost one where
+    the stack is shallower."""
+    frame = sys._getframe(1)
+    for _ in range(depth):
+        if frame.f_back is None:
+            break
+        frame = frame.f_back
+    return frame
+
+
+# the texts each running job has been told: {id(job): (weak reference to the job, texts)}
+_TOLD: dict[int, tuple[weakref.ref, set]] = {}
+
+
+def _job_told(job) -> set:
+    """The warning texts ``job`` (an ``outputs.JobFiles``) has been told; the
+    entries of finished jobs are dropped."""
+    for key in [k for k, (ref, _) in _TOLD.items() if ref() is None]:
+        del _TOLD[key]
+    entry = _TOLD.get(id(job))
+    if entry is None or entry[0]() is not job:
+        entry = _TOLD[id(job)] = (weakref.ref(job), set())
+    return entry[1]
 
 
 def _checksum(arrays: dict) -> str:

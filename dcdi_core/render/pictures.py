@@ -1,9 +1,32 @@
-"""Side-by-side pictures: input | depth | result (PNG)."""
+"""Side-by-side pictures: input | depth | result (PNG); whether matplotlib,
+which draws them and every other picture (`dcdi psf --png`), is installed.
+
+matplotlib is not a dependency of the wheel (numpy is its only one): an
+option that asks for a picture is refused before any work where it is
+missing (:func:`require_matplotlib`), in one line saying what to install.
+"""
 from __future__ import annotations
 
 import numpy as np
 
 from ..atomic import save_figure
+from ..errors import DcdiError
+
+
+class PackageMissingError(DcdiError, ImportError):
+    """An optional package that an option needs is not installed (names the
+    option and what to install)."""
+
+
+def require_matplotlib(option: str) -> None:
+    """Refuse ``option`` (a picture's option, e.g. ``--side-by-side``, or the
+    picture's name) where matplotlib cannot be imported: call it where the
+    options are checked, before any work."""
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        raise PackageMissingError(f"{option} needs matplotlib, which is not installed: "
+                                  "pip install matplotlib") from None
 
 
 def _srgb(x):
@@ -14,6 +37,7 @@ def _srgb(x):
 def side_by_side(path, image, depth, result, title: str) -> None:
     """A PNG with the all-in-focus input, its depth (log scale, invalid grey)
     and the result, sRGB-encoded for viewing."""
+    require_matplotlib("a side-by-side picture")
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -42,6 +66,7 @@ def depth_panel(depth_m, near_m: float = 0.5, far_m: float = 20.0) -> np.ndarray
     """A depth map as a colour image (H, W, 3) in *linear* light, so that
     ``io.images.write_image`` shows it as drawn: viridis (reversed, near
     bright) of log depth over [near_m, far_m], grey where invalid."""
+    require_matplotlib("a depth picture")
     import matplotlib
 
     from ..io.images import srgb_to_linear

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field, replace
 
 from ..errors import InputRangeError
 from ..errors import field as field_ref
-from ..psf.compute import PSFSettings, check_psf_memory
+from ..psf.compute import PSFSettings, check_pixel_pitch, check_psf_memory
 from ..psf.library import LibraryGrid
 from .distortion import check_interpolation
 from .geometry import ImageGeometry
@@ -64,7 +64,10 @@ class RenderRequest:
     ``psf.kernel_size`` is kept).
 
     ``image_pixel_pitch_mm``: one image pixel on the sensor (mm; default: the
-    image, or the ``sensor_size`` frame, spans the sensor's diagonal).
+    image, or the ``sensor_size`` frame, spans the sensor's diagonal); given
+    or resolved, it must let the largest kernel of the run span the lens's
+    diffraction-limited spot and be at most the sensor's diagonal
+    (:meth:`check_pitch`).
     ``sensor_size``: (rows, cols) of the sensor's frame, centred on the axis,
     inside a larger (over-scan) image; the output has this size.
     ``axis_px``: (row, col) of the optical axis in the image (default its
@@ -116,7 +119,8 @@ class RenderRequest:
                                       f">= {near:g} m, the PSF library's nearest depth bin (or inf)")
         if self.psf.wavelength_nm is not None:
             self.lens.check_wavelengths(self.psf.wavelength_nm, self._label("wavelength_nm"))
-        self.image_pitch_mm      # noqa: B018 - the pitch options checked now
+        if self.image_pitch_mm is not None:      # the pitch options checked now, before an image is read
+            self.check_pitch(self.image_pitch_mm)
 
     def _label(self, name: str) -> str:
         return self.labels.get(name) or field_ref(name)
@@ -133,8 +137,30 @@ class RenderRequest:
                                   "of an image are sampled at its own pitch)")
         pitch = a if a is not None else b
         if pitch is not None and not (pitch > 0 and math.isfinite(pitch)):
-            raise InputRangeError(self._label("image_pixel_pitch_mm"), pitch, "a pixel pitch > 0 mm")
+            raise InputRangeError(self._pitch_label(), pitch, "a pixel pitch > 0 mm")
         return pitch
+
+    def _pitch_label(self) -> str:
+        """The label of the pitch option given (the image's, else the PSFs')."""
+        return self._label("image_pixel_pitch_mm" if self.image_pixel_pitch_mm is not None or
+                           self.psf.pixel_pitch_mm is None else "pixel_pitch_mm")
+
+    @property
+    def largest_kernel(self) -> int:
+        """The largest kernel (px) the run may use: the fitted kernel's limit
+        (``render.simulate.MAX_FITTED_KERNEL``) or, without fitting, the
+        settings' own."""
+        k = self.psf.kernel_size
+        return max(k, MAX_FITTED_KERNEL) if self.fit_kernel else k
+
+    def check_pitch(self, pitch_mm: float, label: str | None = None) -> None:
+        """Refuse, before any tracing, an image pitch (mm) at which no kernel
+        of the run can hold the light, or larger than the sensor
+        (``psf.compute.check_pixel_pitch`` with :attr:`largest_kernel`):
+        below it every PSF would clip nearly all of its energy, and the
+        ray positions in pixels would overflow."""
+        check_pixel_pitch(self.lens, self.psf, pitch_mm, kernel_size=self.largest_kernel,
+                          name=label or self._pitch_label())
 
     @property
     def settings(self) -> PSFSettings:
@@ -193,5 +219,7 @@ class RenderRequest:
         pixels, the memory checked: all that can be refused before a PSF is
         traced."""
         geometry, source = self.geometries(height, width, image)
+        if self.image_pitch_mm is None:          # the pitch the image's size gives: checked as a given one
+            self.check_pitch(geometry.pixel_pitch_mm, f"pixel pitch of {image} (from its size)")
         self.check_memory(geometry)
         return RenderPlan(self.settings, geometry, source)
