@@ -10,19 +10,14 @@ import numpy as np
 import pytest
 
 from conftest import write_rgbd_scene
+from support.cli import run_cli as _cli
 from dcdi_core.atomic import atomic_path, write_text
-from dcdi_core.cli import build_parser, main
+from dcdi_core.cli import build_parser
 from dcdi_core.cli.files import NOT_PATHS, SPECS, leaves
 from dcdi_core.errors import DcdiError, InputRangeError, OutputError
 from dcdi_core.outputs import JobFiles, UndeclaredOutputError
 
 FAST = ["--rays", "16", "--wavelengths", "3", "--kernel", "15", "--psf-source", "trace"]
-
-
-def _cli(capsys, *argv):
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 @pytest.fixture
