@@ -178,7 +178,9 @@ def import_zemax(zmx_path: str, out_dir: str) -> str:
     before anything is written; written atomically); returns the TOML path."""
     d = zemax.read_zmx(zmx_path)
     Lens.from_dict(d, zmx_path)      # raises with file / surface / field
-    out = Path(out_dir) / f"{d['id']}.toml"
+    from dcdi_core.errors import InputRangeError
+    from dcdi_core.names import check_name
+    out = Path(out_dir) / f"{check_name(d['id'], 'id', zmx_path, error=InputRangeError)}.toml"   # a name, not a path
     zemax.write_toml(d, out)
     return str(out)
 

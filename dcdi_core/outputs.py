@@ -66,10 +66,12 @@ def _real(path: Path) -> str:
 @dataclass
 class JobFiles:
     """What a job reads (``inputs``: files or folders) and writes
-    (``outputs``: files; ``folders``: folders it writes into)."""
+    (``outputs``: files; ``folders``: folders it writes into; ``updated``:
+    input folders it records a file in)."""
     inputs: list = field(default_factory=list)
     outputs: list = field(default_factory=list)
     folders: list = field(default_factory=list)
+    updated: list = field(default_factory=list)
     undeclared: list = field(default_factory=list)
 
     # ------------------------------------------------------------ declaring
@@ -86,6 +88,14 @@ class JobFiles:
     def write_into(self, folder, label: str) -> "JobFiles":
         if folder is not None and str(folder):
             self.folders.append(Named(Path(folder), label))
+        return self
+
+    def add_to(self, folder, label: str) -> "JobFiles":
+        """An input folder the job also records a file in (a training run
+        records the split by scene in its pairs folder): writes there happen
+        at once; only the named inputs themselves are never written."""
+        if folder is not None and str(folder):
+            self.updated.append(Named(Path(folder), label))
         return self
 
     # ------------------------------------------------------------ the check
@@ -134,7 +144,7 @@ class JobFiles:
 
     def _inside_folder(self, path: Path) -> bool:
         real = _real(path)
-        roots = [_real(f.path) for f in self.folders]
+        roots = [_real(f.path) for f in (*self.folders, *self.updated)]
         try:
             from .psf.library import default_cache_dir
             roots.append(_real(default_cache_dir()))

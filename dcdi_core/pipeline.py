@@ -56,15 +56,8 @@ def trained_pitch_mm(path) -> float | None:
     path = Path(path)
     if path.suffix != ".npz":
         return None
-    import json
-
-    from .models.errors import ModelFileError
-    from .models.runtime.olf import READ_ERRORS
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            meta = json.loads(str(z["meta"]))
-    except READ_ERRORS as e:
-        raise ModelFileError(path, f"not a readable exported DACN ({type(e).__name__}: {e})") from None
+    from .models.runtime.npz import read_npz_with_meta
+    meta, _ = read_npz_with_meta(path, "an exported DACN")          # bounded, checked (io.npzfile)
     pitch = meta.get("pixel_pitch_mm") if isinstance(meta, dict) else None
     return float(pitch) if pitch else None
 

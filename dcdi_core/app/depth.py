@@ -57,9 +57,8 @@ class DepthResult:
 
 def shipped_refinement(lens_id: str):
     """The shipped refinement file of ``lens_id`` (weights/dfd-refine-<lens>.npz), or None."""
-    from ..models.registry import WEIGHTS_DIR
-    path = WEIGHTS_DIR / f"dfd-refine-{lens_id}.npz"
-    return path if path.is_file() else None
+    from ..models.registry import weights_file
+    return weights_file("dfd-refine-", lens_id)
 
 
 def capture_pitch_mm(lens, render, recorded, shape, image_name="the capture") -> float:

@@ -27,6 +27,7 @@ class Spec:
     into: tuple = ()
     derived: object = None
     others: tuple = ()          # options that name a path elsewhere but not here (spot's --depth: metres)
+    updates: tuple = ()         # input folders it records a file in (the pairs' split.json)
 
 
 def _dof_intermediates(args, files):
@@ -64,26 +65,28 @@ SPECS = {
     ("olf", "points"): Spec(reads=("lens", "focus_lens"), writes=("output",)),
     ("olf", "info"): Spec(reads=("file",)),
     ("dacn", "pairs"): Spec(reads=("source", "lens", "lens_pool"), into=("output",)),
-    ("dacn", "train"): Spec(reads=("data", "config"), into=("output",), others=("refine",)),
+    ("dacn", "train"): Spec(reads=("data", "config"), into=("output",), others=("refine",), updates=("data",)),
     ("dacn", "export"): Spec(reads=("run",), writes=("output",)),
-    ("dacn", "eval"): Spec(reads=("run", "data", "compare"), writes=("json",), into=("pictures",)),
+    ("dacn", "eval"): Spec(reads=("run", "data", "compare"), writes=("json",), into=("pictures",), updates=("data",)),
     ("dacn", "correct"): Spec(reads=("image", "depth", "model", "lens"), writes=("output",)),
     ("depth", "estimate"): Spec(reads=("image", "camera", "refine", *PSF_SOURCE), writes=("output", "confidence")),
-    ("depth", "train"): Spec(reads=("data",), into=("output",)),
+    ("depth", "train"): Spec(reads=("data",), into=("output",), updates=("data",)),
     ("depth", "export"): Spec(reads=("run",), writes=("output",)),
     ("report", "psf-accuracy"): Spec(reads=("lens",), into=("out",)),
     ("report", "simulation-accuracy"): Spec(reads=("lens",), into=("out",)),
     ("report", "olf"): Spec(reads=("olf", "sweep"), into=("out",)),
     ("report", "psf-source"): Spec(reads=("lens",), into=("out",)),
-    ("report", "correction"): Spec(reads=("lens", "data"), into=("out",)),
+    ("report", "correction"): Spec(reads=("lens", "data"), into=("out",), updates=("data",)),
     ("report", "dataset"): Spec(reads=("dirs", "lens"), into=("out",)),
-    ("report", "pipeline"): Spec(reads=("pairs", "dacn", "depth_model", "baseline", "olf", "target"), into=("out",)),
-    ("report", "depth"): Spec(reads=("pairs", "dacn", "depth_model", "baseline", "train_pairs"), into=("out",)),
+    ("report", "pipeline"): Spec(reads=("pairs", "dacn", "depth_model", "baseline", "olf", "target"), into=("out",),
+                                 updates=("pairs",)),
+    ("report", "depth"): Spec(reads=("pairs", "dacn", "depth_model", "baseline", "train_pairs"), into=("out",),
+                              updates=("pairs", "train_pairs")),
     ("bench",): Spec(reads=("optiland",)),
     ("demo",): Spec(into=("out",)),
-    ("train", "dacn"): Spec(reads=("data", "config"), into=("output",), others=("refine",)),
-    ("train", "depth"): Spec(reads=("data",), into=("output",)),
-    ("eval",): Spec(reads=("run", "data", "compare"), writes=("json",), into=("pictures",)),
+    ("train", "dacn"): Spec(reads=("data", "config"), into=("output",), others=("refine",), updates=("data",)),
+    ("train", "depth"): Spec(reads=("data",), into=("output",), updates=("data",)),
+    ("eval",): Spec(reads=("run", "data", "compare"), writes=("json",), into=("pictures",), updates=("data",)),
 }
 
 #: the options that never name a path
@@ -150,6 +153,9 @@ def job_files(args):
     for dest in spec.writes:
         for path in _values(getattr(args, dest, None)):
             files.write(path, labels.get(dest, dest))
+    for dest in spec.updates:
+        for path in _values(getattr(args, dest, None)):
+            files.add_to(path, labels.get(dest, dest))
     for dest in spec.into:
         for path in _values(getattr(args, dest, None)):
             files.write_into(path, labels.get(dest, dest))

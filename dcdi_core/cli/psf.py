@@ -181,14 +181,13 @@ def cmd_psflib_compress(args) -> int:
 
 def _is_basis(path) -> bool:
     """True for a PSF basis file (``dcdi psflib compress``), False for anything else."""
-    import json
-
-    import numpy as np
+    from ..errors import DcdiError
+    from ..models.runtime.npz import read_npz_with_meta
     try:
-        with np.load(path, allow_pickle=False) as z:
-            return json.loads(str(z["meta"])).get("format") == "dcdi-psf-basis"
-    except Exception:  # noqa: BLE001 - not readable as one: PSFLibrary.load says why
+        meta, _ = read_npz_with_meta(path, "a PSF basis")          # bounded, checked (io.npzfile)
+    except DcdiError:       # not readable as one: PSFLibrary.load says why
         return False
+    return meta.get("format") == "dcdi-psf-basis"
 
 
 def cmd_psflib_show(args) -> int:

@@ -34,6 +34,8 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..names import check_name
+
 SETTINGS_FILE = "dataset.json"
 MANIFEST = "manifest.jsonl"
 MERGE_RECORD = "merge.json"
@@ -80,8 +82,18 @@ def is_render_handover(name: str) -> bool:
 def sample_files(sid: str, lenses) -> list[Path]:
     """Every file of a finished sample, relative to the folder: its AiF
     image, its depth, then per lens its aberrated, baseline and sharp image."""
+    _names(sid, lenses)
     rels = [Path(AIF_DIR) / f"{sid}{IMAGE_EXT}", Path(DEPTH_DIR) / f"{sid}{IMAGE_EXT}"]
     return rels + [Path(lens) / kind / f"{sid}{IMAGE_EXT}" for lens in lenses for kind in LENS_KINDS]
+
+
+def _names(sid: str, lenses=(), root=None) -> None:
+    """Refuse a sample id or lens id that is not a name (``names.NAME_RULE``)
+    before it becomes part of a path below ``root``: read from a manifest or a
+    settings record, '../x' would reach outside the folder."""
+    check_name(sid, "sample id", root)
+    for i, lens in enumerate(lenses):
+        check_name(lens, f"lenses[{i}]", root)
 
 
 @dataclass(frozen=True)
@@ -105,16 +117,22 @@ class FolderLayout:
     def merge_record(self) -> Path:
         return self.root / MERGE_RECORD
 
+    # every path of a sample checks its ids are names (DatasetError naming the folder): the last guard
+    # of the folder's bounds, whoever read the ids
     def aif(self, sid: str) -> Path:
+        _names(sid, root=self.root)
         return self.root / AIF_DIR / f"{sid}{IMAGE_EXT}"
 
     def depth(self, sid: str) -> Path:
+        _names(sid, root=self.root)
         return self.root / DEPTH_DIR / f"{sid}{IMAGE_EXT}"
 
     def lens_image(self, lens: str, kind: str, sid: str) -> Path:
         """<lens>/<kind>/<id>.exr; ``kind`` one of LENS_KINDS."""
         if kind not in LENS_KINDS:
             raise ValueError(f"image kind {kind!r}: one of {', '.join(LENS_KINDS)}")
+        _names(sid, root=self.root)
+        check_name(lens, "lens", self.root)
         return self.root / lens / kind / f"{sid}{IMAGE_EXT}"
 
     def files(self, sid: str, lenses) -> list[Path]:
@@ -122,6 +140,7 @@ class FolderLayout:
 
     def render_handover(self, sid: str) -> Path:
         """Where the renderer hands a sample's image and depth over (a hidden file, removed once read)."""
+        _names(sid, root=self.root)
         return self.root / f".{sid}{RENDER_HANDOVER_SUFFIX}"
 
 
@@ -142,7 +161,9 @@ def read_manifest(manifest, *, repair: bool = False) -> tuple[list[dict], list[s
     is no file). A record torn by a kill while it was appended (invalid JSON,
     or no newline at the end) does not count; with ``repair`` the file is
     rewritten without it (and a complete record glued to a torn one is
-    kept), atomically, and ``notes`` says what was dropped."""
+    kept), atomically, and ``notes`` says what was dropped. A complete
+    record whose "id" is not a name (``names.NAME_RULE``: ids become file
+    names) is refused: a DatasetError naming the file and the line."""
     manifest = Path(manifest)
     if not manifest.exists():
         return [], []
@@ -165,6 +186,7 @@ def read_manifest(manifest, *, repair: bool = False) -> tuple[list[dict], list[s
                 notes.append(f"dropped a torn record at line {n + 1}: its sample is done again")
                 continue
             notes.append(f"dropped a torn record at line {n + 1}, kept {rec['id']} glued to it")
+        check_name(rec["id"], "id", f"{manifest}, line {n + 1}")
         records.append(rec)
     if repair and not clean:
         write_manifest(manifest, records)
@@ -236,10 +258,18 @@ def read_settings(root, *, advice: str = "") -> dict | None:
     if not path.exists():
         return None
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except ValueError as e:
+        settings = json.loads(path.read_text(encoding="utf-8"))
+    except (ValueError, RecursionError) as e:
         raise DatasetError(f"{path}: unreadable settings record ({e})" + (f"; {advice}" if advice else "")) \
             from None
+    if not isinstance(settings, dict):
+        raise DatasetError(f"{path}: the settings record is not a JSON object" + (f"; {advice}" if advice else ""))
+    lenses = settings.get("lenses")
+    if lenses is not None and not isinstance(lenses, list):
+        raise DatasetError(f"{path}, field 'lenses': {str(lenses)[:80]!r} is not a list of lens ids")
+    for i, lens in enumerate(lenses or []):
+        check_name(lens, f"lenses[{i}]", path)                # each names a folder beside aif/
+    return settings
 
 
 def write_settings(root, settings: dict) -> None:

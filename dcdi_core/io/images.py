@@ -826,11 +826,11 @@ def check_job_inputs(job: str, image, depth=None, *, depth_channel=None) -> None
     if depth is None:
         return
     dh, dw = depth_size(depth, channel=depth_channel)
-    memory.check_fits(dh * dw * _READ_BYTES_PER_SAMPLE, f"the depth map {depth}: {dw} x {dh} px",
-                      "use a smaller depth map")
-    if (dh, dw) != (h, w):
+    if (dh, dw) != (h, w):              # the likelier mistake, said first
         raise ImageFileError(depth, f"the depth map is {dw} x {dh} px (width x height) but the image {image} is "
                                     f"{w} x {h} px; they must be the same size")
+    memory.check_fits(dh * dw * _READ_BYTES_PER_SAMPLE, f"the depth map {depth}: {dw} x {dh} px",
+                      "use a smaller depth map")
 
 
 # --------------------------------------------------------------------------

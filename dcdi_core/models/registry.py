@@ -34,8 +34,17 @@ class Network:
         return [p.stem[len(self.weights_prefix):] for p in self.shipped_files()]
 
     def shipped_file(self, key: str) -> Path | None:
-        p = WEIGHTS_DIR / f"{self.weights_prefix}{key}.npz"
-        return p if p.is_file() else None
+        return weights_file(self.weights_prefix, key)
+
+
+def weights_file(prefix: str, key: str) -> Path | None:
+    """The shipped weights/<prefix><key>.npz (``key``: a lens id or 'radial'),
+    or None; a ``key`` that is not a name (``names.NAME_RULE``) is refused
+    (InputRangeError): it becomes part of the file's name."""
+    from ..errors import InputRangeError
+    from ..names import check_name
+    p = WEIGHTS_DIR / f"{prefix}{check_name(key, 'weights key', error=InputRangeError)}.npz"
+    return p if p.is_file() else None
 
 
 NETWORKS = {

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputRangeError
+from ..names import MAX_NAME_CHARS, NAME_RULE, name_problem, shown
 
 from .errors import LensFileError, OpticsError, UnknownGlassError
 from .materials import AIR, get_material
@@ -33,6 +34,17 @@ _STATED_KEYS = {"effective_focal_length_mm", "f_number", "field_of_view_deg",
 _SURFACE_KEYS = {"label", "radius_mm", "thickness_mm", "material", "semi_diameter_mm",
                  "conic", "aspheric_coefficients", "odd_aspheric_coefficients", "stop"}
 _ID_RE = re.compile(r"^[a-z0-9][a-z0-9-]*$")
+
+# Limits checked before a lens is built, so a hostile file cannot run for
+# minutes: real prescriptions have 3-30 surfaces (the shipped ones 3-13, patent
+# zoom lenses about 30), so 200 is far above any; a TOML file of 200 surfaces is
+# about 40 kB, so 1 MiB holds any of them with long notes (a Zemax file, UTF-16
+# with tolerance data, is 20-200 kB: the same limit serves both); 32 aspheric
+# coefficients per surface (Zemax's even asphere has 8, its odd asphere 16, a
+# shipped one at most 5).
+MAX_SURFACES = 200
+MAX_LENS_FILE_BYTES = 1 << 20
+MAX_ASPHERIC_TERMS = 32
 
 
 def lens_dirs() -> list[Path]:
@@ -164,8 +176,10 @@ class Lens:
             raise err("unsupported schema version", field="schema_version",
                       value=d.get("schema_version"), allowed="1")
         lens_id = d.get("id")
-        if not isinstance(lens_id, str) or not _ID_RE.match(lens_id):
-            raise err("id must be lower-case letters, digits and '-'", field="id", value=lens_id)
+        if not isinstance(lens_id, str) or not _ID_RE.match(lens_id) or len(lens_id) > MAX_NAME_CHARS:
+            # the id names files (PSF caches, shipped bases and weights): a name, never a path
+            raise err(f"id must be 1-{MAX_NAME_CHARS} lower-case letters, digits and '-', not starting with '-'",
+                      field="id", value=lens_id if not isinstance(lens_id, str) else lens_id[:80])
         wl = _number(d.get("wavelength_nm", D_LINE_NM), err, "wavelength_nm", None, lo=200.0, hi=2500.0)
 
         sensor = _sensor(d.get("sensor"), err)
@@ -179,6 +193,8 @@ class Lens:
         raw = d.get("surface")
         if not isinstance(raw, list) or not raw:
             raise err("at least one [[surface]] is needed", field="surface")
+        if len(raw) > MAX_SURFACES:
+            raise err(f"{len(raw)} surfaces, over the limit", field="surface", allowed=f"at most {MAX_SURFACES}")
         materials: dict = {}
         surfaces = [_surface(i + 1, s, err, materials) for i, s in enumerate(raw)]
         stops = [i for i, s in enumerate(surfaces) if s.stop]
@@ -199,15 +215,30 @@ class Lens:
     @classmethod
     def from_toml(cls, path: str | os.PathLike) -> "Lens":
         path = Path(path)
-        try:
-            data = path.read_bytes()
-        except OSError as e:
-            raise LensFileError(path, f"cannot read the file: {e.strerror}") from None
+        data = read_lens_file(path, LensFileError)
         try:
             d = tomllib.loads(data.decode("utf-8"))
         except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
             raise LensFileError(path, f"not valid TOML: {e}") from None
         return cls.from_dict(d, path, hashlib.sha256(data).hexdigest())
+
+
+def read_lens_file(path: Path, error) -> bytes:
+    """The bytes of a lens file (TOML or Zemax), refused before reading when
+    over :data:`MAX_LENS_FILE_BYTES`. ``error(path, message)``: the reader's
+    error class (LensFileError, or a ZemaxImportError maker)."""
+    try:
+        size = os.stat(path).st_size
+        if size <= MAX_LENS_FILE_BYTES:
+            with open(path, "rb") as f:
+                data = f.read(MAX_LENS_FILE_BYTES + 1)      # at most: the file may grow after the stat
+            size = len(data)
+    except OSError as e:
+        raise error(path, f"cannot read the file: {e.strerror or e}") from None
+    if size > MAX_LENS_FILE_BYTES:
+        raise error(path, f"{size} bytes, over the limit of {MAX_LENS_FILE_BYTES} bytes for a lens file "
+                          "(a real prescription is a few kB)")
+    return data
 
 
 # a gap below this (mm) is two surfaces through each other, not a touch at the edge
@@ -238,6 +269,11 @@ def load_lens(name_or_path: str | os.PathLike) -> Lens:
     p = Path(name_or_path)
     if p.suffix == ".toml" or p.exists():
         return Lens.from_toml(p)
+    # an id (perhaps read from a record or a model file) becomes a file name in the lens folders: a name only
+    why = name_problem(str(name_or_path))
+    if why:
+        raise OpticsError(f"no lens {shown(str(name_or_path))}: not a file, and not a lens id (it is {why}; "
+                          f"a lens id is {NAME_RULE})")
     for d in lens_dirs():
         cand = d / f"{name_or_path}.toml"
         if cand.exists():
@@ -293,8 +329,10 @@ def _sensor(s, err) -> Sensor:
 def _coefficients(s, key, err, num) -> tuple[float, ...]:
     """A surface's list of aspheric coefficients ``key``, trailing zeros dropped."""
     values = s.get(key, [])
-    if not isinstance(values, list):
-        raise err("must be a list of numbers", surface=num, field=key, value=values)
+    if not isinstance(values, list) or len(values) > MAX_ASPHERIC_TERMS:
+        raise err("must be a list of numbers", surface=num, field=key,
+                  value=values if not isinstance(values, list) else f"a list of {len(values)}",
+                  allowed=f"at most {MAX_ASPHERIC_TERMS} numbers")
     values = tuple(_number(a, err, key, num) for a in values)
     while values and values[-1] == 0.0:
         values = values[:-1]

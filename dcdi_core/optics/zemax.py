@@ -40,7 +40,9 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ..names import MAX_NAME_CHARS
 from .errors import ZemaxImportError
+from .lens import MAX_SURFACES, read_lens_file
 from ..atomic import write_text
 from .prescription_toml import dumps_prescription
 
@@ -130,9 +132,10 @@ def _any_nonzero(tokens) -> bool:
 
 
 def _lens_id(stem: str) -> str:
+    """A lens id (``lens.Lens``'s rule: a name of lower-case letters, digits and '-') from a file's stem."""
     s = re.sub(r"[^a-z0-9-]", "-", stem.lower())
     s = re.sub(r"-{2,}", "-", s).strip("-")
-    return s or "imported-lens"
+    return s[:MAX_NAME_CHARS].rstrip("-") or "imported-lens"
 
 
 class _ZmxParser:
@@ -229,6 +232,11 @@ class _ZmxParser:
 
     # ------------------------------------------------------ surface data
     def _surf(self, tokens, line):
+        # object and image surfaces besides the lens's: refused as soon as one too many appears, before
+        # the rest of a hostile file is parsed
+        if len(self.surfaces) >= MAX_SURFACES + 2:
+            self.fail(line, f"more than {MAX_SURFACES + 2} SURF lines: over the limit of {MAX_SURFACES} lens "
+                            "surfaces (besides the object and the image)")
         self.surfaces.append(_Surf(self.integer(tokens, 1, line, "surface number"), line))
 
     def _type(self, tokens, line):
@@ -414,10 +422,7 @@ def read_zmx(path: str | os.PathLike) -> dict:
     that cannot be imported faithfully.
     """
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except OSError as e:
-        raise ZemaxImportError(path, 0, "", f"cannot read the file ({e.strerror})") from None
+    data = read_lens_file(path, lambda p, message: ZemaxImportError(p, 0, "", message))
     parser = _ZmxParser(path)
     parser.parse(decode_zmx(data))
     return parser.prescription()

@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_path
-from ..io.npzfile import FileCache, checksum
+from ..io.npzfile import FileCache, Record, check_array, check_declared_bytes, checksum, file_error_text, read_npz
 from ..errors import InputRangeError, field
 from ..optics.errors import OpticsError
 from .compute import PSFSettings
@@ -126,8 +126,10 @@ SHIPPED_RECIPES = {
 
 
 def shipped_store(lens_id: str) -> Path | None:
-    """The shipped store file of a lens, or None."""
-    p = STORE_DIR / f"{lens_id}.npz"
+    """The shipped store file of a lens, or None; ``lens_id`` must be a name
+    (``names.NAME_RULE``): it becomes the file's name."""
+    from ..names import check_name
+    p = STORE_DIR / f"{check_name(lens_id, 'lens id', error=InputRangeError)}.npz"
     return p if p.exists() else None
 
 
@@ -282,29 +284,95 @@ class BasisStore:
 
     @classmethod
     def load(cls, path) -> "BasisStore":
+        """A store file, read by the shared checked reader (``io.npzfile``:
+        size limits, array headers before data, no pickle, finite values),
+        its format, version and checksum, then every field (:func:`check_store`)
+        before the basis is expanded."""
         path = Path(path)
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                meta = json.loads(str(z["meta"]))
-                arrays = {k: z[k] for k in cls.ARRAYS}
-        except Exception as e:  # noqa: BLE001 - any failure to read means: not usable
-            raise BasisFileError(f"{path}: not a readable PSF basis file ({type(e).__name__}: {e})") from None
-        if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-            raise BasisFileError(f"{path}: format {meta.get('format') if isinstance(meta, dict) else None!r}, "
-                                 f"expected {FORMAT!r}")
+        fail = basis_fail(path)
+        meta, arrays = read_npz(path, fail)
+        if meta.get("format") != FORMAT:
+            raise fail(f"format {str(meta.get('format'))[:80]!r}", field="format", allowed=repr(FORMAT))
         if meta.get("version") != FORMAT_VERSION:
-            raise BasisFileError(f"{path}: version {meta.get('version')!r}, this software reads {FORMAT_VERSION}")
+            raise fail(f"version {str(meta.get('version'))[:80]!r}", field="version",
+                       allowed=f"{FORMAT_VERSION} (what this software reads)")
         if meta.get("checksum") != checksum(meta, arrays):
-            raise BasisFileError(f"{path}: checksum mismatch (the file is corrupt or was edited)")
+            raise fail("checksum mismatch (the file is corrupt or was edited)", field="checksum")
+        check_store(meta, arrays, fail)
         half, coeffs = arrays["basis_half"].astype(np.float32), arrays["coeffs"].astype(np.float32)
-        k = int(meta.get("kernel_size", 0))
-        if half.ndim != 4 or half.shape[2] != k or half.shape[3] != k // 2 + 1 or coeffs.shape[-1] != half.shape[1]:
-            raise BasisFileError(f"{path}: basis_half {half.shape} and coeffs {coeffs.shape} do not fit "
-                                 f"{k} px kernels")
+        k = int(meta["kernel_size"])
         basis = np.concatenate([half, half[..., -2::-1]], axis=-1).reshape(half.shape[0], half.shape[1], k * k)
-        if not (np.isfinite(basis).all() and np.isfinite(coeffs).all()):
-            raise BasisFileError(f"{path}: non-finite values")
         return cls(meta, basis, coeffs, arrays["zero_energy"], str(path))
+
+
+# ----------------------------------------------------------------- loading
+# the limits of a store's metadata, checked on load (the shipped: k 41-77,
+# rank 48-168, grids of 32-64 fields by 40-96 depths)
+MAX_KERNEL = 255                 # px, odd
+MAX_GRID = 1024                  # fields, depth bins
+
+
+def basis_fail(path):
+    """``fail(message, field=None, allowed=None)`` of ``io.npzfile`` for a store: a BasisFileError."""
+    return lambda message, field=None, allowed=None: BasisFileError(file_error_text(path, message, field, allowed))
+
+
+def check_store(meta: dict, arrays: dict, fail) -> None:
+    """Every field of a store's metadata that serving reads, in its range,
+    and its arrays shaped as its grid, rank and kernel size say."""
+    rec = Record(meta, fail)
+    rec.name("lens_id")
+    rec.text("lens_fingerprint", max_chars=128)
+    k = rec.integer("kernel_size", 1, MAX_KERNEL, odd=True)
+    rank = rec.integer("rank", 1, k * k)
+    rec.number("pixel_pitch_mm", 0.0, 10.0, lo_open=True)
+    rec.number("ripple_floor", 0.0, 0.1, optional=True)
+    grid = check_grid(rec.sub("grid"), k, fail)
+    check_psf_settings(rec.sub("psf_settings"), fail)
+    rows = (grid["n_depths"] + 1, grid["n_fields"])
+    check_array(arrays, "basis_half", (3, rank, k, k // 2 + 1), fail)
+    check_array(arrays, "coeffs", rows + (3, rank), fail)
+    check_array(arrays, "zero_energy", rows, fail, kinds="b")
+
+
+def check_grid(rec: Record, kernel_size: int, fail) -> dict:
+    """A recorded ``LibraryGrid`` (its fields, ranges and order), and the PSF
+    library it sizes at ``kernel_size`` px within ``io.npzfile.MAX_DECLARED_BYTES``."""
+    rec.allowed_keys(("n_fields", "n_depths", "near_m", "far_m"))
+    out = {"n_fields": rec.integer("n_fields", 2, MAX_GRID), "n_depths": rec.integer("n_depths", 2, MAX_GRID),
+           "near_m": rec.number("near_m", 0.0, 1e6, lo_open=True, optional=True),
+           "far_m": rec.number("far_m", 0.0, 1e6, lo_open=True, optional=True)}
+    try:
+        LibraryGrid(**{key: v for key, v in out.items() if v is not None})
+    except InputRangeError as e:
+        raise fail(str(e), field=rec.where("near_m"), allowed="0 < near_m < far_m") from None
+    library = (out["n_depths"] + 1) * out["n_fields"] * 3 * kernel_size * kernel_size * 4
+    check_declared_bytes(library, f"the PSF library of this grid at {kernel_size} px", rec.prefix.rstrip("."),
+                         fail)
+    return out
+
+
+def check_psf_settings(rec: Record, fail) -> PSFSettings:
+    """Recorded ``PSFSettings``: only its fields, each of its type and range."""
+    from dataclasses import fields
+    rec.allowed_keys([f.name for f in fields(PSFSettings)])
+    rec.integer("kernel_size", 1, 4095, odd=True, optional=True)
+    rec.integer("pupil_samples", 1, 1 << 16, optional=True)
+    rec.integer("n_wavelengths", 1, 4096, optional=True)
+    rec.integer("oversample", 1, 1024, optional=True)
+    rec.numbers("band_nm", 300.0, 1100.0, (2, 2), optional=True)
+    rec.choice("precision", ("float64", "float32"), optional=True)
+    rec.number("deposit_sigma_px", 0.0, 3.0, optional=True)
+    rec.number("wavelength_nm", 200.0, 2500.0, optional=True)
+    rec.number("pixel_pitch_mm", 0.0, 10.0, lo_open=True, optional=True)
+    rec.number("focus_distance_m", 0.0, 1e6, lo_open=True, inf=True, optional=True)
+    settings = dict(rec.table)
+    if settings.get("band_nm") is not None:
+        settings["band_nm"] = tuple(settings["band_nm"])
+    try:
+        return PSFSettings(**settings)
+    except InputRangeError as e:
+        raise fail(str(e), field=rec.prefix.rstrip(".")) from None
 
 
 def mirror_symmetric(basis: np.ndarray, tol: float = 1e-4) -> bool:

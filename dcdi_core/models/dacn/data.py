@@ -272,7 +272,11 @@ DECONVOLVED = slice(10, 13)
 
 
 def pair_path(root, pair_id: str) -> Path:
-    return Path(root) / "pairs" / f"{pair_id}.npy"
+    """pairs/<id>.npy below ``root``; ``pair_id`` (read from pairs.jsonl, or a
+    frame id and variant) must be a name (``names.NAME_RULE``): '../x' would
+    read or write outside the folder (DatasetError naming the folder)."""
+    from ...names import check_name
+    return Path(root) / "pairs" / f"{check_name(pair_id, 'pair id', root)}.npy"
 
 
 def save_pair(root, pair: DA2TPair) -> Path:
@@ -341,6 +345,8 @@ def build_pairs(source, root, config: DA2TConfig, *, ids=None, variants: int = 1
     frame_ids = list(source.ids() if ids is None else ids)
     todo = [(f, k) for pos, f in enumerate(frame_ids) if pos % n == i for k in range(variants)
             if f"{f}~{k}" not in done]
+    for f, k in todo:                   # every pair's file name, before any work
+        pair_path(root, f"{f}~{k}")
     say(f"DA2T: {len(todo)} pairs to build ({len(done)} done) in {root}")
     from ...dataset.factory_folder import append_record
     from ...optics.lens import load_lens

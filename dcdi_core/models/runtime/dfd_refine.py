@@ -7,12 +7,59 @@ exports and never imports torch.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
+from ...io.npzfile import Record, check_array
+from ...errors import InputRangeError
 from ..errors import ModelFileError
 from .npz import read_model_npz
 
 FORMAT, VERSION = "dcdi-dfd-refine", 1
+
+# the allowed ranges of a refinement's metadata, checked on load before any
+# layer runs (the shipped: 28 channels, 4 layers of 32, 3 x 3 kernels,
+# dilations 1-2, 21 hypotheses, 32 px tiles). A convolution pads its input by
+# (k // 2) x dilation tiles and makes width x tiles values: these bound what
+# one layer allocates to a few times the features' own size.
+MAX_CHANNELS = 512             # feature channels in (the estimator's: hypotheses + 7)
+MAX_WIDTH = 256                # channels out of a hidden layer
+MAX_LAYERS = 16
+MAX_DILATION = 16
+MAX_KERNEL = 7                 # odd, tiles
+MAX_HYPOTHESES = 511
+MAX_TILE_PX = 4096
+
+
+def check_refinement(meta: dict, arrays: dict, fail) -> None:
+    """Every field :class:`DfdRefiner` reads, in its range, and each layer's
+    weights (out, in, k, k) and bias (out,) chained from ``channels`` to the
+    one output (``fail``: ``io.npzfile``'s)."""
+    rec = Record(meta, fail)
+    rec.name("lens")
+    channels = rec.integer("channels", 1, MAX_CHANNELS)
+    rec.integer("log_depth_channel", 0, channels - 1)
+    dilations = rec.integers("dilations", 1, MAX_DILATION, (1, MAX_LAYERS))
+    rec.integer("tile_px", 1, MAX_TILE_PX, optional=True)
+    rec.number("pixel_pitch_mm", 0.0, 10.0, lo_open=True, optional=True)
+    hyp = rec.numbers("hypotheses_m", 0.0, math.inf, (2, min(MAX_HYPOTHESES, channels)), lo_open=True, inf=True,
+                      optional=True)
+    if hyp is not None and len(set(hyp)) != len(hyp):
+        raise fail("repeats a depth", field="hypotheses_m", allowed="distinct depths (m)")
+    c_in = channels
+    for i in range(len(dilations)):
+        last = i == len(dilations) - 1
+        w = arrays.get(f"w{i}")
+        n_out = 1 if last else (w.shape[0] if w is not None and w.ndim == 4 else 0)
+        k = w.shape[-1] if w is not None and w.ndim == 4 else 0
+        if not (1 <= n_out <= MAX_WIDTH and 1 <= k <= MAX_KERNEL and k % 2 == 1):
+            raise fail(f"array 'w{i}' is {None if w is None else w.shape}", field=f"w{i}",
+                       allowed=f"(out <= {MAX_WIDTH}{', 1 for the last layer' if last else ''}, {c_in}, k, k), "
+                               f"k odd <= {MAX_KERNEL}")
+        check_array(arrays, f"w{i}", (n_out, c_in, k, k), fail)
+        check_array(arrays, f"b{i}", (n_out,), fail)
+        c_in = n_out
 
 
 def conv2d(x: np.ndarray, w: np.ndarray, b: np.ndarray, dilation: int = 1) -> np.ndarray:
@@ -33,7 +80,8 @@ class DfdRefiner:
     """A shipped refinement: ``__call__(features (C, nph, npw)) -> log depth (nph, npw)``."""
 
     def __init__(self, path):
-        self.meta, arrays = read_model_npz(path, FORMAT, VERSION, "depth-from-blur refinement")
+        self.meta, arrays = read_model_npz(path, FORMAT, VERSION, "depth-from-blur refinement",
+                                           check_refinement)
         self.layers = [(arrays[f"w{i}"].astype(np.float32), arrays[f"b{i}"].astype(np.float32), int(d))
                        for i, d in enumerate(self.meta["dilations"])]
         self.path = path
@@ -79,11 +127,23 @@ class DfdRefiner:
     def __call__(self, features: np.ndarray, hypotheses_m=None) -> np.ndarray:
         """Log depth (nph, npw) from ``features`` (C, nph, npw) of the
         hypotheses ``hypotheses_m`` (None: those it learned)."""
-        features = self.resample(np.asarray(features, np.float32), hypotheses_m)
+        features = np.asarray(features, np.float32)
+        if features.ndim != 3:
+            raise InputRangeError("refinement features", features.shape, "(channels, rows, columns)")
+        finite_in = bool(np.isfinite(features).all())
+        features = self.resample(features, hypotheses_m)
         x = features
         for i, (w, b, d) in enumerate(self.layers):
             x = conv2d(x, w, b, d)
             if i < len(self.layers) - 1:
                 x = np.maximum(x, 0.0)
         base = np.asarray(features, np.float32)[self.meta["log_depth_channel"]]
-        return base + x[0]
+        out = base + x[0]
+        bad = ~np.isfinite(out)
+        if finite_in and bad.any():
+            # finite weights can still overflow: a NaN here would become the far limit everywhere, silently
+            # (features the estimator left non-finite pass as they did: the weights are not to blame)
+            raise ModelFileError(self.path, f"gave {int(bad.sum())} of {out.size} tiles a non-finite log depth "
+                                            "from finite features", field="weights",
+                                 allowed="weights that give finite depths")
+        return out

@@ -13,16 +13,14 @@ samples with the same functions.
 """
 from __future__ import annotations
 
-import json
 import math
 import os
-import zipfile
-import zlib
 from pathlib import Path
 
 import numpy as np
 
-from ...io.npzfile import checksum
+from ...io.npzfile import READ_ERRORS, Record, checksum  # noqa: F401  (READ_ERRORS, checksum: re-exported)
+from .npz import check_header, model_fail, read_npz_with_meta
 from ..errors import LensMismatchError, ModelFileError, OutsideTrainedRangeError
 from ...errors import InputRangeError
 
@@ -78,45 +76,98 @@ def patch_centres_px(spec: dict, row, col):
 
 
 # ----------------------------------------------------------------- file I/O
-# what reading a damaged file raises: truncated or not a zip (BadZipFile,
-# EOFError), a member's bytes changed (BadZipFile: CRC, zlib.error), not an
-# .npz of arrays (ValueError: pickled or bad header), unreadable (OSError)
-READ_ERRORS = (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile, zlib.error, RuntimeError,
-               NotImplementedError)
-
-
-def read_npz_with_meta(path, what: str) -> tuple[dict, dict]:
-    """(meta, arrays) of an .npz with a JSON ``meta`` record; any damage is a
-    ModelFileError naming the file (``what``: the kind of file expected)."""
-    path = Path(path)
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            if "meta" not in z.files:
-                raise ModelFileError(path, f"no metadata record: not an exported {what}", field="meta")
-            meta = json.loads(str(z["meta"]))
-            arrays = {k: z[k] for k in z.files if k != "meta"}
-    except ModelFileError:
-        raise
-    except READ_ERRORS as e:
-        raise ModelFileError(path, f"not a readable .npz model file ({type(e).__name__}: {e})") from None
-    if not isinstance(meta, dict):
-        raise ModelFileError(path, f"the metadata record is not a JSON object: not an exported {what}",
-                             field="meta")
-    return meta, arrays
+# the limits of an OLF's metadata, each checked on load (the shipped one: 4
+# lenses, k 41-129, 1 hidden layer of 64; the paper's: 5 of 2048, k 41)
+MAX_LENSES = 64
+MAX_KERNEL = 255               # px, odd
+MAX_HIDDEN_LAYERS = 32
+MAX_WIDTH = 8192
 
 
 def read_olf_file(path) -> tuple[dict, dict]:
-    """(metadata, arrays) of an exported OLF, checked (format, version, checksum)."""
+    """(metadata, arrays) of an exported OLF, checked: the file by the shared
+    reader (``models.runtime.npz``: size, arrays, finite), format, version,
+    checksum, then every field the runtime reads (:func:`check_olf`)."""
     path = Path(path)
     meta, arrays = read_npz_with_meta(path, "Omni-Lens-Field")
-    if meta.get("format") != FORMAT:
-        raise ModelFileError(path, f"format {meta.get('format')!r}", field="format", allowed=repr(FORMAT))
-    if meta.get("version") != FORMAT_VERSION:
-        raise ModelFileError(path, f"version {meta.get('version')!r} (newer or older software wrote it)",
-                             field="version", allowed=str(FORMAT_VERSION))
-    if meta.get("checksum") != checksum(meta, arrays):
-        raise ModelFileError(path, "checksum mismatch (the file is corrupt or was edited)", field="checksum")
+    check_header(path, meta, arrays, FORMAT, FORMAT_VERSION)
+    check_olf(meta, arrays, model_fail(path))
     return meta, arrays
+
+
+def check_olf(meta: dict, arrays: dict, fail) -> None:
+    """Every field of an OLF's metadata that the runtime reads, in its range,
+    and every array the network names with the shape its spec gives (``fail``:
+    ``io.npzfile``'s)."""
+    rec = Record(meta, fail)
+    spec = rec.sub("spec")
+    variant = spec.choice("variant", ("paper", "radial"))
+    lens_ids = spec.strings("lenses", (1, MAX_LENSES), max_chars=128)
+    ks = spec.integers("kernel_sizes", 1, MAX_KERNEL, (len(lens_ids), len(lens_ids)), odd=True)
+    width = spec.integer("width", 1, MAX_WIDTH)
+    first = spec.integer("first_width", 1, MAX_WIDTH, optional=True) or width // 4
+    if first < 1:
+        raise fail(f"width {width} leaves a first layer of {first}", field="spec.width", allowed=">= 4")
+    hidden = spec.integer("hidden_layers", 0, MAX_HIDDEN_LAYERS)
+    focus = spec.flag("focus", optional=True)
+    spec.number("diopter_scale", 0.0, 1e3, lo_open=True, optional=variant == "paper")
+    if variant == "paper":
+        grid = spec.sub("paper_grid")
+        for key in ("height", "width", "patch"):
+            grid.integer(key, 1, 65536)
+        grid.number("max_depth_m", 0.0, 1e6, lo_open=True)
+        n_in = 4
+    else:
+        n_in = 2 + int(bool(focus)) + len(lens_ids)
+    trunk = [(n_in, first), (first, width)] + [(width, width)] * hidden
+    heads = [(width, ks[0] * ks[0])] * 3 if variant == "paper" else [(width, 3 * k * k) for k in ks]
+    net = rec.sub("network")
+    _check_layers(net, "trunk", trunk, arrays, fail)
+    _check_layers(net, "heads", heads, arrays, fail)
+    _check_lenses(rec, lens_ids, ks, fail)
+
+
+def _check_layers(net, key: str, shapes, arrays: dict, fail) -> None:
+    """The network's ``key`` layers: one [weight, bias] pair of array names
+    each, shaped (out, in) and (out,) as the spec says."""
+    from ...io.npzfile import check_array
+    for names, (n_in, n_out) in zip(_pairs(net, key, len(shapes)), shapes):
+        check_array(arrays, names[0], (n_out, n_in), fail)
+        check_array(arrays, names[1], (n_out,), fail)
+
+
+def _pairs(net, key: str, count: int) -> list:
+    """The [weight, bias] array names of ``count`` layers at ``net[key]``."""
+    items = net.value(key, allowed=f"{count} [weight, bias] pairs of array names")
+    ok = isinstance(items, list) and len(items) == count and all(
+        isinstance(p, list) and len(p) == 2 and all(isinstance(n, str) for n in p) for p in items)
+    if not ok:
+        raise net.refuse(key, items, f"{count} [weight, bias] pairs of array names (the spec's layers)")
+    return items
+
+
+def _check_lenses(rec, lens_ids, ks, fail) -> None:
+    """One entry per lens of the spec, each with the fields the runtime reads."""
+    from ...psf.basis import check_grid, check_psf_settings
+    entries = rec.subs("lenses", (len(lens_ids), len(lens_ids)))
+    for i, (e, lens_id, k) in enumerate(zip(entries, lens_ids, ks)):
+        if e.name("id") != lens_id:
+            raise fail(f"{e.table['id']!r} where the spec has {lens_id!r}", field=e.where("id"),
+                       allowed=f"the spec's lenses[{i}]")
+        e.text("fingerprint", max_chars=128)
+        e.integer("kernel_size", k, k)
+        e.number("pixel_pitch_mm", 0.0, 10.0, lo_open=True)
+        lo, hi = e.numbers("field_range", 0.0, 10.0, (2, 2))
+        near, far = e.numbers("depth_range_m", 0.0, 1e6, (2, 2), lo_open=True)
+        if not (lo <= hi and near < far):
+            raise fail(f"field {lo}-{hi}, depths {near}-{far} m", field=e.where("field_range"),
+                       allowed="ranges whose low end is below their high end")
+        e.numbers("focus_range_m", 0.0, 1e6, (2, 2), lo_open=True, inf=True, optional=True)
+        e.numbers("focus_diopters_range", 0.0, 1e6, (2, 2), optional=True)
+        e.number("prescribed_focus_diopters", -1e6, 1e6, optional=True)
+        if e.table.get("library_grid") is not None:
+            check_grid(e.sub("library_grid"), k, fail)
+        check_psf_settings(e.sub("psf_settings"), fail)
 
 
 # ------------------------------------------------------------------- network
