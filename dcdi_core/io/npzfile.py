@@ -42,13 +42,14 @@ from pathlib import Path
 MIB = 1 << 20
 MAX_FILE_BYTES = 1024 * MIB           # a file on disk
 MAX_ARRAY_BYTES = 2048 * MIB          # all its arrays, uncompressed
-EXPANSION = 64                        # uncompressed bytes per byte on disk, at most (+ 1 MiB)
+EXPANSION = 16                        # uncompressed bytes per byte on disk, at most (+ 1 MiB): weights deflate 1-4x
 MAX_MEMBERS = 4096                    # arrays in one file (a paper-size DACN holds about 1,000)
 MAX_DIMS = 8                          # dimensions of one array
 MAX_META_CHARS = 1 * MIB              # the JSON record (the shipped ones: 0.6-6.5 thousand)
 # what a file's metadata may make the engine allocate beyond its own arrays
-# (a PSF library of its grid and kernel size: the shipped 6P's is 251 MB)
-MAX_DECLARED_BYTES = 2048 * MIB
+# (a PSF library of its grid and kernel size: the shipped 6P's is 251 MB; 3x that keeps a job on a
+# file of a few MB under 1.5 GB)
+MAX_DECLARED_BYTES = 768 * MIB
 _HEADER_CHARS = 10_000                # numpy's own limit of an .npy header
 _CHUNK = 4 * MIB                      # bytes read at a time
 
