@@ -365,15 +365,8 @@ def remove_stale_files(out: Path) -> list[Path]:
     hand-over renders (.<id>.render.exr). Only called with the folder's lock
     held, so no live run's temporaries are touched."""
     from dcdi_core.atomic import remove_stale_temporaries
-    gone = remove_stale_temporaries(out)
-    for p in out.glob(".*" + ff.RENDER_HANDOVER_SUFFIX):
-        if ff.is_render_handover(p.name):
-            try:
-                p.unlink()
-                gone.append(p)
-            except OSError:
-                pass
-    return gone
+    return remove_stale_temporaries(out) + _removed(p for p in out.glob(".*" + ff.RENDER_HANDOVER_SUFFIX)
+                                                    if ff.is_render_handover(p.name))
 
 
 class _FolderLock:
@@ -948,16 +941,19 @@ def remove_unfinished_files(out: Path, finished: set[str]) -> list[Path]:
     form are touched; called with the folder's lock held. Returns them."""
     folders = [out / ff.AIF_DIR, out / ff.DEPTH_DIR] + [d for d in out.glob("*/*")
                                                         if d.name in ff.LENS_KINDS and d.is_dir()]
+    return _removed([p for folder in folders for p in folder.glob("*" + ff.IMAGE_EXT)
+                     if p.stem not in finished and _is_sample_id(p.stem)])
+
+
+def _removed(paths) -> list[Path]:
+    """Remove each of ``paths`` that can be removed; returns those removed."""
     gone = []
-    for folder in folders:
-        for p in folder.glob("*" + ff.IMAGE_EXT):
-            if p.stem in finished or not _is_sample_id(p.stem):
-                continue
-            try:
-                p.unlink()
-                gone.append(p)
-            except OSError:
-                pass
+    for p in paths:
+        try:
+            p.unlink()
+            gone.append(p)
+        except OSError:
+            pass
     return gone
 
 
