@@ -115,9 +115,10 @@ def _told_depth_correction(loaded: dict, data):
     told = {m: told_depth(info) for m, info in loaded.values()}
     if all(t is None for t in told.values()):
         return None
-    import json
     from pathlib import Path
-    lens = json.loads(Path(data, "da2t.json").read_text(encoding="utf-8"))["lens"]
+
+    from ..io.jsontext import loads
+    lens = loads(Path(data, "da2t.json").read_text(encoding="utf-8"), Path(data, "da2t.json"))["lens"]
     for name, (m, info) in loaded.items():
         if told[m] is not None:
             print(f"eval: {name} was trained told {told[m]:g} m everywhere: told it here too, refining the "

@@ -34,6 +34,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..io.jsontext import loads
 from ..names import check_name
 
 SETTINGS_FILE = "dataset.json"
@@ -195,8 +196,8 @@ def read_manifest(manifest, *, repair: bool = False) -> tuple[list[dict], list[s
 
 def _record(line: str):
     try:
-        rec = json.loads(line)
-    except ValueError:
+        rec = loads(line, "a manifest line")
+    except ValueError:                  # a torn or damaged line (JsonTextError is one)
         return None
     return rec if isinstance(rec, dict) and isinstance(rec.get("id"), str) else None
 
@@ -258,8 +259,8 @@ def read_settings(root, *, advice: str = "") -> dict | None:
     if not path.exists():
         return None
     try:
-        settings = json.loads(path.read_text(encoding="utf-8"))
-    except (ValueError, RecursionError) as e:
+        settings = loads(path.read_text(encoding="utf-8"), path)
+    except ValueError as e:
         raise DatasetError(f"{path}: unreadable settings record ({e})" + (f"; {advice}" if advice else "")) \
             from None
     if not isinstance(settings, dict):

@@ -37,7 +37,6 @@ Readers (each ``ids()``, ``scene(id)``, ``load(id) -> RGBDFrame``):
 """
 from __future__ import annotations
 
-import json
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,6 +46,7 @@ import numpy as np
 from ..errors import ModelError
 from ..io.images import ImageFileError, read_depth, read_image, srgb_to_linear
 from . import factory_folder as ff
+from ..io.jsontext import loads
 
 
 @dataclass
@@ -166,7 +166,7 @@ class RGBDFolder(RGBDSource):
         stems = {p.stem for p in (self.root / "images").iterdir() if p.suffix.lower() in self.IMAGE_EXTS}
         self._ids = sorted(stems)
         sp = self.root / "scenes.json"
-        self.scenes = json.loads(sp.read_text(encoding="utf-8")) if sp.exists() else {}
+        self.scenes = loads(sp.read_text(encoding="utf-8"), sp) if sp.exists() else {}
 
     def ids(self):
         return list(self._ids)

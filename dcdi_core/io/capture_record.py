@@ -24,7 +24,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import re
 import stat
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -42,8 +41,6 @@ RECORD_MAX_BYTES = 64 << 10
 #: the deepest nesting of JSON arrays and objects read (a record nests 2:
 #: the record, its noise or extra; extra's values may nest a little)
 RECORD_MAX_DEPTH = 16
-# what matters to the nesting depth: escapes (skipped), quotes, brackets
-_JSON_TOKEN = re.compile(r'\\.|["\[\]{}]', re.S)
 _SHOWN_CHARS = 60                   # a bad value is shown up to this many characters
 
 
@@ -230,16 +227,10 @@ def _check_bounds(text: str, path) -> None:
     if len(text) > RECORD_MAX_BYTES:
         raise CaptureRecordError(path, f"{len(text)} characters; a record is at most {RECORD_MAX_BYTES} "
                                        f"({RECORD_MAX_BYTES >> 10} KiB)")
-    depth, in_string = 0, False
-    for m in _JSON_TOKEN.finditer(text):
-        t = m.group()
-        if t == '"':
-            in_string = not in_string
-        elif not in_string and t[0] != "\\":
-            depth += 1 if t in "[{" else -1
-            if depth > RECORD_MAX_DEPTH:
-                raise CaptureRecordError(path, f"JSON nested more than {RECORD_MAX_DEPTH} levels deep; a record "
-                                               f"nests at most {RECORD_MAX_DEPTH}")
+    from .jsontext import nesting
+    if nesting(text, RECORD_MAX_DEPTH) > RECORD_MAX_DEPTH:
+        raise CaptureRecordError(path, f"JSON nested more than {RECORD_MAX_DEPTH} levels deep; a record "
+                                       f"nests at most {RECORD_MAX_DEPTH}")
 
 
 def prescription_sha256(lens) -> str:

@@ -39,6 +39,8 @@ import zipfile
 import zlib
 from pathlib import Path
 
+from .jsontext import loads
+
 MIB = 1 << 20
 MAX_FILE_BYTES = 1024 * MIB           # a file on disk
 MAX_ARRAY_BYTES = 2048 * MIB          # all its arrays, uncompressed
@@ -178,8 +180,8 @@ def _meta(a, fail, required: bool) -> dict | None:
         raise fail(f"the metadata record is {a.dtype} of shape {a.shape}", field="meta",
                    allowed=f"one JSON text of at most {MAX_META_CHARS} characters")
     try:
-        meta = json.loads(str(a.reshape(())[()]))
-    except (ValueError, RecursionError) as e:
+        meta = loads(str(a.reshape(())[()]), "the metadata record")
+    except ValueError as e:
         raise fail(f"the metadata record is not JSON ({type(e).__name__}: {str(e)[:120]})", field="meta") from None
     if not isinstance(meta, dict):
         raise fail("the metadata record is not a JSON object", field="meta")

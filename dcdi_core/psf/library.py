@@ -44,6 +44,7 @@ from ..optics.lens import Lens
 from .compute import (KernelTooSmallWarning, PSFSettings, clip_message, compute_sources, focused_lens, pixel_pitch_mm,
                       spectral_samples)
 from .spectral import SpectralResponse, default_response
+from ..io.jsontext import loads
 
 FORMAT_VERSION = 1
 # bumped whenever the PSF computation changes what it produces
@@ -340,7 +341,7 @@ class PSFLibrary:
     def _load_into(self, path: Path) -> bool:
         try:
             with np.load(path, allow_pickle=False) as z:
-                meta = json.loads(str(z["meta"]))
+                meta = loads(str(z["meta"]), path)
                 arrays = {name: z[name] for name in self.ARRAYS}
             if meta.get("key") != self.key:
                 raise ValueError("key mismatch (stale: lens or settings changed)")
@@ -377,7 +378,7 @@ class PSFLibrary:
         path = Path(path)
         try:
             with np.load(path, allow_pickle=False) as z:
-                meta = json.loads(str(z["meta"]))
+                meta = loads(str(z["meta"]), path)
         except Exception as e:  # noqa: BLE001
             raise OpticsError(f"{path}: not a PSF library file ({e})") from None
         s = dict(meta["settings"])

@@ -69,7 +69,7 @@ def test_factory_folder_lists_finished_samples_only(tmp_path):
 
 def test_pair_records_torn_by_a_kill_do_not_count(tmp_path):
     from dcdi_core.models.dacn.data import finished_pairs
-    a, b, c = ({"id": f"room-00000{i}~0", "scene": "room"} for i in range(3))
+    a, b, c = ({"id": f"room-00000{i}~0", "frame": f"room-00000{i}", "scene": "room"} for i in range(3))
     # b torn while appended, c appended after it by the resumed build, then a torn last line
     (tmp_path / "pairs.jsonl").write_text(json.dumps(a) + "\n" + json.dumps(b)[:10] + json.dumps(c) + "\n"
                                           + '{"id": "room-000003~0", "sce')

@@ -11,6 +11,7 @@ from pathlib import Path
 from .. import require_torch
 from ..errors import CheckpointMismatchError, ModelFileError
 from .config import differences
+from ...io.jsontext import loads
 
 torch = require_torch()
 
@@ -41,7 +42,7 @@ def resumable(path: Path, settings: dict) -> dict | None:
     if not Path(path).exists():
         return None
     ck = load_checkpoint(path)
-    diff = differences(json.loads(ck["settings"]), settings)
+    diff = differences(loads(ck["settings"], f"{path}: settings"), settings)
     if diff:
         raise CheckpointMismatchError(path, diff)
     return ck

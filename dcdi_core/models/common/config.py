@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import json
 
+from ...io.jsontext import loads
+
 OPERATIONAL = ("checkpoint_every", "validate_every")
 
 
@@ -25,7 +27,7 @@ class JSONConfig:
 
     @classmethod
     def from_json(cls, text: str):
-        return cls.from_dict(json.loads(text))
+        return cls.from_dict(loads(text, f"a {cls.__name__} record"))
 
 
 def differences(a: dict, b: dict) -> dict:

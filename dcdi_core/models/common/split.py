@@ -17,6 +17,7 @@ from pathlib import Path
 from ...atomic import write_text
 from ...errors import InputRangeError
 from ..errors import ModelFileError
+from ...io.jsontext import loads
 
 PARTS = ("train", "val", "test")
 
@@ -51,7 +52,7 @@ class Split:
     @classmethod
     def load(cls, path) -> "Split":
         try:
-            d = json.loads(Path(path).read_text(encoding="utf-8"))
+            d = loads(Path(path).read_text(encoding="utf-8"), path)
             split = cls(d["scenes"], d["ids"], d.get("seed", 0), d.get("fractions", {}))
         except (OSError, ValueError, KeyError, TypeError) as e:
             raise ModelFileError(path, f"not a split file ({e})") from None

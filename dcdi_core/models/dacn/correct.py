@@ -14,7 +14,6 @@ result comes back to the CPU.
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +27,7 @@ torch = require_torch()
 from .arch import DACN  # noqa: E402
 from .spec import DACNSpec  # noqa: E402
 from ..common.checkpoint import load_checkpoint  # noqa: E402
+from ...io.jsontext import loads
 
 
 def load_dacn(path, *, weights: str = "ema", device: str = "cpu"):
@@ -46,15 +46,15 @@ def load_dacn(path, *, weights: str = "ema", device: str = "cpu"):
         raise ModelFileError(ck_path, "not a DACN checkpoint", field="kind", allowed="dacn")
     if weights not in ("ema", "model"):
         raise InputRangeError("weights", weights, "'ema' or 'model'")
-    spec = DACNSpec.from_dict(json.loads(ck["spec"]))
+    spec = DACNSpec.from_dict(loads(ck["spec"], f"{ck_path}: spec"))
     model = DACN(spec)
     model.load_state_dict(ck[weights])
     model.to(dev).eval()
-    config = json.loads(ck["config"])
+    config = loads(ck["config"], f"{ck_path}: config")
     da2t = Path(config["data"]) / "da2t.json"
     info = {"checkpoint": str(ck_path), "step": int(ck["step"]), "spec": spec.as_dict(), "config": config,
             "weights": weights, "device": describe(dev),
-            "da2t": json.loads(da2t.read_text()) if da2t.exists() else None}
+            "da2t": loads(da2t.read_text(), da2t) if da2t.exists() else None}
     return model, info
 
 

@@ -50,7 +50,9 @@ from pathlib import Path
 import numpy as np
 
 from ...atomic import atomic_path
-from ...errors import InputRangeError
+from ...errors import DatasetError, InputRangeError
+from ...io.jsontext import loads
+from ...names import check_name
 from ...optics.errors import OpticsError
 from ..errors import ModelError, ModelFileError
 from ..runtime.depth_encoding import encode_depth
@@ -275,7 +277,6 @@ def pair_path(root, pair_id: str) -> Path:
     """pairs/<id>.npy below ``root``; ``pair_id`` (read from pairs.jsonl, or a
     frame id and variant) must be a name (``names.NAME_RULE``): '../x' would
     read or write outside the folder (DatasetError naming the folder)."""
-    from ...names import check_name
     return Path(root) / "pairs" / f"{check_name(pair_id, 'pair id', root)}.npy"
 
 
@@ -312,7 +313,20 @@ def finished_pairs(root) -> dict:
     """{pair id: record} of the pairs whose pairs.jsonl line is complete
     (read as the factory's manifest is: a torn line does not count)."""
     from ...dataset.factory_folder import read_manifest
-    return {rec["id"]: rec for rec in read_manifest(Path(root) / "pairs.jsonl")[0]}
+    path = Path(root) / "pairs.jsonl"
+    records = {rec["id"]: rec for rec in read_manifest(path)[0]}
+    for pid, rec in records.items():            # what training and evaluation read of each record
+        for key in PAIR_KEYS:
+            if not isinstance(rec.get(key), str) or not rec[key]:
+                what = "missing" if key not in rec else "not a non-empty string"
+                raise DatasetError(f"{path}: pair {pid}: field '{key}' is {what}; a pairs.jsonl line as dcdi "
+                                   "dacn pairs writes it has it")
+        check_name(rec["frame"], f"pair {pid}: frame", path)
+    return records
+
+
+#: the fields of a pairs.jsonl record that training and evaluation rely on
+PAIR_KEYS = ("frame", "scene")
 
 
 def record_settings(root, settings: dict) -> None:
@@ -322,7 +336,7 @@ def record_settings(root, settings: dict) -> None:
     root.mkdir(parents=True, exist_ok=True)
     path = root / "da2t.json"
     if path.exists():
-        old = json.loads(path.read_text(encoding="utf-8"))
+        old = loads(path.read_text(encoding="utf-8"), path)
         if old != settings:
             diff = sorted(k for k in set(old) | set(settings) if old.get(k) != settings.get(k))
             raise ModelError(f"{root}: pairs built with other DA2T settings ({', '.join(diff)}); use another folder")

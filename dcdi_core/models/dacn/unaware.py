@@ -23,13 +23,13 @@ that honours it (``dcdi dacn eval`` uses it for such runs).
 from __future__ import annotations
 
 import hashlib
-import json
 import shutil
 from pathlib import Path
 
 import numpy as np
 
 from ...errors import InputRangeError
+from ...io.jsontext import loads
 
 
 def told_depth(model_info: dict) -> float | None:
@@ -70,7 +70,8 @@ DERIVED_KEYS = ("told_depth_m", "derived_from")      # what derive_pairs adds to
 
 def _config(pairs_dir):
     from .data import DA2TConfig
-    d = json.loads(Path(pairs_dir, "da2t.json").read_text(encoding="utf-8"))
+    path = Path(pairs_dir, "da2t.json")
+    d = loads(path.read_text(encoding="utf-8"), path)
     return DA2TConfig.from_dict({k: v for k, v in d.items() if k not in DERIVED_KEYS})
 
 
@@ -86,7 +87,7 @@ def derive_pairs(src, dst, told_m: float | None = None, *, progress=None) -> dic
     src, dst = Path(src), Path(dst)
     if not (src / "da2t.json").exists():
         raise InputRangeError(f"{src}/da2t.json", "missing", "a DA2T pairs folder (dcdi dacn pairs)")
-    cfg_src = json.loads((src / "da2t.json").read_text(encoding="utf-8"))
+    cfg_src = loads((src / "da2t.json").read_text(encoding="utf-8"), src / "da2t.json")
     if "told_depth_m" in cfg_src:
         raise InputRangeError(f"{src}/da2t.json", "derived pairs", "DA2T pairs as dcdi dacn pairs built them")
     base_m = float(cfg_src["baseline_depth_m"])

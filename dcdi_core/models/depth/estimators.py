@@ -22,7 +22,6 @@ from the network: the packages' own download paths are never taken.
 """
 from __future__ import annotations
 
-import json
 import re
 import struct
 from pathlib import Path
@@ -31,6 +30,7 @@ import numpy as np
 
 from ...errors import InputRangeError
 from ..errors import ModelError, ModelFileError
+from ...io.jsontext import loads
 
 BACKENDS = ("dcdi", "unidepth", "depth-anything-v2", "depth-pro")
 
@@ -88,7 +88,7 @@ def check_safetensors(path: Path, backend: str) -> dict:
             n = struct.unpack("<Q", f.read(8))[0]
             if not 2 <= n <= 100_000_000:
                 raise ValueError(f"header length {n}")
-            header = json.loads(f.read(n))
+            header = loads(f.read(n), path)
     except (OSError, ValueError, struct.error) as e:
         raise ModelFileError(path, f"not a readable {backend} safetensors file ({e})") from None
     return header

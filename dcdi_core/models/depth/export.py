@@ -2,12 +2,12 @@
 run folder, its checkpoint or the .npz."""
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from ..errors import ModelFileError
 from ..common.weights_file import load_state, state_arrays, trained_pixel_pitch_mm
 from ..runtime.npz import read_model_npz, write_model_npz
+from ...io.jsontext import loads
 
 FORMAT, FORMAT_VERSION = "dcdi-depthnet", 1
 
@@ -26,12 +26,12 @@ def load_depthnet(path, *, weights: str = "ema"):
     ck = load_checkpoint(ck_path)
     if ck.get("kind") != "depth":
         raise ModelFileError(ck_path, "not a depth-network checkpoint", field="kind", allowed="depth")
-    model = DepthNet(DepthNetSpec(**json.loads(ck["spec"])))
+    model = DepthNet(DepthNetSpec(**loads(ck["spec"], f"{ck_path}: spec")))
     model.load_state_dict(ck[weights])
     model.eval()
-    config = json.loads(ck["config"])
+    config = loads(ck["config"], f"{ck_path}: config")
     da2t = Path(config["data"]) / "da2t.json"
-    lens = json.loads(da2t.read_text())["lens"] if da2t.exists() else None
+    lens = loads(da2t.read_text(), da2t)["lens"] if da2t.exists() else None
     return model, {"checkpoint": str(ck_path), "step": int(ck["step"]), "config": config, "lens": lens}
 
 
