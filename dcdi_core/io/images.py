@@ -200,6 +200,8 @@ def _check_file(path: Path):
         raise ImageFileError(path, "file not found")
     if path.is_dir():
         raise ImageFileError(path, "is a folder, not an image file")
+    if not path.is_file():          # a FIFO would block the read for ever, a device never end
+        raise ImageFileError(path, "is not a regular file (a pipe or a device); give an image file")
 
 
 def _open(path: Path, oiio):

@@ -34,6 +34,7 @@ import hashlib
 import json
 import math
 import os
+import stat
 import struct
 import zipfile
 import zlib
@@ -74,9 +75,12 @@ def check_file_size(path, fail, limit: int | None = None) -> int:
     (default :data:`MAX_FILE_BYTES`) before a byte of it is read."""
     limit = MAX_FILE_BYTES if limit is None else limit
     try:
-        size = os.stat(path).st_size
+        st = os.stat(path)
     except OSError as e:
         raise fail(f"cannot be read ({e.strerror or e})") from None
+    if not stat.S_ISREG(st.st_mode):             # a FIFO would block the read for ever
+        raise fail("not a regular file (a folder, a pipe or a device)")
+    size = st.st_size
     if size > limit:
         raise fail(f"{size} bytes, over the limit", field="file size",
                    allowed=f"at most {limit} bytes ({limit / MIB:g} MiB)")

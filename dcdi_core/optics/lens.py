@@ -10,6 +10,7 @@ import hashlib
 import math
 import os
 import re
+import stat
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -228,7 +229,10 @@ def read_lens_file(path: Path, error) -> bytes:
     over :data:`MAX_LENS_FILE_BYTES`. ``error(path, message)``: the reader's
     error class (LensFileError, or a ZemaxImportError maker)."""
     try:
-        size = os.stat(path).st_size
+        st = os.stat(path)
+        if not stat.S_ISREG(st.st_mode):         # a FIFO would block the read for ever
+            raise error(path, "not a regular file (a folder, a pipe or a device); give a lens file")
+        size = st.st_size
         if size <= MAX_LENS_FILE_BYTES:
             with open(path, "rb") as f:
                 data = f.read(MAX_LENS_FILE_BYTES + 1)      # at most: the file may grow after the stat
