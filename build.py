@@ -13,7 +13,8 @@
                                       # .venv-optiland/, made here once: it needs numpy 2)
     python build.py bench factory [--quick] [--recipe R]  # the dataset factory's samples per hour
     python build.py bench render [--quick]    # `dcdi bench render`, then the lens bokeh beside
-                                              # Blender's Defocus node (time, memory, distance)
+                                              # Blender's Defocus node (time, memory, distance;
+                                              # the lab's `python -m lab bench-defocus`)
     python build.py wheel             # the engine's wheel dist/dcdi-<version>-py3-none-any.whl
     python build.py addon             # the Blender extension zip dist/<id>-<version>.zip (with that wheel)
 
@@ -24,11 +25,12 @@ and pyproject.toml are unchanged (a stamp file records their hash).
 
 The demo, the factory benchmark and the render benchmark's Defocus-node
 row start the engine (`dcdi`) and the Blender batch jobs and tools
-(blender_addon/factory/batch.py, defocus_node.py) from here: the engine
+(blender_addon/factory/batch.py, lab/defocus_node.py) from here: the engine
 never starts the Blender layer.
 
 `wheel` builds the engine's package as a wheel (`pip wheel`, offline, with
-every shipped data file: PSF bases, weights, lenses, the sensor response).
+every shipped data file: PSF bases, weights, lenses, the sensor response):
+`dcdi_core` alone, without the add-on, the factory's scenes or the lab.
 `addon` zips blender_addon/ (without its factory/ and tools/ folders of
 batch jobs and developer tools) as the folder <id>/ with that wheel in
 <id>/wheels/, listed by blender_addon/blender_manifest.toml (id, version):
@@ -226,7 +228,7 @@ def cmd_test_blender(py: Path, rest: list[str]) -> int:
 # and the developer tools (screenshots, studies)
 ADDON_EXCLUDE_DIRS = ("factory", "tools")
 # what the wheel is built from (a copy: the build's own folders stay out of the checkout)
-WHEEL_SOURCES = ("pyproject.toml", "setup.py", "README.md", "dcdi_core", "blender_addon", "scenes", "lenses")
+WHEEL_SOURCES = ("pyproject.toml", "setup.py", "README.md", "dcdi_core", "lenses")
 # fixed timestamps inside the wheel (setuptools reads it): same sources, same bytes
 SOURCE_DATE_EPOCH = "315532800"
 
@@ -456,8 +458,8 @@ def bench_defocus(py: Path, quick: bool = False) -> int:
     """Below `dcdi bench render`: the 6P lens bokeh (dcdi_core, occlusion-aware
     and plain) beside Blender's compositor Defocus node on the same RGB-D,
     each timed and scored against a per-pixel reference of the real lens
-    (dcdi_core.experiments.bench_defocus); the node runs in its own process under pip
-    bpy (blender_addon/tools/defocus_node.py), which reports its times and
+    (`python -m lab bench-defocus`); the node runs in its own process under pip
+    bpy (lab/defocus_node.py), which reports its times and
     its peak RSS; the process's whole wall time (Blender's start-up
     included) is measured here."""
     import json
@@ -465,22 +467,22 @@ def bench_defocus(py: Path, quick: bool = False) -> int:
     import time
 
     with tempfile.TemporaryDirectory() as d:
-        code = subprocess.call([str(py), "-m", "dcdi_core.experiments.bench_defocus", "engine", "--out", d]
+        code = subprocess.call([str(py), "-m", "lab", "bench-defocus", "engine", "--out", d]
                                + (["--quick"] if quick else []), cwd=ROOT)
         if code != 0:
             return code
         args = json.loads(Path(d, "engine.json").read_text())["node_args"]
         t = time.perf_counter()
-        node = subprocess.run([str(py), "-m", "blender_addon.tools.defocus_node", "--input", str(Path(d, "rgbd.npz")),
+        node = subprocess.run([str(py), "-m", "lab.defocus_node", "--input", str(Path(d, "rgbd.npz")),
                                *args, "--out", str(Path(d, "node.npz")), "--json", str(Path(d, "node.json")),
                                "--repeat", "1" if quick else "2"], cwd=ROOT, capture_output=True, text=True)
         wall = time.perf_counter() - t
         if node.returncode != 0:
             print(node.stdout + node.stderr, end="")
             print(f"  the Defocus node failed (exit {node.returncode}): run `python -m "
-                  "blender_addon.tools.defocus_node ...` to see why")
+                  "lab.defocus_node ...` to see why")
             return node.returncode
-        return subprocess.call([str(py), "-m", "dcdi_core.experiments.bench_defocus", "score", "--out", d,
+        return subprocess.call([str(py), "-m", "lab", "bench-defocus", "score", "--out", d,
                                 "--node-process-s", f"{wall:.3f}"], cwd=ROOT)
 
 

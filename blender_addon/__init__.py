@@ -9,6 +9,15 @@ Built as an extension zip by ``python build.py addon`` (Blender 4.2+, the
 engine's wheel bundled and listed in ``blender_manifest.toml``); ``bl_info``
 lets Blender versions before 4.2 load the same zip as a legacy add-on once
 that wheel is installed into their Python.
+
+What the add-on holds between calls (caches, jobs, the preview, a render in
+progress, the handles of what it added to Blender) is one object,
+``session.SESSION``; ``unregister`` clears it in one call. The modules
+import downwards only, without a cycle: ``session`` and ``logic`` (no bpy),
+then ``reading`` (the scene as a job reads it) and ``bpy_render``, then
+``thumbnails``, ``viewport``, ``render_hook`` and ``operators``, then
+``props`` and ``panel``, then this file, the one place that registers the
+classes each UI module exports (``CLASSES``).
 """
 
 bl_info = {
@@ -57,12 +66,9 @@ def register():
 def unregister():
     import bpy
 
-    from . import logic, operators, props, render_hook, thumbnails, viewport
-    thumbnails.unregister()
-    viewport.unregister()
-    render_hook.unregister()
-    operators.cancel_running_jobs()
-    logic.clear_psf_sources()
+    from . import props
+    from .session import SESSION
+    SESSION.clear()          # jobs told to stop, preview and render ended, handlers removed, caches dropped
     props.unregister_properties()
     for cls in reversed(_classes()):
         bpy.utils.unregister_class(cls)

@@ -3,8 +3,8 @@ size, the kept range, and the translation of the panel's settings into the
 engine's jobs (``dcdi_core.app``: the bokeh, the simulation, its correction)
 and of their results back (images, the panel's lines). The jobs' decisions
 (which PSFs, which correction) are the engine's, the same as `dcdi`'s; the
-caches between jobs (lens files, PSF sources, the loaded network) are
-Blender's side.
+caches between jobs (lens files and folders, readouts, PSF sources, the
+loaded network) are the add-on's, held by its session (``session.SESSION``).
 
 Units: depths and distances in metres (from the lens's first vertex unless
 said otherwise), lens lengths in mm, angles in degrees.
@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-import dcdi_core
+import dcdi_core.models          # TORCH_VERSION, TorchMissingError: no torch imported
 from dcdi_core import app
 from dcdi_core.errors import DcdiError, in_words
 from dcdi_core.optics import analysis, paraxial, zemax
@@ -31,6 +31,8 @@ from dcdi_core.optics.lens import Lens, lens_dirs
 from dcdi_core.psf import compute
 from dcdi_core.render import camera as dcdi_camera
 from dcdi_core.render.request import RenderRequest
+
+from .session import SESSION
 
 Cancelled = app.Cancelled        # the user pressed Esc while a job ran
 
@@ -76,14 +78,29 @@ def lens_catalogue(extra_dirs=()) -> list[LensEntry]:
     bundled ``lenses/``) and in ``extra_dirs`` (the add-on's imported lenses);
     the first file of an id wins. A file whose name cannot be read is still
     listed (its error shows when it is chosen)."""
+    return [LensEntry(lens_id, _lens_name(Path(path)), path, lens_number(lens_id))
+            for lens_id, path in _lens_files(extra_dirs)]
+
+
+def lens_file(lens_id: str, extra_dirs=()) -> str | None:
+    """The file of the lens ``lens_id`` in :func:`lens_catalogue`'s folders, or None."""
+    return next((path for i, path in _lens_files(extra_dirs) if i == lens_id), None)
+
+
+def _lens_files(extra_dirs) -> tuple:
+    """(id, path) of the catalogue's files, listed again only when a folder changed (the session keeps them)."""
     dirs = list(lens_dirs()) + [Path(d) for d in extra_dirs if d and Path(d).is_dir()]
+    return SESSION.lens_folders.get(dirs, _list_lens_files)
+
+
+def _list_lens_files(dirs) -> list[tuple[str, str]]:
     seen, out = set(), []
     for d in dirs:
         for p in sorted(Path(d).glob("*.toml")):
             if p.stem in seen:
                 continue
             seen.add(p.stem)
-            out.append(LensEntry(p.stem, _lens_name(p), str(p), lens_number(p.stem)))
+            out.append((p.stem, str(p)))
     return out
 
 
@@ -92,34 +109,27 @@ def lens_number(lens_id: str) -> int:
     return zlib.crc32(lens_id.encode()) & 0x7FFFFFFF
 
 
-_NAME_CACHE: dict = {}
-
-
 def _lens_name(p: Path) -> str:
+    names = SESSION.lens_names
     key = (str(p), p.stat().st_mtime_ns)
-    if key not in _NAME_CACHE:
+    if key not in names:
         try:
             with open(p, "rb") as f:
                 name = str(tomllib.load(f).get("name") or p.stem)
         except (OSError, tomllib.TOMLDecodeError):
             name = f"{p.stem} (unreadable file)"
-        _NAME_CACHE[key] = name
-    return _NAME_CACHE[key]
-
-
-_LENS_CACHE: dict = {}
+        names[key] = name
+    return names[key]
 
 
 def load_lens_cached(path: str):
     """The Lens of a TOML file, cached by path and modification time; raises
     dcdi_core's LensFileError (naming file, surface and field) for a broken file."""
+    lenses = SESSION.lenses
     key = (path, os.stat(path).st_mtime_ns)
-    if key not in _LENS_CACHE:
-        _LENS_CACHE[key] = Lens.from_toml(path)
-    return _LENS_CACHE[key]
-
-
-_READOUT_CACHE: dict = {}
+    if key not in lenses:
+        lenses[key] = Lens.from_toml(path)
+    return lenses[key]
 
 
 def lens_readout(path: str) -> dict:
@@ -127,12 +137,13 @@ def lens_readout(path: str) -> dict:
     view (real chief ray at field 1, degrees), entrance pupil position (mm
     behind the first vertex) and sensor semi-diagonal (mm). Cached by file
     and modification time (the real-ray field angle costs ~0.1 s)."""
+    readouts = SESSION.readouts
     key = (path, os.stat(path).st_mtime_ns)
-    if key not in _READOUT_CACHE:
+    if key not in readouts:
         lens = load_lens_cached(path)
         fo = paraxial.first_order(lens)
         half = float(analysis.real_field_angle_deg(lens, [1.0])[0])
-        _READOUT_CACHE[key] = {
+        readouts[key] = {
             "id": lens.id, "name": lens.name,
             "focal_length_mm": float(fo.effective_focal_length_mm),
             "f_number": float(fo.f_number),
@@ -140,7 +151,7 @@ def lens_readout(path: str) -> dict:
             "entrance_pupil_mm": float(fo.entrance_pupil_position_mm),
             "sensor_semi_diagonal_mm": float(lens.sensor.semi_diagonal_mm),
         }
-    return _READOUT_CACHE[key]
+    return readouts[key]
 
 
 # the lens list's thumbnails: PSFs at these fields (rows) and depths (columns,
@@ -220,16 +231,14 @@ def _control(progress, cancelled) -> app.Control:
 # preview trace; Apply Lens Bokeh and renders trace in full.
 PREVIEW_TRACE = app.PREVIEW_TRACE
 
-# The PSF sources of the last few requests (lens file, pixel pitch, focus):
-# a basis or Omni-Lens-Field library keeps the bins it computed, so the
-# frames of an animation with one focus, or a preview refreshed after a
-# change elsewhere, pay the PSFs once. Traced libraries live in the disk cache.
-SOURCES = app.SourceCache(6)
-
-
+# The PSF sources of the last few requests (lens file, pixel pitch, focus)
+# are the session's (``SESSION.sources``): a basis or Omni-Lens-Field library
+# keeps the bins it computed, so the frames of an animation with one focus, or
+# a preview refreshed after a change elsewhere, pay the PSFs once. Traced
+# libraries live in the disk cache.
 def clear_psf_sources() -> None:
-    """Drop the kept PSF sources (unregister)."""
-    SOURCES.clear()
+    """Drop the kept PSF sources (the next job chooses and builds its own)."""
+    SESSION.sources.clear()
 
 
 def _source_info(source) -> dict:
@@ -251,7 +260,7 @@ def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], 
     request = app.BokehRequest(image, depth, lens, keep=tuple(keep), focus_m=float(focus_m) if refocus else None,
                                render=RenderRequest(lens, patch=patch), psf=app.PSFRequest(preview=preview),
                                image_name="the render")
-    r = app.bokeh(request, _control(progress, cancelled), cache=SOURCES)
+    r = app.bokeh(request, _control(progress, cancelled), cache=SESSION.sources)
     info = dict(r.info, focus_m=float(focus_m), keep_m=[float(keep[0]), float(keep[1])], refocus=bool(refocus),
                 pixel_pitch_mm=float(r.geometry.pixel_pitch_mm), focus_note="; ".join(_note(n) for n in r.notes),
                 **_source_info(r.source))
@@ -319,7 +328,7 @@ def run_simulation(image, depth, lens, *, noise: bool = False, seed: int = 0, fo
     psf = replace(compute.PSFSettings(), focus_distance_m=None if focus_m is None else float(focus_m))
     render = RenderRequest(lens, psf=psf, noise=bool(noise), seed=int(seed) if noise else None)
     r = app.simulate(app.SimulateRequest(image, depth, lens, render, image_name="the render"),
-                     _control(progress, cancelled), cache=SOURCES)
+                     _control(progress, cancelled), cache=SESSION.sources)
     info = dict(r.info, lens=lens.id, pixel_pitch_mm=float(r.geometry.pixel_pitch_mm), record=r.record,
                 **_source_info(r.source))
     return r.image, r.depth_m.astype(np.float32), r.geometry, info
@@ -357,9 +366,6 @@ def correction_model_path(lens_id: str, given: str = "") -> Path | None:
     return p
 
 
-_DACN_CACHE: dict = {}
-
-
 def load_dacn_cached(path, weights: str = "ema", device: str = "cpu"):
     """(model, info) of ``models.dacn.correct.load_dacn``, the last one kept
     (by path and modification time); a missing torch is reported with the
@@ -371,10 +377,11 @@ def load_dacn_cached(path, weights: str = "ema", device: str = "cpu"):
     except ImportError as e:                 # a torch that is there but does not import
         raise BokehInputError(_torch_message(f" that imports ({e})")) from None
     key = (str(path), os.stat(path).st_mtime_ns, weights, device)
-    if key not in _DACN_CACHE:
-        _DACN_CACHE.clear()                  # one network at a time: they are the biggest thing held
-        _DACN_CACHE[key] = correct.load_dacn(path, weights=weights, device=device)
-    return _DACN_CACHE[key]
+    networks = SESSION.networks
+    if key not in networks:
+        networks.clear()                     # one network at a time: they are the biggest thing held
+        networks[key] = correct.load_dacn(path, weights=weights, device=device)
+    return networks[key]
 
 
 # ------------------------------------------------------------------ Correct Simulation
@@ -434,7 +441,7 @@ def choose_correction(requested: str, lens_id: str, pixel_pitch_mm: float, given
         reason = "chosen in the panel"
     if chosen != "dacn":                     # a network Auto passed over (no torch) is not run
         return CorrectionChoice(PANEL_METHODS[chosen], _note(reason))
-    from dcdi_core.pipeline import shipped_model
+    from dcdi_core.app.correction_rule import shipped_model
     return CorrectionChoice(PANEL_METHODS[chosen], _note(reason), model or shipped_model("dacn", lens_id))
 
 

@@ -29,13 +29,11 @@ from bpy.props import BoolProperty, StringProperty
 from dcdi_core import errors as dcdi_errors
 from dcdi_core.render import camera as dcdi_camera
 
-from . import bpy_render, logic, props
+from . import bpy_render, logic, reading
+from .session import SESSION
 
 AIF_IMAGE = "Lens Bokeh AiF"
 DEPTH_IMAGE = "Lens Bokeh Depth"
-
-# worker threads still running, so that unregister can tell them to stop
-_JOBS: set = set()
 
 
 def _user_errors():
@@ -43,101 +41,23 @@ def _user_errors():
     return (logic.BokehInputError, dcdi_errors.DcdiError, ValueError, OSError, RuntimeError)
 
 
-def _metres_per_unit(scene) -> float:
-    return float(scene.unit_settings.scale_length)
-
-
-def _camera(scene):
-    cam = scene.camera
-    if cam is None:
-        raise logic.BokehInputError("the scene has no active camera: add one (Add > Camera) and make it the "
-                                    "active camera (View > Cameras > Set Active Object as Camera)")
-    if cam.type != "CAMERA":
-        raise logic.BokehInputError(f"the active camera {cam.name!r} is a {cam.type.lower()}, not a camera")
-    if cam.data.type != "PERSP":
-        raise logic.BokehInputError(f"camera {cam.name!r} is {cam.data.type.lower()}: "
-                                    "Lens Bokeh needs a perspective camera (Camera > Type > Perspective)")
-    return cam
-
-
-def chosen_lens(settings):
-    """(lens, path) of the panel's lens; errors name the file and the field."""
-    path = props.lens_path(settings)
-    if path is None:
-        raise logic.BokehInputError(f"no lens file for {settings.lens!r}: pick a lens in the panel "
-                                    "(lenses/*.toml or Import Zemax File)")
-    try:
-        return logic.load_lens_cached(path), path
-    except dcdi_errors.DcdiError as e:
-        raise logic.BokehInputError(f"the lens file is broken: {logic.message(e)}") from None
-
-
-def focus_metres(scene, cam, settings, entrance_pupil_mm: float, depsgraph=None) -> float:
-    """Focus distance in metres from the lens's first vertex: the panel's
-    distance, its focus object's origin, or the camera's own depth-of-field
-    focus (its focus object, else its focus distance). ``depsgraph``: read
-    the values it evaluated (a frame of an animation render), else the
-    scene as it stands."""
-    if depsgraph is not None:
-        settings = scene.evaluated_get(depsgraph).dcdi_lens_bokeh
-        cam = cam.evaluated_get(depsgraph)
-    mpu = _metres_per_unit(scene)
-    if settings.focus_mode == "DISTANCE":
-        return settings.focus_distance * mpu
-    if settings.focus_mode == "CAMERA":
-        dof = cam.data.dof
-        obj = dof.focus_object
-        if obj is None:            # the camera's distance runs from the camera, i.e. the entrance pupil
-            return dcdi_camera.planar_depth_m(-dof.focus_distance, entrance_pupil_mm, mpu)
-    else:
-        obj = settings.focus_object
-        if obj is None:
-            raise logic.BokehInputError("focus is set to Object but no focus object is chosen")
-    if depsgraph is not None:
-        obj = obj.evaluated_get(depsgraph)
-    return point_depth_m(scene, cam, obj.matrix_world.translation, entrance_pupil_mm)
-
-
-def point_depth_m(scene, cam, point, entrance_pupil_mm: float) -> float:
-    """Depth in metres from the lens's first vertex of the world ``point``
-    (scene units): its depth along the camera's view axis."""
-    z = (cam.matrix_world.inverted() @ point).z          # camera space: the camera looks down -Z
-    return dcdi_camera.planar_depth_m(z, entrance_pupil_mm, _metres_per_unit(scene))
-
-
-def focus_and_keep(scene, cam, settings, entrance_pupil_mm: float, depsgraph=None):
-    """(focus, (near, far)): the focus (``focus_metres``) and the range kept
-    sharp around it, metres."""
-    focus = focus_metres(scene, cam, settings, entrance_pupil_mm, depsgraph)
-    s = scene.evaluated_get(depsgraph).dcdi_lens_bokeh if depsgraph is not None else settings
-    mpu = _metres_per_unit(scene)
-    return focus, logic.keep_range(focus, s.keep_front * mpu, s.keep_behind * mpu)
-
-
-def render_inputs(context, cam, lens_path: str):
+def render_inputs(context, scene_reading: "reading.SceneReading"):
     """The active camera rendered all-in-focus at the preview size: (rgb,
     depth in metres from the lens's first vertex, seconds)."""
-    scene = context.scene
-    s = scene.dcdi_lens_bokeh
-    ep = logic.lens_readout(lens_path)["entrance_pupil_mm"]
-    r = scene.render
-    h, w = logic.preview_shape(r.resolution_x, r.resolution_y, r.pixel_aspect_x, r.pixel_aspect_y, s.preview_size)
+    r = scene_reading
+    h, w = r.preview_shape()
     t0 = time.perf_counter()
-    rgb, z = bpy_render.render_aif_depth(scene, cam, h, w, s.samples, context.view_layer.name)
-    depth = dcdi_camera.depth_from_planar_z(z, ep, _metres_per_unit(scene))
+    rgb, z = bpy_render.render_aif_depth(context.scene, r.camera, h, w, r.samples, context.view_layer.name)
+    depth = dcdi_camera.depth_from_planar_z(z, r.entrance_pupil_mm, r.metres_per_unit)
     return rgb, depth, time.perf_counter() - t0
 
 
 def prepare(context):
     """Check the settings, render AiF + depth; returns the bokeh job's inputs."""
-    scene = context.scene
-    s = scene.dcdi_lens_bokeh
-    cam = _camera(scene)
-    lens, path = chosen_lens(s)
-    focus, keep = focus_and_keep(scene, cam, s, logic.lens_readout(path)["entrance_pupil_mm"])
-    rgb, depth, seconds = render_inputs(context, cam, path)
-    return {"rgb": rgb, "depth": depth, "lens": lens, "focus_m": focus, "keep": keep, "refocus": bool(s.refocus),
-            "render_s": seconds}
+    r = reading.read_scene(context.scene)
+    rgb, depth, seconds = render_inputs(context, r)
+    return {"rgb": rgb, "depth": depth, "lens": r.lens, "focus_m": r.focus_m, "keep": r.keep,
+            "refocus": r.refocus, "render_s": seconds}
 
 
 def bokeh_of(job, **kw):
@@ -186,7 +106,7 @@ class _Worker:
             self.error = e
         finally:
             self.seconds = time.perf_counter() - self.t0
-            _JOBS.discard(self)
+            SESSION.jobs.discard(self)
 
 
 class _JobOperator:
@@ -228,7 +148,7 @@ class _JobOperator:
             self.report({"ERROR"}, logic.message(e))
             return {"CANCELLED"}
         self._worker = _Worker(job, self.compute)
-        _JOBS.add(self._worker)
+        SESSION.jobs.add(self._worker)
         self._worker.thread.start()
         st.running = True
         wm = context.window_manager
@@ -309,18 +229,16 @@ class DCDI_OT_apply_lens_bokeh(_JobOperator, bpy.types.Operator):
 SIMULATION_IMAGE = "Lens Simulation"
 CORRECTED_IMAGE = "Lens Corrected"
 # the last simulation (render, simulated image, depth and geometry on the
-# sensor, lens, whether it has sensor noise), which Correct works on; in
-# memory only, dropped at unregister
-_SIMULATION: dict = {}
+# sensor, lens, whether it has sensor noise), which Correct works on, is the
+# session's (SESSION.simulation: in memory only, dropped at unregister)
 
 
 def prepare_simulation(context):
     """Check the settings and render AiF + depth for Simulate."""
-    s = context.scene.dcdi_lens_bokeh
-    cam = _camera(context.scene)
-    lens, path = chosen_lens(s)
-    rgb, depth, seconds = render_inputs(context, cam, path)
-    return {"rgb": rgb, "depth": depth, "lens": lens, "noise": bool(s.sensor_noise), "render_s": seconds}
+    r = reading.read_scene(context.scene, focus=False)
+    rgb, depth, seconds = render_inputs(context, r)
+    return {"rgb": rgb, "depth": depth, "lens": r.lens, "noise": bool(context.scene.dcdi_lens_bokeh.sensor_noise),
+            "render_s": seconds}
 
 
 class DCDI_OT_simulate_lens(_JobOperator, bpy.types.Operator):
@@ -339,10 +257,10 @@ class DCDI_OT_simulate_lens(_JobOperator, bpy.types.Operator):
 
     def finish(self, context, job, result, seconds):
         out, sensor_depth, geometry, info = result
-        _SIMULATION.clear()
-        _SIMULATION.update(rgb=job["rgb"], depth=job["depth"], image=out, sensor_depth=sensor_depth,
-                           geometry=geometry, lens=job["lens"], lens_id=job["lens"].id,
-                           pixel_pitch_mm=info["pixel_pitch_mm"], sensor_noise=job["noise"], record=info["record"])
+        SESSION.simulation = dict(rgb=job["rgb"], depth=job["depth"], image=out, sensor_depth=sensor_depth,
+                                  geometry=geometry, lens=job["lens"], lens_id=job["lens"].id,
+                                  pixel_pitch_mm=info["pixel_pitch_mm"], sensor_noise=job["noise"],
+                                  record=info["record"])
         bpy_render.show_in_image_editor(context, bpy_render.put_image(SIMULATION_IMAGE, out, info["record"]))
         st = context.window_manager.dcdi_lens_bokeh_status
         st.psf_source = info["psf_source_message"]
@@ -356,7 +274,7 @@ class DCDI_OT_simulate_lens(_JobOperator, bpy.types.Operator):
 def correction_blocker(context) -> str | None:
     """Why Correct cannot run now (no simulation yet; Network chosen and no
     torch), or None."""
-    if not _SIMULATION:
+    if not SESSION.simulation:
         return f"run {DCDI_OT_simulate_lens.bl_label} first: Correct works on its image"
     if context.scene.dcdi_lens_bokeh.correction_method == "NETWORK":
         return logic.torch_missing()
@@ -367,10 +285,10 @@ def correction_choice(context) -> "logic.CorrectionChoice":
     """The method Correct runs on the last simulation, and why (the panel's
     Correction Method; Auto by the engine's rule)."""
     s = context.scene.dcdi_lens_bokeh
+    sim = SESSION.simulation
     given = bpy.path.abspath(s.correction_model) if s.correction_model else ""
-    return logic.choose_correction(s.correction_method.lower(), _SIMULATION["lens_id"],
-                                   _SIMULATION["pixel_pitch_mm"], given, lens=_SIMULATION["lens"],
-                                   record=_SIMULATION.get("record"))
+    return logic.choose_correction(s.correction_method.lower(), sim["lens_id"], sim["pixel_pitch_mm"], given,
+                                   lens=sim["lens"], record=sim.get("record"))
 
 
 def prepare_correction(context):
@@ -378,7 +296,7 @@ def prepare_correction(context):
     why = correction_blocker(context)
     if why:
         raise logic.BokehInputError(why)
-    return dict(_SIMULATION, choice=correction_choice(context), render_s=0.0)
+    return dict(SESSION.simulation, choice=correction_choice(context), render_s=0.0)
 
 
 class DCDI_OT_correct_simulation(_JobOperator, bpy.types.Operator):
@@ -431,8 +349,8 @@ class DCDI_OT_match_camera(bpy.types.Operator):
     def execute(self, context):
         scene = context.scene
         try:
-            cam = _camera(scene)
-            lens, _ = chosen_lens(scene.dcdi_lens_bokeh)
+            cam = reading.camera(scene)
+            lens, _ = reading.chosen_lens(scene.dcdi_lens_bokeh)
             r = scene.render
             pinhole = dcdi_camera.PinholeCamera.for_lens(lens, r.resolution_y, r.resolution_x)
         except _user_errors() as e:
@@ -465,7 +383,7 @@ class DCDI_OT_import_zemax(bpy.types.Operator):
 
     def execute(self, context):
         try:
-            out = logic.import_zemax(self.filepath, props.user_lens_dir(create=True))
+            out = logic.import_zemax(self.filepath, reading.user_lens_dir(create=True))
         except _user_errors() as e:
             self.report({"ERROR"}, f"cannot import {self.filepath}: {logic.message(e)}")
             return {"CANCELLED"}
@@ -480,11 +398,11 @@ def focus_on_point(scene, point) -> float:
     units) along the active camera's view axis: Distance mode, the distance
     from the lens's first vertex. Returns the focus in metres."""
     s = scene.dcdi_lens_bokeh
-    _, path = chosen_lens(s)
-    focus = point_depth_m(scene, _camera(scene), point, logic.lens_readout(path)["entrance_pupil_mm"])
+    r = reading.read_scene(scene, focus=False)
+    focus = reading.point_depth_m(scene, r.camera, point, r.entrance_pupil_mm)
     logic.keep_range(focus, 0.0, 0.0)              # in front of the lens, or a message saying it is not
     s.focus_mode = "DISTANCE"
-    s.focus_distance = focus / _metres_per_unit(scene)
+    s.focus_distance = focus / r.metres_per_unit
     return focus
 
 
@@ -566,13 +484,6 @@ class DCDI_OT_focus_active(bpy.types.Operator):
         s.focus_object = context.active_object
         self.report({"INFO"}, f"Lens Bokeh: focus on {context.active_object.name}")
         return {"FINISHED"}
-
-
-def cancel_running_jobs():
-    """Tell running workers to stop and drop the last simulation (unregister)."""
-    for w in list(_JOBS):
-        w.cancel = True
-    _SIMULATION.clear()
 
 
 CLASSES = (DCDI_OT_apply_lens_bokeh, DCDI_OT_simulate_lens, DCDI_OT_correct_simulation, DCDI_OT_match_camera,

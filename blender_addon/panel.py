@@ -4,12 +4,13 @@ import bpy
 
 from dcdi_core import errors as dcdi_errors
 
-from . import logic, props
+from . import logic, operators, reading, render_hook, thumbnails, viewport
+from .session import SESSION
 
 
 def _readout(layout, settings):
     """Focal length, F-number, field of view of the chosen lens, or why not."""
-    path = props.lens_path(settings)
+    path = reading.lens_file(settings.lens)
     box = layout.box()
     if path is None:
         box.label(text="No lens chosen", icon="ERROR")
@@ -26,8 +27,7 @@ def _readout(layout, settings):
             col.label(text=msg[i:i + 48])
         return
     fov = ro["field_of_view_deg"]
-    from . import thumbnails
-    entry = next((e for e in props.catalogue() if e.path == path), None)
+    entry = next((e for e in reading.catalogue() if e.path == path), None)
     icon = thumbnails.icon(entry) if entry is not None else 0
     if icon:
         row = box.row()
@@ -43,13 +43,11 @@ def _readout(layout, settings):
 def _sharp_range(scene, s) -> str:
     """The depths kept sharp, as the operator will compute them (metres from
     the lens's first vertex), or why they cannot be computed yet."""
-    from . import operators
     try:
-        cam = operators._camera(scene)
-        _, path = operators.chosen_lens(s)
-        focus, (near, far) = operators.focus_and_keep(scene, cam, s, logic.lens_readout(path)["entrance_pupil_mm"])
+        r = reading.read_scene(scene)
     except (logic.BokehInputError, dcdi_errors.DcdiError, ValueError, OSError) as e:
         return logic.message(e)[:60]
+    (near, far), focus = r.keep, r.focus_m
     return f"Sharp from {near:.2f} m to {far:.2f} m (focus {focus:.2f} m)"
 
 
@@ -115,9 +113,8 @@ def draw_lens_bokeh(layout, context):
 
 def _draw_preview(layout, status):
     """The viewport preview's toggle and what its last refresh did."""
-    from . import viewport
     layout.prop(status, "viewport_preview", icon="HIDE_OFF" if status.viewport_preview else "HIDE_ON")
-    p = viewport.PREVIEW
+    p = viewport.preview()
     if not p.enabled:
         return
     if p.error:
@@ -133,7 +130,6 @@ def _draw_preview(layout, status):
 
 def _draw_renders(layout, scene, s, status):
     """Lens in Renders: F12 and animations through the lens."""
-    from . import render_hook
     layout.prop(s, "lens_in_renders", icon="RENDER_ANIMATION")
     if not s.lens_in_renders:
         return
@@ -152,7 +148,6 @@ def _draw_renders(layout, scene, s, status):
 
 def _draw_round_trip(layout, context, s, status):
     """Simulate Minimalist Lens and Correct Simulation: the DCDI round trip."""
-    from . import operators
     layout.label(text="DCDI round trip (the chosen lens as prescribed)")
     layout.prop(s, "sensor_noise")
     layout.operator("dcdi.simulate_lens", icon="SHADERFX")
@@ -163,7 +158,7 @@ def _draw_round_trip(layout, context, s, status):
     why = logic.torch_missing() if s.correction_method == "NETWORK" else None
     if why:
         _wrapped(layout, why, 400, "ERROR")               # the install command
-    elif operators._SIMULATION:
+    elif SESSION.simulation:
         try:
             choice = operators.correction_choice(context)
             used = f" with {choice.model_path.name}" if choice.model_path else ""

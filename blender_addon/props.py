@@ -5,51 +5,27 @@ unit scale), resolutions in pixels."""
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
-from . import logic
+from . import logic, reading, thumbnails, viewport
+from .session import SESSION
 
-# Blender keeps only references to enum item strings: hold them here so that
-# Python does not free them while the UI shows them (documented pitfall of
-# dynamic EnumProperty items).
-_ITEMS: list = []
 DEFAULT_LENS = "6p"      # the paper's bokeh lens
 
 
-def user_lens_dir(create: bool = False) -> str:
-    """Folder of lenses imported from Zemax files: the extension's user folder
-    (Blender 4.2+), else a folder in the user's scripts."""
-    pkg = __package__ or "blender_addon"
-    if hasattr(bpy.utils, "extension_path_user") and pkg.startswith("bl_ext."):
-        return bpy.utils.extension_path_user(pkg, path="lenses", create=create)
-    return bpy.utils.user_resource("SCRIPTS", path="dcdi_lenses", create=create)
-
-
-def catalogue():
-    return logic.lens_catalogue([user_lens_dir()])
-
-
 def _lens_items(self, context):
-    from . import thumbnails
     items = [(e.id, e.name if len(e.name) <= 40 else e.id, f"{e.name}\n{e.path}", thumbnails.icon(e) or "CAMERA_DATA",
-              e.number) for e in catalogue()]
+              e.number) for e in reading.catalogue()]
     if not items:
         items = [("NONE", "No lens files found", "no *.toml in the lens folders", "ERROR", 0)]
-    _ITEMS[:] = items
-    return _ITEMS
+    # Blender keeps only references to enum item strings: the session holds them so that Python does not
+    # free them while the UI shows them (documented pitfall of dynamic EnumProperty items)
+    SESSION.lens_items = items
+    return items
 
 
 def _settings_changed(settings, context):
     """Every setting the viewport preview shows: tell it (a Python assignment
     and a click both run this; neither tags the depsgraph)."""
-    from . import viewport
     viewport.settings_changed(settings, context)
-
-
-def lens_path(settings) -> str | None:
-    """Path of the chosen lens's TOML file (None when there is none)."""
-    for e in catalogue():
-        if e.id == settings.lens:
-            return e.path
-    return None
 
 
 class DCDI_LensBokehSettings(bpy.types.PropertyGroup):
@@ -110,7 +86,6 @@ class DCDI_LensBokehSettings(bpy.types.PropertyGroup):
 
 
 def _preview_toggled(status, context):
-    from . import viewport
     viewport.toggle_update(status, context)
 
 
@@ -141,4 +116,3 @@ def register_properties():
 def unregister_properties():
     del bpy.types.WindowManager.dcdi_lens_bokeh_status
     del bpy.types.Scene.dcdi_lens_bokeh
-    _ITEMS.clear()

@@ -40,7 +40,8 @@ from bpy.app.handlers import persistent
 from dcdi_core import errors as dcdi_errors
 from dcdi_core.io import rawexr
 
-from . import bpy_render, logic
+from . import bpy_render, logic, reading
+from .session import SESSION
 
 RESULT_IMAGE = bpy_render.RESULT_IMAGE_RENDER
 GROUP = "dcdi-lens-passes"
@@ -84,10 +85,9 @@ class _LensRender:
         shutil.rmtree(self.passes_dir, ignore_errors=True)
 
 
-# the render in progress (one at a time, as Blender renders one at a time)
-_RUN: dict[str, _LensRender] = {}
-# what the last render through the lens did, for the panel and for scripts
-LAST: dict = {}
+# the render in progress (one at a time, as Blender renders one at a time) is
+# the session's ``render_run``; what the last render through the lens did, for
+# the panel and for scripts, its ``last_render``
 
 
 def _status(text: str) -> None:
@@ -105,10 +105,9 @@ def blocker(scene) -> str | None:
     if scene.render.is_movie_format:
         return ("Lens in Renders writes image files: choose an image sequence output (EXR, PNG, ...) and "
                 "encode the movie afterwards (Blender streams movie frames as it renders)")
-    from . import operators
     try:
-        operators._camera(scene)
-        operators.chosen_lens(scene.dcdi_lens_bokeh)
+        reading.camera(scene)
+        reading.chosen_lens(scene.dcdi_lens_bokeh)
     except (logic.BokehInputError, dcdi_errors.DcdiError) as e:
         return logic.message(e)
     return None
@@ -144,15 +143,15 @@ def _passes_compositor(run: _LensRender, scene) -> None:
 def _start(scene) -> _LensRender:
     run = _LensRender(scene)
     try:
-        from . import operators
-        run.lens, run.lens_path = operators.chosen_lens(scene.dcdi_lens_bokeh)
+        first = reading.read_scene(scene)                 # the lens for this render, and the focus of its frame
+        run.lens, run.lens_path = first.lens, first.lens_path
         for vl in scene.view_layers:
             run.set(vl, "use_pass_z", True)
         for cam in {o.data for o in scene.objects if o.type == "CAMERA"}:
             run.set(cam.dof, "use_dof", False)
         run.set(scene.render, "use_lock_interface", True)
         _passes_compositor(run, scene)
-        run.focus_by_frame[scene.frame_current] = _focus(scene, run, None)
+        run.focus_by_frame[scene.frame_current] = (first.focus_m, first.keep)
     except BaseException:
         run.restore()
         raise
@@ -162,17 +161,15 @@ def _start(scene) -> _LensRender:
 def _focus(scene, run: _LensRender, depsgraph) -> tuple[float, tuple[float, float]]:
     """(focus, kept range), metres from the lens's first vertex, of the
     frame ``depsgraph`` evaluates (None: the scene as it stands)."""
-    from . import operators
-    ep = logic.lens_readout(run.lens_path)["entrance_pupil_mm"]
-    return operators.focus_and_keep(scene, operators._camera(scene), scene.dcdi_lens_bokeh, ep, depsgraph)
+    r = reading.read_scene(scene, depsgraph=depsgraph, lens_path=run.lens_path)
+    return r.focus_m, r.keep
 
 
 def _request(scene, run: _LensRender, frame: int) -> logic.FrameRequest:
     s = scene.dcdi_lens_bokeh
     focus, keep = run.focus_by_frame.get(frame) or _focus(scene, run, None)
     return logic.FrameRequest(s.render_effect.lower(), focus, keep, bool(s.refocus),
-                              logic.lens_readout(run.lens_path)["entrance_pupil_mm"],
-                              float(scene.unit_settings.scale_length))
+                              logic.lens_readout(run.lens_path)["entrance_pupil_mm"], reading.metres_per_unit(scene))
 
 
 def _read_passes(run: _LensRender):
@@ -195,22 +192,20 @@ def _read_passes(run: _LensRender):
 # ------------------------------------------------------------------ the handlers
 @persistent
 def on_render_init(scene, *_):
-    _RUN.clear()
+    SESSION.render_run = None
     s = getattr(scene, "dcdi_lens_bokeh", None)
     if s is None or not s.lens_in_renders:
         return
     why = blocker(scene)
     if why:
-        LAST.clear()
-        LAST.update(error=why, frames=[])
+        SESSION.last_render = {"error": why, "frames": []}
         _status(f"Lens in Renders not applied: {why}")
         print(f"dcdi: Lens in Renders not applied: {why}")
         return
     try:
-        _RUN["run"] = _start(scene)
+        SESSION.render_run = _start(scene)
     except (logic.BokehInputError, dcdi_errors.DcdiError, RuntimeError, ValueError, OSError) as e:
-        LAST.clear()
-        LAST.update(error=logic.message(e), frames=[])
+        SESSION.last_render = {"error": logic.message(e), "frames": []}
         _status(f"Lens in Renders not applied: {logic.message(e)}")
         print(f"dcdi: Lens in Renders not applied: {logic.message(e)}")
         return
@@ -219,7 +214,7 @@ def on_render_init(scene, *_):
 
 @persistent
 def on_frame_change(scene, depsgraph=None):
-    run = _RUN.get("run")
+    run = SESSION.render_run
     if run is None or depsgraph is None or depsgraph.mode != "RENDER" or scene.name != run.scene_name:
         return
     try:
@@ -230,7 +225,7 @@ def on_frame_change(scene, depsgraph=None):
 
 @persistent
 def on_render_post(scene, *_):
-    run = _RUN.get("run")
+    run = SESSION.render_run
     if run is None or scene.name != run.scene_name:
         return
     frame = scene.frame_current
@@ -249,8 +244,7 @@ def on_render_post(scene, *_):
     run.frames.append({"frame": frame, "focus_m": req.focus_m, "keep_m": list(req.keep), "effect": req.effect,
                        "seconds": seconds, "psf_source": info.get("psf_source"),
                        "focus_note": info.get("focus_note", "")})
-    LAST.clear()
-    LAST.update(frames=run.frames, error=run.error, last_image=out, last_passes=(rgb, z))
+    SESSION.last_render = {"frames": run.frames, "error": run.error, "last_image": out, "last_passes": (rgb, z)}
     _status(f"Lens in Renders: frame {frame}, focus {req.focus_m:.2f} m, lens {seconds:.1f} s")
     if bpy.app.background:
         bpy_render.put_image(RESULT_IMAGE, out)
@@ -266,7 +260,7 @@ def _show(out):
 
 @persistent
 def on_render_write(scene, *_):
-    run = _RUN.get("run")
+    run = SESSION.render_run
     if run is None or scene.name != run.scene_name:
         return
     out = run.results.pop(scene.frame_current, None)
@@ -299,7 +293,7 @@ def _written_path(scene, run: _LensRender) -> str | None:
 
 @persistent
 def on_render_end(scene, *_):
-    run = _RUN.pop("run", None)
+    run, SESSION.render_run = SESSION.render_run, None
     if run is None:
         return
     run.restore()
@@ -317,20 +311,19 @@ HANDLERS = (("render_init", on_render_init), ("frame_change_post", on_frame_chan
 
 
 def register() -> None:
+    """Add the handlers; the session takes them back (``SESSION.clear()``,
+    which also ends a render in progress, its settings restored)."""
     for name, fn in HANDLERS:
         handlers = getattr(bpy.app.handlers, name)
         if fn not in handlers:
             handlers.append(fn)
+    SESSION.hold("render", _remove_handlers)
 
 
-def unregister() -> None:
-    run = _RUN.pop("run", None)
-    if run is not None:
-        run.restore()
+def _remove_handlers() -> None:
     for name, fn in HANDLERS:
         handlers = getattr(bpy.app.handlers, name)
         # a reloaded module's functions are new objects: remove ours by name too
         for h in [h for h in handlers if h is fn or getattr(h, "__qualname__", "") == fn.__qualname__
                   and getattr(h, "__module__", "") == fn.__module__]:
             handlers.remove(h)
-    LAST.clear()

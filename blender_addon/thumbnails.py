@@ -3,7 +3,7 @@ fields 0 / 0.5 / 0.9 down, 1 m / 3 m / infinity across) as a Blender
 preview icon. Made on a worker thread the first time the list is drawn
 (about 0.1-0.3 s a lens), handed to the main thread by a timer; until then
 a lens shows the plain camera icon. Kept per lens file and modification
-time for the session."""
+time for the session (``SESSION.thumbnails``)."""
 from __future__ import annotations
 
 import os
@@ -13,9 +13,7 @@ import bpy
 import numpy as np
 
 from . import logic
-
-_STATE: dict = {"pcoll": None, "ready": {}, "failed": set(), "requested": set(), "thread": None}
-_LOCK = threading.Lock()
+from .session import SESSION
 
 
 def _key(entry) -> str:
@@ -25,43 +23,43 @@ def _key(entry) -> str:
 def icon(entry) -> int:
     """The icon id of ``entry``'s thumbnail, 0 while it is being made (or
     when it cannot be: a broken lens file)."""
-    pcoll = _STATE["pcoll"]
-    if pcoll is None:
+    state = SESSION.thumbnails
+    if state.pcoll is None:
         return 0
     key = _key(entry)
-    if key in pcoll:
-        return pcoll[key].icon_id
-    if key not in _STATE["requested"]:        # made once: reading the lens enum calls this every time
-        _STATE["requested"].add(key)
-        _make_later(entry, key)
+    if key in state.pcoll:
+        return state.pcoll[key].icon_id
+    if key not in state.requested:            # made once: reading the lens enum calls this every time
+        state.requested.add(key)
+        _make_later(state, entry, key)
     return 0
 
 
-def _make_later(entry, key: str) -> None:
-    with _LOCK:
-        queue = _STATE.setdefault("queue", {})
-        queue[key] = entry
-        th = _STATE["thread"]
+def _make_later(state, entry, key: str) -> None:
+    with state.lock:
+        state.queue[key] = entry
+        th = state.thread
         if th is None or not th.is_alive():
-            th = _STATE["thread"] = threading.Thread(target=_work, name="dcdi-thumbnails", daemon=True)
+            th = state.thread = threading.Thread(target=_work, args=(state,), name="dcdi-thumbnails", daemon=True)
             th.start()
     if not bpy.app.background and not bpy.app.timers.is_registered(_collect):
         bpy.app.timers.register(_collect, first_interval=0.2)
 
 
-def _work() -> None:
+def _work(state) -> None:
+    """The worker: ``state``'s queue made into PSF grids (the session's
+    thumbnails when it started: a cleared session's are dropped with it)."""
     while True:
-        with _LOCK:
-            queue = _STATE.get("queue", {})
-            if not queue:
+        with state.lock:
+            if not state.queue:
                 return
-            key, entry = queue.popitem()
+            key, entry = state.queue.popitem()
         try:
             img = logic.psf_thumbnail(logic.load_lens_cached(entry.path))
         except Exception:                 # a broken lens file: its error shows when it is chosen
-            _STATE["failed"].add(key)
+            state.failed.add(key)
             continue
-        _STATE["ready"][key] = img
+        state.ready[key] = img
 
 
 def _collect():
@@ -71,16 +69,18 @@ def _collect():
         for window in bpy.context.window_manager.windows:
             for area in window.screen.areas:
                 area.tag_redraw()
-    th = _STATE["thread"]
-    return 0.2 if (th is not None and th.is_alive()) or _STATE["ready"] else None
+    state = SESSION.thumbnails
+    th = state.thread
+    return 0.2 if (th is not None and th.is_alive()) or state.ready else None
 
 
 def collect() -> int:
     """Move the finished thumbnails into Blender's previews; returns how many."""
-    pcoll = _STATE["pcoll"]
+    state = SESSION.thumbnails
+    pcoll = state.pcoll
     n = 0
-    for key in list(_STATE["ready"]):
-        img = _STATE["ready"].pop(key)
+    for key in list(state.ready):
+        img = state.ready.pop(key)
         if pcoll is None or key in pcoll:
             continue
         h, w = img.shape[:2]
@@ -96,14 +96,15 @@ def collect() -> int:
 
 
 def register() -> None:
+    """Blender's preview collection for the icons; the session takes it back
+    (``SESSION.clear()``), with the collecting timer."""
     import bpy.utils.previews
-    _STATE["pcoll"] = bpy.utils.previews.new()
+    pcoll = SESSION.thumbnails.pcoll = bpy.utils.previews.new()
+    SESSION.hold("thumbnails", lambda: _remove(pcoll))
 
 
-def unregister() -> None:
-    if _STATE["pcoll"] is not None:
-        import bpy.utils.previews
-        bpy.utils.previews.remove(_STATE["pcoll"])
-    _STATE.update(pcoll=None, ready={}, failed=set(), requested=set(), queue={})
+def _remove(pcoll) -> None:
+    import bpy.utils.previews
+    bpy.utils.previews.remove(pcoll)
     if not bpy.app.background and bpy.app.timers.is_registered(_collect):
         bpy.app.timers.unregister(_collect)

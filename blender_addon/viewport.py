@@ -41,7 +41,8 @@ from dcdi_core import errors as dcdi_errors
 from dcdi_core.io import images as dcdi_images
 from dcdi_core.render import camera as dcdi_camera
 
-from . import bpy_render, logic
+from . import bpy_render, logic, reading
+from .session import SESSION
 
 DEBOUNCE_S = 0.25         # a refresh waits until changes have stopped this long
 POLL_S = 0.05             # the timer's period while a job runs
@@ -58,7 +59,7 @@ ANIMATED_SCENE_DATA = ("objects", "meshes", "materials", "worlds", "lights", "sh
 
 
 class Preview:
-    """The preview's state: one per Blender session."""
+    """The preview's state: one per Blender session, held by the session (:func:`preview`)."""
 
     def __init__(self):
         self.enabled = False
@@ -188,29 +189,27 @@ class Preview:
         _redraw(bpy.context)
 
 
-PREVIEW = Preview()
+def preview() -> Preview:
+    """The session's preview (made the first time it is asked for)."""
+    if SESSION.preview is None:
+        SESSION.preview = Preview()
+    return SESSION.preview
 
 
 def inputs(context) -> dict:
     """What a refresh works from: the camera, the lens, the preview's size,
     the focus and kept range (m), and the keys that say when the sharp
     render (``sharp_key``) or the lens stage (``request``) must be redone."""
-    from . import operators
     scene = context.scene
-    s = scene.dcdi_lens_bokeh
-    cam = operators._camera(scene)
-    lens, path = operators.chosen_lens(s)
-    ep = logic.lens_readout(path)["entrance_pupil_mm"]
-    r = scene.render
-    h, w = logic.preview_shape(r.resolution_x, r.resolution_y, r.pixel_aspect_x, r.pixel_aspect_y, s.preview_size)
-    mpu = float(scene.unit_settings.scale_length)
-    focus, keep = operators.focus_and_keep(scene, cam, s, ep)
+    r = reading.read_scene(scene)
+    h, w = r.preview_shape()
+    cam, lens, path, ep, mpu = r.camera, r.lens, r.lens_path, r.entrance_pupil_mm, r.metres_per_unit
     d = cam.data
-    sharp_key = (cam.name, tuple(map(tuple, cam.matrix_world)), h, w, s.samples, round(ep, 9), mpu, d.lens,
+    sharp_key = (cam.name, tuple(map(tuple, cam.matrix_world)), h, w, r.samples, round(ep, 9), mpu, d.lens,
                  d.sensor_width, d.sensor_height, d.sensor_fit, d.shift_x, d.shift_y, d.clip_start, d.clip_end)
     return {"scene": scene, "camera": cam, "lens": lens, "path": path, "entrance_pupil_mm": ep, "h": h, "w": w,
-            "mpu": mpu, "focus": focus, "keep": keep, "sharp_key": sharp_key,
-            "request": (lens.id, path, focus, keep, bool(s.refocus))}
+            "mpu": mpu, "focus": r.focus_m, "keep": r.keep, "sharp_key": sharp_key,
+            "request": (lens.id, path, r.focus_m, r.keep, r.refocus)}
 
 
 def wanted(context) -> tuple:
@@ -225,24 +224,25 @@ def wanted(context) -> tuple:
 
 
 def _tick():
-    return PREVIEW.tick()
+    return preview().tick()
 
 
 def _watch():
     """The watcher (module docstring): runs while the preview is on."""
-    if not PREVIEW.enabled:
+    p = preview()
+    if not p.enabled:
         return None
     try:
-        PREVIEW.check()
+        p.check()
     except Exception as e:                # never let the watcher die silently: show why
-        PREVIEW.error = f"preview watcher: {type(e).__name__}: {e}"
+        p.error = f"preview watcher: {type(e).__name__}: {e}"
     return WATCH_S
 
 
 def settings_changed(settings, context) -> None:
     """The panel's settings' ``update``: refresh the preview if it shows
     something else now."""
-    PREVIEW.check(context)
+    preview().check(context)
 
 
 def _texture(image: np.ndarray):
@@ -283,14 +283,15 @@ def _camera_frame_px(context):
 
 def draw_preview():
     """POST_PIXEL: the last result over the camera's frame."""
-    if not PREVIEW.enabled or PREVIEW.texture is None:
+    p = preview()
+    if not p.enabled or p.texture is None:
         return
     frame = _camera_frame_px(bpy.context)
     if frame is None:
         return
     from gpu_extras.presets import draw_texture_2d
     x0, y0, x1, y1 = frame
-    draw_texture_2d(PREVIEW.texture, (x0, y0), x1 - x0, y1 - y0)
+    draw_texture_2d(p.texture, (x0, y0), x1 - x0, y1 - y0)
 
 
 def focus_plane_corners(scene, focus_m: float, entrance_pupil_mm: float):
@@ -305,19 +306,19 @@ def focus_plane_corners(scene, focus_m: float, entrance_pupil_mm: float):
 
 def draw_focus_plane():
     """POST_VIEW: the focus plane, translucent, for FOCUS_PLANE_S after a focus change."""
-    if not PREVIEW.enabled or time.perf_counter() - PREVIEW.focus_changed_at > FOCUS_PLANE_S:
+    p = preview()
+    if not p.enabled or time.perf_counter() - p.focus_changed_at > FOCUS_PLANE_S:
         return
     scene = bpy.context.scene
-    if scene.camera is None or PREVIEW.last_focus is None:
+    if scene.camera is None or p.last_focus is None:
         return
     import gpu
     from gpu_extras.batch import batch_for_shader
-    from . import operators
     try:
-        ep = logic.lens_readout(operators.chosen_lens(scene.dcdi_lens_bokeh)[1])["entrance_pupil_mm"]
+        ep = logic.lens_readout(reading.chosen_lens(scene.dcdi_lens_bokeh)[1])["entrance_pupil_mm"]
     except (logic.BokehInputError, dcdi_errors.DcdiError, OSError):
         return
-    corners = [tuple(c) for c in focus_plane_corners(scene, PREVIEW.last_focus, ep)]
+    corners = [tuple(c) for c in focus_plane_corners(scene, p.last_focus, ep)]
     shader = gpu.shader.from_builtin("UNIFORM_COLOR")
     batch = batch_for_shader(shader, "TRIS", {"pos": corners}, indices=((0, 1, 2), (0, 2, 3)))
     gpu.state.blend_set("ALPHA")
@@ -328,23 +329,25 @@ def draw_focus_plane():
 
 # ------------------------------------------------------------------ changes and the toggle
 def on_depsgraph_update(scene, depsgraph):
-    if not PREVIEW.enabled:
+    p = preview()
+    if not p.enabled:
         return
     if any(_changes_the_render(u) for u in depsgraph.updates):
-        PREVIEW.changed(scene_changed=True)
+        p.changed(scene_changed=True)
     else:
-        PREVIEW.check()                             # the lens settings, the focus, the camera, the size
+        p.check()                                   # the lens settings, the focus, the camera, the size
 
 
 def on_frame_change(scene, depsgraph=None):
     """A new frame: animated objects (or their materials, lights...) need a
     new sharp render; keyframed focus or lens settings the lens stage only."""
-    if not PREVIEW.enabled:
+    p = preview()
+    if not p.enabled:
         return
     if _scene_animated():
-        PREVIEW.changed(scene_changed=True)
+        p.changed(scene_changed=True)
     else:
-        PREVIEW.check()
+        p.check()
 
 
 def _scene_animated() -> bool:
@@ -372,7 +375,6 @@ def _changes_the_render(update) -> bool:
     return kind in SCENE_TYPES
 
 
-_HANDLES: list = []
 # (handler list, function) pairs the preview adds while it is on
 _APP_HANDLERS = (("depsgraph_update_post", on_depsgraph_update), ("frame_change_post", on_frame_change))
 
@@ -380,30 +382,34 @@ _APP_HANDLERS = (("depsgraph_update_post", on_depsgraph_update), ("frame_change_
 def set_enabled(enabled: bool, context=None) -> None:
     """Turn the preview on (draw handlers, the first refresh) or off."""
     context = context or bpy.context
-    if enabled == PREVIEW.enabled:
+    p = preview()
+    if enabled == p.enabled:
         return
     if not enabled:
-        PREVIEW.stop()
-        _remove_handlers()
+        p.stop()
+        SESSION.release("preview")
         _redraw(context)
         return
-    PREVIEW.enabled = True
-    PREVIEW.scene_changed = True
+    p.enabled = True
+    p.scene_changed = True
     for name, fn in _APP_HANDLERS:
         if fn not in getattr(bpy.app.handlers, name):
             getattr(bpy.app.handlers, name).append(fn)
     if not bpy.app.background and not bpy.app.timers.is_registered(_watch):
         bpy.app.timers.register(_watch, first_interval=WATCH_S, persistent=True)
-    if not bpy.app.background and not _HANDLES:
-        _HANDLES.append(bpy.types.SpaceView3D.draw_handler_add(draw_preview, (), "WINDOW", "POST_PIXEL"))
-        _HANDLES.append(bpy.types.SpaceView3D.draw_handler_add(draw_focus_plane, (), "WINDOW", "POST_VIEW"))
-    PREVIEW.changed(scene_changed=True)
-    PREVIEW.changed_at -= DEBOUNCE_S                 # the toggle's own refresh starts at once
+    if not SESSION.holds("preview"):
+        draw = () if bpy.app.background else (
+            bpy.types.SpaceView3D.draw_handler_add(draw_preview, (), "WINDOW", "POST_PIXEL"),
+            bpy.types.SpaceView3D.draw_handler_add(draw_focus_plane, (), "WINDOW", "POST_VIEW"))
+        SESSION.hold("preview", lambda: _remove_handlers(draw))
+    p.changed(scene_changed=True)
+    p.changed_at -= DEBOUNCE_S                       # the toggle's own refresh starts at once
 
 
-def _remove_handlers() -> None:
-    while _HANDLES:
-        bpy.types.SpaceView3D.draw_handler_remove(_HANDLES.pop(), "WINDOW")
+def _remove_handlers(draw) -> None:
+    """Take back what the preview added: its draw handlers ``draw``, the app handlers, the timers."""
+    for handle in reversed(draw):
+        bpy.types.SpaceView3D.draw_handler_remove(handle, "WINDOW")
     for name, fn in _APP_HANDLERS:
         if fn in getattr(bpy.app.handlers, name):
             getattr(bpy.app.handlers, name).remove(fn)
@@ -415,8 +421,3 @@ def _remove_handlers() -> None:
 def toggle_update(status, context) -> None:
     """The status's ``viewport_preview`` property's update."""
     set_enabled(bool(status.viewport_preview), context)
-
-
-def unregister() -> None:
-    PREVIEW.stop()
-    _remove_handlers()

@@ -1,12 +1,16 @@
 """Write files so that a failed run never leaves a half-written output."""
 from __future__ import annotations
 
+import contextvars
 import os
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 
 from .errors import DcdiError, output_error
+
+# the job (``outputs.JobFiles``) whose declared outputs are renamed together, set by its ``together`` block
+_ACTIVE: contextvars.ContextVar = contextvars.ContextVar("dcdi_job_files", default=None)
 
 
 def _host_tag() -> str:
@@ -82,7 +86,6 @@ def atomic_path(path: str | os.PathLike):
     Inside a job's ``outputs.JobFiles.together`` block, a declared output's
     temporary is kept and renamed with the job's other outputs when the job
     succeeds (``outputs``)."""
-    from .outputs import active
     path = Path(path)
     job = active()
     later = job is not None and job.admit(path)      # a declared output: renamed with the job's others
@@ -149,7 +152,6 @@ def backup_name(path) -> Path:
 def remove_file(path) -> None:
     """Remove ``path`` if it exists (a stale sidecar); inside a job's
     ``outputs.JobFiles.together`` block, when the job's outputs are renamed."""
-    from .outputs import active
     job = active()
     if job is not None:
         if os.path.lexists(path):
@@ -176,3 +178,8 @@ def save_figure(fig, path, dpi: int = 100) -> None:
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=dpi, format="png")
     plt.close(fig)
+
+
+def active():
+    """The job whose outputs are being written together, if any."""
+    return _ACTIVE.get()

@@ -28,15 +28,14 @@ test suite sets it), so that a new option cannot skip the declaration.
 """
 from __future__ import annotations
 
-import contextvars
 import os
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from .atomic import _ACTIVE, active, backup_name, remove_dead_temporaries
 from .errors import DcdiError, InputRangeError, OutputError, check_writable_folder, output_error
 
-_ACTIVE: contextvars.ContextVar["JobFiles | None"] = contextvars.ContextVar("dcdi_job_files", default=None)
 
 
 class UndeclaredOutputError(AssertionError):
@@ -133,7 +132,6 @@ class JobFiles:
             if f.path.exists() and not f.path.is_dir():
                 raise OutputError(f.path, f"{f.label}: a file stands where the folder is to be written")
             check_writable_folder(f.path, f"{f.label} {f.path}")
-        from .atomic import remove_dead_temporaries
         for o in self.outputs:
             remove_dead_temporaries(o.path)
 
@@ -146,7 +144,6 @@ class JobFiles:
         real = _real(path)
         roots = [_real(f.path) for f in (*self.folders, *self.updated)]
         try:
-            from .psf.library import default_cache_dir
             roots.append(_real(default_cache_dir()))
         except Exception:           # no cache configured: nothing to allow
             pass
@@ -211,7 +208,6 @@ class JobFiles:
     def _commit(self) -> None:
         """Rename every staged temporary onto its output, and remove the
         stale files; on a failure half-way, put back what was replaced."""
-        from .atomic import backup_name
         done = []                     # (path, its backup or None)
         current = None
         try:
@@ -262,9 +258,6 @@ def _unlink(path) -> None:
         pass
 
 
-def active() -> JobFiles | None:
-    """The job whose outputs are being written together, if any."""
-    return _ACTIVE.get()
 
 
 @contextmanager
@@ -290,3 +283,11 @@ def size_of(path) -> int:
             if _real(target) == real:
                 return os.path.getsize(tmp)
     return os.path.getsize(path)
+
+
+def default_cache_dir() -> Path:
+    """The PSF libraries' cache folder: $DCDI_CACHE_DIR, else $XDG_CACHE_HOME/dcdi/psflib (~/.cache); a job may
+    write there without declaring it."""
+    env = os.environ.get("DCDI_CACHE_DIR")
+    base = Path(env) if env else Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "dcdi"
+    return base / "psflib"

@@ -9,7 +9,7 @@ procedural material with detail at every scale, or an image from the
 user's texture folder (scenes/materials.py). ``leaves`` is not a Blender
 scene: the factory draws it in numpy (dcdi_core/dataset/leaves.py).
 
-Measured depth mix and texture per recipe: ``dcdi report dataset`` on a
+Measured depth mix and texture per recipe: ``dcdi dataset stats`` on a
 factory folder (docs/factory.md).
 """
 from __future__ import annotations

@@ -62,7 +62,7 @@ def test_correct_by_network_agrees(files, capsys):
     pytest.importorskip("torch")
     from blender_addon import logic
     from dcdi_core.models.dacn.correct import load_dacn
-    from dcdi_core.models.registry import NETWORKS
+    from dcdi_core.shipped import NETWORKS
     d, img, depth = files
     lens = load_lens("mos-s1")
     model, _ = load_dacn(NETWORKS["dacn"].shipped_file("mos-s1"))
@@ -140,7 +140,7 @@ def test_errors_in_each_front_ends_words(files, capsys):
                  "--focus", "1", "--patch", "15", "-o", str(d / "b.exr")]) == 2
     assert "error: --patch = 15" in capsys.readouterr().err
     # the correction's rule: `dcdi correct` names --model, `dcdi dof` its --dacn, the add-on Correction Model
-    from dcdi_core.pipeline import check_correction
+    from dcdi_core.app.correction_rule import check_correction
     with pytest.raises(InputRangeError) as e:
         check_correction("mos-s1", "deconv", "net.npz")
     assert "Correction Model" in logic.message(e.value) and "Method deconv" in logic.message(e.value)
@@ -204,7 +204,7 @@ def test_the_readmes_capture_example_works_as_written(tmp_path, capsys, monkeypa
     assert "lens_id: mos-s2" in outputs[1] and "12.2 um" in outputs[1]
     fixed = json.loads(outputs[2])
     assert fixed["pixel_pitch_mm"] == pytest.approx(0.0122)
-    from dcdi_core.models.registry import network
+    from dcdi_core.shipped import network
     if "mos-s2" in network("dacn").shipped_keys() and "mos-s2" in network("dacn").beats_deconvolution:
         assert fixed["correction"]["method"] == "dacn", fixed["correction"]
     assert np.isfinite(read_image(tmp_path / "SHARP.exr")).all()

@@ -25,7 +25,8 @@ ISSUE_NUMBER = re.compile(r"\bissues?\s*#?\s*\d+", re.IGNORECASE)
 
 
 def user_pages() -> list[Path]:
-    pages = [ROOT / "README.md", ROOT / "blender_addon" / "README.md", ROOT / "scenes" / "README.md"]
+    pages = [ROOT / "README.md", ROOT / "blender_addon" / "README.md", ROOT / "scenes" / "README.md",
+             ROOT / "lab" / "README.md"]
     pages += sorted((ROOT / "docs").glob("*.md")) + sorted((ROOT / "lenses").glob("*.md"))
     return [p for p in pages if p.is_file()]
 

@@ -273,10 +273,10 @@ def test_an_image_too_large_for_the_memory_is_refused_before_its_pixels_are_read
                                                                                  command, extra):
     """A 20000 x 20000 image (its header's size: the test's header says so)
     is refused from the header alone, with the figure; no pixel is read."""
-    from dcdi_core.io import images
+    from dcdi_core.io import image_checks, images
     big = tmp_path / "huge.exr"
     images.write_image(big, np.zeros((16, 16, 3), np.float32))
-    monkeypatch.setattr(images, "image_size", lambda path, **k: (20000, 20000))
+    monkeypatch.setattr(image_checks, "image_size", lambda path, **k: (20000, 20000))
     read = []
     monkeypatch.setattr(images, "read_image", lambda *a, **k: read.append(a) or np.zeros((1, 1, 3)))
     lens = ["--lens", "6p"] if command == "dof" else ["--lens", "mos-s1"]

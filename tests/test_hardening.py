@@ -94,7 +94,7 @@ def read_only(monkeypatch):
 
 # ------------------------------------------------------------------ one error family
 def test_every_error_kind_is_a_dcdi_error_and_keeps_its_builtin():
-    from dcdi_core.io.images import ImageFileError
+    from dcdi_core.io.image_file import ImageFileError
     from dcdi_core.optics.errors import LensFileError, OpticsError, UnknownGlassError
     from dcdi_core.psf.spectral import SpectralFileError
     for cls, builtin in ((OpticsError, Exception), (LensFileError, ValueError), (UnknownGlassError, KeyError),

@@ -32,11 +32,11 @@ from hypothesis import strategies as st
 
 from dcdi_core.errors import DatasetError, DcdiError, InputRangeError
 from dcdi_core.io import npzfile
-from dcdi_core.models.errors import ModelFileError
+from dcdi_core.errors import ModelFileError
 from dcdi_core.models.runtime import dfd_refine
 from dcdi_core.models.runtime.dfd_refine import DfdRefiner
-from dcdi_core.models.runtime.npz import read_model_npz
-from dcdi_core.models.runtime.olf import OmniLensField, checksum
+from dcdi_core.io.model_npz import read_model_npz
+from dcdi_core.psf.olf import OmniLensField, checksum
 from dcdi_core.optics.errors import LensFileError, OpticsError, ZemaxImportError
 from dcdi_core.optics.lens import MAX_LENS_FILE_BYTES, MAX_SURFACES, Lens, load_lens
 from dcdi_core.optics.prescription_toml import dumps_prescription
@@ -301,7 +301,7 @@ def test_the_runtimes_dacn_fields_are_the_dacn_specs():
     from dataclasses import fields
 
     from dcdi_core.models.dacn.spec import DACNSpec
-    from dcdi_core.models.runtime import npz
+    from dcdi_core.io import model_npz as npz
     known = set(npz.DACN_INTEGERS) | set(npz.DACN_RATIOS) | set(npz.DACN_CHOICES) | set(npz.DACN_FLAGS)
     assert known == {f.name for f in fields(DACNSpec)}
 
@@ -432,7 +432,7 @@ def test_pair_ids_that_are_paths_are_refused(tmp_path):
 
 
 def test_lens_ids_and_model_keys_that_are_paths_are_refused(tmp_path, monkeypatch):
-    from dcdi_core.models.registry import network
+    from dcdi_core.shipped import network
     from dcdi_core.psf.basis import shipped_store
     (tmp_path / "lenses").mkdir()
     shutil.copy(ROOT / "lenses" / "mos-s1.toml", tmp_path / "outside.toml")

@@ -1,8 +1,9 @@
-"""`dcdi dof` and dcdi_core.pipeline: the pipeline end to end with each depth
+"""`dcdi dof` and dcdi_core.app.correction_rule: the pipeline end to end with each depth
 backend, and with a sharp input, --camera none and the true depth, exactly
 `dcdi bokeh`; the one rule that chooses the correction (choose_correction),
 the deconvolution and the network through app.correct() and app.dof()."""
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -11,6 +12,7 @@ from conftest import write_rgbd_scene
 from conftest import dacn_config as _config
 
 from dcdi_core.cli import main
+from lab.cli import main as lab_main
 from dcdi_core.io.images import read_image
 from support.registry import dacn_recorded_better
 
@@ -67,7 +69,7 @@ def test_without_a_depth_map_the_deconvolution_takes_the_estimated_depth(scene, 
     from dcdi_core.io.images import read_depth
     from dcdi_core.optics.lens import load_lens
     from dcdi_core.psf.compute import PSFSettings
-    from dcdi_core.render.simulate import open_library
+    from dcdi_core.psf.sources import open_library
     from dcdi_core.render.geometry import ImageGeometry
     cam = load_lens("mos-s2")
     capture, depth = read_image(d / "aif.exr"), read_depth(d / "mid" / "depth.exr")
@@ -126,8 +128,8 @@ def test_without_depth_the_blur_runs_where_recorded_better_at_that_pitch(scene, 
     for a lens the registry records 30 % better than a constant, at the
     pixel pitch its shipped refinement learned; at another pitch, --depth is
     asked for, naming the pitch."""
-    from dcdi_core.models import registry
-    monkeypatch.setattr(registry, "BLUR_DEPTH_BEATS_CONSTANT", ("mos-s1",))
+    from dcdi_core import shipped as registry
+    monkeypatch.setattr(registry, "REFINEMENT", replace(registry.REFINEMENT, beats_constant_depth=("mos-s1",)))
     d = scene
     assert main(["dof", *_args(d, "--camera", "mos-s1", "--method", "deconv", "--image-pixel-pitch", "0.0122",
                                "-o", str(d / "p.exr"))]) == 0
@@ -154,22 +156,22 @@ def test_what_is_missing_is_said_before_any_work(scene, networks, capsys):
 
 def test_pipeline_and_depth_reports_on_held_out_pairs(pairs, networks, tmp_path, capsys):  # noqa: F811
     dacn, dep = f"mos-s2={networks / 'dacn.npz'}", f"mos-s2={networks / 'depth.npz'}"
-    assert main(["report", "pipeline", "--pairs", f"mos-s2={pairs}", "--dacn", dacn, "--depth-model", dep,
-                 "--baseline", dacn, "--target", "mos-s1", "--count", "1", "--quick", "--out", str(tmp_path)]) == 0
+    assert lab_main(["report", "pipeline", "--pairs", f"mos-s2={pairs}", "--dacn", dacn, "--depth-model", dep,
+                     "--baseline", dacn, "--target", "mos-s1", "--count", "1", "--quick", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     for row in ("no correction", "corrected, true depth", "corrected, estimated depth", "depth-unaware model"):
         assert f"| {row} |" in out
     assert list((tmp_path / "pictures").glob("mos-s2-*.png"))
-    assert main(["report", "depth", "--pairs", f"mos-s2={pairs}", "--depth-model", dep, "--count", "2",
-                 "--out", str(tmp_path)]) == 0
+    assert lab_main(["report", "depth", "--pairs", f"mos-s2={pairs}", "--depth-model", dep, "--count", "2",
+                     "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "| mos-s2 | 2 | capture |" in out and "| mos-s2 | 2 | sharp |" in out and "constant" not in out
     # the bar: the training pairs' median depth everywhere, scored on the same held-out pairs
-    assert main(["report", "depth", "--pairs", f"mos-s2={pairs}", "--depth-model", dep, "--count", "2",
-                 "--train-pairs", f"mos-s2={pairs}", "--out", str(tmp_path)]) == 0
+    assert lab_main(["report", "depth", "--pairs", f"mos-s2={pairs}", "--depth-model", dep, "--count", "2",
+                     "--train-pairs", f"mos-s2={pairs}", "--out", str(tmp_path)]) == 0
     res = json.loads((tmp_path / "depth.json").read_text())["mos-s2"]
     assert res["constant_m"] in (0.9, 5.0)                     # the frames hold these two depths only
-    from dcdi_core.experiments.pipeline_report import held_out
+    from lab.pipeline_report import held_out
     from dcdi_core.models.dacn.data import load_pair, pair_path
     want = []
     for pid in held_out(pairs, [], 2):
@@ -183,9 +185,9 @@ def test_pipeline_and_depth_reports_on_held_out_pairs(pairs, networks, tmp_path,
 
 # ------------------------------------------------------------------ the one rule
 def test_auto_picks_the_network_only_where_it_is_recorded_better_at_its_pitch(monkeypatch):
-    from dcdi_core.models.registry import network
+    from dcdi_core.shipped import network
     from dcdi_core.optics.lens import load_lens
-    from dcdi_core.pipeline import choose_correction, trained_pitch_mm
+    from dcdi_core.app.correction_rule import choose_correction, trained_pitch_mm
     from dcdi_core.render.geometry import ImageGeometry
     dacn = network("dacn")
     for lens_id in ("mos-s1", "mos-s2", "double-gauss", "6p"):
@@ -208,16 +210,17 @@ def test_auto_picks_the_network_only_where_it_is_recorded_better_at_its_pitch(mo
 @pytest.fixture
 def recorded_better(monkeypatch):
     """The registry as if the DACN study had found the shipped DACN of mos-s1 (only) better."""
-    from dcdi_core.models import registry
+    from dcdi_core import shipped as registry
     if registry.NETWORKS["dacn"].shipped_file("mos-s1") is None:
         pytest.skip("no shipped DACN of mos-s1")
     nets = dacn_recorded_better(monkeypatch, ("mos-s1",))
-    from dcdi_core.pipeline import trained_pitch_mm
+    from dcdi_core.app.correction_rule import trained_pitch_mm
     return trained_pitch_mm(nets["dacn"].shipped_file("mos-s1"))
 
 
 def test_auto_picks_a_network_recorded_better_at_the_pitch_it_learned_only(recorded_better):
-    from dcdi_core.pipeline import PITCH_TOLERANCE, choose_correction
+    from dcdi_core.app.correction_rule import choose_correction
+    from dcdi_core.psf.pitch import NETWORK_PITCH_RTOL as PITCH_TOLERANCE
     learned = recorded_better
     assert learned and learned > 0
     method, why = choose_correction("mos-s1", learned * (1 + PITCH_TOLERANCE / 2))
@@ -230,7 +233,7 @@ def test_auto_picks_a_network_recorded_better_at_the_pitch_it_learned_only(recor
 
 def test_choose_correction_refuses_what_cannot_run_naming_the_field():
     from dcdi_core.errors import DcdiError, in_words
-    from dcdi_core.pipeline import choose_correction
+    from dcdi_core.app.correction_rule import choose_correction
     for args, says in [(("6p", 0.01, "wiener"), "method = 'wiener'"),
                        (("6p", 0.01, "dacn"), "no shipped DACN for lens 6p"),
                        (("6p", 0.01, "dacn"), "give model"),

@@ -75,7 +75,7 @@ def test_the_psf_property_finds_a_planted_bug():
 @pytest.fixture(scope="module")
 def library():
     from dcdi_core.render.geometry import ImageGeometry
-    from dcdi_core.render.simulate import open_library
+    from dcdi_core.psf.sources import open_library
     lens = load_lens("mos-s1")
     geom = ImageGeometry.full_sensor(lens, H, W)
     return lens, geom, open_library(lens, geom, TINY)
@@ -206,7 +206,7 @@ def _shipped(lens_id):
 @settings(suppress_health_check=FIXTURES)
 def test_a_lens_written_and_read_back_is_the_same_lens(tmp_path_factory, lens_id, scale, t_scale):
     from dcdi_core.optics.zemax import write_toml
-    from dcdi_core.psf.library import lens_fingerprint
+    from dcdi_core.optics.lens import lens_fingerprint
     d = _shipped(lens_id)
     for s in d["surface"]:                              # a nearby prescription, radii and gaps changed
         if isinstance(s["radius_mm"], float) and math.isfinite(s["radius_mm"]):

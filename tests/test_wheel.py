@@ -1,5 +1,6 @@
-"""The package as a user installs it: `pip wheel .` carries every shipped data
-file (PSF bases, weights, lenses, the sensor response), and from that wheel,
+"""The package as a user installs it: `pip wheel .` carries the engine alone
+(no add-on, scenes or lab) with every shipped data file (PSF bases, weights,
+lenses, the sensor response), and from that wheel,
 installed non-editable into a fresh environment and run from a folder outside
 the checkout, `dcdi lens info`, `simulate`, `correct`, `bokeh` and `info` work.
 
@@ -36,6 +37,24 @@ def test_wheel_carries_every_shipped_data_file(wheel):
     for p in (ROOT / "lenses").glob("*.toml"):
         assert f"dcdi_core/lenses/{p.name}" in names, p
     assert not any("__pycache__" in n or n.endswith(".pyc") for n in names)
+
+
+def test_wheel_holds_the_engine_only(wheel):
+    """No add-on, scenes, lab or experiments: `dcdi_core` and its data, every module under 800 lines."""
+    z = zipfile.ZipFile(wheel)
+    names = z.namelist()
+    assert {n.split("/")[0] for n in names} == {"dcdi_core", "dcdi-0.1.0.dist-info"}
+    assert not [n for n in names if any(part in ("blender_addon", "scenes", "lab", "experiments")
+                                        for part in n.split("/"))]
+    long = {n: z.read(n).count(b"\n") for n in names if n.endswith(".py")}
+    assert not {n: k for n, k in long.items() if k > 800}
+    for data in ("dcdi_core/psf/data/", "dcdi_core/psf/data/basis/", "dcdi_core/models/weights/", "dcdi_core/lenses/"):
+        assert any(n.startswith(data) and not n.endswith(".py") for n in names), data
+    assert "dcdi_core/lenses/mos-s1.toml" in names and "dcdi_core/models/weights/olf-radial.npz" in names
+    assert any(n.startswith("dcdi_core/psf/data/") and n.endswith(".csv") for n in names)
+    top = z.read("dcdi-0.1.0.dist-info/top_level.txt").decode().split() if \
+        "dcdi-0.1.0.dist-info/top_level.txt" in names else ["dcdi_core"]
+    assert top == ["dcdi_core"]
 
 
 @pytest.fixture(scope="module")

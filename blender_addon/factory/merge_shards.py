@@ -32,7 +32,7 @@ from pathlib import Path
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from blender_addon.factory.batch import OPTION_OF  # noqa: E402
+from blender_addon.factory.settings import OPTION_OF  # noqa: E402
 from dcdi_core.dataset import factory_folder as ff  # noqa: E402
 from dcdi_core.dataset.factory_folder import MANIFEST, SETTINGS_FILE, read_manifest  # noqa: E402
 

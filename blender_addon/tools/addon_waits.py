@@ -57,7 +57,8 @@ def main(argv=None) -> int:
     import bpy
     import blender_addon
     blender_addon.register()
-    from blender_addon import render_hook, viewport
+    from blender_addon import viewport
+    from blender_addon.session import SESSION
     scene, cam = build(bpy, args.samples)
     s = scene.dcdi_lens_bokeh
     s.lens = "6p"
@@ -66,7 +67,7 @@ def main(argv=None) -> int:
     s.keep_front = s.keep_behind = 0.0
     s.preview_size, s.samples = 480, args.samples
     out: dict = {"frames": args.frames, "samples": args.samples, "import_s": time.perf_counter() - t_start}
-    P = viewport.PREVIEW
+    P = viewport.preview()
 
     def settle():
         while (nxt := P.tick()) is not None:
@@ -94,12 +95,12 @@ def main(argv=None) -> int:
         t, c = time.perf_counter(), time.process_time()
         bpy.ops.render.render(write_still=True)
         out["f12"] = {"wall_s": time.perf_counter() - t, "cpu_s": time.process_time() - c,
-                      "lens_s": render_hook.LAST["frames"][0]["seconds"]}
+                      "lens_s": SESSION.last_render["frames"][0]["seconds"]}
         scene.frame_start, scene.frame_end = 1, args.frames
         scene.render.filepath = str(Path(d) / "anim" / "f_")
         t, c = time.perf_counter(), time.process_time()
         bpy.ops.render.render(animation=True)
-        lens = [f["seconds"] for f in render_hook.LAST["frames"]]
+        lens = [f["seconds"] for f in SESSION.last_render["frames"]]
         out["animation"] = {"wall_s": time.perf_counter() - t, "cpu_s": time.process_time() - c,
                             "lens_first_s": lens[0], "lens_rest_mean_s": sum(lens[1:]) / max(1, len(lens) - 1),
                             "lens_total_s": sum(lens)}

@@ -24,7 +24,8 @@ import numpy as np
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from blender_addon.factory.batch import RenderSettings, render_rgbd, sample_seed  # noqa: E402
+from blender_addon.factory.render import RenderSettings, render_rgbd  # noqa: E402
+from blender_addon.factory.samples import sample_seed  # noqa: E402
 
 # band edges in metres; the last finite band is [10, inf), then infinity itself
 EDGES_M = (0.7, 1.0, 2.0, 5.0, 10.0)

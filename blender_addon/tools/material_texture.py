@@ -29,7 +29,9 @@ import numpy as np
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from blender_addon.factory.batch import RenderSettings, _cpu_s, empty_scene, sample_seed, setup_render  # noqa: E402
+from blender_addon.factory.meters import cpu_seconds as _cpu_s  # noqa: E402
+from blender_addon.factory.render import RenderSettings, empty_scene, setup_render  # noqa: E402
+from blender_addon.factory.samples import sample_seed  # noqa: E402
 
 OLD = "old"                 # the former recipes.material, for comparison
 DRAWN = "drawn"             # each surface's kind drawn by surface_material (kind=None), as the recipes do

@@ -28,7 +28,7 @@ import numpy as np
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from blender_addon.factory.batch import RenderSettings, render_rgbd  # noqa: E402
+from blender_addon.factory.render import RenderSettings, render_rgbd  # noqa: E402
 
 # rows of the full table: (samples, denoise, quality, prefilter, diffuse bounces); None = the default's
 FULL = ([(n, True, "HIGH", "ACCURATE", 2) for n in (4, 8, 16)]

@@ -294,7 +294,7 @@ def shoot():
                 st.viewport_preview = True
                 state["t0"] = time.perf_counter()
                 return 0.2
-            if not viewport.PREVIEW.log:
+            if not viewport.preview().log:
                 return 0.2
             print(f"screenshots: preview first result {time.perf_counter() - state['t0']:.1f} s", flush=True)
             shot("addon-preview.png")
@@ -302,7 +302,7 @@ def shoot():
             return 1.0
         if state["phase"] == "focus-plane":
             viewport = sys.modules[module + ".viewport"]
-            n = len(viewport.PREVIEW.log)
+            n = len(viewport.preview().log)
             # the focus plane is the frustum's section: from the camera it fills the frame, so the third
             # column becomes a 3D view from the side to show where it lies
             from mathutils import Euler
@@ -321,14 +321,14 @@ def shoot():
             return 0.2
         if state["phase"] == "focus-plane-shot":
             viewport = sys.modules[module + ".viewport"]
-            if viewport.PREVIEW.focus_changed_at < state["t_change"]:
+            if viewport.preview().focus_changed_at < state["t_change"]:
                 return 0.05                       # the refresh has not started yet
             shot("addon-focus-plane.png")         # within FOCUS_PLANE_S of the change: the plane is drawn
             state["phase"] = "focus-plane-done"
             return 0.5
         if state["phase"] == "focus-plane-done":
             viewport = sys.modules[module + ".viewport"]
-            if len(viewport.PREVIEW.log) <= state["n"]:
+            if len(viewport.preview().log) <= state["n"]:
                 return 0.1
             st.viewport_preview = False
             state["phase"] = "warm"
@@ -356,7 +356,7 @@ def shoot():
             win.event_simulate(type="ESC", value="RELEASE")
             state["phase"] = "after-esc"
             return 2.0
-        jobs = sys.modules[module + ".operators"]._JOBS
+        jobs = sys.modules[module + ".session"].SESSION.jobs
         print(f"screenshots: Esc pressed {state['esc_s']:.1f} s into a cold PSF build "
               f"({state['esc_progress']:.0f} %); 2 s later: running={st.running}, message={st.message!r}, "
               f"worker threads left={len(jobs)}", flush=True)

@@ -17,11 +17,15 @@ own words (``DcdiError.in_words``).
 
 Units: depths in metres, lengths on the sensor in mm, positions in pixels.
 """
-from .control import Cancelled, Control
-from .correction import CorrectRequest, CorrectResult, DofRequest, DofResult, correct, dof, prepare, with_recorded
+from ..control import Cancelled, Control
+from ..psf.sources import PREVIEW_TRACE, PSFRequest, PSFSourceResult, open_source
+from .correction import CorrectRequest, CorrectResult, correct, prepare
+from .frame import CaptureFrame, capture_frame
+from .pipeline import DofRequest, DofResult, dof
 from .render import BokehRequest, BokehResult, SimulateRequest, SimulateResult, bokeh, simulate
-from .sources import PREVIEW_TRACE, PSFRequest, PSFSourceResult, SourceCache, open_source
+from .sources import SourceCache
 
 __all__ = ["Cancelled", "Control", "PSFRequest", "PSFSourceResult", "SourceCache", "open_source", "PREVIEW_TRACE",
            "SimulateRequest", "SimulateResult", "simulate", "BokehRequest", "BokehResult", "bokeh",
-           "CorrectRequest", "CorrectResult", "correct", "prepare", "with_recorded", "DofRequest", "DofResult", "dof"]
+           "CorrectRequest", "CorrectResult", "correct", "prepare", "CaptureFrame", "capture_frame",
+           "DofRequest", "DofResult", "dof"]

@@ -1,7 +1,7 @@
-"""The correction jobs: undo a lens's blur on a capture (:func:`correct`),
-and the DCDI chain, a capture given another lens's depth of field
-(:func:`dof`). The rule that picks the deconvolution or the network
-(``pipeline.choose_correction``), the capture's recorded geometry as
+"""The correction job: undo a lens's blur on a capture (:func:`correct`).
+The DCDI chain that uses it (depth -> correction -> another lens's depth of
+field) is ``app.pipeline``. The rule that picks the deconvolution or the network
+(``app.correction_rule.choose_correction``), the capture's recorded geometry as
 defaults, the fallbacks and the notes for the user are decided here, for the
 `dcdi` command and the Blender add-on alike.
 
@@ -18,11 +18,10 @@ import numpy as np
 
 from ..errors import InputRangeError
 from ..render.request import RenderRequest
-from .control import Control
-from .records import recorded_defaults
-from .render import BokehRequest, BokehResult, _array
-from .render import bokeh as run_bokeh
-from .sources import PSFRequest
+from ..control import Control
+from .frame import capture_frame
+from .render import _array
+from ..psf.sources import PSFRequest
 
 
 @dataclass(frozen=True)
@@ -31,7 +30,7 @@ class CorrectRequest:
     its depth ``depth_m`` (H, W) metres (None: the deconvolution's
     ``one_depth_m`` everywhere).
 
-    ``method``: 'auto' (the rule of ``pipeline.choose_correction``),
+    ``method``: 'auto' (the rule of ``app.correction_rule.choose_correction``),
     'deconv' (the lens's own PSFs, any lens) or 'dacn' (a network: ``model``,
     a DACN file or run folder, else the lens's shipped one). ``lens`` None:
     only a given network, on a capture spanning its sensor. ``render``: the
@@ -43,7 +42,10 @@ class CorrectRequest:
     ``overlap`` px, ``weights`` ('ema' or 'model'), ``device``: the
     network's. ``recorded``: what the capture file remembers
     (``io.capture_record.CaptureRecord``): its pixel pitch, axis and focus
-    are the defaults of ``render``; a lens other than its own is refused."""
+    are the defaults of ``render``; a lens other than its own is refused.
+    ``frame``: the capture's ``app.frame.CaptureFrame`` where the job made it
+    already (``dof``: one frame for the depth and the correction); None:
+    made here from ``lens``, ``render`` and ``recorded``."""
 
     capture: np.ndarray | None
     depth_m: np.ndarray | None
@@ -59,6 +61,7 @@ class CorrectRequest:
     device: str = "cpu"
     recorded: object = None
     image_name: str = "the capture"
+    frame: object = None
 
 
 @dataclass
@@ -81,13 +84,15 @@ class CorrectResult:
         return {"method": self.method, "reason": self.reason, **{k: v for k, v in self.info.items() if k != "method"}}
 
 
-def with_recorded(request: CorrectRequest, shape=None) -> tuple[CorrectRequest, list]:
-    """(``request`` with the capture's recorded geometry as its defaults,
-    notes): ``records.recorded_defaults`` for a capture of ``shape`` (H, W)."""
-    if request.recorded is None or request.lens is None:
-        return request, []
-    render, notes = recorded_defaults(request.render, request.lens, request.recorded, shape, request.image_name)
-    return replace(request, render=render), notes
+def frame_of(request: CorrectRequest, shape):
+    """The capture's frame (``app.frame.CaptureFrame``): the request's own
+    where it serves this lens and ``shape`` (H, W), else made here; None
+    without a lens."""
+    if request.lens is None:
+        return None
+    if request.frame is not None and request.frame.serves(request.lens, shape):
+        return request.frame
+    return capture_frame(request.lens, request.render, request.recorded, shape, request.image_name)
 
 
 def _torch_importable() -> bool:
@@ -99,10 +104,10 @@ def _torch_importable() -> bool:
 
 
 def choose(request: CorrectRequest, pitch_mm: float | None) -> tuple[str, str]:
-    """('deconv' or 'dacn', why): ``pipeline.choose_correction``'s rule, and
+    """('deconv' or 'dacn', why): ``app.correction_rule.choose_correction``'s rule, and
     where 'auto' picks a network and no PyTorch imports here, the
     deconvolution (auto never fails for want of torch)."""
-    from ..pipeline import choose_correction
+    from .correction_rule import choose_correction
     lens_id = request.lens.id if request.lens is not None else None
     chosen, reason = choose_correction(lens_id, pitch_mm, request.method, request.model)
     if chosen == "dacn" and request.method == "auto" and not _torch_importable():
@@ -113,21 +118,20 @@ def choose(request: CorrectRequest, pitch_mm: float | None) -> tuple[str, str]:
 
 def prepare(request: CorrectRequest, shape, *, networks=None):
     """The correction of a capture of ``shape`` (H, W): (the request with
-    its recorded defaults, a ``pipeline.Deconvolution`` or
+    its frame and recorded defaults, a ``app.correction_rule.Deconvolution`` or
     ``NetworkCorrection``, the capture's geometry, notes on the record). ``networks(path, weights,
     device)`` loads a DACN, (model, info) (default:
     ``models.dacn.correct.load_dacn``; the add-on keeps the last one)."""
-    from ..pipeline import Deconvolution, NetworkCorrection, check_correction, check_trained_for
-    from ..models.registry import NETWORKS
-    request, notes = with_recorded(request, shape)
+    from .correction_rule import Deconvolution, NetworkCorrection, check_trained_for
+    from ..shipped import NETWORKS
+    frame = frame_of(request, shape)
+    notes = [] if frame is None else list(frame.notes)
+    if frame is not None:
+        request = replace(request, render=frame.render, frame=frame)
     lens = request.lens
-    check_correction(lens.id if lens is not None else None, request.method, request.model)
-    h, w = shape
-    geometry, settings = None, None
-    if lens is not None:
-        render = request.render or RenderRequest(lens)
-        plan = render.plan(h, w, image=request.image_name)
-        geometry, settings = plan.geometry, plan.settings
+    geometry = None if frame is None else frame.geometry
+    settings = None if frame is None else frame.plan.settings
+    # the rule checks the request (check_correction) before it chooses
     chosen, reason = choose(request, geometry.pixel_pitch_mm if geometry is not None else None)
     if chosen == "dacn" and request.deconv is not None:
         raise InputRangeError("deconv", request.deconv,
@@ -163,7 +167,7 @@ def prepare(request: CorrectRequest, shape, *, networks=None):
 def correct(request: CorrectRequest, control: Control | None = None, *, networks=None) -> CorrectResult:
     """Run a :class:`CorrectRequest` (progress: 'PSFs' then 'deconvolving'
     windows, or 'correcting' tiles; cancel between them)."""
-    from ..pipeline import pitch_note, recover
+    from .correction_rule import pitch_note, recover
     control = control or Control()
     capture = _array("capture", request.capture, 3)
     request, correction, geometry, notes = prepare(request, capture.shape[:2], networks=networks)
@@ -196,80 +200,3 @@ def correct(request: CorrectRequest, control: Control | None = None, *, networks
     info = {**info, **counts}
     seconds = {"correction": time.perf_counter() - t0}
     return CorrectResult(image, correction.method, correction.reason, geometry, info, notes, seconds)
-
-
-# ------------------------------------------------------------------ dof
-@dataclass(frozen=True)
-class DofRequest:
-    """The DCDI chain: ``correct`` (a :class:`CorrectRequest` of the capture;
-    its ``lens`` None: a sharp image, no correction; its ``depth_m`` None:
-    the depth is ``estimator``'s) then ``bokeh`` (a :class:`BokehRequest`
-    of the target lens, its image and depth filled here: the corrected
-    image and the depth used). ``estimator``: a
-    ``models.depth.estimators.DepthEstimator``, or None with a depth map."""
-
-    correct: CorrectRequest
-    bokeh: BokehRequest
-    estimator: object = None
-
-
-@dataclass
-class DofResult:
-    """``image``: the target lens's depth of field (H, W, 3) float32;
-    ``corrected``: the all-in-focus estimate (the capture for a sharp
-    image); ``depth_m`` and ``depth_source`` ('given' or the estimator's
-    name); ``correction``: the :class:`CorrectResult` (None for a sharp
-    image); ``bokeh``: the :class:`BokehResult`; ``notes``; ``seconds`` per
-    stage."""
-
-    image: np.ndarray
-    corrected: np.ndarray
-    depth_m: np.ndarray
-    depth_source: str
-    correction: CorrectResult | None
-    bokeh: BokehResult
-    notes: list
-    seconds: dict
-
-    def correction_dict(self) -> dict:
-        if self.correction is None:
-            return {"method": "none", "reason": "a sharp input: no correction"}
-        return self.correction.as_dict()
-
-
-def _depth(capture, request: DofRequest, seconds: dict) -> tuple[np.ndarray, str]:
-    depth = request.correct.depth_m
-    if depth is not None:
-        depth = _array("depth_m", depth, 2)
-        if depth.shape != capture.shape[:2]:
-            raise InputRangeError("depth_m", depth.shape, f"{capture.shape[:2]}, the capture's size")
-        return depth, "given"
-    from ..models.depth.estimators import DepthEstimator
-    from ..models.errors import ModelError
-    if not isinstance(request.estimator, DepthEstimator):
-        raise ModelError("no depth map and no depth estimator: give a depth map, or an estimator "
-                         "(the shipped depth network of the camera lens, or a public one from a checkpoint)")
-    t0 = time.perf_counter()
-    depth = request.estimator.estimate(capture)
-    seconds["depth"] = time.perf_counter() - t0
-    return depth, request.estimator.name
-
-
-def dof(request: DofRequest, control: Control | None = None, *, networks=None, cache=None) -> DofResult:
-    """Run a :class:`DofRequest`: depth (given or estimated), correction,
-    then the target lens's bokeh (module docstring)."""
-    control = control or Control()
-    capture = _array("capture", request.correct.capture, 3)
-    seconds, notes = {}, []
-    depth, depth_source = _depth(capture, request, seconds)
-    corrected, fixed = capture, None
-    if request.correct.lens is not None:
-        fixed = correct(replace(request.correct, capture=capture, depth_m=depth), control, networks=networks)
-        corrected = fixed.image
-        seconds.update(fixed.seconds)
-        notes += fixed.notes
-    t0 = time.perf_counter()
-    b = run_bokeh(replace(request.bokeh, image=corrected, depth_m=depth), control, cache=cache)
-    seconds["psfs and bokeh"] = time.perf_counter() - t0
-    notes = list(dict.fromkeys(notes + b.notes))         # the depth's notes once, not per stage
-    return DofResult(b.image, corrected, depth, depth_source, fixed, b, notes, seconds)

@@ -11,9 +11,12 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .control import Control
+from ..control import Control
+from ..io.npzfile import FileCache
+from ..models.runtime.dfd_refine import DfdRefiner
+from .frame import capture_frame
 from .render import _array
-from .sources import PSFRequest
+from ..psf.sources import PSFRequest
 
 
 @dataclass(frozen=True)
@@ -27,7 +30,9 @@ class DepthRequest:
     capture); ``recorded``: what the capture file remembers. ``refine``:
     the learned refinement of the tiles' depths ('auto': the lens's shipped
     one where the capture has the pixel pitch it learned; None: the evidence
-    alone; a path: that file)."""
+    alone; a path: that file). ``frame``: the capture's
+    ``app.frame.CaptureFrame`` where the job made it already (None: made
+    here from ``lens``, ``render`` and ``recorded``)."""
 
     capture: np.ndarray
     lens: object
@@ -38,6 +43,7 @@ class DepthRequest:
     recorded: object = None
     image_name: str = "the capture"
     refine: object = "auto"
+    frame: object = None
 
 
 @dataclass
@@ -55,31 +61,21 @@ class DepthResult:
     seconds: dict
 
 
-def shipped_refinement(lens_id: str):
-    """The shipped refinement file of ``lens_id`` (weights/dfd-refine-<lens>.npz), or None."""
-    from ..models.registry import weights_file
-    return weights_file("dfd-refine-", lens_id)
-
-
-def capture_pitch_mm(lens, render, recorded, shape, image_name="the capture") -> float:
-    """The pixel pitch (mm) of a capture of ``shape`` (H, W) through
-    ``lens``: ``render``'s, else the record's, else spanning the sensor."""
-    from ..render.request import RenderRequest
-    from .records import recorded_defaults
-    render, _ = recorded_defaults(render, lens, recorded, shape, image_name)
-    return (render or RenderRequest(lens)).plan(*shape, image=image_name).geometry.pixel_pitch_mm
-
-
 def recorded_better(lens_id: str, pitch_mm: float) -> bool:
     """Whether the depth from blur of ``lens_id`` at ``pitch_mm`` is recorded
-    30 % better than a constant depth on held-out captures: the lens is in
-    the registry's ``BLUR_DEPTH_BEATS_CONSTANT`` and its shipped refinement
-    learned this pitch (the record is the refined estimator's)."""
-    from ..models.registry import BLUR_DEPTH_BEATS_CONSTANT
-    if lens_id not in BLUR_DEPTH_BEATS_CONSTANT:
+    30 % better than a constant depth on held-out captures: the registry
+    (``shipped.REFINEMENT.beats_constant_depth``) says so for the lens and its
+    shipped refinement learned this pitch (the record is the refined estimator's)."""
+    from ..shipped import REFINEMENT
+    if lens_id not in REFINEMENT.beats_constant_depth:
         return False
     refiner, _ = refinement("auto", lens_id, pitch_mm)
     return refiner is not None
+
+
+# a refinement file is read once for a job's checks and its estimate (and kept
+# for the next job while the file is unchanged on disk)
+_open_refiner = FileCache(DfdRefiner, 2)
 
 
 def refinement(refine, lens_id: str, pitch_mm: float):
@@ -89,14 +85,15 @@ def refinement(refine, lens_id: str, pitch_mm: float):
     hold: the evidence alone, said in the note); a path is run as given."""
     if refine is None or refine is False:
         return None, ""
-    from ..models.runtime.dfd_refine import DfdRefiner
-    path = shipped_refinement(lens_id) if refine == "auto" else refine
+    from ..psf.pitch import REFINEMENT_PITCH_RTOL, learned_pitch_holds
+    from ..shipped import REFINEMENT
+    path = REFINEMENT.shipped_file(lens_id) if refine == "auto" else refine
     if path is None:
         return None, ""
-    refiner = DfdRefiner(path)
+    refiner = _open_refiner(path)
     refiner.check_lens(lens_id)
     learned = refiner.meta.get("pixel_pitch_mm")
-    if refine == "auto" and learned and abs(pitch_mm / learned - 1) > 0.01:
+    if refine == "auto" and learned and not learned_pitch_holds(pitch_mm, learned, REFINEMENT_PITCH_RTOL):
         return None, (f"the depth is the evidence of the blur alone: the learned refinement of {lens_id} learned "
                       f"{learned * 1000:.4g} um pixels and the capture has {pitch_mm * 1000:.4g} um")
     return refiner, ""
@@ -107,16 +104,15 @@ def estimate(request: DepthRequest, control: Control | None = None) -> DepthResu
     hypotheses')."""
     from ..correct.noise import NoiseModel
     from ..dfd import estimate_depth
-    from ..render.request import RenderRequest
-    from .records import recorded_defaults
-    from .sources import open_source
+    from ..psf.sources import open_source
 
     control = control or Control()
     capture = _array("capture", request.capture, 3)
-    h, w = capture.shape[:2]
-    render, notes = recorded_defaults(request.render, request.lens, request.recorded, (h, w), request.image_name)
-    render = render or RenderRequest(request.lens)
-    plan = render.plan(h, w, image=request.image_name)
+    shape = capture.shape[:2]
+    frame = request.frame
+    if frame is None or not frame.serves(request.lens, shape):
+        frame = capture_frame(request.lens, request.render, request.recorded, shape, request.image_name)
+    plan, notes = frame.plan, list(frame.notes)
     noise = request.noise
     recorded_noise = getattr(request.recorded, "noise", None)
     if noise is None and recorded_noise:
@@ -140,10 +136,12 @@ def estimate(request: DepthRequest, control: Control | None = None) -> DepthResu
     return DepthResult(est.depth_m, est.confidence, plan.geometry, info, notes, seconds)
 
 
-def blur_estimator(lens, render=None, psf: PSFRequest | None = None, recorded=None, image_name="the capture"):
+def blur_estimator(lens, render=None, psf: PSFRequest | None = None, recorded=None, image_name="the capture",
+                   frame=None):
     """A ``models.depth.estimators.DepthEstimator`` (name 'blur') that reads
     a capture's depth from its own blur through ``lens`` (:func:`estimate`
-    with these settings), for ``app.dof`` and the demo."""
+    with these settings), for ``app.dof`` and the demo. ``frame``: the
+    capture's ``app.frame.CaptureFrame``, made once by the job."""
     from ..models.depth.estimators import DepthEstimator
 
     class BlurDepth(DepthEstimator):
@@ -151,7 +149,7 @@ def blur_estimator(lens, render=None, psf: PSFRequest | None = None, recorded=No
 
         def _estimate(self, img):
             request = DepthRequest(img, lens, render=render, psf=psf or PSFRequest(), recorded=recorded,
-                                   image_name=image_name)
+                                   image_name=image_name, frame=frame)
             return estimate(request).depth_m
 
     return BlurDepth()

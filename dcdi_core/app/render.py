@@ -17,9 +17,10 @@ import numpy as np
 from ..errors import InputRangeError
 from ..render.inputs import depth_counts, depth_notes
 from ..render.request import RenderRequest
-from .control import Cancelled, Control
+from ..control import Cancelled, Control
 from .records import recorded_defaults
-from .sources import PSFRequest, PSFSourceResult, SourceCache, ensure_bins, open_source
+from .sources import SourceCache
+from ..psf.sources import PSFRequest, PSFSourceResult, ensure_bins, open_source
 
 
 def _array(name: str, value, ndim: int):
@@ -205,7 +206,7 @@ def bokeh(request: BokehRequest, control: Control | None = None, *, cache: Sourc
     of the depths that get blurred (the kept ones are exactly sharp)."""
     from ..render.bokeh import BokehOptions
     from ..render.bokeh import bokeh as render_bokeh
-    from ..render.simulate import Cancelled as RenderCancelled
+    from ..render.base import Cancelled as RenderCancelled
     control = control or Control()
     img = _array("image", request.image, 3)
     depth = _array("depth_m", request.depth_m, 2)

@@ -15,31 +15,17 @@ from __future__ import annotations
 import argparse
 import sys
 
-from . import dacn, depth, info, lens, olf, pipeline, psf, render, reports
-from .common import UNITS, deprecated, error_words, one_line, show_warning
+from . import bench, correct, dacn, dataset, depth, info, lens, olf, psf, render
+from .common import UNITS, error_words, one_line, show_warning
 from .files import attach, job_files
-
-# old spelling -> new, kept for one release (a note on stderr says so)
-DEPRECATED = {"dcdi train dacn": "dcdi dacn train", "dcdi train depth": "dcdi depth train",
-              "dcdi eval": "dcdi dacn eval"}
-
-
-def _add_deprecated(sub) -> None:
-    """The old spellings, hidden from the help (no ``help=``), each a note away from its new one."""
-    q = sub.add_parser("train", description="Deprecated: use `dcdi dacn train` or `dcdi depth train`.")
-    tsub = q.add_subparsers(dest="train_command", required=True, metavar="NETWORK")
-    deprecated(dacn.train_parser(tsub, "dacn"), DEPRECATED["dcdi train dacn"])
-    deprecated(depth.train_parser(tsub, "depth"), DEPRECATED["dcdi train depth"])
-    deprecated(dacn.eval_parser(sub, "eval"), DEPRECATED["dcdi eval"])
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="dcdi", description=__doc__.split("\n\n")[0] + " " + UNITS,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for group in (lens, psf, render, pipeline, info, olf, dacn, depth, reports):
+    for group in (lens, psf, render, correct, info, olf, dacn, depth, dataset, bench):
         group.add_commands(sub)
-    _add_deprecated(sub)
     attach(p)
     return p
 
@@ -56,10 +42,6 @@ def main(argv=None) -> int:
 
     from ..errors import DcdiError
     args = build_parser().parse_args(argv)
-    new = getattr(args, "deprecated_for", None)
-    if new is not None:
-        old = next(k for k, v in DEPRECATED.items() if v == new)
-        print(f"dcdi: note: '{old}' is deprecated and goes in the next release; use '{new}'", file=sys.stderr)
     from ..signals import stop_code, stop_on_signals
     with warnings.catch_warnings(), stop_on_signals():
         warnings.showwarning = show_warning          # one line each, no source line

@@ -182,7 +182,7 @@ def check_output(path, option: str, *, image: bool = False, suffix: str | None =
 
     from ..errors import InputRangeError, check_writable_folder
     if image:
-        from ..io.images import check_image_output
+        from ..io.image_checks import check_image_output
         check_image_output(path)
     if suffix is not None and not str(path).lower().endswith(suffix):
         raise InputRangeError(option, str(path), f"a file name ending in {suffix} (what it writes)")
@@ -194,7 +194,7 @@ def check_cache(args=None) -> None:
     if args is not None and getattr(args, "no_cache", False):
         return
     from ..errors import check_writable_folder
-    from ..psf.library import default_cache_dir
+    from ..outputs import default_cache_dir
     check_writable_folder(default_cache_dir(), "the PSF cache (set DCDI_CACHE_DIR to a writable folder)")
 
 
@@ -209,7 +209,7 @@ def check_olf_file(args) -> None:
     to tracing, saying why, as it does for a file that does not cover the
     request)."""
     if getattr(args, "olf", None) and getattr(args, "psf_source", None) != "trace":
-        from ..models.runtime.olf import read_olf_file
+        from ..psf.olf import read_olf_file
         read_olf_file(args.olf)
     if getattr(args, "basis", None) and getattr(args, "psf_source", None) != "trace":
         from ..psf.basis import open_store
@@ -372,8 +372,3 @@ def exported(args, meta: dict) -> int:
     print(f"wrote {args.output} ({size_of(args.output) / 1e6:.2f} MB, {args.dtype}, {meta['weights']} "
           f"weights, lens {meta['lens']}, {meta['step']} iterations)")
     return 0
-
-
-def deprecated(parser, new: str) -> None:
-    """Mark ``parser`` as an old spelling of ``new`` (main says so on stderr)."""
-    parser.set_defaults(deprecated_for=new)

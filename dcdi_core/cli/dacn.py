@@ -102,7 +102,7 @@ def _eval_runs(args) -> dict:
         runs[name] = path
     for name, path in runs.items():
         if not Path(path).exists():
-            from ..models.errors import ModelFileError
+            from ..errors import ModelFileError
             raise ModelFileError(path, f"model {name}: does not exist")
     return runs
 
@@ -159,7 +159,7 @@ def cmd_dacn_eval(args) -> int:
 
 # ------------------------------------------------------------------ parsers
 def train_parser(subparsers, name: str, **kw):
-    """The parser of `dacn train` (also the old spelling `train dacn`)."""
+    """The parser of `dacn train`."""
     t = subparsers.add_parser(name, **kw,
                               description="Train DACN (CPU, seeded, Adam, L1, EMA). Checkpoints go to the run folder; "
                                           "the same command again resumes a killed run and ends where an "
@@ -211,7 +211,7 @@ def train_parser(subparsers, name: str, **kw):
 
 
 def eval_parser(subparsers, name: str, **kw):
-    """The parser of `dacn eval` (also the old spelling `eval`)."""
+    """The parser of `dacn eval`."""
     t = subparsers.add_parser(name, **kw,
                               description="PSNR / SSIM (over the imaged pixels) of each model's correction of the "
                                           "depth-aware captures, beside the uncorrected capture: mean, per depth "
@@ -239,7 +239,7 @@ def eval_parser(subparsers, name: str, **kw):
 
 
 def add_commands(sub) -> None:
-    from .pipeline import correct_parser
+    from .correct import correct_parser
     q = sub.add_parser("dacn", help="depth-aware correction network: pairs, train, export, eval, correct",
                        description="The depth-aware correction network (DACN): its DA2T training pairs, training, "
                                    "export, scores and use. " + UNITS)

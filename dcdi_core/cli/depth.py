@@ -37,10 +37,11 @@ def cmd_depth_estimate(args) -> int:
     """`dcdi depth estimate`: metric depth of a capture from its own lens's blur."""
     from ..app import depth as job
     from ..dfd import DepthFromBlurOptions
-    from ..io.images import check_depth_output, read_image, write_depth
+    from ..io.image_checks import check_depth_output
+    from ..io.images import read_image, write_depth
     from ..optics.lens import load_lens
     from .common import check_cache, dump, in_cli_words, job_control, psf_request, say
-    from .pipeline import _correct_render, _recorded
+    from .correct import _correct_render, _recorded
     from .render import check_image_fits
     out = check_depth_output(args.output)                   # -o and --confidence apart: outputs.JobFiles
     conf_out = check_depth_output(args.confidence) if args.confidence else None
@@ -100,7 +101,7 @@ def estimate_parser(subparsers):
 
 
 def train_parser(subparsers, name: str, **kw):
-    """The parser of `depth train` (also the old spelling `train depth`)."""
+    """The parser of `depth train`."""
     t = subparsers.add_parser(name, **kw,
                               description="Train the depth network (capture -> metric depth) on pre-built DA2T "
                                           "pairs: seeded, atomic checkpoints, exact resume, the split by scene of "

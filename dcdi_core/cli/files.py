@@ -72,21 +72,9 @@ SPECS = {
     ("depth", "estimate"): Spec(reads=("image", "camera", "refine", *PSF_SOURCE), writes=("output", "confidence")),
     ("depth", "train"): Spec(reads=("data",), into=("output",), updates=("data",)),
     ("depth", "export"): Spec(reads=("run",), writes=("output",)),
-    ("report", "psf-accuracy"): Spec(reads=("lens",), into=("out",)),
-    ("report", "simulation-accuracy"): Spec(reads=("lens",), into=("out",)),
-    ("report", "olf"): Spec(reads=("olf", "sweep"), into=("out",)),
-    ("report", "psf-source"): Spec(reads=("lens",), into=("out",)),
-    ("report", "correction"): Spec(reads=("lens", "data"), into=("out",), updates=("data",)),
-    ("report", "dataset"): Spec(reads=("dirs", "lens"), into=("out",)),
-    ("report", "pipeline"): Spec(reads=("pairs", "dacn", "depth_model", "baseline", "olf", "target"), into=("out",),
-                                 updates=("pairs",)),
-    ("report", "depth"): Spec(reads=("pairs", "dacn", "depth_model", "baseline", "train_pairs"), into=("out",),
-                              updates=("pairs", "train_pairs")),
+    ("dataset", "stats"): Spec(reads=("dirs", "lens"), into=("out",)),
     ("bench",): Spec(reads=("optiland",)),
     ("demo",): Spec(into=("out",)),
-    ("train", "dacn"): Spec(reads=("data", "config"), into=("output",), others=("refine",), updates=("data",)),
-    ("train", "depth"): Spec(reads=("data",), into=("output",), updates=("data",)),
-    ("eval",): Spec(reads=("run", "data", "compare"), writes=("json",), into=("pictures",), updates=("data",)),
 }
 
 #: the options that never name a path
@@ -100,7 +88,7 @@ NOT_PATHS = frozenset("""
     focus_range focus_bins kind variants no_refocus baseline_depth no_noise no_saturate sensor_px placement
     no_deconvolved shard crop schedule warmup loss ema_decay crop_choice validate_every input rdicab d2cb racm
     depth_encoding condition channels groups blocks train_scenes name pictures_count lpips widths quick
-    pitch_only held_out_points points frames count what repeat
+    frames what repeat
 """.split())
 
 

@@ -6,7 +6,7 @@ import json
 
 def cmd_info(args) -> int:
     from ..io.capture_record import has_header, read_record, sidecar_path
-    from ..io.images import image_size
+    from ..io.image_checks import image_size
     h, w = image_size(args.file)
     record = read_record(args.file)
     where = None

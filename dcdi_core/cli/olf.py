@@ -66,8 +66,8 @@ def cmd_olf_points(args) -> int:
 
 
 def cmd_olf_info(args) -> int:
-    from ..models.runtime.library import WEIGHTS_DIR, shipped_olf_files
-    from ..models.runtime.olf import OmniLensField
+    from ..psf.sources import WEIGHTS_DIR, shipped_olf_files
+    from ..psf.olf import OmniLensField
     from ..optics.lens import load_lens
     files = args.file or shipped_olf_files()
     if not files:
@@ -171,7 +171,7 @@ def add_commands(sub) -> None:
     pt = osub.add_parser("points", help="the traced off-grid and held-out points of a training config (no training)",
                          description="Trace (or read from the PSF cache) what `olf train` with the same data "
                                      "options would train and validate on, into a points file: e.g. the held-out "
-                                     "points of an older OLF, for `dcdi report olf --held-out-points`.")
+                                     "points of an older OLF, for `python -m lab report olf --held-out-points`.")
     pt.add_argument("--lens", action="append", required=True, help="lens id (repeat; the order decides the seeds)")
     pt.add_argument("-o", "--output", required=True, help="the points file (.npz)")
     _add_data_options(pt)

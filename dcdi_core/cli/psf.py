@@ -20,8 +20,8 @@ def choose_psf_source(args, lens, *, pixel_pitch_mm, settings, focus_m, extra_re
     request, else tracing; says which and why on standard error (one line).
     ``extra_reason``: why neither can serve this request whatever they hold
     (then traced)."""
-    from ..models.errors import ModelError
-    from ..models.runtime.library import PSFSource, psf_source
+    from ..errors import ModelError
+    from ..psf.sources import PSFSource, psf_source
     if extra_reason is not None and args.psf_source != "trace":
         if args.psf_source in ("olf", "basis"):
             raise ModelError(f"--psf-source {args.psf_source}: it cannot serve this request: {extra_reason}")
@@ -40,7 +40,7 @@ def _psf_from_source(args, src):
     pitch), or None where the request lies outside its ranges (then traced,
     said why)."""
     from ..errors import InputRangeError
-    from ..models.errors import ModelError
+    from ..errors import ModelError
     try:
         kernel = src.library.kernels(args.field, args.depth)     # at the request's pitch
     except InputRangeError as e:            # OutsideTrainedRangeError included
@@ -182,7 +182,7 @@ def cmd_psflib_compress(args) -> int:
 def _is_basis(path) -> bool:
     """True for a PSF basis file (``dcdi psflib compress``), False for anything else."""
     from ..errors import DcdiError
-    from ..models.runtime.npz import read_npz_with_meta
+    from ..io.model_npz import read_npz_with_meta
     try:
         meta, _ = read_npz_with_meta(path, "a PSF basis")          # bounded, checked (io.npzfile)
     except DcdiError:       # not readable as one: PSFLibrary.load says why

@@ -18,7 +18,7 @@ def add_rgbd_options(q, *, sensor_focus: bool, depth_required: bool = True,
     ``sensor_focus``: the PSF options' --focus moves the sensor (simulate);
     bokeh and dof add a --focus of their own."""
     from ..render.distortion import INTERPOLATIONS
-    from ..render.simulate import DEFAULT_INTERPOLATION
+    from ..render.base import DEFAULT_INTERPOLATION
     q.add_argument("--image", required=True, help=image_help)
     q.add_argument("--depth", required=depth_required,
                    help="metric depth map (EXR, metres from the lens; NaN/0/<0 invalid)"
@@ -57,7 +57,7 @@ def check_image_fits(args, job: str) -> None:
     """Refuse, from the headers alone (before any pixel is read), an image
     or depth map too large for this machine's memory for ``job``, or a depth
     map of another size than the image (``io.images.check_job_inputs``)."""
-    from ..io.images import check_job_inputs
+    from ..io.image_checks import check_job_inputs
     check_job_inputs(job, args.image, getattr(args, "depth", None), depth_channel=getattr(args, "depth_channel", None))
 
 
@@ -234,7 +234,7 @@ def add_commands(sub) -> None:
     q.add_argument("--multires", type=float, default=None, metavar="C",
                    help="multi-resolution blur: a patch whose kernel holds half its energy within a radius "
                         ">= C 2^s px is blurred at 1/2^s of the resolution (error and time against the exact path: "
-                        "`dcdi report simulation-accuracy`); default: every layer at full resolution")
+                        "`python -m lab report simulation-accuracy`); default: every layer at full resolution")
     q.add_argument("--max-level", type=int, default=None, metavar="S",
                    help="with --multires: at most 1/2^S of the resolution (default 2)")
     q.add_argument("--exact-layers", action="store_true",

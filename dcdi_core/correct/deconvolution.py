@@ -45,13 +45,15 @@ import numpy as np
 from ..errors import InputRangeError
 from ..render import fft
 from ..render.geometry import ImageGeometry
-from ..render.psfmap import PSFMap, psf_map, valid_depth_mask
-from ..render.simulate import check_patch, open_library
+from ..render.psfmap import PSFMap, psf_map
+from ..psf.library import valid_depth_mask
+from ..render.base import check_patch
+from ..psf.sources import open_library
 from .noise import NoiseModel, estimate_noise
 from .wiener import WindowLayout, deconvolve_all, layout_for
 
 # weight of the gradient prior per unit of noise variance, and the layer
-# step: chosen by `dcdi report correction` (error against time, held-out)
+# step: chosen by `python -m lab report correction` (error against time, held-out)
 DEFAULT_WEIGHT = 6.0
 DEFAULT_LAYER_STEP = None
 METHODS = ("wiener", "hqs")
@@ -264,7 +266,7 @@ def _own_depth_gradients(y, d, base: PSFMap, plan: _Plan, m: int, far_m: float, 
 
 def _blend_windows(y: np.ndarray, plan: _Plan, noise: NoiseModel, lay: WindowLayout, options: DeconvOptions,
                    progress, grad_px=None):
-    from ..render.convolve import blend_window
+    from ..render.windows import blend_window
 
     m, b = options.patch, options.patch // 2
     h, w, c = y.shape

@@ -25,7 +25,7 @@ from ..render import fft
 
 # the total-variation threshold per unit of the quadratic prior's weight
 # (lambda |D|^2 against |D|): about a typical gradient, px^-1 (tuned by
-# `dcdi report correction`)
+# `python -m lab report correction`)
 TV_SCALE = 0.1
 
 

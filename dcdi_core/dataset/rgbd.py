@@ -44,7 +44,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ModelError
-from ..io.images import ImageFileError, read_depth, read_image, srgb_to_linear
+from ..io.image_file import ImageFileError
+from ..io.images import read_depth, read_image, srgb_to_linear
 from . import factory_folder as ff
 from ..io.jsontext import loads
 
@@ -91,7 +92,7 @@ def _first(folder: Path, stem: str, exts, what: str) -> Path:
 
 def read_depth_png_mm(path) -> np.ndarray:
     """A 16-bit PNG of depth in millimetres -> float32 metres (0 -> NaN, invalid)."""
-    from ..io.images import NO_OPENIMAGEIO, _oiio
+    from ..io.image_file import NO_OPENIMAGEIO, _oiio
 
     path = Path(path)
     oiio = _oiio()

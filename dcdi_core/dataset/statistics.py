@@ -1,6 +1,6 @@
 """What a data set's frames hold: texture energy, depth mix, clipping.
 
-The measures `dcdi report dataset` tabulates, one function each, so that a
+The measures `dcdi dataset stats` tabulates, one function each, so that a
 recipe's author and the report measure alike. Images are float32 (H, W, 3)
 linear light, depths float32 (H, W) metres (inf: background).
 """

@@ -78,7 +78,8 @@ def _check_readable(path: Path, pixels: bool = False) -> None:
     """Read the file's header, raising DatasetError naming it; ``pixels``:
     refuse also a file whose pixels dcdi_core.io.images could not decode
     here (without OpenImageIO only EXR is read)."""
-    from ..io.images import ImageFileError, image_size
+    from ..io.image_checks import image_size
+    from ..io.image_file import ImageFileError
     try:
         h, w = image_size(path, pixels=pixels)
     except ImageFileError as e:

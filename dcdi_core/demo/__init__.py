@@ -17,7 +17,7 @@ Written to one folder with a summary (report.md):
   across field and depth (``demo.lenses``).
 
 PSFs come from the lens's shipped PSF basis or the shipped Omni-Lens-Field
-wherever one covers the request (``models.runtime.library.psf_source``),
+wherever one covers the request (``psf.sources.psf_source``),
 else they are traced (and cached).
 ``python build.py demo`` renders the factory sample first (the Blender layer
 is started from build.py: the engine never starts it) and passes its folder,

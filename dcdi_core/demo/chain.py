@@ -79,9 +79,9 @@ class Networks:
         blur (``app.depth``), not by the shipped depth network: that one is
         recorded worse than a constant depth."""
         from ..models.dacn.correct import load_dacn
-        from ..models.errors import ModelError
+        from ..errors import ModelError
         from ..optics.lens import load_lens
-        from ..pipeline import shipped_lenses, shipped_model
+        from ..app.correction_rule import shipped_lenses, shipped_model
 
         camera, target = load_lens(settings.camera), load_lens(settings.target)
         paths = {}
@@ -128,7 +128,7 @@ class ChainResult:
 
 def simulate_capture(scene: Scene, nets: Networks, seed: int) -> Capture:
     """The camera lens's capture of ``scene`` and its truth (module docstring, 1)."""
-    from ..models.runtime.library import psf_source
+    from ..psf.sources import psf_source
     from ..render.simulate import LensSimulator, SimulateOptions
 
     src = psf_source(nets.camera, pixel_pitch_mm=scene.geometry.pixel_pitch_mm)

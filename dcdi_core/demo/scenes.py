@@ -30,7 +30,7 @@ def synthetic_scene(camera, size: tuple[int, int], pixel_pitch_mm: float) -> Sce
     """The built-in synthetic RGB-D scene (``render.synthetic``) of ``size``
     (rows, cols), centred on ``camera``'s sensor at ``pixel_pitch_mm``."""
     from ..render.geometry import ImageGeometry
-    from ..render.simulate import check_within_sensor
+    from ..render.base import check_within_sensor
     from ..render.synthetic import synthetic_rgbd
 
     h, w = (int(v) for v in size)

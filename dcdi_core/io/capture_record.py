@@ -61,7 +61,7 @@ class CaptureRecord:
     first vertex where the sensor was focused (None: as prescribed).
 
     kind: one of :data:`KINDS`. lens_id and prescription_sha256: the lens
-    (``psf.library.lens_fingerprint``: everything optical, so a perturbed
+    (``optics.lens.lens_fingerprint``: everything optical, so a perturbed
     copy of a shipped lens differs). psf_source: 'basis', 'cache' or
     'trace'. noise: None (noiseless) or {full_well_electrons,
     read_noise_electrons, seed}. distortion_applied: the image was moved to
@@ -234,8 +234,8 @@ def _check_bounds(text: str, path) -> None:
 
 
 def prescription_sha256(lens) -> str:
-    """The lens's optical fingerprint (``psf.library.lens_fingerprint``)."""
-    from ..psf.library import lens_fingerprint
+    """The lens's optical fingerprint (``optics.lens.lens_fingerprint``)."""
+    from ..optics.lens import lens_fingerprint
     return lens_fingerprint(lens)
 
 

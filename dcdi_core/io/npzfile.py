@@ -65,7 +65,7 @@ READ_ERRORS = (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile, zlib
 
 def file_error_text(path, message: str, field=None, allowed=None) -> str:
     """The one line of a file's error: 'FILE, field 'F': MESSAGE; allowed: A'
-    (as ``models.errors.ModelFileError`` writes it)."""
+    (as ``errors.ModelFileError`` writes it)."""
     text = str(path) + (f", field '{field}'" if field is not None else "") + f": {message}"
     return text + (f"; allowed: {allowed}" if allowed is not None else "")
 

@@ -19,7 +19,7 @@ an exported Omni-Lens-Field. Layout (docs/design.md):
 """
 from __future__ import annotations
 
-from .errors import (CheckpointMismatchError, LensMismatchError, ModelError, ModelFileError,
+from ..errors import (CheckpointMismatchError, LensMismatchError, ModelError, ModelFileError,
                      OutsideTrainedRangeError, TorchMissingError)
 
 TORCH_VERSION = "2.13.0"

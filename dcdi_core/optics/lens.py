@@ -380,3 +380,16 @@ def _surface(num, s, err, materials) -> Surface:
     return Surface(radius_mm=radius, thickness_mm=thickness, material=materials[key],
                    semi_diameter_mm=sd, conic=conic, aspheric_coefficients=coeffs, stop=stop,
                    label=str(s.get("label", "")), odd_aspheric_coefficients=odd)
+
+
+def lens_fingerprint(lens: "Lens") -> str:
+    """sha256 of everything optical about the lens (surfaces, glass indices at
+    three wavelengths, sensor): two lenses with the same fingerprint image alike."""
+    wl = np.array([450.0, 550.0, 650.0])
+    n = lens.refractive_indices(wl)
+    # an odd asphere's terms only where there are any: the fingerprints (and caches) of all other lenses unchanged
+    parts = [repr([(s.radius_mm, s.thickness_mm, s.semi_diameter_mm, s.conic, s.aspheric_coefficients, s.stop)
+                   + ((s.odd_aspheric_coefficients,) if s.odd_aspheric_coefficients else ())
+                   for s in lens.surfaces]),
+             np.round(n, 12).tobytes().hex(), repr(lens.sensor), repr(lens.wavelength_nm)]
+    return hashlib.sha256("|".join(parts).encode()).hexdigest()

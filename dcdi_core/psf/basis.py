@@ -44,12 +44,14 @@ from ..io.npzfile import FileCache, Record, check_array, check_declared_bytes, c
 from ..errors import InputRangeError, field
 from ..optics.errors import OpticsError
 from .compute import PSFSettings
-from .library import LibraryGrid, PSFLibrary, lens_fingerprint
+from .library import LibraryGrid, PSFLibrary
+from ..optics.lens import lens_fingerprint
+from ..shipped import BASIS_DIR, basis_file
 from .pitch import area_resample, check_downsampling, resampled_size, same_pitch
 
 FORMAT = "dcdi-psf-basis"
 FORMAT_VERSION = 1
-STORE_DIR = Path(__file__).resolve().parent / "data" / "basis"
+STORE_DIR = BASIS_DIR                   # the shipped stores (``shipped.BASIS_DIR``)
 
 
 class BasisFileError(OpticsError):
@@ -109,7 +111,7 @@ class BasisRecipe:
 
 
 # The shipped stores (`dcdi psflib compress --recipe shipped`): ranks, grids and
-# rays chosen by `dcdi report psf-source` (docs/psf.md, "Compact PSF sources").
+# rays chosen by `python -m lab report psf-source` (docs/psf.md, "Compact PSF sources").
 # The 6P and the double Gauss trace their bins nearer than 1 m with 512 rays:
 # there a 256-ray kernel's own ray noise (38 dB against 1024 rays) was the
 # worst point's error. The double Gauss keeps its faint halo (a ripple floor cut it: relative L1
@@ -126,11 +128,8 @@ SHIPPED_RECIPES = {
 
 
 def shipped_store(lens_id: str) -> Path | None:
-    """The shipped store file of a lens, or None; ``lens_id`` must be a name
-    (``names.NAME_RULE``): it becomes the file's name."""
-    from ..names import check_name
-    p = STORE_DIR / f"{check_name(lens_id, 'lens id', error=InputRangeError)}.npz"
-    return p if p.exists() else None
+    """The shipped store file of a lens, or None (``shipped.basis_file``)."""
+    return basis_file(lens_id)
 
 
 # ----------------------------------------------------------------- building

@@ -89,7 +89,7 @@ class KernelTooSmallWarning(UserWarning):
 class PSFSettings:
     """How PSFs are computed. Lengths in mm, wavelengths in nm."""
 
-    # Defaults chosen from `dcdi report psf-accuracy` (docs/psf.md):
+    # Defaults chosen from `python -m lab report psf-accuracy` (docs/psf.md):
     # the wavelength count dominates the error, float32 costs nothing measurable
     kernel_size: int = 41
     pupil_samples: int = 64

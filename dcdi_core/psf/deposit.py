@@ -19,7 +19,7 @@ deposit below adds 2/9 + 1/12 px^2.
 The paper's deposit (``sigma_px = sqrt(2) / 3``): every ray spreads its
 energy with an isotropic Gaussian of sigma = sqrt(dh^2 + dw^2) / 3 (dh, dw
 the pixel size), and a pixel receives the Gaussian's integral over its
-area. A smaller sigma trades bias for ray-count noise; `dcdi report
+area. A smaller sigma trades bias for ray-count noise; `python -m lab report
 simulation-accuracy` measures it against rays. Because the Gaussian is the
 same for every ray and separable, the deposit is computed as
 
@@ -35,7 +35,7 @@ approximation is the ray position's quantisation to 1/oversample pixel, which
 adds a variance of 1/(12 oversample^2) px^2 (0.5 % of sigma^2 at oversample 9;
 an odd oversample puts pixel centres on bin centres, so a ray at a pixel
 centre is deposited exactly);
-`dcdi report psf-accuracy` measures it.
+`python -m lab report psf-accuracy` measures it.
 
 Kernel coordinates: index [i, j] is row i along sensor +y, column j along
 sensor +x, the centre pixel (k // 2, k // 2) centred on the kernel origin.

@@ -36,11 +36,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path
+from ..atomic import active, atomic_path
+from ..outputs import default_cache_dir
 from ..optics.aiming import sources
 from ..errors import InputRangeError, OutputError, field, output_error
 from ..optics.errors import OpticsError
-from ..optics.lens import Lens
+from ..optics.lens import Lens, lens_fingerprint
 from .compute import (KernelTooSmallWarning, PSFSettings, clip_message, compute_sources, focused_lens, pixel_pitch_mm,
                       spectral_samples)
 from .spectral import SpectralResponse, default_response
@@ -90,25 +91,6 @@ class LibraryGrid:
         d = self.diopters
         with np.errstate(divide="ignore"):
             return np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), np.inf)
-
-
-def lens_fingerprint(lens: Lens) -> str:
-    """sha256 of everything optical about the lens (surfaces, glass indices at
-    three wavelengths, sensor): two lenses with the same fingerprint image alike."""
-    wl = np.array([450.0, 550.0, 650.0])
-    n = lens.refractive_indices(wl)
-    # an odd asphere's terms only where there are any: the fingerprints (and caches) of all other lenses unchanged
-    parts = [repr([(s.radius_mm, s.thickness_mm, s.semi_diameter_mm, s.conic, s.aspheric_coefficients, s.stop)
-                   + ((s.odd_aspheric_coefficients,) if s.odd_aspheric_coefficients else ())
-                   for s in lens.surfaces]),
-             np.round(n, 12).tobytes().hex(), repr(lens.sensor), repr(lens.wavelength_nm)]
-    return hashlib.sha256("|".join(parts).encode()).hexdigest()
-
-
-def default_cache_dir() -> Path:
-    env = os.environ.get("DCDI_CACHE_DIR")
-    base = Path(env) if env else Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "dcdi"
-    return base / "psflib"
 
 
 class PSFLibrary:
@@ -291,7 +273,6 @@ class PSFLibrary:
         (``outputs.active()``) once whichever of its libraries repeats it
         (a kernel grown to fit opens a second library in the same cache
         folder); outside one, once per library."""
-        from ..outputs import active
         job = active()
         told = _job_told(job) if job is not None else self._told
         if text in told:
@@ -428,3 +409,8 @@ def _checksum(arrays: dict) -> str:
         h.update(str(a.dtype).encode() + str(a.shape).encode())
         h.update(a.tobytes())
     return h.hexdigest()
+
+
+def valid_depth_mask(depth: np.ndarray) -> np.ndarray:
+    """True where a depth value is usable: > 0 (inf included), not NaN."""
+    return depth > 0

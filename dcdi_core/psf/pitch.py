@@ -34,6 +34,19 @@ from ..errors import InputRangeError
 # 12.2 um sensor
 PITCH_RTOL = 1e-4
 
+# The other pixel-pitch tolerances, each for its own question (relative):
+# one pitch given twice (a library or PSF settings opened for this image) is the same number
+SAME_GIVEN_RTOL = 1e-9
+# a depth refinement's learned scene statistics hold at the pitch it learned, within 1 %
+REFINEMENT_PITCH_RTOL = 0.01
+# a correction network's learned blur size holds within 5 % of the pitch it learned
+NETWORK_PITCH_RTOL = 0.05
+
+
+def learned_pitch_holds(image_mm: float, learned_mm: float, rtol: float) -> bool:
+    """Whether an image's pixel pitch is the one a file learned: |image / learned - 1| <= ``rtol``."""
+    return abs(image_mm / learned_mm - 1) <= rtol
+
 
 def check_downsampling(pitch_from_mm: float, pitch_to_mm: float, what: str = "pixel pitch") -> None:
     """Refuse a resampling that is not a downsampling: ``pitch_to_mm`` must be
@@ -102,4 +115,5 @@ def area_resample(kernels, pitch_from_mm: float, pitch_to_mm: float, k_to: int |
     return out.astype(dtype)
 
 
-__all__ = ["area_resample", "overlap_matrix", "resampled_size", "check_downsampling", "same_pitch", "PITCH_RTOL"]
+__all__ = ["area_resample", "overlap_matrix", "resampled_size", "check_downsampling", "same_pitch", "PITCH_RTOL",
+           "SAME_GIVEN_RTOL", "REFINEMENT_PITCH_RTOL", "NETWORK_PITCH_RTOL", "learned_pitch_holds"]

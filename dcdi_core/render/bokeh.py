@@ -26,12 +26,14 @@ from ..parallel import thread_pool, workers
 from ..psf.library import PSFLibrary
 from . import layer_patch
 from . import multires as mr
-from .convolve import METHODS, ConvolveOptions, box_reach, grow_square, patch_box, patch_convolve
+from .convolve import METHODS, ConvolveOptions, box_reach, patch_box, patch_convolve
+from .windows import grow_square
 from .geometry import ImageGeometry
 from .inputs import check_rgbd
-from .psfmap import PSFMap, psf_map, valid_depth_mask
-from .simulate import (DEFAULT_INTERPOLATION, Cancelled, RenderResult, check_flag, check_image, check_library_pitch,
-                       check_patch, check_within_sensor, on_sensor, open_library)
+from .psfmap import PSFMap, psf_map
+from ..psf.library import valid_depth_mask
+from .base import DEFAULT_INTERPOLATION, Cancelled, RenderResult, check_flag, check_image, check_library_pitch, check_patch, check_within_sensor, on_sensor
+from ..psf.sources import open_library
 
 PRESCRIBED = "prescribed"     # BokehOptions(focus_m=PRESCRIBED): the sensor where the prescription puts it
 LAYER_PAIRS = ((0, 0), (1, 1), (2, 2), (3, 0), (3, 1), (3, 2))   # a layer's colour, and its coverage per colour PSF

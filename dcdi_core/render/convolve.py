@@ -27,6 +27,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 from ..errors import InputRangeError
 from ..parallel import thread_pool
 from . import fft
+from .windows import blend_window, live_windows
 
 
 METHODS = ("windows", "lowrank", "fast")
@@ -60,7 +61,7 @@ class ConvolveOptions:
     but this fraction of every channel's energy, in [0, 0.5) (then rescaled
     to its former sum, so a constant image stays constant), and windows are
     grouped by the FFT size their crop needs; 0 crops only exact zeros (see
-    ``dcdi report simulation-accuracy`` for error against time).
+    ``python -m lab report simulation-accuracy`` for error against time).
     rank_eps, tile: the 'lowrank' tolerance, in [0, 0.5), and its tile side
     in patches (>= 1).
     fft_backend: 'scipy' (float32) or 'numpy' (float64); None: the fastest
@@ -115,38 +116,6 @@ class ConvolveOptions:
         if self.blend > m // 2:
             raise InputRangeError("blend", self.blend, f"an integer in [1, {m // 2}] px (half the patch), or None")
         return int(self.blend)
-
-
-def blend_window(m: int, b: int) -> np.ndarray:
-    """The 1-D weights (m + 2b,) of a patch over pixels [i m - b, (i + 1) m + b):
-    1 inside, linear ramps 2b wide across each border, so that neighbouring
-    windows sum to 1. b = m/2 is the tent (bilinear blend of patch results)."""
-    x = np.arange(m + 2 * b) + 0.5 - b                  # pixel centre relative to the patch's first pixel
-    rise = np.clip((x + b) / (2 * b), 0.0, 1.0)
-    fall = np.clip((m + b - x) / (2 * b), 0.0, 1.0)
-    return np.minimum(rise, fall)
-
-
-def _live_windows(padded: np.ndarray, m: int, b: int, r: int) -> np.ndarray:
-    """(qh, qw) bool: windows whose input (padded patches up to ceil((b + r) / m)
-    away) is not all zero (a depth layer's empty part gives zero: skipped)."""
-    qh, qw = padded.shape[0] // m, padded.shape[1] // m
-    return grow_square(padded.reshape(qh, m, qw, m, -1).any(axis=(1, 3, 4)), math.ceil((b + r) / m))
-
-
-def grow_square(mask: np.ndarray, n: int) -> np.ndarray:
-    """(h, w) bool ``mask`` dilated by a (2n + 1)^2 square (cells within n
-    rows and n columns of a True cell), as a row pass then a column pass."""
-    out = mask.copy()
-    for axis in (0, 1):
-        src = out.copy()
-        for s in range(1, min(n, out.shape[axis] - 1) + 1):
-            ahead = [slice(None)] * 2
-            behind = [slice(None)] * 2
-            ahead[axis], behind[axis] = slice(s, None), slice(None, -s)
-            out[tuple(ahead)] |= src[tuple(behind)]
-            out[tuple(behind)] |= src[tuple(ahead)]
-    return out
 
 
 def box_reach(kernel_size: int, m: int) -> int:
@@ -329,7 +298,7 @@ def _frame(img, kernels, m: int, b: int, pr, ident, support, be: str) -> _Frame:
     jp = np.clip(np.arange(qw) - pp // m, 0, npw - 1)
     # a window reads padded patches up to ceil((b + r) / m) away: an all-zero
     # neighbourhood (a depth layer's empty part) gives zero and is skipped
-    live = _live_windows(padded, m, b, r)
+    live = live_windows(padded, m, b, r)
     # window of patch i: padded rows [i m - b, i m + m + b); its input reaches r further
     lead = b + r
     ext = np.pad(padded, ((lead, lead + m), (lead, lead + m), (0, 0)))

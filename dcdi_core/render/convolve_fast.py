@@ -20,7 +20,7 @@ only how the work is laid out (measured in ``dcdi bench render``):
   through a strided view of the output without a scratch grid.
 
 The result equals ``windows`` to float32 rounding (tested, and in
-``dcdi report simulation-accuracy``). ``accel_torch.py`` runs the same plan
+``python -m lab report simulation-accuracy``). ``accel_torch.py`` runs the same plan
 in torch.
 """
 from __future__ import annotations
@@ -31,6 +31,7 @@ import numpy as np
 from numpy.lib.stride_tricks import as_strided, sliding_window_view
 
 from . import fft
+from .windows import blend_window, live_windows
 
 
 @dataclass
@@ -63,7 +64,6 @@ def make_plan(img, kernels, m, ident, b, support, pr, pp, chunk) -> Plan:
     """The windows to compute, grouped by what they need (copy, or an FFT
     size), only those that reach the image's frame and whose neighbourhood
     is not all zero. ``support``: (nph, npw) the kernels' half-widths."""
-    from .convolve import _live_windows
 
     h, w, c_in = img.shape
     nph, npw = kernels.shape[:2]
@@ -81,7 +81,7 @@ def make_plan(img, kernels, m, ident, b, support, pr, pp, chunk) -> Plan:
     # 2 hs + win) of the circular convolution unchanged and save the padding
     extra = max(fft.fast_size(win + 2 * s) - (win + 2 * s) for s in range(r + 1))
     ext = np.pad(padded, ((lead, lead + m + extra), (lead, lead + m + extra), (0, 0)))
-    live = _live_windows(padded, m, b, r)
+    live = live_windows(padded, m, b, r)
     # window i covers padded rows [i m - b, i m + m + b); the frame is [pp, pp + h)
     rows_in = (np.arange(qh) * m - b < pp + h) & (np.arange(qh) * m + m + b > pp)
     cols_in = (np.arange(qw) * m - b < pp + w) & (np.arange(qw) * m + m + b > pp)
@@ -101,7 +101,6 @@ def make_plan(img, kernels, m, ident, b, support, pr, pp, chunk) -> Plan:
     k_used, k_of = np.unique(pr[:, 1], return_inverse=True)
     c = len(pr)
     plain = bool(np.array_equal(in_of, np.arange(c)) and np.array_equal(k_of, np.arange(c)))
-    from .convolve import blend_window
     tw = blend_window(m, b).astype(np.float32)
     ksum = kernels.sum(axis=(-2, -1), dtype=np.float32)
     return Plan(ext, kernels, ksum, ip, jp, m, b, r, win, pr, in_used, in_of, k_used, k_of, plain,

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import fft
-from .convolve import blend_window, grow_square
+from .windows import blend_window, grow_square
 from .psfmap import point_kernels
 
 # (patch px, blend half-width px) tried after the finest (the options' patch with the tent)

@@ -48,7 +48,7 @@ from ..psf.pitch import area_resample, resampled_size
 from . import fft
 from .convolve import ConvolveOptions, box_reach, patch_box, patch_convolve
 from .psfmap import psf_map, support_radius
-from .simulate import check_patch
+from .base import check_patch
 
 # the level rule reads the disk holding half the energy: the core's width. 6P's
 # defocus kernels are a peaked core in a wide halo, and a rule on the 90 %
@@ -343,7 +343,8 @@ def plain_blur(img: np.ndarray, depth: np.ndarray, library, geometry, options: M
     (:func:`grouped_blur`); patches without valid depth or whose depth is in
     ``keep_range_m`` (near, far metres) are copied, as the exact path's.
     Returns (image float32 (H, W, 3), info dict)."""
-    from .psfmap import patch_inverse_depth, valid_depth_mask
+    from .psfmap import patch_inverse_depth
+    from ..psf.library import valid_depth_mask
 
     m = options.patch
     valid = valid_depth_mask(depth)

@@ -20,12 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InputRangeError
+from ..psf.library import valid_depth_mask
 from .convolve import rings_needed
-
-
-def valid_depth_mask(depth: np.ndarray) -> np.ndarray:
-    """True where a depth value is usable: > 0 (inf included), not NaN."""
-    return depth > 0
 
 
 def patch_inverse_depth(depth: np.ndarray, m: int, far_m: float) -> tuple[np.ndarray, np.ndarray]:

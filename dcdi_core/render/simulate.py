@@ -1,4 +1,4 @@
-"""Depth-aware aberration simulation on an all-in-focus RGB-D image, and what the renders share.
+"""Depth-aware aberration simulation on an all-in-focus RGB-D image.
 
 simulate() / LensSimulator: the paper's training-data degradation. The
 sharp image and its depth are first moved to where the lens puts them (its
@@ -9,73 +9,26 @@ and depth (depth-aware), or with one depth for the whole image
 sensor noise is added. LensSimulator's docstring gives the order and why;
 :class:`SimulateOptions` says how (checked when made, before any work).
 
-Shared with the bokeh (``render.bokeh``, which imports them from here): the
-result (:class:`RenderResult`), :class:`Cancelled`, the input checks, the
-library opened at the image's pixel pitch (:func:`open_library`) and the
-move onto the sensor (:func:`on_sensor`).
+What it shares with the bokeh (the result, cancel, the input checks, the
+move onto the sensor) is in ``render.base``.
 """
 from __future__ import annotations
 
 import math
-import warnings
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from ..errors import InputRangeError
-from ..psf.compute import KernelTooSmallWarning, PSFSettings
+from ..psf.compute import PSFSettings
 from ..psf.library import LibraryGrid, PSFLibrary
+from ..psf.sources import open_library
+from .base import (DEFAULT_INTERPOLATION, RenderResult, sensor_mapping, check_flag, check_image, check_library_pitch,
+                   check_patch, check_within_sensor, on_sensor)
 from .convolve import ConvolveOptions, patch_convolve
 from .geometry import ImageGeometry
 from .inputs import check_rgbd
-from .psfmap import PSFMap, psf_map, valid_depth_mask
-
-
-class Cancelled(Exception):
-    """Raised by a render (``render.bokeh.bokeh``) when its ``cancelled()`` callback returns True."""
-
-
-@dataclass
-class RenderResult:
-    """What a simulation or a bokeh render returns; images on the sensor's frame."""
-
-    image: np.ndarray                 # (H, W, 3) float32, linear
-    info: dict = field(default_factory=dict)
-    sharp: np.ndarray | None = None   # simulate(): the sharp image on the sensor (distorted alike)
-    psf_map: PSFMap | None = None
-    baseline: np.ndarray | None = None  # LensSimulator with baseline_depth_m: the depth-unaware image
-    depth: np.ndarray | None = None   # the depth map on the sensor (NaN where nothing was imaged)
-
-
-def check_image(image, depth, geometry: ImageGeometry | None = None):
-    """(image float32 (H, W, 3), depth float64 (H, W) metres), checked:
-    shapes, finite light, and the frame ``geometry`` says if one is given."""
-    img = np.asarray(image, dtype=np.float32)
-    if img.ndim != 3 or img.shape[2] != 3:
-        raise InputRangeError("image shape", img.shape, "(H, W, 3)")
-    if not np.isfinite(img).all():
-        raise InputRangeError("image", "non-finite values", "finite linear RGB")
-    d = np.asarray(depth, dtype=np.float64)
-    if d.shape != img.shape[:2]:
-        raise InputRangeError("depth map shape", d.shape, f"{img.shape[:2]}, the image's")
-    if geometry is not None and img.shape[:2] != (geometry.height, geometry.width):
-        raise InputRangeError("image shape", img.shape[:2],
-                              f"({geometry.height}, {geometry.width}), as its geometry says")
-    return img, d
-
-
-MAX_FITTED_KERNEL = 129      # px: beyond this a patch-wise FFT blur costs more than it is worth here
-# the warp's interpolation of the sharp image (report simulation-accuracy,
-# MOS-S1 at field 0.7: bilinear 62.3 dB, Keys 78.5, Lanczos-3 82.9, cubic
-# B-spline 84.8 dB, for 0.42 / 0.90 / 1.86 / 1.38 s at 1280 x 1920)
-DEFAULT_INTERPOLATION = "bspline"
-
-
-def check_patch(patch) -> int:
-    """The patch size m (pixels): even, >= 2 (the tent blend takes m / 2 from each side)."""
-    if isinstance(patch, bool) or not isinstance(patch, (int, np.integer)) or patch < 2 or patch % 2:
-        raise InputRangeError("patch", patch, "an even number of pixels >= 2 (16 is the paper's)")
-    return int(patch)
+from .psfmap import PSFMap, psf_map
 
 
 SIM_CONVOLUTIONS = ("fast", "windows")
@@ -96,110 +49,6 @@ def check_convolution(convolution, accelerator) -> tuple[str, str | None]:
             raise InputRangeError("accelerator", accelerator, "none here: torch cannot be imported (Blender's "
                                   "Python has none)")
     return convolution, accelerator
-
-
-def check_within_sensor(geometry: ImageGeometry, what: str = "the image") -> None:
-    """Refuse a frame whose corners lie beyond the sensor (field > 1), before any work."""
-    f = geometry.max_field
-    if f > 1.0 + 1e-9:
-        raise InputRangeError(
-            f"field of {what}'s corner", round(f, 6),
-            "<= 1 (the lens's sensor semi-diagonal): the frame is larger than the sensor; for an over-scan "
-            "render give the sensor's frame (--sensor-size ROWS COLS, and --axis ROW COL) or the image's "
-            "pixel pitch")
-
-
-def check_flag(name: str, value) -> None:
-    """Refuse an on/off option that is not a bool (a truthy string is not a yes)."""
-    if not isinstance(value, (bool, np.bool_)):
-        raise InputRangeError(name, value, "True or False")
-
-
-def open_library(lens, geometry: ImageGeometry, settings: PSFSettings | None = None,
-                 grid: LibraryGrid | None = None, *, response=None, cache: bool = True, fit_depth_m=None,
-                 progress=None) -> PSFLibrary:
-    """The lens's PSF library sampled at the image's pixel pitch.
-
-    settings.pixel_pitch_mm, if set, must be the geometry's (the PSFs of an
-    image are sampled at its own pitch). response: the sensor's spectral
-    response (default: the shipped one).
-    fit_depth_m: a depth map (metres) whose depth bins are computed now; if
-    their PSFs spill out of the settings' kernel (less than 99 % of the rays
-    inside, as a fast lens's defocus blur at full resolution does), the
-    library is reopened with the odd kernel size that holds them, at most
-    MAX_FITTED_KERNEL px (beyond that the usual KernelTooSmallWarning says
-    how much is clipped). Without it the kernel size is the settings'.
-    progress(done, total): called as PSF bins are computed."""
-    s = settings or PSFSettings()
-    if s.pixel_pitch_mm is not None and not math.isclose(s.pixel_pitch_mm, geometry.pixel_pitch_mm, rel_tol=1e-9):
-        raise InputRangeError("pixel pitch", s.pixel_pitch_mm,
-                              f"{geometry.pixel_pitch_mm:.6g} mm, the image's own pixel pitch (give one, not two)")
-    s = replace(s, pixel_pitch_mm=geometry.pixel_pitch_mm)
-    library = PSFLibrary.open(lens, s, grid, response, cache=cache)
-    library.progress = progress
-    if fit_depth_m is None:
-        return library
-    d = np.asarray(fit_depth_m, dtype=np.float64)
-    d = d[valid_depth_mask(d)]
-    if d.size == 0:
-        return library
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", KernelTooSmallWarning)       # answered below by a larger kernel
-        library.ensure(d, clamp_near=True, progress=progress)
-    need = int(library.kernel_size_needed[library.computed].max())
-    if need <= library.kernel_size or library.kernel_size >= MAX_FITTED_KERNEL:
-        return library
-    library = PSFLibrary.open(lens, replace(s, kernel_size=min(need | 1, MAX_FITTED_KERNEL)), grid, response,
-                              cache=cache)
-    library.progress = progress
-    library.ensure(d, clamp_near=True)
-    return library
-
-
-def check_library_pitch(library: PSFLibrary, geometry: ImageGeometry) -> None:
-    """A given library must be sampled at the image's pixel pitch (mm)."""
-    if not math.isclose(library.pixel_pitch_mm, geometry.pixel_pitch_mm, rel_tol=1e-9):
-        raise InputRangeError("library pixel pitch", library.pixel_pitch_mm,
-                              f"{geometry.pixel_pitch_mm:.6g} mm, the image's (open it with open_library)")
-
-
-def _sensor_mapping(distortion):
-    """(ideal radius of a real radius, the table's reach in mm, its name) for
-    a RadialDistortion table, or the identity for None."""
-    if distortion is None:
-        return (lambda r: r), math.inf, "identity"
-    return distortion.ideal_from_real, distortion.reach_real_mm, "real-height"
-
-
-def on_sensor(image, depth, lens, geometry: ImageGeometry, *, source_geometry: ImageGeometry | None = None,
-              distortion=None, interpolation: str = DEFAULT_INTERPOLATION):
-    """An ideal (pinhole) image and its depth map moved to where the lens puts
-    them on the sensor: (image (H, W, C) float32, depth (H, W) float64, valid
-    (H, W) bool) on ``geometry``'s grid.
-
-    distortion: a RadialDistortion table (the lens's real chief rays), or
-    None for none (then the output is the source resampled onto
-    ``geometry``: a crop of an over-scan render, say). The image is
-    interpolated with ``interpolation``; the depth map by its nearest
-    sample (a blend of two depths is no depth). Pixels whose source lies
-    outside the input are 0 with depth NaN (invalid)."""
-    from .distortion import _warp
-
-    src = source_geometry or geometry
-    if distortion is None and src == geometry:
-        d = np.asarray(depth, dtype=np.float64)
-        return np.asarray(image, np.float32), d, np.ones(d.shape, bool)
-    radius, reach, table = _sensor_mapping(distortion)
-    img, valid = _warp(image, geometry, src, radius, "the sensor", reach, table, interpolation=interpolation)
-    # higher-order interpolation rings below 0 at edges; light is never negative
-    np.maximum(img, 0.0, out=img)
-    # depths travel as finite codes (nearest copies them): -1 infinity, -2 invalid
-    d = np.asarray(depth, dtype=np.float64)
-    code = np.where(np.isinf(d) & (d > 0), -1.0, np.where(valid_depth_mask(d), d, -2.0))
-    dep, _ = _warp(code, geometry, src, radius, "the sensor", reach, table, interpolation="nearest")
-    dep = dep.astype(np.float64)
-    dep = np.where(dep == -1.0, np.inf, np.where(valid & (dep > 0), dep, np.nan))
-    return img, dep, valid
 
 
 @dataclass(frozen=True)
@@ -314,11 +163,10 @@ class LensSimulator:
     """
 
     def __init__(self, lens, options: SimulateOptions, *, library: PSFLibrary | None = None, fit_depth_m=None,
-                 progress=None, **old):
+                 progress=None):
         from . import fft
         from .distortion import radial_distortion
 
-        options = _old_spelling("LensSimulator", options, old, geometry_needed=True)
         if not isinstance(options, SimulateOptions):
             raise InputRangeError("options", options, "SimulateOptions (how to simulate)")
         geometry = options.frame
@@ -362,7 +210,7 @@ class LensSimulator:
         g = self.geometry
         grown = replace(g, height=g.height + 2 * m, width=g.width + 2 * m,
                         center_px=(g.center_px[0] + m, g.center_px[1] + m))
-        radius, reach, _ = _sensor_mapping(self.table)
+        radius, reach, _ = sensor_mapping(self.table)
         try:
             _, _, valid = _source_positions(grown, self.source_geometry, radius, reach)
         except InputRangeError:
@@ -432,8 +280,7 @@ class LensSimulator:
 
 
 def simulate(image, depth, lens, options: SimulateOptions | None = None, *, library: PSFLibrary | None = None,
-             fixed_depth_m: float | None = None, noise: dict | None = None, seed: int | None = None,
-             **old) -> RenderResult:
+             fixed_depth_m: float | None = None, noise: dict | None = None, seed: int | None = None) -> RenderResult:
     """Aberrated image of an all-in-focus ``image`` (H, W, 3) float32 linear
     with metric ``depth`` (H, W) through ``lens``: :class:`LensSimulator`
     used once. options: how (:class:`SimulateOptions`; None: the defaults);
@@ -441,7 +288,6 @@ def simulate(image, depth, lens, options: SimulateOptions | None = None, *, libr
     diagonal. library: the PSFs at the frame's pixel pitch (default: opened,
     its kernel grown to hold this depth map's blur). fixed_depth_m, noise,
     seed: as :meth:`LensSimulator.__call__`."""
-    options = _old_spelling("simulate", options, old)
     if options is None:
         options = SimulateOptions()
     elif not isinstance(options, SimulateOptions):
@@ -454,33 +300,3 @@ def simulate(image, depth, lens, options: SimulateOptions | None = None, *, libr
     return sim._run(img, d, fixed_depth_m, noise, seed)
 
 
-def _old_spelling(where: str, options, old: dict, geometry_needed: bool = False):
-    """The options of the old spelling (an ImageGeometry in the options'
-    place, SimulateOptions' fields as keywords), kept one release with a
-    warning; unknown keywords are refused as Python refuses them."""
-    names = set(SimulateOptions.__dataclass_fields__)
-    unknown = sorted(set(old) - names)
-    if unknown:
-        raise TypeError(f"{where}() got an unexpected keyword argument {unknown[0]!r}")
-    if not old and not isinstance(options, ImageGeometry):
-        return options
-    if isinstance(options, ImageGeometry):
-        old = {"geometry": options, **old}
-        options = None
-    if options is not None:
-        raise TypeError(f"{where}(): give SimulateOptions or its fields as keywords, not both")
-    given = ", ".join(f"{k}=" for k in sorted(old))
-    warnings.warn(f"{where}(..., {given}...) is the old spelling: pass SimulateOptions({given}...); it goes in "
-                  "the next release",
-                  DeprecationWarning, stacklevel=3)
-    return SimulateOptions(**old)
-
-
-def __getattr__(name):
-    # the bokeh moved to render/bokeh.py; its old import keeps working one release
-    if name in ("BokehOptions", "bokeh"):
-        warnings.warn(f"dcdi_core.render.simulate.{name} is now dcdi_core.render.bokeh.{name}; the old name goes "
-                      "in the next release", DeprecationWarning, stacklevel=2)
-        from . import bokeh as module
-        return getattr(module, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

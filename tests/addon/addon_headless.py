@@ -146,8 +146,26 @@ scene.render.use_file_extension = False
 scene.render.filepath = str(OUT / "multilayer.exr")
 bpy.ops.render.render(write_still=True)
 
+# what the add-on holds (one session), with the preview on, before and after the disable
+SESSION = sys.modules[f"{MODULE}.session"].SESSION
+viewport = sys.modules[f"{MODULE}.viewport"]
+bpy.context.window_manager.dcdi_lens_bokeh_status.viewport_preview = True
+
+
+def held():
+    return {"lens_names": len(SESSION.lens_names), "lenses": len(SESSION.lenses), "readouts": len(SESSION.readouts),
+            "lens_items": len(SESSION.lens_items), "lens_folders": len(SESSION.lens_folders.files),
+            "handles": [o for o in ("preview", "render", "thumbnails") if SESSION.holds(o)],
+            "preview_on": SESSION.preview is not None and SESSION.preview.enabled,
+            "thumbnails": SESSION.thumbnails.pcoll is not None}
+
+
+res["session_before_disable"] = held()
+
 # disable: nothing of the add-on stays registered
 res["disable"] = sorted(bpy.ops.preferences.addon_disable(module=MODULE))
+res["session_after_disable"] = held()
+res["preview_handler_left"] = viewport.on_depsgraph_update in bpy.app.handlers.depsgraph_update_post
 res["leftovers"] = [n for n in dir(bpy.types) if n.startswith("DCDI_")]
 res["scene_prop_left"] = hasattr(bpy.types.Scene, "dcdi_lens_bokeh")
 res["wm_prop_left"] = hasattr(bpy.types.WindowManager, "dcdi_lens_bokeh_status")

@@ -27,7 +27,7 @@ viewport = importlib.import_module(f"{MODULE}.viewport")
 made_calls = []                                   # the lens list's thumbnails made (asked for at every enum read)
 _thumbnail = logic.psf_thumbnail
 logic.psf_thumbnail = lambda lens, *a, **k: made_calls.append(lens.id) or _thumbnail(lens, *a, **k)
-P = viewport.PREVIEW
+P = viewport.preview()                            # the session's preview
 s = scene.dcdi_lens_bokeh
 s.lens = "6p"
 s.focus_mode = "DISTANCE"
@@ -109,15 +109,16 @@ res["active_focus"] = {"mode": s.focus_mode, "object": s.focus_object.name if s.
 
 # the lens list's thumbnails: made on a thread, collected on the main thread
 thumbs = importlib.import_module(f"{MODULE}.thumbnails")
+thumb_state = importlib.import_module(f"{MODULE}.session").SESSION.thumbnails
 entries = logic.lens_catalogue()
 first = [thumbs.icon(e) for e in entries]
-thumbs._STATE["thread"].join(120)
+thumb_state.thread.join(120)
 for _ in range(5):                                # reading the lens enum asks for the icons each time
     _ = s.lens
     [thumbs.icon(e) for e in entries]
-thumbs._STATE["thread"].join(120)
+thumb_state.thread.join(120)
 made = thumbs.collect()
-pcoll = thumbs._STATE["pcoll"]
+pcoll = thumb_state.pcoll
 res["thumbnails"] = {"lenses": len(entries), "first": first, "made": made, "made_calls": sorted(made_calls),
                      "sizes": [tuple(pcoll[thumbs._key(e)].image_size) for e in entries if thumbs._key(e) in pcoll]}
 s.lens = "mos-s1"                                 # the enum still takes lenses by id

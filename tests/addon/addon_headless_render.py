@@ -23,8 +23,16 @@ scene, cam, cube = build_scene()
 res["install"], _ = install(ZIP)
 logic = sys.modules[f"{MODULE}.logic"]
 hook = sys.modules[f"{MODULE}.render_hook"]
-operators = sys.modules[f"{MODULE}.operators"]
-runtime = importlib.import_module("dcdi_core.models.runtime.library")
+reading = sys.modules[f"{MODULE}.reading"]
+SESSION = sys.modules[f"{MODULE}.session"].SESSION
+
+
+def LAST():
+    """What the last render through the lens did (the session's)."""
+    return SESSION.last_render
+
+
+runtime = importlib.import_module("dcdi_core.psf.sources")
 res["handlers_registered"] = sorted(n for n, fn in hook.HANDLERS if fn in getattr(bpy.app.handlers, n))
 
 # count the PSF sources built (one per lens, pitch and focus)
@@ -63,12 +71,12 @@ counts0 = data_counts()
 
 # 1. a still, written (as `blender -b -f`)
 bpy.ops.render.render(write_still=True)
-res["still"] = {"frames": hook.LAST.get("frames"), "error": hook.LAST.get("error"),
+res["still"] = {"frames": LAST().get("frames"), "error": LAST().get("error"),
                 "builds": list(builds), "image": hook.RESULT_IMAGE in bpy.data.images}
-rgb, z = hook.LAST["last_passes"]
+rgb, z = LAST()["last_passes"]
 np.save(OUT / "still_rgb.npy", rgb)
 np.save(OUT / "still_z.npy", z)
-res["entrance_pupil_mm"] = logic.lens_readout(operators.chosen_lens(s)[1])["entrance_pupil_mm"]
+res["entrance_pupil_mm"] = logic.lens_readout(reading.chosen_lens(s)[1])["entrance_pupil_mm"]
 
 after = {k: snapshot(v) for k, v in watched.items()}
 after["view_layers"] = [snapshot(v) for v in scene.view_layers]
@@ -87,11 +95,11 @@ for f, zpos in ((1, -1.0), (3, -2.0)):
 want = {}
 for f in (1, 2, 3):
     scene.frame_set(f)
-    want[f] = operators.focus_metres(scene, cam, s, res["entrance_pupil_mm"])
+    want[f] = reading.focus_metres(scene, cam, s, res["entrance_pupil_mm"])
 scene.frame_set(1)
 r.filepath = str(OUT / "moving" / "f_")
 bpy.ops.render.render(animation=True)
-res["moving"] = {"frames": hook.LAST.get("frames"), "error": hook.LAST.get("error"), "want_focus": want,
+res["moving"] = {"frames": LAST().get("frames"), "error": LAST().get("error"), "want_focus": want,
                  "builds": list(builds), "files": sorted(p.name for p in (OUT / "moving").glob("*.exr"))}
 
 # 3. a fixed focus: the PSFs once for every frame
@@ -100,7 +108,7 @@ s.focus_mode = "DISTANCE"
 s.focus_distance = 1.0
 r.filepath = str(OUT / "fixed" / "f_")
 bpy.ops.render.render(animation=True)
-res["fixed"] = {"frames": hook.LAST.get("frames"), "error": hook.LAST.get("error"), "builds": list(builds)}
+res["fixed"] = {"frames": LAST().get("frames"), "error": LAST().get("error"), "builds": list(builds)}
 
 # 4. a movie output is refused before any work, the render left as it is
 try:

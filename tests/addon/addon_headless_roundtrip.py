@@ -41,9 +41,9 @@ from addon_scene import MODULE, StubLayout, build_scene, data_counts, diff, erro
 res: dict = {}
 scene, cam, cube = build_scene()
 res["install"], _ = install(ZIP)
-ops_mod = sys.modules[f"{MODULE}.operators"]
+SESSION = sys.modules[f"{MODULE}.session"].SESSION
 logic = sys.modules[f"{MODULE}.logic"]
-registry = importlib.import_module("dcdi_core.models.registry")
+registry = importlib.import_module("dcdi_core.shipped")
 # every info report of a finished Correct (the operator's report goes to Blender's log, not to Python)
 reports = []
 _correction_report = logic.correction_report
@@ -114,7 +114,7 @@ res["images_after_simulate"] = images()
 after_sim, imgs_sim = state(), images()
 s.correction_method = "NETWORK"
 res["no_torch_error"] = error_of(lambda: bpy.ops.dcdi.correct_lens_simulation())
-sim = ops_mod._SIMULATION
+sim = SESSION.simulation
 try:                                    # the worker's path (execute after poll) says the same
     logic.choose_correction("network", LENS, sim["pixel_pitch_mm"])
     res["no_torch_run"] = None
@@ -194,7 +194,7 @@ res["simulate_noise"] = sorted(bpy.ops.dcdi.simulate_lens())
 res["line_after_new_simulation"] = st.correction
 save("Lens Simulation", "rt-sim-noise")
 for k in ("rgb", "depth", "sensor_depth"):
-    np.save(OUT / f"rt-noise-{k}.npy", ops_mod._SIMULATION[k])
+    np.save(OUT / f"rt-noise-{k}.npy", SESSION.simulation[k])
 correct("DECONVOLUTION", "deconv_noise")
 s.sensor_noise = False
 s.correction_method = "AUTO"
@@ -203,6 +203,6 @@ s.correction_method = "AUTO"
 res["disable"] = sorted(bpy.ops.preferences.addon_disable(module=MODULE))
 res["leftovers"] = [n for n in dir(bpy.types) if n.startswith("DCDI_")]
 res["operators_left"] = [n for n in ("simulate_lens", "correct_lens_simulation") if n in dir(bpy.ops.dcdi)]
-res["simulation_kept"] = bool(ops_mod._SIMULATION)
+res["simulation_kept"] = bool(SESSION.simulation)
 res["correct_reports"] = reports
 (OUT / "result.json").write_text(json.dumps(res, indent=1, default=str))

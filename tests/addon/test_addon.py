@@ -81,7 +81,7 @@ def test_zip_is_an_extension_bundling_the_engines_wheel(addon_zip, tmp_path):
     assert not any(n.startswith((f"{EXT_ID}/dcdi_core/", f"{EXT_ID}/lenses/")) for n in names)
     assert f"{EXT_ID}/core.py" not in names
     tools = {p.name for p in (ROOT / "blender_addon" / "tools").glob("*.py")}
-    assert {"factory.py", "render_noise.py", "depth_histogram.py", "screenshots.py"} <= tools
+    assert {"render_noise.py", "depth_histogram.py", "screenshots.py"} <= tools
     assert not any(n.rsplit("/", 1)[-1] in tools - {"__init__.py"} or "/tools/" in n or "/factory/" in n
                    or "__pycache__" in n for n in names)
     # the wheel carries every shipped data file
@@ -142,7 +142,7 @@ def _modules(addon_zip) -> list[str]:
 # what the add-on may not need in Blender's own Python: its bpy modules, the
 # networks' torch code, the reports' plotting
 _BPY_ONLY = {f"{EXT_ID}.{m}" for m in ("operators", "panel", "props", "bpy_render", "render_hook", "viewport",
-                                       "thumbnails")}
+                                       "thumbnails", "reading")}
 
 
 def test_every_module_of_the_zip_imports(addon_zip, tmp_path):
@@ -157,8 +157,7 @@ def test_every_module_of_the_zip_imports(addon_zip, tmp_path):
     bare = _import_all(addon_zip, tmp_path / "bare", modules, ["bpy", "torch", "scipy", "tqdm", "OpenImageIO",
                                                                 "OpenEXR", "matplotlib"])
     failed = {m: e for m, e in bare.items() if e}
-    optional = {m for m in modules if (m.startswith("dcdi_core.models.") and ".runtime" not in m)
-                or m.startswith("dcdi_core.experiments.")}
+    optional = {m for m in modules if m.startswith("dcdi_core.models.") and ".runtime" not in m}
     assert set(failed) <= _BPY_ONLY | optional, failed
     assert all(any(w in e for w in ("bpy", "torch", "matplotlib")) for e in failed.values()), failed
     if importlib.util.find_spec("bpy") is None:
@@ -321,6 +320,17 @@ def test_disable_leaves_nothing_registered(headless):
     assert not headless["scene_prop_left"] and not headless["wm_prop_left"] and not headless["operator_left"]
 
 
+def test_disable_clears_the_session_in_one_call(headless):
+    """What the add-on held (caches, the lens list, the preview and its
+    handlers, the render handlers, the thumbnails) is gone after the disable."""
+    before, after = headless["session_before_disable"], headless["session_after_disable"]
+    assert before["handles"] == ["preview", "render", "thumbnails"] and before["preview_on"] and before["thumbnails"]
+    assert all(before[k] > 0 for k in ("lens_names", "lenses", "readouts", "lens_items", "lens_folders")), before
+    assert after == {"lens_names": 0, "lenses": 0, "readouts": 0, "lens_items": 0, "lens_folders": 0, "handles": [],
+                     "preview_on": False, "thumbnails": False}
+    assert not headless["preview_handler_left"]
+
+
 def test_numpy_exr_reader_matches_openimageio(headless):
     from dcdi_core.io.images import read_depth, read_image
     from dcdi_core.io.rawexr import RawExrError, read_exr_channels
@@ -386,10 +396,10 @@ def no_tracing(*a, **k):
 
 for m in ("psf.library", "psf.compute"):
     setattr(importlib.import_module("dcdi_core." + m), "compute_sources", no_tracing)
-lib_mod = importlib.import_module("dcdi_core.models.runtime.library")
+lib_mod = importlib.import_module("dcdi_core.psf.sources")
 assert str(lib_mod.SHIPPED).startswith({site!r}) and lib_mod.SHIPPED.exists(), lib_mod.SHIPPED
 lens = logic.load_lens_cached(dict((e.id, e.path) for e in logic.lens_catalogue())["mos-s1"])
-olf = importlib.import_module("dcdi_core.models.runtime.olf").OmniLensField.load(lib_mod.SHIPPED)
+olf = importlib.import_module("dcdi_core.psf.olf").OmniLensField.load(lib_mod.SHIPPED)
 k = olf.psf(lens, [0.0, 0.7], 2.0)
 assert k.shape == (2, 3, 41, 41) and abs(k.sum(axis=(-1, -2)) - 1).max() < 1e-5 and k.min() >= 0
 rng = np.random.default_rng(0)
@@ -479,7 +489,7 @@ def test_correction_model_path_names_the_lenses_with_a_network(tmp_path, monkeyp
     """The choice names the network file it will run: the one given, else
     the lens's shipped one; a lens without one is refused in the engine's
     words shown as the panel's."""
-    import dcdi_core.models.registry as registry
+    import dcdi_core.shipped as registry
     monkeypatch.setattr(registry, "WEIGHTS_DIR", tmp_path)
     monkeypatch.setattr(logic, "torch_missing", lambda: None)
     with pytest.raises(logic.BokehInputError, match="no shipped DACN for lens 6p .shipped for: none.; give "
@@ -536,7 +546,7 @@ def test_simulate_and_correct_leave_the_scene_as_it_was(round_trip):
 def test_simulation_is_dcdi_cores_simulate_of_the_render(round_trip):
     """The image Simulate shows is dcdi_core's depth-aware simulate() of the
     operator's own render (the same PSF source: the bundled OLF), blurred."""
-    from dcdi_core.models.runtime.library import psf_source
+    from dcdi_core.psf.sources import psf_source
     from dcdi_core.optics.lens import load_lens
     from dcdi_core.render.geometry import ImageGeometry
     from dcdi_core.render.simulate import simulate
@@ -568,7 +578,7 @@ def test_simulation_is_dcdi_cores_simulate_of_the_render(round_trip):
 def test_correct_runs_the_shipped_dacn_on_the_simulation_with_its_depth(round_trip, tiny_dacn):
     from dcdi_core.models.dacn.correct import load_dacn
     from dcdi_core.optics.lens import load_lens
-    from dcdi_core.pipeline import NetworkCorrection, recover
+    from dcdi_core.app.correction_rule import NetworkCorrection, recover
     from dcdi_core.render.geometry import ImageGeometry
     d = round_trip["dir"]
     r = round_trip
@@ -662,7 +672,7 @@ def test_psf_source_messages_on_corrects_path_name_no_option(monkeypatch):
     """The PSF source Correct's deconvolutions report, for a lens without a
     shipped basis and no OLF: the engine names its request's fields, the
     panel shows its own words (no CLI option), the CLI its options."""
-    import dcdi_core.models.runtime.library as library
+    import dcdi_core.psf.sources as library
     from dcdi_core.cli.common import WORDS
     from dcdi_core.errors import in_words
     from dcdi_core.optics.lens import Lens
@@ -691,7 +701,7 @@ def _psnr(image, sharp, where):
 
 def _sharp_on_the_sensor(rgb, depth):
     """The render as a perfect lens would image it on the sensor (simulate's aligned sharp image)."""
-    from dcdi_core.models.runtime.library import psf_source
+    from dcdi_core.psf.sources import psf_source
     from dcdi_core.optics.lens import load_lens
     from dcdi_core.render.geometry import ImageGeometry
     from dcdi_core.render.simulate import simulate
@@ -703,7 +713,7 @@ def _sharp_on_the_sensor(rgb, depth):
 
 def _deconvolved(capture, sensor_depth, noise):
     from dcdi_core.correct import DeconvOptions, deconvolve
-    from dcdi_core.models.runtime.library import psf_source
+    from dcdi_core.psf.sources import psf_source
     from dcdi_core.optics.lens import load_lens
     from dcdi_core.render.geometry import ImageGeometry
     lens = load_lens(ROUND_TRIP_LENS)
@@ -756,14 +766,14 @@ def test_correct_after_sensor_noise_weighs_by_the_sensors_noise_model(round_trip
 
 
 def test_auto_picks_what_the_engines_rule_says(round_trip, tiny_dacn, tmp_path, monkeypatch):
-    """The operator's Auto against dcdi_core.pipeline.choose_correction asked
+    """The operator's Auto against dcdi_core.app.correction_rule.choose_correction asked
     the same (the panel's option names): no shipped network, a shipped one
     not recorded better than the deconvolution, a network file given; where
     the rule picks a network and torch is blocked, the deconvolution runs."""
     import shutil
 
-    import dcdi_core.models.registry as registry
-    from dcdi_core.pipeline import choose_correction
+    import dcdi_core.shipped as registry
+    from dcdi_core.app.correction_rule import choose_correction
     r = round_trip
     pitch = r["pixel_pitch_mm"]
 
@@ -796,8 +806,8 @@ def test_auto_runs_a_shipped_network_recorded_better_at_its_pitch(tiny_dacn, tmp
     import dataclasses
     import shutil
 
-    import dcdi_core.models.registry as registry
-    from dcdi_core.pipeline import trained_pitch_mm
+    import dcdi_core.shipped as registry
+    from dcdi_core.app.correction_rule import trained_pitch_mm
     shutil.copy(tiny_dacn, tmp_path / f"dacn-{ROUND_TRIP_LENS}.npz")
     monkeypatch.setattr(registry, "WEIGHTS_DIR", tmp_path)
     monkeypatch.setitem(registry.NETWORKS, "dacn", dataclasses.replace(registry.NETWORKS["dacn"],
@@ -828,7 +838,7 @@ def _capture_at_the_shipped_pitch(tmp_path, lens_id, height=64, width=96):
     (a crop of the sensor round the axis): its EXR and depth files, and
     (capture as read back, depth on the sensor, lens, geometry)."""
     from dcdi_core.io.images import read_image, write_image
-    from dcdi_core.models.runtime.library import psf_source
+    from dcdi_core.psf.sources import psf_source
     from dcdi_core.render.geometry import ImageGeometry
     from dcdi_core.render.simulate import SimulateOptions, simulate
     from dcdi_core.render.synthetic import synthetic_rgbd
@@ -865,7 +875,7 @@ def test_network_runs_the_shipped_refining_dacn_as_dcdi_correct_does(lens_id, tm
     pytest.importorskip("torch")
     monkeypatch.setenv("DCDI_CACHE_DIR", str(tmp_path / "cache"))
     from dcdi_core.models.dacn.correct import load_dacn
-    from dcdi_core.pipeline import shipped_model
+    from dcdi_core.app.correction_rule import shipped_model
     spec = load_dacn(shipped_model("dacn", lens_id))[0].spec
     assert spec.refine and spec.condition                       # the defect's case: a refining, conditioned DACN
     capture, depth, lens, geom = _capture_at_the_shipped_pitch(tmp_path, lens_id)
@@ -920,9 +930,9 @@ def test_network_tells_a_one_depth_dacn_its_depth_as_dcdi_correct_does(tmp_path,
     correct --model FILE` does."""
     pytest.importorskip("torch")
     monkeypatch.setenv("DCDI_CACHE_DIR", str(tmp_path / "cache"))
-    from dcdi_core.models.dacn.export import read_dacn_file
-    from dcdi_core.models.runtime.npz import write_model_npz
-    from dcdi_core.pipeline import shipped_model
+    from dcdi_core.models.runtime.dacn_file import read_dacn_file
+    from dcdi_core.io.model_npz import write_model_npz
+    from dcdi_core.app.correction_rule import shipped_model
     meta, arrays = read_dacn_file(shipped_model("dacn", "mos-s1"))
     meta = {k: v for k, v in meta.items() if k != "checksum"}
     meta["da2t"] = dict(meta["da2t"], told_depth_m=2.0)
@@ -981,7 +991,7 @@ def test_the_bokehs_psf_source_message_speaks_the_panels_words():
     from conftest import singlet_dict
     from dcdi_core.cli.common import WORDS
     from dcdi_core.errors import in_words
-    from dcdi_core.models.runtime.library import psf_source
+    from dcdi_core.psf.sources import psf_source
     from dcdi_core.optics.lens import Lens
     lens = Lens.from_dict(singlet_dict())
     message = psf_source(lens, pixel_pitch_mm=0.05).message

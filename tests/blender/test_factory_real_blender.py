@@ -26,7 +26,7 @@ pytestmark = pytest.mark.realblender
 
 BLOCK_OIIO = "import sys; sys.modules['OpenImageIO'] = None"
 FACTS = ("import json, sys; sys.path.insert(0, {root!r}); import bpy\n"
-         "from blender_addon.factory.batch import denoiser_available\n"
+         "from blender_addon.factory.blender import denoiser_available\n"
          "try:\n    import OpenImageIO; oiio = True\nexcept ImportError:\n    oiio = False\n"
          "print('FACTS ' + json.dumps({{'version': bpy.app.version_string, 'denoiser': denoiser_available(), "
          "'oiio': oiio}}))")
@@ -87,7 +87,7 @@ def fingerprint(folder: Path) -> dict:
 @pytest.mark.parametrize("recipe", ["room", "tabletop"])
 def test_factory_in_a_real_blender(blender, facts, psf_cache, tmp_path, recipe, oiio):
     from dcdi_core.dataset.rgbd import FactoryFolder
-    from dcdi_core.io import images
+    from dcdi_core.io import image_file as images
 
     a, b = tmp_path / "a", tmp_path / "b"
     p = factory(blender, a, recipe, oiio=oiio, cache=psf_cache)
@@ -127,7 +127,7 @@ def test_factory_in_a_real_blender(blender, facts, psf_cache, tmp_path, recipe, 
             sys.modules.pop("OpenImageIO", None)
         else:
             sys.modules["OpenImageIO"] = saved
-    r = subprocess.run([sys.executable, "-m", "dcdi_core", "report", "dataset", str(a), "--out", str(tmp_path / "r"),
+    r = subprocess.run([sys.executable, "-m", "dcdi_core", "dataset", "stats", str(a), "--out", str(tmp_path / "r"),
                         "--lens", "mos-s1"], capture_output=True, text=True, cwd=ROOT, timeout=300,
                        env=_env(psf_cache))
     assert r.returncode == 0 and (tmp_path / "r" / "report.md").exists(), r.stderr[-3000:]

@@ -98,7 +98,7 @@ def test_bench_trace_optiland_spec_is_mos_s1():
     import ast
     from pathlib import Path
 
-    from dcdi_core.experiments.bench import optiland_spec
+    from dcdi_core.bench.trace import optiland_spec
     from dcdi_core.optics.aiming import sources
     from dcdi_core.optics.lens import load_lens
 
@@ -114,7 +114,7 @@ def test_bench_trace_optiland_spec_is_mos_s1():
     assert spec["object_distance_mm"] == 2000.0 and spec["pupil_samples"] == 64
     # field 0 on axis; field 0.7 below it (its image above), the entrance pupil being the stop at z = 0
     assert spec["field_heights_mm"][0] == 0.0 and spec["field_heights_mm"][1] == pytest.approx(-2000 * aimed.p[1, 0])
-    script = Path(__file__).parents[2] / "dcdi_core" / "experiments" / "optiland_spot.py"
+    script = Path(__file__).parents[2] / "dcdi_core" / "bench" / "optiland_spot.py"
     tops = {a.name.split(".")[0] for n in ast.walk(ast.parse(script.read_text())) if isinstance(n, ast.Import)
             for a in n.names}
     tops |= {n.module.split(".")[0] for n in ast.walk(ast.parse(script.read_text())) if isinstance(n, ast.ImportFrom)}

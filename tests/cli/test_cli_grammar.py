@@ -1,5 +1,5 @@
 """The `dcdi` command's grammar and user-facing guarantees: the noun-verb
-spellings and the old ones, `correct` with the shipped network (`dacn
+spellings (the old ones gone), `correct` with the shipped network (`dacn
 correct`: the network alone, `correct --method dacn`), damaged model
 files ending in one line, the depth-unit warning of `dof`, the generated
 reference page, and the engine's render request the command builds."""
@@ -14,7 +14,7 @@ from conftest import write_rgbd_scene
 from dcdi_core.cli import build_parser, main
 from support.cli import run_cli
 from dcdi_core.io.images import write_depth, write_image
-from dcdi_core.models.registry import network
+from dcdi_core.shipped import network
 
 FAST = ["--rays", "16", "--wavelengths", "3", "--kernel", "15"]
 WEIGHTS = Path(__file__).resolve().parents[2] / "dcdi_core" / "models" / "weights"
@@ -39,19 +39,6 @@ def scene(tmp_path, monkeypatch):
 
 
 # ------------------------------------------------------------------ grammar
-@pytest.mark.parametrize("new, old", [
-    (["dacn", "train", "--data", "d", "-o", "r"], ["train", "dacn", "--data", "d", "-o", "r"]),
-    (["depth", "train", "--data", "d", "-o", "r"], ["train", "depth", "--data", "d", "-o", "r"]),
-    (["dacn", "eval", "run", "--data", "d"], ["eval", "run", "--data", "d"]),
-])
-def test_old_and_new_spellings_reach_the_same_command_with_the_same_options(new, old):
-    p = build_parser()
-    a, b = vars(p.parse_args(new)), vars(p.parse_args(old))
-    assert a["func"] is b["func"]
-    differ = {k for k in set(a) | set(b) if a.get(k) != b.get(k)}
-    assert differ <= {"command", "dacn_command", "depth_command", "train_command", "deprecated_for"}
-
-
 def test_dacn_correct_is_correct_with_the_network_and_its_options_only():
     p = build_parser()
     net = vars(p.parse_args(["dacn", "correct", "--image", "i", "-o", "o.exr"]))
@@ -66,22 +53,17 @@ def test_dacn_correct_is_correct_with_the_network_and_its_options_only():
             "psf_source"} <= set(top) - set(net)
 
 
-def test_an_old_spelling_works_with_a_one_line_note(tmp_path, capsys):
-    code, _, err = _cli(capsys, "eval", tmp_path / "no-run", "--data", tmp_path)
-    lines = err.strip().splitlines()
-    assert lines[0] == "dcdi: note: 'dcdi eval' is deprecated and goes in the next release; use 'dcdi dacn eval'"
-    _one_error_line(code, err, "no-run", "does not exist")
-    code, _, err = _cli(capsys, "dacn", "eval", tmp_path / "no-run", "--data", tmp_path)
-    assert "note" not in err and code == 2
-
-
-def test_old_spellings_are_not_listed_in_the_help(capsys):
+def test_the_old_spellings_are_gone_and_the_nouns_listed(capsys):
     with pytest.raises(SystemExit):
         main(["--help"])
     text = capsys.readouterr().out
-    assert "\n    train" not in text and "\n    eval" not in text
-    for noun in ("dacn", "olf", "depth", "correct", "dof"):
+    assert "\n    train" not in text and "\n    eval" not in text and "\n    report" not in text
+    for noun in ("dacn", "olf", "depth", "correct", "dof", "dataset", "bench"):
         assert f"\n    {noun}" in text
+    # the old spellings and the lab's reports (python -m lab report ...) are no verbs of the product
+    for gone in (["train", "dacn", "--data", "d", "-o", "r"], ["eval", "run", "--data", "d"], ["report", "olf"]):
+        with pytest.raises(SystemExit):
+            build_parser().parse_args(gone)
 
 
 # ------------------------------------------------------------------ correct with the shipped DACN
@@ -133,9 +115,9 @@ def _damaged(tmp_path) -> dict:
 
 
 def test_the_runtime_readers_turn_any_damage_into_a_model_file_error(tmp_path):
-    from dcdi_core.models.errors import ModelFileError
-    from dcdi_core.models.runtime.npz import read_model_npz
-    from dcdi_core.models.runtime.olf import read_olf_file
+    from dcdi_core.errors import ModelFileError
+    from dcdi_core.io.model_npz import read_model_npz
+    from dcdi_core.psf.olf import read_olf_file
     for path in _damaged(tmp_path).values():
         for read in (read_olf_file, lambda p: read_model_npz(p, "dcdi-dacn", 1, "DACN")):
             with pytest.raises(ModelFileError, match=path.name):
@@ -187,10 +169,10 @@ def test_dof_warns_about_a_depth_map_in_millimetres(scene, capsys):
 
 # ------------------------------------------------------------------ the reference page
 def test_docs_cli_md_is_the_generated_reference():
-    from dcdi_core.cli.reference import DOC, reference
+    from lab.cli_reference import DOC, reference
     text = reference()
     assert DOC.read_text(encoding="utf-8") == text, \
-        "docs/cli.md is out of date: run python -m dcdi_core.cli.reference --write"
+        "docs/cli.md is out of date: run python -m lab cli-reference --write"
     for command in ("dcdi dacn train", "dcdi olf info", "dcdi depth export", "dcdi correct", "--image-pixel-pitch"):
         assert command in text
 

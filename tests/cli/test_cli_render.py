@@ -7,6 +7,7 @@ import pytest
 from conftest import write_rgbd_scene
 
 from dcdi_core.cli import main
+from lab.cli import main as lab_main
 from dcdi_core.io.images import read_image, write_depth, write_image
 from dcdi_core.render.synthetic import synthetic_rgbd
 
@@ -67,7 +68,7 @@ def test_mismatched_depth_is_a_clear_error(scene, capsys):
 @pytest.mark.slow
 def test_simulation_accuracy_report_quick(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("DCDI_CACHE_DIR", str(tmp_path / "cache"))
-    code = main(["report", "simulation-accuracy", "--quick", "--out", str(tmp_path)])
+    code = lab_main(["report", "simulation-accuracy", "--quick", "--out", str(tmp_path)])
     assert code == 0
     md = (tmp_path / "simulation-accuracy-mos-s1.md").read_text()
     assert "per-pixel reference" in md and "occlusion-aware layers" in md

@@ -53,7 +53,7 @@ def test_correct_deconvolves_a_lens_without_a_network_and_gains_psnr(capture, ca
     assert after > before + 1.0, (before, after)
 
 def test_auto_picks_the_deconvolution_over_a_shipped_network_and_says_why(capture, capsys, monkeypatch):
-    from dcdi_core.models.registry import network
+    from dcdi_core.shipped import network
     if "mos-s1" not in network("dacn").shipped_keys():
         pytest.skip("no shipped DACN of mos-s1")
     dacn_recorded_better(monkeypatch, ())          # as if the study had not found it better

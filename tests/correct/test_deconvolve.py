@@ -9,7 +9,7 @@ import pytest
 
 from dcdi_core.correct import DeconvOptions, NoiseModel, deconvolve, estimate_noise
 from dcdi_core.errors import InputRangeError
-from dcdi_core.models.runtime.library import psf_source
+from dcdi_core.psf.sources import psf_source
 from dcdi_core.optics.lens import load_lens
 from dcdi_core.render.geometry import ImageGeometry
 from dcdi_core.render.simulate import SimulateOptions, LensSimulator

@@ -9,7 +9,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from dcdi_core.models.depth import refine as R  # noqa: E402
-from dcdi_core.models.errors import ModelFileError  # noqa: E402
+from dcdi_core.errors import ModelFileError  # noqa: E402
 from dcdi_core.models.runtime.dfd_refine import DfdRefiner  # noqa: E402
 
 C, LOG = 12, 5
@@ -46,7 +46,7 @@ def test_training_overfits_a_tiny_case():
 
 def test_a_refinement_runs_only_at_its_pitch_and_for_its_lens(tmp_path, monkeypatch):
     from dcdi_core.app import depth
-    from dcdi_core.models import registry
+    from dcdi_core import shipped as registry
     config = R.RefineConfig(width=4, dilations=(1, 1))
     R.export(R.build(config, C), tmp_path / "dfd-refine-mos-s1.npz", "mos-s1", config, C, LOG,
              {"pixel_pitch_mm": 0.0122, "tile_px": 32})

@@ -12,18 +12,3 @@ def test_cost_summary_means_and_shares(tmp_path, capsys):
     assert s["samples"] == 3 and s["wall_s"] == 11.0 and s["cpu_s"] == 20.0 and s["render_cpu_share"] == 0.75
     assert main([str(tmp_path)]) == 0
     assert "| room | 3 | 11.0 | 20.0 | 75 % |" in capsys.readouterr().out
-
-
-def test_the_reproduction_script_parses_and_names_what_ships():
-    import subprocess
-    from pathlib import Path
-    script = Path(__file__).resolve().parents[2] / "blender_addon" / "tools" / "reproduce_dacn.sh"
-    assert subprocess.run(["bash", "-n", str(script)]).returncode == 0
-    text = script.read_text()
-    for needed in ("--seed 1", "--perturb 0 --seed 7", "dacn_study", "dacn export", "--iters", "--lens-pool 4"):
-        assert needed in text
-    bad = subprocess.run(["bash", str(script)], capture_output=True, text=True)
-    assert bad.returncode != 0 and "usage: reproduce_dacn.sh OUT" in bad.stderr
-    depth = script.with_name("reproduce_depth.sh")
-    assert subprocess.run(["bash", "-n", str(depth)]).returncode == 0
-    assert all(n in depth.read_text() for n in ("depth train", "depth export", "--full-sensor", "--seed 0"))

@@ -7,6 +7,11 @@ import pytest
 bpy = pytest.importorskip("bpy")
 
 from blender_addon.factory import batch as factory  # noqa: E402
+from blender_addon.factory import blender, samples  # noqa: E402
+from blender_addon.factory.options import parse  # noqa: E402
+from blender_addon.factory.render import RenderSettings  # noqa: E402
+from blender_addon.factory.settings import settings_differences  # noqa: E402
+from dcdi_core.dataset.factory_folder import finished_ids, settings_from_manifest  # noqa: E402
 from dcdi_core.io.images import read_depth, read_image  # noqa: E402
 
 SMALL = ["--resolution", "24", "32", "--cycles-samples", "2", "--psf-rays", "12", "--psf-wavelengths", "3"]
@@ -40,8 +45,8 @@ def test_sample_round_trips_and_manifest(tmp_path):
         assert np.isfinite(img).all() and (depth > 0).all()
         for kind in ("aberrated", "baseline", "sharp"):
             assert read_image(tmp_path / "mos-s1" / kind / f"{rec['id']}.exr").shape == (24, 32, 3)
-        assert rec["seed"] == factory.sample_seed(5, rec["index"]) and "blender" in rec["versions"]
-        assert rec["render"]["denoising_prefilter"] == factory.RenderSettings().denoising_prefilter
+        assert rec["seed"] == samples.sample_seed(5, rec["index"]) and "blender" in rec["versions"]
+        assert rec["render"]["denoising_prefilter"] == RenderSettings().denoising_prefilter
         assert {"scene", "render", "read", "write", "simulate", "cpu_render"} <= rec["stage_seconds"].keys()
 
 
@@ -115,9 +120,9 @@ def test_lens_simulator_equals_two_simulate_calls():
 
 def test_render_settings_refuse_bad_values():
     with pytest.raises(ValueError, match="denoising quality must be HIGH, BALANCED or FAST"):
-        factory.RenderSettings(denoising_quality="ULTRA")
+        RenderSettings(denoising_quality="ULTRA")
     with pytest.raises(ValueError, match=r"diffuse bounces must be an integer in \[0, 1024\]"):
-        factory.RenderSettings(diffuse_bounces=-1)
+        RenderSettings(diffuse_bounces=-1)
 
 
 def test_band_fractions():
@@ -147,9 +152,9 @@ def test_recipes_cover_the_depth_bands():
 
 
 def test_too_old_blender_is_refused_by_name(monkeypatch, capsys):
-    monkeypatch.setattr(factory, "MIN_BLENDER", (99, 0, 0))
+    monkeypatch.setattr(blender, "MIN_BLENDER", (99, 0, 0))
     with pytest.raises(SystemExit, match=r"is too old: the factory needs Blender >= 99\.0\.0") as info:
-        factory.check_blender()
+        blender.check_blender()
     assert info.value.code == 2                      # as every refusal of the factory
     err = capsys.readouterr().err
     assert err.startswith("factory: error: Blender ") and err.count("\n") == 1
@@ -202,7 +207,7 @@ def test_a_failed_first_sample_leaves_no_folder(tmp_path, capsys, monkeypatch):
 
     def broken(*a, **k):
         raise RenderError("the scene could not be rendered")
-    monkeypatch.setattr(factory, "render_rgbd", broken)
+    monkeypatch.setattr(samples, "render_rgbd", broken)
     out = tmp_path / "ds"
     _refused(capsys, out, "--recipe", "tabletop", "--count", "1", *SMALL, says=["could not be rendered"])
     assert not out.exists()
@@ -242,7 +247,7 @@ def test_torn_manifest_record_is_repaired_and_stale_temporaries_removed(tmp_path
         p.write_bytes(b"partial")
     keep = tmp_path / "aif" / ".notes"                                       # not a temporary of the run
     keep.write_text("mine")
-    assert factory.finished_ids(manifest) == {"tabletop-000000"}
+    assert finished_ids(manifest) == {"tabletop-000000"}
     capsys.readouterr()
     assert _run(tmp_path, count=2) == 0
     out = capsys.readouterr().out
@@ -257,10 +262,10 @@ def test_a_folder_from_before_the_settings_record_is_compared_by_its_manifest():
     rec = {"id": "room-000000", "recipe": "room", "dataset_seed": 0, "resolution": [480, 640],
            "render": {"engine": "CYCLES", "samples": 8, "seconds": 3.2}, "psf_settings": {"pupil_samples": 64},
            "lenses": {"mos-s1": {"baseline_depth_m": 2.0}}}
-    have = factory.settings_from_manifest(rec)
+    have = settings_from_manifest(rec)
     want = dict(have, resolution=[240, 320], render={"samples": 8}, lenses=["mos-s1", "6p"],
                 shard="0/1", lens_fingerprints={})
-    diffs = factory.settings_differences(have, want)
+    diffs = settings_differences(have, want)
     assert diffs == ["--lens: the folder mos-s1, this run mos-s1 6p",
                      "--resolution: the folder 480 640, this run 240 320"]
 
@@ -295,20 +300,18 @@ def test_add_lens_simulates_a_new_lens_on_the_finished_samples(tmp_path, capsys)
 
 def test_help_tells_images_from_render_samples(capsys):
     with pytest.raises(SystemExit):
-        factory.parse(["--help"])
+        parse(["--help"])
     out = " ".join(capsys.readouterr().out.split())
     assert "--count N images in the whole dataset" in out and "--cycles-samples SPP Cycles render samples" in out
-    assert "--samples" not in out.replace("--cycles-samples", "")      # the old name still works, unlisted
-    assert factory.parse(["--recipe", "room", "--count", "1", "--out", "x", "--samples", "3"]).samples == 3
+    assert "--samples" not in out.replace("--cycles-samples", "")
 
 
-def test_the_old_tools_factory_name_runs_the_factory_with_a_note():
+def test_the_module_runs_the_factory():
     import subprocess
     import sys
     from pathlib import Path
     root = Path(__file__).resolve().parents[2]
-    p = subprocess.run([sys.executable, "-m", "blender_addon.tools.factory", "--help"], cwd=root,
+    p = subprocess.run([sys.executable, "-m", "blender_addon.factory", "--help"], cwd=root,
                        capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr
-    assert "blender_addon.tools.factory is now blender_addon.factory" in p.stderr
     assert "--recipe RECIPE" in p.stdout and "--cycles-samples SPP" in p.stdout

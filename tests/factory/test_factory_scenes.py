@@ -84,10 +84,10 @@ def test_resuming_with_another_texture_folder_or_exposure_is_refused(tmp_path, c
 
 
 def test_a_folder_made_before_the_scenes_changed_is_not_resumed():
-    batch = _factory()
+    from blender_addon.factory.settings import RECIPES_VERSION, settings_differences
     have = {"recipe": "room", "seed": 0}
-    want = {"recipe": "room", "seed": 0, "scene": {"recipes_version": batch.RECIPES_VERSION}}
-    assert batch.settings_differences(have, want) == [
+    want = {"recipe": "room", "seed": 0, "scene": {"recipes_version": RECIPES_VERSION}}
+    assert settings_differences(have, want) == [
         "the scene recipes: the folder was made by an older factory, before its scenes changed"]
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from blender_addon.factory import merge_shards
-from blender_addon.factory.batch import shard_from_environment
+from blender_addon.factory.options import shard_from_environment
 from dcdi_core.errors import DatasetError, InputRangeError
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -54,11 +54,11 @@ def test_shard_auto_without_a_usable_array_is_refused_by_name(env, text, says):
 
 def test_the_factory_records_the_resolved_shard(monkeypatch):
     pytest.importorskip("bpy")
-    from blender_addon.factory import batch as factory
+    from blender_addon.factory.options import check_arguments, parse
     monkeypatch.setenv("JOB_COMPLETION_INDEX", "1")
     monkeypatch.setenv("DCDI_SHARD_COUNT", "3")
-    a = factory.check_arguments(factory.parse(["--recipe", "room", "--count", "4", "--out", "x", "--shard", "auto",
-                                               "--resolution", "24", "32"]))
+    a = check_arguments(parse(["--recipe", "room", "--count", "4", "--out", "x", "--shard", "auto",
+                               "--resolution", "24", "32"]))
     assert (a.shard, a.shard_index, a.shard_count) == ("1/3", 1, 3)
 
 
@@ -120,17 +120,6 @@ def test_the_factory_command_runs_the_merge(tmp_path):
                        text=True, timeout=120)
     assert p.returncode == 0, p.stderr
     assert "merged 3 samples of 2 shards" in p.stdout
-
-
-def test_the_old_tools_factory_name_still_runs_the_merge_with_a_note(tmp_path):
-    shards = [_shard(tmp_path, i, 2, 3) for i in range(2)]
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    p = subprocess.run([sys.executable, "-m", "blender_addon.tools.factory", "merge", *map(str, shards),
-                        "--count", "3", "--out", str(tmp_path / "m")], cwd=ROOT, env=env, capture_output=True,
-                       text=True, timeout=120)
-    assert p.returncode == 0, p.stderr
-    assert "blender_addon.tools.factory is now blender_addon.factory" in p.stderr
-    assert len((tmp_path / "m" / "manifest.jsonl").read_text().splitlines()) == 3
 
 
 @pytest.mark.parametrize("case, says", [

@@ -24,6 +24,8 @@ import pytest
 bpy = pytest.importorskip("bpy")
 
 from blender_addon.factory import batch as factory  # noqa: E402
+from blender_addon.factory import commit, samples  # noqa: E402
+from blender_addon.factory.render import render_still  # noqa: E402
 from dcdi_core import signals  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -121,7 +123,7 @@ def test_a_full_disk_while_appending_the_manifest_line_leaves_the_sample_absent(
     """The second sample's line cannot be appended (half of it written, then
     ENOSPC): its files go, the manifest is cut back, one line says why."""
     from dcdi_core.errors import output_error
-    real = factory.append_record
+    real = commit.append_record
 
     def full(manifest, record):
         if record["id"] != SECOND:
@@ -129,7 +131,7 @@ def test_a_full_disk_while_appending_the_manifest_line_leaves_the_sample_absent(
         with open(manifest, "a") as f:
             f.write(json.dumps(record)[:100])
         raise output_error(manifest, _no_space(manifest))
-    monkeypatch.setattr(factory, "append_record", full)
+    monkeypatch.setattr(commit, "append_record", full)
     out = tmp_path / "ds"
     assert factory.run([*ARGS, "--out", str(out)]) == 2
     err = capsys.readouterr().err
@@ -137,7 +139,7 @@ def test_a_full_disk_while_appending_the_manifest_line_leaves_the_sample_absent(
     assert str(out / "manifest.jsonl") in err
     _only_the_first_sample(out)
     assert (out / "manifest.jsonl").read_text().endswith("}\n")          # cut back: no torn line
-    monkeypatch.setattr(factory, "append_record", real)
+    monkeypatch.setattr(commit, "append_record", real)
     assert factory.run([*ARGS, "--out", str(out)]) == 0
     assert _files(out) == _files(reference)
 
@@ -188,7 +190,7 @@ def test_files_of_a_sample_without_a_manifest_line_are_removed_on_resume(tmp_pat
 def test_sample_folders_that_cannot_be_written_are_refused_before_any_render(tmp_path, capsys, monkeypatch):
     """aif/ is a file: refused in one line naming it, nothing rendered."""
     rendered = []
-    monkeypatch.setattr(factory, "render_rgbd", lambda *a, **k: rendered.append(a))
+    monkeypatch.setattr(samples, "render_rgbd", lambda *a, **k: rendered.append(a))
     out = tmp_path / "ds"
     out.mkdir()
     (out / "aif").write_text("not a folder")
@@ -244,8 +246,8 @@ def test_a_render_blender_cancelled_is_a_stop_and_one_that_wrote_nothing_an_erro
     monkeypatch.setitem(sys.modules, "bpy", fake)
     fake.ops.render = SimpleNamespace(render=render(True))
     with pytest.raises(signals.Stopped) as e:
-        factory.render_still(tmp_path / "r.exr")
+        render_still(tmp_path / "r.exr")
     assert e.value.exit_code == 130 and handlers.render_cancel == []           # its handler removed
     fake.ops.render = SimpleNamespace(render=render(False))
     with pytest.raises(RenderError, match="r.exr: Blender finished the render but wrote no file"):
-        factory.render_still(tmp_path / "r.exr")
+        render_still(tmp_path / "r.exr")

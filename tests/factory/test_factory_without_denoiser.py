@@ -13,6 +13,9 @@ import pytest
 bpy = pytest.importorskip("bpy")
 
 from blender_addon.factory import batch as factory  # noqa: E402
+from blender_addon.factory import options, render  # noqa: E402
+from blender_addon.factory.blender import NO_DENOISER, check_cycles, denoiser_available  # noqa: E402
+from blender_addon.factory.settings import settings_differences  # noqa: E402
 from blender_addon.factory import merge_shards  # noqa: E402
 from dcdi_core.io.images import read_depth, read_image, write_image  # noqa: E402
 
@@ -24,9 +27,15 @@ def cache(tmp_path_factory, monkeypatch):
     monkeypatch.setenv("DCDI_CACHE_DIR", str(tmp_path_factory.getbasetemp() / "psf-cache"))
 
 
+def _denoiser(monkeypatch, present: bool):
+    """This Blender with or without a denoiser, where the run asks: its options and its render."""
+    for module in (options, render):
+        monkeypatch.setattr(module, "denoiser_available", lambda scene=None: present)
+
+
 @pytest.fixture
 def no_denoiser(monkeypatch):
-    monkeypatch.setattr(factory, "denoiser_available", lambda scene=None: False)
+    _denoiser(monkeypatch, False)
 
 
 def _run(out, *extra, recipe="tabletop", count=1):
@@ -46,8 +55,8 @@ def _files(root):
 
 def test_the_denoiser_is_found_where_it_is():
     n = len(bpy.data.scenes)
-    assert factory.denoiser_available()                 # the pip bpy module has OpenImageDenoise
-    factory.check_cycles()
+    assert denoiser_available()                 # the pip bpy module has OpenImageDenoise
+    check_cycles()
     assert len(bpy.data.scenes) == n                    # the probes leave no scene behind
 
 
@@ -58,8 +67,8 @@ def test_without_a_denoiser_frames_are_undenoised_with_one_warning(tmp_path, cap
     assert len(warnings) == 1, err
     assert "no OpenImageDenoise" in warnings[0] and "undenoised (2 samples/pixel)" in warnings[0]
     settings, records = _render_record(tmp_path / "a")
-    assert settings["denoise"] is False and settings["no_denoise_reason"] == factory.NO_DENOISER
-    assert len(records) == 2 and all(r["denoise"] is False and r["no_denoise_reason"] == factory.NO_DENOISER
+    assert settings["denoise"] is False and settings["no_denoise_reason"] == NO_DENOISER
+    assert len(records) == 2 and all(r["denoise"] is False and r["no_denoise_reason"] == NO_DENOISER
                                      for r in records)
     # the very frames --no-denoise renders, without the warning
     assert _run(tmp_path / "b", "--no-denoise", count=2) == 0
@@ -73,7 +82,7 @@ def test_a_denoised_folder_is_not_resumed_undenoised_nor_the_reverse(tmp_path, c
     denoised, undenoised = tmp_path / "denoised", tmp_path / "undenoised"
     assert _run(denoised) == 0
     assert "no_denoise_reason" not in _render_record(denoised)[0]
-    monkeypatch.setattr(factory, "denoiser_available", lambda scene=None: False)
+    _denoiser(monkeypatch, False)
     assert _run(undenoised) == 0
     capsys.readouterr()
     before = (denoised / "manifest.jsonl").read_bytes()
@@ -83,7 +92,7 @@ def test_a_denoised_folder_is_not_resumed_undenoised_nor_the_reverse(tmp_path, c
                                                   "undenoised (this Blender has no OpenImageDenoise)") in err, err
     assert (denoised / "manifest.jsonl").read_bytes() == before
     assert _run(undenoised, "--no-denoise", count=2) == 0           # undenoised both: resumed
-    monkeypatch.setattr(factory, "denoiser_available", lambda scene=None: True)
+    _denoiser(monkeypatch, True)
     capsys.readouterr()
     assert _run(undenoised, count=3) == 2
     err = capsys.readouterr().err.strip()
@@ -97,17 +106,17 @@ def test_setup_render_refuses_a_denoiser_this_blender_lacks(no_denoiser):
     from dcdi_core.optics.lens import load_lens
     bpy.ops.wm.read_factory_settings(use_empty=True)
     with pytest.raises(RenderError, match="has no OpenImageDenoise: render undenoised"):
-        factory.setup_render(bpy.context.scene, load_lens("mos-s1"), 24, 32, factory.RenderSettings(), seed=0)
-    factory.setup_render(bpy.context.scene, load_lens("mos-s1"), 24, 32, factory.RenderSettings(denoise=False), 0)
+        render.setup_render(bpy.context.scene, load_lens("mos-s1"), 24, 32, render.RenderSettings(), seed=0)
+    render.setup_render(bpy.context.scene, load_lens("mos-s1"), 24, 32, render.RenderSettings(denoise=False), 0)
     assert bpy.context.scene.cycles.use_denoising is False
 
 
 def test_shards_undenoised_for_either_reason_merge_but_not_with_denoised_ones():
     base = {"recipe": "room", "render": {"samples": 8, "denoise": False, "no_denoise_reason": "--no-denoise"}}
-    other = {"recipe": "room", "render": {"samples": 8, "denoise": False, "no_denoise_reason": factory.NO_DENOISER}}
+    other = {"recipe": "room", "render": {"samples": 8, "denoise": False, "no_denoise_reason": NO_DENOISER}}
     denoised = {"recipe": "room", "render": {"samples": 8, "denoise": True}}
     assert merge_shards.setting_differences(base, other) == []
-    assert factory.settings_differences(base, other) == []
+    assert settings_differences(base, other) == []
     assert merge_shards.setting_differences(base, denoised) == ["the denoiser (--no-denoise): False vs True"]
 
 

@@ -47,13 +47,13 @@ from hypothesis import strategies as st
 from dcdi_core import memory
 from dcdi_core.errors import DcdiError, MemoryLimitError
 from dcdi_core.io import capture_record as cr
-from dcdi_core.io import images, rawexr
-from dcdi_core.io.images import ImageFileError
+from dcdi_core.io import image_checks, images, rawexr
+from dcdi_core.io.image_file import ImageFileError, have_openimageio
 
 PEAK_BYTES = 64 << 20
 GUARD_BYTES = 48 << 20
 FIXTURES = [HealthCheck.function_scoped_fixture, HealthCheck.too_slow, HealthCheck.data_too_large]
-HAVE_OIIO = images.have_openimageio()
+HAVE_OIIO = have_openimageio()
 H, W = 20, 9
 RECORD = cr.CaptureRecord(kind="simulated", lens_id="mos-s1", pixel_pitch_mm=0.0122, axis_px=(10.0, 4.5),
                           image_size=(H, W), focus_distance_m=1.5, software="dcdi test")
@@ -109,9 +109,9 @@ def read_everything(path: Path) -> None:
     for oiio in ((True, False) if HAVE_OIIO else (False,)):
         with guarded(oiio):
             for call in (lambda: images.read_image(path), lambda: images.read_depth(path),
-                         lambda: images.image_size(path), lambda: images.image_size(path, pixels=True),
-                         lambda: images.depth_size(path), lambda: cr.read_record(path),
-                         lambda: images.check_job_inputs("correct", path, path)):
+                         lambda: image_checks.image_size(path), lambda: image_checks.image_size(path, pixels=True),
+                         lambda: image_checks.depth_size(path), lambda: cr.read_record(path),
+                         lambda: image_checks.check_job_inputs("correct", path, path)):
                 bounded(call)
     with guarded(False):
         bounded(lambda: [f.read(p.index) for f in [rawexr.ExrFile(path)] for p in f.parts])
@@ -506,7 +506,7 @@ def test_2_image_size_is_the_display_window_the_readers_return(tmp_path, oiio):
         pytest.skip("OpenImageIO not installed")
     path = display_padded(tmp_path, (0, 0, 9, 5))
     with guarded(oiio):
-        assert images.image_size(path) == images.depth_size(path) == (6, 10)
+        assert image_checks.image_size(path) == image_checks.depth_size(path) == (6, 10)
         assert images.read_image(path).shape == (6, 10, 3) and images.read_depth(path).shape == (6, 10)
 
 
@@ -529,7 +529,7 @@ def test_2_padding_the_memory_guard_refuses_is_refused_before_allocating(tmp_pat
         pytest.skip("OpenImageIO not installed")
     path = display_padded(tmp_path, (0, 0, 2999, 2999))
     with guarded(oiio):
-        assert images.image_size(path) == (3000, 3000)
+        assert image_checks.image_size(path) == (3000, 3000)
         for read in (images.read_image, images.read_depth):
             msg = refused(lambda: read(path), MemoryLimitError)
             assert str(path) in msg and "returned as 3000 x 3000 px" in msg
@@ -561,11 +561,11 @@ def test_3_a_depth_map_of_another_size_is_refused_from_the_headers(tmp_path, mon
     no_pixels(monkeypatch)
     with guarded(oiio), pytest.MonkeyPatch.context() as m:
         m.setattr(memory, "available_bytes", lambda: 1 << 50)     # the size alone refuses it
-        msg = refused(lambda: images.check_job_inputs("correct", image, big), ImageFileError)
+        msg = refused(lambda: image_checks.check_job_inputs("correct", image, big), ImageFileError)
         assert f"{big}: the depth map is 20000 x 20000 px" in msg and f"the image {image} is 12 x 8 px" in msg
-        msg = refused(lambda: images.check_job_inputs("bokeh", image, small), ImageFileError)
+        msg = refused(lambda: image_checks.check_job_inputs("bokeh", image, small), ImageFileError)
         assert f"{small}: the depth map is 11 x 8 px" in msg
-        images.check_job_inputs("simulate", image, None)
+        image_checks.check_job_inputs("simulate", image, None)
 
 
 def test_3_a_huge_depth_map_beside_a_small_image_is_refused_from_its_header(tmp_path, monkeypatch):
@@ -577,7 +577,7 @@ def test_3_a_huge_depth_map_beside_a_small_image_is_refused_from_its_header(tmp_
         f.truncate(f.tell() + 4 * 20000 * 20000)
     no_pixels(monkeypatch)
     with guarded():
-        msg = refused(lambda: images.check_job_inputs("dof", image, depth), images.ImageFileError)
+        msg = refused(lambda: image_checks.check_job_inputs("dof", image, depth), ImageFileError)
     assert "the depth map is 20000 x 20000 px" in msg and "12 x 8 px" in msg
 
 
@@ -611,7 +611,7 @@ def test_4_a_malformed_attribute_is_one_error_naming_the_file_and_the_attribute(
     for oiio in (False,):
         with guarded(oiio):
             assert words in refused(lambda: images.read_image(path), ImageFileError)
-            assert words in refused(lambda: images.image_size(path), ImageFileError)
+            assert words in refused(lambda: image_checks.image_size(path), ImageFileError)
     assert words in refused(lambda: cr.read_record(path), cr.CaptureRecordError)
 
 
@@ -639,13 +639,13 @@ def test_5_a_tiled_exr_is_read_with_openimageio_and_its_record_without(tmp_path)
     assert out.open(str(path), spec) and out.write_image(px) and out.close()
     np.testing.assert_array_equal(images.read_image(path), px)
     assert cr.read_record(path) == RECORD
-    assert images.image_size(path) == (10, 14)
+    assert image_checks.image_size(path) == (10, 14)
     with guarded(oiio=False):
         assert cr.read_record(path) == RECORD
-        assert images.image_size(path) == (10, 14)
+        assert image_checks.image_size(path) == (10, 14)
         msg = refused(lambda: images.read_image(path), ImageFileError)
         assert "part 0 is a tiled image" in msg and "pip install OpenImageIO" in msg
-        assert "tiledimage" in refused(lambda: images.image_size(path, pixels=True), ImageFileError)
+        assert "tiledimage" in refused(lambda: image_checks.image_size(path, pixels=True), ImageFileError)
 
 
 # ------------------------------------------------------------------ 6. records
@@ -730,8 +730,8 @@ def png_of_size(tmp_path, h, w) -> Path:
 def test_7_a_png_declaring_a_huge_size_is_refused_by_the_guard_from_its_header(tmp_path, monkeypatch, oiio):
     path = png_of_size(tmp_path, 20000, 20000)
     with guarded(oiio):
-        assert images.image_size(path) == (20000, 20000)
-        msg = refused(lambda: images.check_job_inputs("simulate", path), MemoryLimitError)
+        assert image_checks.image_size(path) == (20000, 20000)
+        msg = refused(lambda: image_checks.check_job_inputs("simulate", path), MemoryLimitError)
         assert f"the image {path}: 20000 x 20000 px" in msg
         if oiio:
             msg = refused(lambda: images.read_image(path), MemoryLimitError)
@@ -747,7 +747,7 @@ def test_7_a_truncated_png_is_one_image_file_error(tmp_path, capfd):
     assert str(path) in msg and capfd.readouterr().err == ""         # libpng's own line is not printed
     path.write_bytes(good[:20])                                    # cut inside the IHDR
     with guarded(oiio=False):
-        assert "cannot be read as a PNG or JPEG" in refused(lambda: images.image_size(path), ImageFileError)
+        assert "cannot be read as a PNG or JPEG" in refused(lambda: image_checks.image_size(path), ImageFileError)
 
 
 @pytest.mark.skipif(not HAVE_OIIO, reason="JPEG is written with OpenImageIO")
@@ -756,4 +756,4 @@ def test_7_a_jpeg_segment_of_size_0_is_refused(tmp_path):
     path = tmp_path / "loop.jpg"
     path.write_bytes(good[:4] + b"\0\0" + good[6:])                # the first segment's size: 0
     with guarded(oiio=False):
-        assert "cannot be read as a PNG or JPEG" in refused(lambda: images.image_size(path), ImageFileError)
+        assert "cannot be read as a PNG or JPEG" in refused(lambda: image_checks.image_size(path), ImageFileError)

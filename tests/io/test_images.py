@@ -1,4 +1,4 @@
-"""Image and depth file I/O (dcdi_core.io.images)."""
+"""Image and depth file I/O (dcdi_core.io.images, image_file)."""
 from __future__ import annotations
 
 import os
@@ -8,8 +8,8 @@ import pytest
 
 oiio = pytest.importorskip("OpenImageIO")
 
+from dcdi_core.io.image_file import ImageFileError  # noqa: E402
 from dcdi_core.io.images import (  # noqa: E402
-    ImageFileError,
     linear_to_srgb,
     read_depth,
     read_image,

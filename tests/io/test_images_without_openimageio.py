@@ -14,9 +14,9 @@ import pytest
 oiio = pytest.importorskip("OpenImageIO")
 
 from dcdi_core.errors import DatasetError  # noqa: E402
-from dcdi_core.io import images  # noqa: E402
-from dcdi_core.io.images import (  # noqa: E402
-    ImageFileError, check_image_output, image_size, read_depth, read_image, write_depth, write_image)
+from dcdi_core.io.image_checks import check_image_output, image_size  # noqa: E402
+from dcdi_core.io.image_file import ImageFileError, have_openimageio  # noqa: E402
+from dcdi_core.io.images import read_depth, read_image, write_depth, write_image  # noqa: E402
 
 DATA = Path(__file__).resolve().parent / "data"
 
@@ -24,7 +24,7 @@ DATA = Path(__file__).resolve().parent / "data"
 @pytest.fixture
 def no_oiio(monkeypatch):
     monkeypatch.setitem(sys.modules, "OpenImageIO", None)
-    assert not images.have_openimageio()
+    assert not have_openimageio()
 
 
 def _both(monkeypatch, fn):

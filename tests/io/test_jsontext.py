@@ -45,7 +45,7 @@ def test_deep_settings_split_and_configs_are_refused(tmp_path):
     from dcdi_core.dataset.factory_folder import read_settings
     from dcdi_core.models.common.split import Split
     from dcdi_core.models.dacn.config import DACNTrainConfig
-    from dcdi_core.models.errors import ModelFileError
+    from dcdi_core.errors import ModelFileError
     (tmp_path / "dataset.json").write_text(DEEP)
     with pytest.raises(DatasetError, match="nested"):
         read_settings(tmp_path)

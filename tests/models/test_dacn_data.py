@@ -10,7 +10,7 @@ from dcdi_core.models.runtime.depth_encoding import encode_depth
 from dcdi_core.dataset.rgbd import (FactoryFolder, Middlebury2014, NYUv2Labeled, RGBDFolder,
                                         middlebury_depth_m, open_source, read_pfm)
 from dcdi_core.models.common.split import Split, split_by_scene, split_source
-from dcdi_core.models.errors import ModelError
+from dcdi_core.errors import ModelError
 
 
 def _img(h, w, seed=0):

@@ -51,7 +51,7 @@ def test_eval_scores_only_held_out_pairs_and_exports_round_trip(pairs, tmp_path,
     from dcdi_core.models.common.lpips import CHANNELS, LPIPS
     torch.save({f"features.{k}": v for k, v in LPIPS().features.state_dict().items()}, tmp_path / "alex.pth")
     torch.save({f"lin{k}.model.1.weight": torch.rand(1, c, 1, 1) for k, c in enumerate(CHANNELS)}, tmp_path / "l.pth")
-    assert main(["eval", str(tmp_path / "run"), "--data", str(pairs), "--compare", f"same={tmp_path / 'run'}",
+    assert main(["dacn", "eval", str(tmp_path / "run"), "--data", str(pairs), "--compare", f"same={tmp_path / 'run'}",
                  "--json", str(tmp_path / "ev.json"), "--pictures", str(tmp_path / "pics"),
                  "--lpips", str(tmp_path / "alex.pth"), str(tmp_path / "l.pth")]) == 0
     out = capsys.readouterr().out
@@ -90,7 +90,7 @@ def test_train_scenes_takes_a_nested_subset(pairs, tmp_path):  # noqa: F811
 
 
 def test_study_trains_every_row_and_seed_at_equal_budget_and_tabulates(pairs, tmp_path):  # noqa: F811
-    from dcdi_core.experiments import dacn_study
+    from lab import dacn_study
     assert dacn_study.run_flags("refine")[:2] == ["--input", "capture"]
     with pytest.raises(SystemExit, match="unknown row"):
         dacn_study.run_flags("nothing")

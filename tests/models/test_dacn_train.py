@@ -92,7 +92,7 @@ def test_commands(pairs, tmp_path, capsys):
     from dcdi_core.cli import main
     from dcdi_core.io.images import read_image, write_depth, write_image
     run = tmp_path / "run"
-    assert main(["train", "dacn", "--data", str(pairs), "--config", "tiny", "--iters", "2", "-o", str(run),
+    assert main(["dacn", "train", "--data", str(pairs), "--config", "tiny", "--iters", "2", "-o", str(run),
                  "--crop", "16", "--batch", "1", "--channels", "8", "--groups", "1", "--blocks", "1",
                  "--no-rdicab"]) == 0
     assert "trained" in capsys.readouterr().out

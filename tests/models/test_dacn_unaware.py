@@ -44,7 +44,7 @@ def test_derived_pairs_are_the_one_depth_captures_told_that_depth(pairs, derived
 def test_deriving_again_adds_nothing_and_other_settings_are_refused(pairs, derived, tmp_path):  # noqa: F811
     from dcdi_core.errors import InputRangeError
     from dcdi_core.models.dacn.unaware import derive_pairs
-    from dcdi_core.models.errors import ModelError
+    from dcdi_core.errors import ModelError
     n = len((derived / "pairs.jsonl").read_text().splitlines())
     assert len(derive_pairs(pairs, derived)) == n
     assert len((derived / "pairs.jsonl").read_text().splitlines()) == n
@@ -101,7 +101,7 @@ def test_dcdi_correct_tells_such_a_run_its_depth_too(derived, tmp_path):
     from dcdi_core.models.dacn.correct import correct
     from dcdi_core.models.dacn.train import train_dacn
     from dcdi_core.optics.lens import load_lens
-    from dcdi_core.pipeline import Deconvolution, load_network
+    from dcdi_core.app.correction_rule import Deconvolution, load_network
     from dcdi_core.render.geometry import ImageGeometry
     train_dacn(dacn_config(derived, iters=2, checkpoint_every=2, config="refine",
                            arch=dict(channels=8, groups=1, blocks=1)), tmp_path / "told")

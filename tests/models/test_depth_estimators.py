@@ -103,7 +103,7 @@ def test_public_estimators_through_stand_ins(tmp_path, monkeypatch):
 
 def test_an_unreadable_checkpoint_is_refused_by_name(tmp_path, monkeypatch):
     from dcdi_core.models.depth.estimators import load_estimator
-    from dcdi_core.models.errors import ModelError, ModelFileError
+    from dcdi_core.errors import ModelError, ModelFileError
     bad = tmp_path / "depth_anything_v2_metric_vkitti_vitl.pth"
     bad.write_bytes(b"not a checkpoint")
     with pytest.raises(ModelFileError, match=r"depth_anything_v2_metric_vkitti_vitl\.pth.*depth-anything-v2"):

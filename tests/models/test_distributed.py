@@ -60,7 +60,7 @@ def test_auto_takes_cuda_when_torch_sees_it_and_a_missing_index_is_refused(monke
 def test_commands_refuse_cuda_without_a_gpu_before_any_work(no_cuda, tmp_path, capsys):
     from dcdi_core.cli import main
     run = tmp_path / "run"
-    assert main(["train", "dacn", "--data", str(tmp_path / "nothing"), "--iters", "1", "-o", str(run),
+    assert main(["dacn", "train", "--data", str(tmp_path / "nothing"), "--iters", "1", "-o", str(run),
                  "--device", "cuda"]) == 2
     err = capsys.readouterr().err
     assert "--device = 'cuda' is out of range" in err and "auto falls back to the CPU" in err
@@ -135,7 +135,7 @@ def test_two_gloo_processes_train_dacn_as_one_process_with_the_same_global_batch
     from dcdi_core.models.dacn.config import DACNTrainConfig
     from dcdi_core.models.dacn.train import train_dacn
     ddp = tmp_path / "ddp"
-    seconds, out = _torchrun(["train", "dacn", "--data", str(pairs), "--config", "tiny", "--iters", "4",
+    seconds, out = _torchrun(["dacn", "train", "--data", str(pairs), "--config", "tiny", "--iters", "4",
                               "--batch", "4", "--crop", "16", "--lr", "1e-3", "--channels", "8", "--groups", "1",
                               "--blocks", "2", "--threads", "1", "--checkpoint-every", "2", "--device", "cpu",
                               "-o", str(ddp)])

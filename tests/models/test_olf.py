@@ -15,7 +15,7 @@ from dcdi_core.models import (CheckpointMismatchError, LensMismatchError, ModelF
                               OutsideTrainedRangeError)
 from dcdi_core.models.olf.spec import SIZES, OLFSpec
 from dcdi_core.models.olf.data import PSFDataConfig, energy_kernel_size
-from dcdi_core.models.runtime.olf import OmniLensField, encode_paper, encode_radial
+from dcdi_core.psf.olf import OmniLensField, encode_paper, encode_radial
 from dcdi_core.errors import DcdiError, InputRangeError
 from dcdi_core.optics.lens import load_lens
 
@@ -194,7 +194,7 @@ def test_export_file_metadata_and_checksum(exported, tmp_path):
         meta = json.loads(str(z["meta"]))
         arrays = {k: z[k] for k in z.files}
     assert meta["variant"] == "radial" and meta["version"] == 1 and len(meta["checksum"]) == 64
-    from dcdi_core.psf.library import lens_fingerprint
+    from dcdi_core.optics.lens import lens_fingerprint
     for entry in meta["lenses"]:
         assert entry["fingerprint"] == lens_fingerprint(load_lens(entry["id"]))
         for key in ("kernel_size", "pixel_pitch_mm", "field_range", "depth_range_m", "focus_range_m"):
@@ -218,7 +218,7 @@ import sys
 sys.modules["torch"] = None          # as in Blender's Python: no torch
 import numpy as np
 import dcdi_core.models, dcdi_core.models.common.metrics, dcdi_core.models.olf.spec
-from dcdi_core.models.runtime.olf import OmniLensField
+from dcdi_core.psf.olf import OmniLensField
 from dcdi_core.optics.lens import load_lens
 p = OmniLensField.load({str(path)!r}).psf(load_lens("mos-s1"), [0.0, 0.7], 3.0)
 assert p.shape[:2] == (2, 3) and abs(p.sum(axis=(-1, -2)) - 1).max() < 1e-5
@@ -238,7 +238,7 @@ print("ok")
     assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr
     assert "pip install torch==2.13.0" in out.stderr
     # and a plain import of the runtime does not load torch either
-    code = "import sys, dcdi_core.models.runtime.olf, dcdi_core.models.common.metrics; print('torch' in sys.modules)"
+    code = "import sys, dcdi_core.psf.olf, dcdi_core.models.common.metrics; print('torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
                          env=dict(os.environ, PYTHONPATH=str(ROOT)))
     assert out.stdout.strip() == "False", out.stderr
@@ -285,14 +285,14 @@ def test_focus_is_an_input_of_the_radial_olf(cache, tmp_path):
     bands = olf.meta["held_out"]["focus"]["mos-s1"]
     assert "prescribed" in bands and sum(b["n"] for b in bands.values()) == len(ls.val_x)
     # as a PSF source: focus None (the prescribed focus) and inf served, 0.5 m traced with the reason
-    from dcdi_core.models.runtime.library import psf_source
+    from dcdi_core.psf.sources import psf_source
     assert psf_source(lens, olf_file=tmp_path / "f.npz").kind == "olf"
     assert psf_source(lens, olf_file=tmp_path / "f.npz", focus_m=math.inf).kind == "olf"
     src = psf_source(lens, olf_file=tmp_path / "f.npz", focus_m=0.5)
     assert src.kind == "trace" and "outside the learned 0.8 m to inf m" in src.message
     # the report's comparison re-encodes the held-out coordinates through psf(): the same figures as
     # the file's own (the encoded inputs), per band, so the trainer's and the runtime's encodings agree
-    from dcdi_core.experiments.olf_report import held_out_comparison
+    from lab.olf_report import held_out_comparison
     rows = {r["band"]: r for r in held_out_comparison([tmp_path / "f.npz"], tmp_path / "run" / "points.npz")}
     assert set(rows) == set(bands)
     for band, hb in bands.items():

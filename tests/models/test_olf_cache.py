@@ -3,7 +3,7 @@
 import os
 import shutil
 
-from dcdi_core.models.runtime import library
+from dcdi_core.psf import sources as library
 from dcdi_core.optics.lens import load_lens
 
 

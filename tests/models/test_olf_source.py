@@ -12,10 +12,11 @@ import numpy as np
 import pytest
 
 from dcdi_core.cli import main
+from lab.cli import main as lab_main
 from dcdi_core.io.images import read_image, write_depth, write_image
 from dcdi_core.models import ModelError
-from dcdi_core.models.runtime.library import OLFLibrary, psf_source
-from dcdi_core.models.runtime.olf import OmniLensField
+from dcdi_core.psf.sources import OLFLibrary, psf_source
+from dcdi_core.psf.olf import OmniLensField
 from dcdi_core.optics.lens import load_lens
 from dcdi_core.psf.compute import PSFSettings
 from dcdi_core.render.geometry import ImageGeometry
@@ -35,7 +36,7 @@ PITCH = 0.0122          # mm: the pixel pitch of mos-s1 and 6p
 def no_basis(monkeypatch):
     """The OLF against tracing alone: no shipped PSF basis goes first (the
     basis's place in the choice: tests/psf/test_psf_basis.py)."""
-    from dcdi_core.models.runtime import library
+    from dcdi_core.psf import sources as library
     monkeypatch.setattr(library, "shipped_store", lambda lens_id: None)
 
 
@@ -129,7 +130,7 @@ def test_source_is_the_olf_where_it_covers_the_request_else_tracing(olf_file, tm
     assert src.kind == "olf" and "50 um pixels" in src.message and "area-resampled" in src.message
     assert psf_source(lens, olf_file=path, source="trace").kind == "trace"
     # no OLF at all (none shipped, none given): tracing, saying so
-    import dcdi_core.models.runtime.library as runtime_library
+    import dcdi_core.psf.sources as runtime_library
     monkeypatch.setattr(runtime_library, "SHIPPED", tmp_path / "none-shipped.npz")
     src = psf_source(lens, olf_file=None, pixel_pitch_mm=PITCH, settings=learned)
     assert src.kind == "trace" and src.library is None and "no OLF file ships" in src.message
@@ -229,7 +230,7 @@ def test_cli_bokeh_refocused_is_served_by_an_olf_that_learned_focus(focus_olf_fi
 def test_olf_info_lists_shipped_files(capsys):
     assert main(["olf", "info"]) == 0
     text = capsys.readouterr().out
-    from dcdi_core.models.runtime.library import shipped_olf_files
+    from dcdi_core.psf.sources import shipped_olf_files
     files = shipped_olf_files()
     if not files:
         assert "no OLF file ships" in text
@@ -239,7 +240,7 @@ def test_olf_info_lists_shipped_files(capsys):
 
 @pytest.mark.slow
 def test_report_olf_quick(cache_env, tmp_path, capsys):
-    assert main(["report", "olf", "--olf", str(cache_env), "--quick", "--out", str(tmp_path)]) == 0
+    assert lab_main(["report", "olf", "--olf", str(cache_env), "--quick", "--out", str(tmp_path)]) == 0
     data = json.loads((tmp_path / "olf.json").read_text())
     rec = data["files"][0]
     assert set(rec["fresh"]) == {"mos-s1", "6p"} and rec["map"]["network"] > 0
@@ -253,8 +254,8 @@ def test_bundled_runtime_serves_psf_maps_with_torch_blocked(olf_file):
 import sys
 sys.modules["torch"] = None
 import numpy as np
-from dcdi_core.models.runtime.library import OLFLibrary
-from dcdi_core.models.runtime.olf import OmniLensField
+from dcdi_core.psf.sources import OLFLibrary
+from dcdi_core.psf.olf import OmniLensField
 from dcdi_core.optics.lens import load_lens
 from dcdi_core.render.geometry import ImageGeometry
 from dcdi_core.render.psfmap import psf_map

@@ -135,7 +135,7 @@ def test_an_odd_asphere_of_even_powers_is_the_even_asphere():
     from conftest import singlet_dict
     from dcdi_core.optics.lens import Lens
     from dcdi_core.optics.trace import trace
-    from dcdi_core.psf.library import lens_fingerprint
+    from dcdi_core.optics.lens import lens_fingerprint
     even = Lens.from_dict(singlet_dict(asph=[1e-3, -2e-6]))
     d = singlet_dict()
     d["surface"][1]["odd_aspheric_coefficients"] = [0.0, 1e-3, 0.0, -2e-6]

@@ -188,7 +188,7 @@ POINTS = [("mos-s1", 0.37, 1.21, 60.0), ("mos-s2", 0.86, 0.77, 52.0), ("6p", 0.2
 
 @pytest.mark.parametrize("lens_id,field,depth,least", POINTS)
 def test_shipped_store_reproduces_traced_psfs(lens_id, field, depth, least):
-    from dcdi_core.experiments.psf_source_report import pad_to, point_scores
+    from lab.psf_source_report import pad_to, point_scores
     from dcdi_core.models.olf.data import crop_normalise, trace_points
     store = BasisStore.load(shipped_store(lens_id))
     lens = load_lens(lens_id)
@@ -201,7 +201,7 @@ def test_shipped_store_reproduces_traced_psfs(lens_id, field, depth, least):
 
 
 def test_psf_source_prefers_the_basis_and_says_why_not():
-    from dcdi_core.models.runtime.library import psf_source
+    from dcdi_core.psf.sources import psf_source
     lens = load_lens("mos-s1")
     src = psf_source(lens, pixel_pitch_mm=0.0122)
     assert src.kind == "basis" and "PSF basis" in src.message

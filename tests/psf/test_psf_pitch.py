@@ -86,15 +86,15 @@ def test_upsampling_is_refused_with_a_typed_error():
 # ------------------------------------------------------------------ the shipped OLF through it (numpy only)
 @pytest.fixture(scope="module")
 def shipped():
-    from dcdi_core.models.runtime.library import SHIPPED
-    from dcdi_core.models.runtime.olf import OmniLensField
+    from dcdi_core.psf.sources import SHIPPED
+    from dcdi_core.psf.olf import OmniLensField
     if not SHIPPED.exists():
         pytest.skip("no shipped OLF")
     return OmniLensField.load(SHIPPED)
 
 
 def test_olf_library_at_a_coarser_pitch_serves_resampled_kernels(shipped):
-    from dcdi_core.models.runtime.library import OLFLibrary, psf_source
+    from dcdi_core.psf.sources import OLFLibrary, psf_source
     from dcdi_core.optics.lens import load_lens
     from dcdi_core.render.geometry import ImageGeometry
     from dcdi_core.render.psfmap import psf_map
@@ -120,8 +120,8 @@ def test_olf_library_at_a_coarser_pitch_serves_resampled_kernels(shipped):
 
 
 def test_olf_at_a_finer_pitch_is_traced_and_refused_by_the_library(shipped):
-    from dcdi_core.models.runtime.library import OLFLibrary, psf_source
-    from dcdi_core.models.errors import ModelError
+    from dcdi_core.psf.sources import OLFLibrary, psf_source
+    from dcdi_core.errors import ModelError
     from dcdi_core.optics.lens import load_lens
     lens = load_lens("6p")
     src = psf_source(lens, pixel_pitch_mm=0.006)

@@ -98,7 +98,7 @@ def test_background_is_infinity_and_invalid_z_stays_invalid():
 
 def test_factory_camera_frames_like_the_double_gauss():
     bpy = pytest.importorskip("bpy")
-    from blender_addon.factory.batch import RenderSettings, setup_render
+    from blender_addon.factory.render import RenderSettings, setup_render
 
     lens = load_lens("double-gauss")
     bpy.ops.wm.read_factory_settings(use_empty=True)

@@ -225,7 +225,7 @@ def test_blas_runs_on_one_thread_inside_the_pools_blocks():
 
 
 def test_grow_square_is_the_square_dilation():
-    from dcdi_core.render.convolve import grow_square
+    from dcdi_core.render.windows import grow_square
     rng = np.random.default_rng(1)
     for n in (0, 1, 3, 20):
         mask = rng.random((9, 13)) < 0.05

@@ -9,7 +9,7 @@ from conftest import singlet_dict
 from dcdi_core.optics.lens import Lens, load_lens
 from dcdi_core.psf.compute import PSFSettings
 from dcdi_core.psf.library import LibraryGrid, PSFLibrary
-from dcdi_core.experiments.simulation_accuracy import blur_then_warp, distortion_case, distorted_reference, psnr
+from lab.simulation_accuracy import blur_then_warp, distortion_case, distorted_reference, psnr
 from dcdi_core.render.geometry import ImageGeometry
 from dcdi_core.render.simulate import SimulateOptions, LensSimulator, simulate
 
@@ -87,7 +87,7 @@ def test_without_over_scan_the_border_is_reflected(distorted_case):
 def test_no_silent_overrides():
     from dcdi_core.errors import InputRangeError
     from dcdi_core.render.bokeh import BokehOptions, bokeh
-    from dcdi_core.render.simulate import open_library
+    from dcdi_core.psf.sources import open_library
 
     lens = load_lens("6p")
     geom = ImageGeometry.full_sensor(lens, 16, 24)
@@ -113,7 +113,7 @@ def test_no_silent_overrides():
 
 def test_kernel_rotation_keeps_a_point_and_interpolates_a_smooth_kernel():
     # against the histogram of exactly rotated rays (report simulation-accuracy's table)
-    from dcdi_core.experiments.simulation_accuracy import rotation_rows
+    from lab.simulation_accuracy import rotation_rows
 
     rows = {(q[0], q[1]): q[3:] for q in rotation_rows(quick=True)}
     point, smooth = rows[(0.05, 0.05)], rows[(3.0, 1.5)]

@@ -8,7 +8,7 @@ from dcdi_core.optics.lens import load_lens
 from dcdi_core.psf.compute import PSFSettings
 from dcdi_core.psf.library import LibraryGrid, PSFLibrary
 from dcdi_core.render import multires as mr
-from dcdi_core.experiments.simulation_accuracy import psnr
+from lab.simulation_accuracy import psnr
 from dcdi_core.render.geometry import ImageGeometry
 from dcdi_core.render.bokeh import BokehOptions, bokeh
 

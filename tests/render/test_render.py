@@ -152,7 +152,7 @@ def test_bokeh_keeps_the_kept_range_unchanged(lens):
 
 
 def test_bokeh_cancelled_callback_stops_between_layers(lens):
-    from dcdi_core.render.simulate import Cancelled
+    from dcdi_core.render.base import Cancelled
     h, w = 64, 96
     geom = _geom(lens, h, w)
     lib = _lib(lens, geom, focus_distance_m=None)
@@ -291,7 +291,7 @@ def test_open_library_fits_the_kernel_to_the_psfs_the_depths_need(lens):
     import warnings
 
     from dcdi_core.psf.compute import KernelTooSmallWarning
-    from dcdi_core.render.simulate import open_library
+    from dcdi_core.psf.sources import open_library
 
     geom = _geom(lens, 64, 96)
     settings = PSFSettings(**{**FAST.as_dict(), "band_nm": (400.0, 700.0)})

@@ -80,34 +80,3 @@ def test_bokeh_options_defaults_and_derived_options():
     assert f.focus_distance_m == 2.0 and f.library_settings() == PSFSettings(kernel_size=21, focus_distance_m=2.0)
     assert BokehOptions(focus_m="prescribed").library_settings().focus_distance_m is None
     assert dataclasses.replace(o, convolution="lowrank").convolve_options().method == "lowrank"
-
-
-def test_old_spellings_work_one_release_with_a_warning():
-    """simulate() and LensSimulator with SimulateOptions' fields as keywords (or
-    an ImageGeometry in the options' place), and the bokeh imported from
-    render.simulate: the same result, one DeprecationWarning each."""
-    import numpy as np
-
-    from dcdi_core.optics.lens import load_lens
-    from dcdi_core.psf.compute import PSFSettings
-    from dcdi_core.render import bokeh as bokeh_module
-    from dcdi_core.render import simulate as sim_module
-    from dcdi_core.render.geometry import ImageGeometry
-    lens = load_lens("mos-s1")
-    geom = ImageGeometry.full_sensor(lens, 32, 48)
-    settings = PSFSettings(pupil_samples=8, n_wavelengths=3, kernel_size=9)
-    lib = sim_module.open_library(lens, geom, settings)
-    img = np.random.default_rng(0).random((32, 48, 3)).astype(np.float32)
-    depth = np.full((32, 48), 2.0, np.float32)
-    new = sim_module.simulate(img, depth, lens, sim_module.SimulateOptions(geometry=geom, distortion=False),
-                              library=lib).image
-    with pytest.warns(DeprecationWarning, match="old spelling: pass SimulateOptions"):
-        old = sim_module.simulate(img, depth, lens, geometry=geom, distortion=False, library=lib).image
-    np.testing.assert_array_equal(new, old)
-    with pytest.warns(DeprecationWarning, match="LensSimulator"):
-        again = sim_module.LensSimulator(lens, geom, library=lib, distortion=False)(img, depth).image
-    np.testing.assert_array_equal(new, again)
-    with pytest.raises(TypeError, match="unexpected keyword argument 'colour'"):
-        sim_module.simulate(img, depth, lens, colour=1)
-    with pytest.warns(DeprecationWarning, match="render.bokeh.BokehOptions"):
-        assert sim_module.BokehOptions is bokeh_module.BokehOptions

@@ -12,7 +12,7 @@ from dcdi_core.optics.lens import load_lens
 from dcdi_core.render.distortion import distort, radial_distortion, undistort
 from dcdi_core.render.geometry import ImageGeometry
 from dcdi_core.render.resample import METHODS, sample
-from dcdi_core.experiments.resample_accuracy import format_warp_accuracy, warp_accuracy
+from lab.resample_accuracy import format_warp_accuracy, warp_accuracy
 
 HIGHER = ["keys", "lanczos3", "bspline"]
 
@@ -202,7 +202,7 @@ def test_distort_with_keys_and_an_unknown_interpolation():
 
 def test_the_warp_modules_do_not_import_scipy():
     # Blender's Python has numpy but no scipy
-    code = ("import sys, dcdi_core.render.resample, dcdi_core.experiments.resample_accuracy, "
+    code = ("import sys, dcdi_core.render.resample, lab.resample_accuracy, "
             "dcdi_core.render.distortion; print(sorted(m for m in sys.modules if m.startswith('scipy')))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          cwd=Path(__file__).resolve().parents[2])      # this checkout's dcdi_core

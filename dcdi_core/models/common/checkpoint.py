@@ -9,7 +9,7 @@ import json
 from pathlib import Path
 
 from .. import require_torch
-from ..errors import CheckpointMismatchError, ModelFileError
+from ...errors import CheckpointMismatchError, ModelFileError
 from .config import differences
 from ...io.jsontext import loads
 

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import require_torch
-from ..errors import ModelFileError
+from ...errors import ModelFileError
 
 torch = require_torch()
 nn = torch.nn

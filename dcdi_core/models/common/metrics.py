@@ -97,7 +97,7 @@ def quantize_8bit(x) -> np.ndarray:
 
 def relative_l1(p, ref) -> np.ndarray | float:
     """sum |p - ref| / sum ref per channel, averaged over channels: one value
-    per kernel (..., C, k, k); the metric of `dcdi report psf-accuracy`."""
+    per kernel (..., C, k, k); the metric of `python -m lab report psf-accuracy`."""
     p = np.asarray(p, dtype=np.float64)
     ref = np.asarray(ref, dtype=np.float64)
     l1 = np.abs(p - ref).sum(axis=(-1, -2)) / np.maximum(ref.sum(axis=(-1, -2)), 1e-300)
@@ -149,7 +149,7 @@ def psf_scores(pred, ref, *, scale: str) -> dict:
       its own peak), as 8-bit images (L = 255);
     - ``psnr_sum``: both summing to 1 per channel, L = the reference's peak;
     - ``rel_l1``: both summing to 1, sum |P - R| / sum R (mean over channels),
-      the metric of `dcdi report psf-accuracy`.
+      the metric of `python -m lab report psf-accuracy`.
     """
     if scale not in ("sum", "peak"):
         raise InputRangeError("scale", scale, "'sum' or 'peak'")

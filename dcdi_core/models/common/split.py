@@ -16,7 +16,7 @@ from pathlib import Path
 
 from ...atomic import write_text
 from ...errors import InputRangeError
-from ..errors import ModelFileError
+from ...errors import ModelFileError
 from ...io.jsontext import loads
 
 PARTS = ("train", "val", "test")

@@ -1,5 +1,5 @@
 """A torch module's state to and from the shipped .npz format
-(``models.runtime.npz``), and the pixel pitch a run was trained at."""
+(``io.model_npz``), and the pixel pitch a run was trained at."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import InputRangeError
-from ..errors import ModelFileError
-from ..runtime.npz import DTYPES
+from ...errors import ModelFileError
+from ...io.model_npz import DTYPES
 
 
 def state_arrays(module, dtype: str = "float16") -> dict:

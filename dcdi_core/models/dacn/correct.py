@@ -20,7 +20,7 @@ import numpy as np
 
 from .. import require_torch
 from ..runtime.depth_encoding import encode_depth, minmax_stats
-from ..errors import ModelFileError
+from ...errors import ModelFileError
 from ...errors import InputRangeError
 
 torch = require_torch()
@@ -28,6 +28,7 @@ from .arch import DACN  # noqa: E402
 from .spec import DACNSpec  # noqa: E402
 from ..common.checkpoint import load_checkpoint  # noqa: E402
 from ...io.jsontext import loads
+from ..runtime.dacn_file import read_dacn_file
 
 
 def load_dacn(path, *, weights: str = "ema", device: str = "cpu"):
@@ -59,7 +60,6 @@ def load_dacn(path, *, weights: str = "ema", device: str = "cpu"):
 
 
 def _load_exported(path: Path, dev, device_name: str):
-    from .export import read_dacn_file
     from ..common.weights_file import load_state
     meta, arrays = read_dacn_file(path)
     spec = DACNSpec.from_dict(meta["spec"])

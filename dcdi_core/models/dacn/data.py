@@ -54,7 +54,7 @@ from ...errors import DatasetError, InputRangeError
 from ...io.jsontext import loads
 from ...names import check_name
 from ...optics.errors import OpticsError
-from ..errors import ModelError, ModelFileError
+from ...errors import ModelError, ModelFileError
 from ..runtime.depth_encoding import encode_depth
 
 PERTURB_TRIES = 10
@@ -204,7 +204,7 @@ def _library(lens, key, geom, config: DA2TConfig, libraries: dict | None, reuse:
     every frame of a lens is blurred alike, wherever it lies on the sensor."""
     from ...psf.compute import PSFSettings
     from ...psf.library import LibraryGrid
-    from ...render.simulate import open_library
+    from ...psf.sources import open_library
 
     lib = libraries.get(key) if libraries is not None and reuse else None
     if lib is None:

@@ -25,7 +25,7 @@ import numpy as np
 
 from ...errors import InputRangeError
 from .data import finished_pairs, load_pair, pair_path
-from ..errors import ModelError
+from ...errors import ModelError
 from ..common.metrics import WINDOW, psnr, ssim_map
 
 DEPTH_BANDS_M = ((0.0, 0.7), (0.7, 1.0), (1.0, 2.0), (2.0, 5.0), (5.0, 10.0), (10.0, math.inf))

@@ -9,16 +9,14 @@ checksum are checked and what is wrong is named.
 from __future__ import annotations
 
 from ..common.weights_file import state_arrays, trained_pixel_pitch_mm
-from ..runtime.npz import read_model_npz, write_model_npz
-
-FORMAT, FORMAT_VERSION = "dcdi-dacn", 1
+from ...io.model_npz import write_model_npz
+from ..runtime.dacn_file import FORMAT, FORMAT_VERSION
+from .correct import load_dacn
 
 
 def export_dacn(run, path, *, weights: str = "ema", dtype: str = "float16", extra: dict | None = None) -> dict:
     """Write the DACN of ``run`` (a run folder or its checkpoint.pt) to
     ``path`` (.npz); returns the metadata."""
-    from .correct import load_dacn
-
     model, info = load_dacn(run, weights=weights)
     arrays = state_arrays(model, dtype)
     meta = {"format": FORMAT, "version": FORMAT_VERSION, "spec": info["spec"], "config": info["config"],
@@ -27,7 +25,3 @@ def export_dacn(run, path, *, weights: str = "ema", dtype: str = "float16", extr
             "pixel_pitch_mm": trained_pixel_pitch_mm(info["config"].get("data")), **(extra or {})}
     return write_model_npz(path, meta, arrays)
 
-
-def read_dacn_file(path) -> tuple[dict, dict]:
-    """(metadata, arrays) of an exported DACN, checked."""
-    return read_model_npz(path, FORMAT, FORMAT_VERSION, "DACN")

@@ -37,7 +37,7 @@ from .. import require_torch
 from ..common.loop import Network, train_network
 from ..common.metrics import psnr, ssim
 from ..common.split import Split, rank_key, split_by_scene
-from ..errors import ModelError
+from ...errors import ModelError
 from ..runtime.depth_encoding import encode_depth
 from .config import DACNTrainConfig
 from .data import PairCrops, finished_pairs, load_pair, pair_path

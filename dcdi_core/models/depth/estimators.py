@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import InputRangeError
-from ..errors import ModelError, ModelFileError
+from ...errors import ModelError, ModelFileError
 from ...io.jsontext import loads
 
 BACKENDS = ("dcdi", "unidepth", "depth-anything-v2", "depth-pro")

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..errors import ModelFileError
+from ...errors import ModelFileError
 from ..common.weights_file import load_state, state_arrays, trained_pixel_pitch_mm
-from ..runtime.npz import read_model_npz, write_model_npz
+from ...io.model_npz import read_model_npz, write_model_npz
 from ...io.jsontext import loads
 
 FORMAT, FORMAT_VERSION = "dcdi-depthnet", 1

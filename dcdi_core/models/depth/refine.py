@@ -1,8 +1,10 @@
-"""The learned refinement of the depth read from a capture's blur: data
-(each DA2T pair's tile features and true tile depths), architecture (a few
-3 x 3 convolutions over the tile grid, a residual on the evidence's log
-depth), training (AbsRel over the tiles, Adam, seeded) and export (the .npz
-that ``models.runtime.dfd_refine`` runs in numpy).
+"""The learned refinement of the depth read from a capture's blur:
+architecture (a few 3 x 3 convolutions over the tile grid, a residual on
+the evidence's log depth), training (AbsRel over the tiles of items
+``{'features', 'target'}``, Adam, seeded) and export (the .npz that
+``models.runtime.dfd_refine`` runs in numpy). The training data (each DA2T
+pair's tile features and true tile depths) and the study that chose and
+made the shipped files are the lab's (``lab/dfd_refine_study.py``).
 
 Units: depths in metres; the network works in log depth.
 """
@@ -25,48 +27,6 @@ class RefineConfig:
     lr: float = 2e-3
     weight_decay: float = 1e-4
     seed: int = 0
-
-
-def pair_inputs(pairs_dir, lens, count: int = 10_000):
-    """Per pair of ``pairs_dir`` (at most ``count``, by id): (id, the pair,
-    its capture (H, W, 3) float32 with NaN as 0, its geometry on ``lens``'s
-    sensor, ``lens``'s PSF library at that pitch)."""
-    from ...app import PSFRequest, open_source
-    from ...render.geometry import ImageGeometry
-    from ..dacn.data import finished_pairs, load_pair, pair_path
-    recs = finished_pairs(pairs_dir)
-    for pid in sorted(recs)[:count]:
-        pair = load_pair(pair_path(pairs_dir, pid), recs[pid])
-        centre, pitch, _ = pair.geometry()
-        capture = np.nan_to_num(np.asarray(pair.capture, np.float32))
-        g = ImageGeometry.from_pixel_pitch(lens, *capture.shape[:2], pitch, centre)
-        yield pid, pair, capture, g, open_source(lens, g, PSFRequest()).library
-
-
-def pair_features(pairs_dir, lens_id: str, count: int = 10_000, options=None, log=print) -> list[dict]:
-    """Per pair of ``pairs_dir`` (at most ``count``): the estimator's tile
-    features, the true depth of each tile (the median of its pixels within
-    the library's range; NaN where fewer than half are) and the scene."""
-    from ...dfd import estimate_depth
-    from ...optics.lens import load_lens
-    out = []
-    for pid, pair, capture, g, library in pair_inputs(pairs_dir, load_lens(lens_id), count):
-        h, w = capture.shape[:2]
-        pitch = g.pixel_pitch_mm
-        est = estimate_depth(capture, library, g, options)
-        s = est.info["tile_px"]
-        nph, npw = est.tile_diopters.shape
-        d = np.pad(np.asarray(pair.depth, np.float64), ((0, nph * s - h), (0, npw * s - w)), constant_values=np.nan)
-        ok = np.isfinite(d) & (d >= library.grid.near_m) & (d <= library.grid.far_m)
-        d = np.where(ok, d, np.nan).reshape(nph, s, npw, s).transpose(0, 2, 1, 3).reshape(nph, npw, -1)
-        enough = ok.reshape(nph, s, npw, s).mean((1, 3)) >= 0.5
-        with np.errstate(all="ignore"):
-            target = np.where(enough, np.nanmedian(d, -1), np.nan)
-        out.append({"id": pid, "features": est.tile_features, "pixel_pitch_mm": float(pitch),
-                    "hypotheses_m": est.info["hypotheses_m"], "target": target.astype(np.float32),
-                    "pixels": est.depth_m, "depth": np.asarray(pair.depth, np.float32)})
-    log(f"  {lens_id}: features of {len(out)} pairs from {pairs_dir}")
-    return out
 
 
 def build(config: RefineConfig, channels: int):
@@ -132,7 +92,7 @@ def evaluate(model, items: list[dict], log_channel: int) -> float:
 
 def export(model, path, lens_id: str, config: RefineConfig, channels: int, log_channel: int, meta: dict) -> dict:
     """The .npz ``models.runtime.dfd_refine.DfdRefiner`` runs."""
-    from ..runtime.npz import write_model_npz
+    from ...io.model_npz import write_model_npz
     convs = [m for m in model if hasattr(m, "weight")]
     arrays = {}
     for i, conv in enumerate(convs):

@@ -3,4 +3,4 @@
 ``spec`` (torch-free sizes and variants), ``arch`` (the network), ``data``
 (ray-traced PSF samples and the encodings), ``config`` (the training config),
 ``train`` (on the shared loop of ``models.common``), ``export`` (to the
-.npz that ``models.runtime.olf`` runs in numpy)."""
+.npz that ``psf.olf`` runs in numpy)."""

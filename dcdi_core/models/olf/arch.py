@@ -1,5 +1,5 @@
 """The Omni-Lens-Field MLP (torch). Built from an :class:`~.spec.OLFSpec`;
-takes inputs already encoded by ``runtime.olf.encode_*`` (one encoding for
+takes inputs already encoded by ``psf.olf.encode_*`` (one encoding for
 training and serving)."""
 from __future__ import annotations
 

@@ -50,11 +50,12 @@ from ...optics.lens import Lens, load_lens
 from ...optics.paraxial import prescribed_focus_diopters
 from ...psf.compute import (KernelTooSmallWarning, PSFSettings, compute_sources, focused_lens,
                             spectral_samples)
-from ...psf.library import ALGORITHM_VERSION, LibraryGrid, PSFLibrary, lens_fingerprint
+from ...psf.library import ALGORITHM_VERSION, LibraryGrid, PSFLibrary
+from ...optics.lens import lens_fingerprint
 from ...render.geometry import ImageGeometry
 from ...render.psfmap import rotate_radial_kernels, support_radius
 from .spec import PAPER_GRID, OLFSpec, check_variant_and_lenses
-from ..runtime.olf import encode_paper, encode_radial, inverse_depth, patch_centres_px
+from ...psf.olf import encode_paper, encode_radial, inverse_depth, patch_centres_px
 
 PAPER_KERNEL = 41
 PAPER_DEPTHS_M = np.round(np.arange(0.7, 10.0 + 1e-9, 0.1), 1)     # the paper's 94 depths
@@ -150,7 +151,7 @@ class PSFDataConfig:
 
 @dataclass
 class LensSamples:
-    """The samples of one lens. Inputs are encoded (``runtime.olf``)."""
+    """The samples of one lens. Inputs are encoded (``psf.olf``)."""
 
     lens: Lens
     index: int

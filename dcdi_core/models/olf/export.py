@@ -1,6 +1,6 @@
 """Export a trained Omni-Lens-Field: torch -> .npz arrays + JSON metadata.
 
-The file is what ``runtime.olf.OmniLensField`` serves without torch. Arrays:
+The file is what ``psf.olf.OmniLensField`` serves without torch. Arrays:
 ``trunk{i}.weight`` (out, in) and ``trunk{i}.bias`` of the trunk's Linear
 layers (each followed by ReLU), ``head{j}.weight`` / ``head{j}.bias`` of the
 heads (paper: R, G, B, each W -> k^2, Sigmoid; radial: one per lens,
@@ -19,7 +19,7 @@ import numpy as np
 from ... import __version__
 from ...atomic import atomic_path
 from .. import require_torch
-from ..runtime.olf import FORMAT, FORMAT_VERSION, checksum
+from ...psf.olf import FORMAT, FORMAT_VERSION, checksum
 
 torch = require_torch()
 
@@ -48,7 +48,7 @@ def stored_held_out(meta: dict, arrays: dict, data) -> dict:
     """The held-out figures of the stored arrays (``dtype`` as written), served
     by the numpy runtime: what a user of the file gets."""
     from ..common.metrics import psf_scores
-    from ..runtime.olf import OmniLensField
+    from ...psf.olf import OmniLensField
     olf = OmniLensField(meta, arrays)
     scale = "peak" if olf.variant == "paper" else "sum"
     per = {ls.lens.id: psf_scores(olf.forward(ls.val_x, li, np.float64), ls.val_y, scale=scale)

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
-from ..errors import ModelError
+from ...errors import ModelError
 from ...errors import InputRangeError
 
 VARIANTS = ("paper", "radial")

@@ -13,8 +13,8 @@ import numpy as np
 
 from ...io.npzfile import Record, check_array
 from ...errors import InputRangeError
-from ..errors import ModelFileError
-from .npz import read_model_npz
+from ...errors import ModelFileError
+from ...io.model_npz import read_model_npz
 
 FORMAT, VERSION = "dcdi-dfd-refine", 1
 

@@ -23,7 +23,7 @@ import numpy as np  # noqa: E402
 
 scene, cam, cube = build_scene()
 RESULT["install"], RESULT["install_s"] = install(ARGS["zip"])
-operators = importlib.import_module(f"{MODULE}.operators")
+SESSION = importlib.import_module(f"{MODULE}.session").SESSION
 s = scene.dcdi_lens_bokeh
 s.lens = "6p"
 s.focus_mode = "DISTANCE"
@@ -59,7 +59,7 @@ def run_job(name, op_name):
         yield 0.05
     rec = {"job": name, "started": started, "seconds": round(time.perf_counter() - t, 3), "message": status.message,
            "progress_seen": sorted(set(seen)), "running_after": status.running,
-           "workers_left": len(operators._JOBS)}
+           "workers_left": len(SESSION.jobs)}
     RESULT.setdefault("jobs", []).append(rec)
     print(f"ui_operators: {rec}", flush=True)
 
@@ -85,13 +85,13 @@ def steps():
     RESULT["esc_started"] = click("apply_lens_bokeh")
     yield from wait_until(lambda: 0 < status.progress < 100, 60)
     RESULT["esc_running_before"] = status.running
-    RESULT["esc_workers_before"] = len(operators._JOBS)
+    RESULT["esc_workers_before"] = len(SESSION.jobs)
     RESULT["esc_progress_before"] = {"progress": status.progress, "message": status.message}
     win.event_simulate(type="ESC", value="PRESS")
     win.event_simulate(type="ESC", value="RELEASE")
     yield from wait_until(lambda: not status.running, 10)
-    yield from wait_until(lambda: not operators._JOBS, 30)
-    RESULT["esc"] = {"running": status.running, "message": status.message, "workers_left": len(operators._JOBS),
+    yield from wait_until(lambda: not SESSION.jobs, 30)
+    RESULT["esc"] = {"running": status.running, "message": status.message, "workers_left": len(SESSION.jobs),
                      "seconds": round(time.perf_counter() - t, 3)}
 
     s.lens = "mos-s1"

@@ -1,0 +1,163 @@
+"""What the add-on reads from a Blender scene, once for every caller: the
+active camera, the panel's lens (its file through the session's lens
+catalogue), the lens's entrance pupil, the focus and the range kept sharp.
+Apply Lens Bokeh, Simulate and Focus on Click (``operators``), the panel's
+sharp range (``panel``), Lens in Renders (``render_hook``) and the viewport
+preview (``viewport``) all call :func:`read_scene`; what needs only the
+camera or the lens (Match Camera, Lens in Renders' check, the focus plane)
+calls its parts.
+
+Units: depths and distances in metres from the lens's first vertex, the
+pupil in mm behind it; the scene's lengths are scene units times its unit
+scale (``metres_per_unit``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import bpy
+
+from dcdi_core import errors as dcdi_errors
+from dcdi_core.render import camera as dcdi_camera
+
+from . import logic
+
+
+@dataclass(frozen=True)
+class SceneReading:
+    """The scene as a lens job sees it: ``camera`` (the active camera
+    object), the lens and its file, its entrance pupil (mm behind its first
+    vertex), the scene's metres per unit, the focus and the kept range
+    (metres; None where not read), Refocus Lens, and the render's size and
+    the panel's preview size and samples (the preview's shape:
+    :meth:`preview_shape`)."""
+
+    camera: object
+    lens: object
+    lens_path: str
+    entrance_pupil_mm: float
+    metres_per_unit: float
+    focus_m: float | None
+    keep: tuple[float, float] | None
+    refocus: bool
+    render_size: tuple[int, int, float, float]       # resolution x, y; pixel aspect x, y
+    preview_size: int
+    samples: int
+
+    def preview_shape(self) -> tuple[int, int]:
+        """(height, width) of the preview: the render's aspect, its long side the Preview Size."""
+        return logic.preview_shape(*self.render_size, self.preview_size)
+
+
+def read_scene(scene, *, focus: bool = True, depsgraph=None, lens_path: str | None = None) -> SceneReading:
+    """The scene's camera, lens, pupil and (``focus``) its focus and kept
+    range. ``depsgraph``: the focus and kept range as it evaluated them (a
+    frame of an animation render), else the scene as it stands.
+    ``lens_path``: this lens file, else the panel's lens. Errors name what
+    to change (no camera, the lens file, no focus object)."""
+    s = scene.dcdi_lens_bokeh
+    cam = camera(scene)
+    if lens_path is None:
+        lens, lens_path = chosen_lens(s)
+    else:
+        lens = logic.load_lens_cached(lens_path)
+    ep = logic.lens_readout(lens_path)["entrance_pupil_mm"]
+    focus_m = keep = None
+    if focus:
+        focus_m, keep = focus_and_keep(scene, cam, s, ep, depsgraph)
+    r = scene.render
+    return SceneReading(cam, lens, lens_path, ep, metres_per_unit(scene), focus_m, keep, bool(s.refocus),
+                        (r.resolution_x, r.resolution_y, r.pixel_aspect_x, r.pixel_aspect_y), s.preview_size,
+                        s.samples)
+
+
+# ------------------------------------------------------------------ the parts
+def metres_per_unit(scene) -> float:
+    return float(scene.unit_settings.scale_length)
+
+
+def camera(scene):
+    """The scene's active camera, which must be a perspective camera."""
+    cam = scene.camera
+    if cam is None:
+        raise logic.BokehInputError("the scene has no active camera: add one (Add > Camera) and make it the "
+                                    "active camera (View > Cameras > Set Active Object as Camera)")
+    if cam.type != "CAMERA":
+        raise logic.BokehInputError(f"the active camera {cam.name!r} is a {cam.type.lower()}, not a camera")
+    if cam.data.type != "PERSP":
+        raise logic.BokehInputError(f"camera {cam.name!r} is {cam.data.type.lower()}: "
+                                    "Lens Bokeh needs a perspective camera (Camera > Type > Perspective)")
+    return cam
+
+
+def user_lens_dir(create: bool = False) -> str:
+    """Folder of lenses imported from Zemax files: the extension's user folder
+    (Blender 4.2+), else a folder in the user's scripts."""
+    pkg = __package__ or "blender_addon"
+    if hasattr(bpy.utils, "extension_path_user") and pkg.startswith("bl_ext."):
+        return bpy.utils.extension_path_user(pkg, path="lenses", create=create)
+    return bpy.utils.user_resource("SCRIPTS", path="dcdi_lenses", create=create)
+
+
+def catalogue():
+    """The lenses the panel offers (``logic.lens_catalogue``: the lens folders and the imported lenses)."""
+    return logic.lens_catalogue([user_lens_dir()])
+
+
+def lens_file(lens_id: str) -> str | None:
+    """Path of the lens ``lens_id``'s TOML file (None when there is none)."""
+    return logic.lens_file(lens_id, [user_lens_dir()])
+
+
+def chosen_lens(settings):
+    """(lens, path) of the panel's lens; errors name the file and the field."""
+    path = lens_file(settings.lens)
+    if path is None:
+        raise logic.BokehInputError(f"no lens file for {settings.lens!r}: pick a lens in the panel "
+                                    "(lenses/*.toml or Import Zemax File)")
+    try:
+        return logic.load_lens_cached(path), path
+    except dcdi_errors.DcdiError as e:
+        raise logic.BokehInputError(f"the lens file is broken: {logic.message(e)}") from None
+
+
+def focus_metres(scene, cam, settings, entrance_pupil_mm: float, depsgraph=None) -> float:
+    """Focus distance in metres from the lens's first vertex: the panel's
+    distance, its focus object's origin, or the camera's own depth-of-field
+    focus (its focus object, else its focus distance). ``depsgraph``: read
+    the values it evaluated (a frame of an animation render), else the
+    scene as it stands."""
+    if depsgraph is not None:
+        settings = scene.evaluated_get(depsgraph).dcdi_lens_bokeh
+        cam = cam.evaluated_get(depsgraph)
+    mpu = metres_per_unit(scene)
+    if settings.focus_mode == "DISTANCE":
+        return settings.focus_distance * mpu
+    if settings.focus_mode == "CAMERA":
+        dof = cam.data.dof
+        obj = dof.focus_object
+        if obj is None:            # the camera's distance runs from the camera, i.e. the entrance pupil
+            return dcdi_camera.planar_depth_m(-dof.focus_distance, entrance_pupil_mm, mpu)
+    else:
+        obj = settings.focus_object
+        if obj is None:
+            raise logic.BokehInputError("focus is set to Object but no focus object is chosen")
+    if depsgraph is not None:
+        obj = obj.evaluated_get(depsgraph)
+    return point_depth_m(scene, cam, obj.matrix_world.translation, entrance_pupil_mm)
+
+
+def point_depth_m(scene, cam, point, entrance_pupil_mm: float) -> float:
+    """Depth in metres from the lens's first vertex of the world ``point``
+    (scene units): its depth along the camera's view axis."""
+    z = (cam.matrix_world.inverted() @ point).z          # camera space: the camera looks down -Z
+    return dcdi_camera.planar_depth_m(z, entrance_pupil_mm, metres_per_unit(scene))
+
+
+def focus_and_keep(scene, cam, settings, entrance_pupil_mm: float, depsgraph=None):
+    """(focus, (near, far)): the focus (:func:`focus_metres`) and the range
+    kept sharp around it, metres."""
+    focus = focus_metres(scene, cam, settings, entrance_pupil_mm, depsgraph)
+    s = scene.evaluated_get(depsgraph).dcdi_lens_bokeh if depsgraph is not None else settings
+    mpu = metres_per_unit(scene)
+    return focus, logic.keep_range(focus, s.keep_front * mpu, s.keep_behind * mpu)

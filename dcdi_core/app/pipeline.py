@@ -1,0 +1,97 @@
+"""The DCDI pipeline: a capture given another lens's depth of field
+(:func:`dof`): its depth (given, or estimated), the correction of its lens's
+blur (``app.correction``), then the target lens's bokeh (``app.render``).
+The capture's frame (``app.frame``) is made once and handed to the depth
+estimate and the correction.
+
+Units: depths in metres, pixel pitch in mm on the sensor, positions in
+pixels (row, col).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..control import Control
+from ..errors import InputRangeError
+from .correction import CorrectRequest, CorrectResult, correct
+from .render import BokehRequest, BokehResult, _array
+from .render import bokeh as run_bokeh
+
+
+@dataclass(frozen=True)
+class DofRequest:
+    """The DCDI chain: ``correct`` (a :class:`CorrectRequest` of the capture;
+    its ``lens`` None: a sharp image, no correction; its ``depth_m`` None:
+    the depth is ``estimator``'s) then ``bokeh`` (a :class:`BokehRequest`
+    of the target lens, its image and depth filled here: the corrected
+    image and the depth used). ``estimator``: a
+    ``models.depth.estimators.DepthEstimator``, or None with a depth map."""
+
+    correct: CorrectRequest
+    bokeh: BokehRequest
+    estimator: object = None
+
+
+@dataclass
+class DofResult:
+    """``image``: the target lens's depth of field (H, W, 3) float32;
+    ``corrected``: the all-in-focus estimate (the capture for a sharp
+    image); ``depth_m`` and ``depth_source`` ('given' or the estimator's
+    name); ``correction``: the :class:`CorrectResult` (None for a sharp
+    image); ``bokeh``: the :class:`BokehResult`; ``notes``; ``seconds`` per
+    stage."""
+
+    image: np.ndarray
+    corrected: np.ndarray
+    depth_m: np.ndarray
+    depth_source: str
+    correction: CorrectResult | None
+    bokeh: BokehResult
+    notes: list
+    seconds: dict
+
+    def correction_dict(self) -> dict:
+        if self.correction is None:
+            return {"method": "none", "reason": "a sharp input: no correction"}
+        return self.correction.as_dict()
+
+
+def _depth(capture, request: DofRequest, seconds: dict) -> tuple[np.ndarray, str]:
+    depth = request.correct.depth_m
+    if depth is not None:
+        depth = _array("depth_m", depth, 2)
+        if depth.shape != capture.shape[:2]:
+            raise InputRangeError("depth_m", depth.shape, f"{capture.shape[:2]}, the capture's size")
+        return depth, "given"
+    from ..models.depth.estimators import DepthEstimator
+    from ..errors import ModelError
+    if not isinstance(request.estimator, DepthEstimator):
+        raise ModelError("no depth map and no depth estimator: give a depth map, or an estimator "
+                         "(the shipped depth network of the camera lens, or a public one from a checkpoint)")
+    t0 = time.perf_counter()
+    depth = request.estimator.estimate(capture)
+    seconds["depth"] = time.perf_counter() - t0
+    return depth, request.estimator.name
+
+
+def dof(request: DofRequest, control: Control | None = None, *, networks=None, cache=None) -> DofResult:
+    """Run a :class:`DofRequest`: depth (given or estimated), correction,
+    then the target lens's bokeh (module docstring)."""
+    control = control or Control()
+    capture = _array("capture", request.correct.capture, 3)
+    seconds, notes = {}, []
+    depth, depth_source = _depth(capture, request, seconds)
+    corrected, fixed = capture, None
+    if request.correct.lens is not None:
+        fixed = correct(replace(request.correct, capture=capture, depth_m=depth), control, networks=networks)
+        corrected = fixed.image
+        seconds.update(fixed.seconds)
+        notes += fixed.notes
+    t0 = time.perf_counter()
+    b = run_bokeh(replace(request.bokeh, image=corrected, depth_m=depth), control, cache=cache)
+    seconds["psfs and bokeh"] = time.perf_counter() - t0
+    notes = list(dict.fromkeys(notes + b.notes))         # the depth's notes once, not per stage
+    return DofResult(b.image, corrected, depth, depth_source, fixed, b, notes, seconds)

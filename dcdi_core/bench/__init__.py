@@ -1,0 +1,43 @@
+"""`dcdi bench`: timings printed, never asserted.
+
+Each benchmark times the real code path and a simple baseline in the same
+process and prints the ratio, so that figures from different machines compare.
+One module per group: ``trace`` (the tracer, beside Optiland 0.6.3 with
+``optiland_spot.py``, and the PSF library), ``render`` (simulation and
+bokeh), ``correction`` (the deconvolution and the DACN), ``processes``
+(whole commands: times, peak memory, the depth estimate); ``timing`` holds
+their helpers. Each is imported when its benchmark runs.
+"""
+from __future__ import annotations
+
+
+def run(what: str, args) -> int:
+    quick = getattr(args, "quick", False)
+    if what == "memory":
+        from .processes import bench_memory
+        return bench_memory(quick)
+    if what == "cli":
+        from .processes import bench_cli
+        return bench_cli(quick, repeat=1 if quick else 2)
+    if what == "dacn":
+        from .correction import bench_dacn
+        return bench_dacn(quick, getattr(args, "threads", 1))
+    if what == "correction":
+        from .correction import bench_correction
+        return bench_correction(quick)
+    if what == "render":
+        from .render import bench_render
+        return bench_render(quick)
+    if what == "trace":
+        from .trace import bench_trace, check_optiland
+        optiland = getattr(args, "optiland", None)
+        if optiland is not None:
+            check_optiland(optiland)
+        return bench_trace(args.rays, args.repeat, optiland)
+    if what == "psflib":
+        from .trace import bench_psflib
+        return bench_psflib(quick)
+    if what == "depth":
+        from .processes import bench_depth
+        return bench_depth(quick, repeat=1 if quick else 2)
+    raise ValueError(f"unknown benchmark {what!r}")

@@ -1,0 +1,473 @@
+"""PSF sources for the renderer besides tracing: the PSF basis and the Omni-Lens-Field (numpy only).
+
+``render.psfmap.psf_map`` reads a PSF library's interface (``grid``,
+``fields``, ``kernel_size``, ``depth_bins``, ``field_weights``,
+``bins_needed``, ``ensure``, ``psf``, ``computed``; ``pixel_pitch_mm`` and
+``settings`` for the simulator's checks). :class:`OLFLibrary` is a
+``PSFLibrary`` whose bins are filled by the OLF's forward pass instead of
+ray tracing, at the same grid, so the renderer needs no change and never
+imports ``models`` (docs/design.md: the caller hands it a PSF source).
+
+:func:`psf_source` decides which source serves a request: the lens's PSF
+basis (``psf.basis``: a compressed traced library, the most exact per
+megabyte, at the prescribed focus) where it covers it, else the OLF where it
+covers it (the lens's optical fingerprint is the learned one; the PSF
+settings, spectral response and focus are those it learned; the pixel pitch
+is the learned one or coarser; the grid lies within its ranges), else
+tracing; either way it says which and why in one line. The CLI (``dcdi psf /
+simulate / bokeh``) and the Blender add-on (Apply Lens Bokeh) both choose
+through it.
+
+At a pixel pitch coarser than the learned one, the network's kernels (pixel
+histograms at the learned pitch) are area-resampled exactly
+(``psf.pitch.area_resample``); a finer pitch is traced, never upsampled.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from types import MappingProxyType
+
+import numpy as np
+
+import math
+import warnings
+
+from ..control import Control
+from ..errors import InputRangeError, LensMismatchError, ModelError, field
+from ..io.npzfile import FileCache
+from ..optics.errors import OpticsError
+from .basis import BasisLibrary, open_store, shipped_store
+from .compute import KernelTooSmallWarning, PSFSettings
+from .library import LibraryGrid, PSFLibrary, valid_depth_mask
+from .pitch import SAME_GIVEN_RTOL, area_resample, check_downsampling, resampled_size, same_pitch
+from ..shipped import NETWORKS, WEIGHTS_DIR
+from .olf import OmniLensField
+
+SHIPPED = WEIGHTS_DIR / "olf-radial.npz"
+SOURCES = ("basis", "olf", "trace")
+
+
+def shipped_olf_files() -> list[Path]:
+    """The OLF files that ship with the engine (``dcdi_core/models/weights/olf-*.npz``;
+    the folder also holds the DACN and depth networks)."""
+    return NETWORKS["olf"].shipped_files()
+
+
+class OLFLibrary(PSFLibrary):
+    """A PSF library of one lens whose bins come from an Omni-Lens-Field.
+
+    Same grid semantics as the traced library (fields along sensor +y,
+    kernel rows along the radial direction, depth bins uniform in diopters
+    plus infinity, linear interpolation between them); ``ensure`` runs the
+    network for the bins asked for (all fields of a bin at once) and never
+    traces. ``last_network_s`` is the time of the forward passes so far."""
+
+    def __init__(self, olf: OmniLensField, lens, grid: LibraryGrid | None = None, *,
+                 pixel_pitch_mm: float | None = None, focus_m: float | None = None):
+        li = olf.check_lens(lens)               # refuses another prescription
+        entry = olf.lens_entry(lens.id)
+        if grid is None:       # the grid of the traced library it learned from
+            grid = LibraryGrid(**entry["library_grid"]) if entry.get("library_grid") else LibraryGrid()
+        near, far = entry["depth_range_m"]
+        if grid.near_m < near - 1e-9 or grid.far_m > far + 1e-9:
+            raise InputRangeError("library grid depths", (grid.near_m, grid.far_m),
+                                  f"within the OLF's trained [{near}, {far}] m ({olf.path})")
+        learned = float(entry["pixel_pitch_mm"])
+        pitch = learned if pixel_pitch_mm is None else float(pixel_pitch_mm)
+        check_downsampling(learned, pitch, f"pixel pitch (mm; {olf.path} learned {lens.id} at {learned:.6g} mm)")
+        k = resampled_size(int(entry["kernel_size"]), learned, pitch)
+        s = dict(entry["psf_settings"])
+        s["band_nm"] = tuple(s["band_nm"])
+        settings = replace(PSFSettings(**s), kernel_size=k, focus_distance_m=focus_m, pixel_pitch_mm=pitch)
+        self.olf, self.lens_index, self.focus_m = olf, li, focus_m
+        self.learned_pitch_mm = learned
+        self.last_network_s = 0.0
+        meta = {"format": "olf", "algorithm": entry.get("psf_algorithm"), "lens_id": lens.id,
+                "lens_file": str(lens.path), "lens_fingerprint": entry["fingerprint"],
+                "settings": settings.as_dict(), "grid": {"n_fields": grid.n_fields, "n_depths": grid.n_depths,
+                                                         "near_m": grid.near_m, "far_m": grid.far_m},
+                "pixel_pitch_mm": pitch, "learned_pixel_pitch_mm": learned, "wavelengths_nm": [],
+                "response": {"sha256": "olf:" + str(olf.meta.get("checksum"))}, "olf_file": olf.path}
+        super().__init__(lens, settings, grid, None, meta=meta)
+
+    @property
+    def resampled(self) -> bool:
+        """True when the kernels are area-resampled from the learned pitch."""
+        return not same_pitch(self.pixel_pitch_mm, self.learned_pitch_mm)
+
+    def kernels(self, field, depth_m, *, dtype=np.float32) -> np.ndarray:
+        """The OLF's PSFs (..., 3, k, k) at fields x depths (broadcast), at the
+        library's pixel pitch: the network's kernels at the learned pitch,
+        area-resampled (``psf.pitch``) when the library's is coarser."""
+        t = time.perf_counter()
+        out = self.olf.psf(self.lens, field, depth_m, self.focus_m, dtype=dtype)
+        self.last_network_s += time.perf_counter() - t
+        if self.resampled:
+            out = area_resample(out, self.learned_pitch_mm, self.pixel_pitch_mm, self.kernel_size)
+        return out
+
+    def ensure(self, depth_m=None, *, bins=None, clamp_near: bool = False, progress=None) -> list[int]:
+        want = np.asarray(bins if bins is not None else self.bins_needed(depth_m, clamp_near=clamp_near), int)
+        todo = [int(b) for b in want if not self.computed[b]]
+        if not todo:
+            return []
+        kernels = self.kernels(self.fields[None, :], self.depths_m[todo][:, None])
+        for j, b in enumerate(todo):
+            self.psf[b] = kernels[j]
+            self.computed[b] = True
+        # what the traced library records beside its kernels: the OLF learned
+        # kernels that hold (at least) its energy fraction, renormalised to 1
+        self.energy_outside[todo] = 0.0
+        self.kernel_size_needed[todo] = self.kernel_size
+        if progress:
+            progress(len(todo) * len(self.fields), len(todo) * len(self.fields))
+        return todo
+
+    def save(self, path) -> None:        # nothing to cache: the network is the store
+        raise ModelError("an OLF-backed library is not saved; it is computed from the OLF file")
+
+
+@dataclass
+class PSFSource:
+    """Which PSF source serves a request: ``kind`` 'basis' (a compressed
+    traced library), 'olf' (each with its library) or 'trace' (library None:
+    the caller opens a traced one), and why."""
+
+    kind: str
+    message: str
+    library: PSFLibrary | None = None
+    olf_file: str | None = None
+    basis_file: str | None = None
+
+
+def _settings_differences(learned: dict, settings: PSFSettings | None, *, rays_at_least: bool = False,
+                          verb: str = "learned") -> list[str]:
+    """What in ``settings`` differs from the PSF settings a source learned or
+    stored (kernel size, pixel pitch and focus are checked apart; with
+    ``rays_at_least``, more stored rays than asked serve the request: the same
+    PSFs with less ray noise)."""
+    if settings is None:
+        return []
+    asked = settings.as_dict()
+    out = []
+    for key, v in asked.items():
+        if key in ("kernel_size", "pixel_pitch_mm", "focus_distance_m"):
+            continue
+        have = learned.get(key)
+        if key == "pupil_samples" and rays_at_least and have is not None and have >= v:
+            continue
+        if isinstance(have, list):
+            have = list(have)
+            v = list(v)
+        if have != v:
+            out.append(f"{key} {v!r} (it {verb} {have!r})")
+    return out
+
+
+# a refocus, a new pixel pitch or another lens opens a new source, but not the
+# 10 MB file again (0.1-0.3 s of every focus change in the add-on's preview);
+# one file at a time: the shipped one, or the user's
+_load_olf = FileCache(OmniLensField.load, 1)
+
+
+# the request's fields the source's messages name (errors.field: each front end shows them in its own words;
+# a caller may still pass labels, a label None leaving the mention out)
+PSF_SOURCE_LABELS = MappingProxyType({"psf_source": field("psf_source"), "basis": field("basis"), "olf": field("olf")})
+
+
+def psf_source(lens, *, source: str | None = None, olf_file=None, pixel_pitch_mm: float | None = None,
+               settings: PSFSettings | None = None, kernel_size: int | None = None, focus_m=None,
+               custom_response: bool = False, grid: LibraryGrid | None = None,
+               need_field: bool = True, basis_file=None, labels=None) -> PSFSource:
+    """The PSF source for ``lens`` and a request: ``source`` 'basis' (the
+    lens's compressed library), 'olf' (the OLF), each an error saying why if
+    it cannot serve, 'trace', or None: the basis where it covers the request,
+    else the OLF, else tracing (an ``olf_file`` given without a
+    ``basis_file`` goes first). ``olf_file`` / ``basis_file``: the files
+    (default: the shipped ones). The request: the image's pixel pitch (None:
+    the lens's sensor), the PSF settings asked for, an explicit kernel size,
+    a focus distance (None: as prescribed), a custom spectral response.
+    ``labels`` ({'psf_source', 'basis', 'olf'}: the CLI's options by
+    request's fields by default, shown in each front end's words; a label None
+    leaves the option unnamed) name the choices in the messages."""
+    lab = {**PSF_SOURCE_LABELS, **(labels or {})}
+    if source not in (None,) + SOURCES:
+        raise InputRangeError("psf source", source,
+                              "basis, olf, trace, or none (the first of basis and olf that covers the request)")
+    if source == "trace":
+        return PSFSource("trace", "PSFs traced" + (f" ({lab['psf_source']} trace)" if lab["psf_source"] else ""))
+    reasons: list[str] = []
+    # an OLF file given without a basis file is the source asked for: it goes first
+    order = ("olf", "basis") if olf_file and not basis_file else ("basis", "olf")
+    for kind in order:
+        if source not in (None, kind):
+            continue
+        src, why = (_try_basis if kind == "basis" else _try_olf)(
+            lens, basis_file if kind == "basis" else olf_file, pixel_pitch_mm, settings, kernel_size, focus_m,
+            custom_response, grid, lab[kind])
+        if src is not None:
+            return src
+        if source == kind:
+            what = "PSF basis" if kind == "basis" else "Omni-Lens-Field"
+            raise ModelError(f"{lab['psf_source'] or 'PSF source'} {kind}: the {what} cannot serve this request: "
+                             f"{why}")
+        reasons.append(f"{'basis' if kind == 'basis' else 'OLF'}: {why}")
+    olf_path = Path(olf_file) if olf_file else (SHIPPED if SHIPPED.exists() else None)
+    return PSFSource("trace", "PSFs traced: " + "; ".join(reasons), None,
+                     None if olf_path is None else str(olf_path))
+
+
+def _none_given(label: str | None) -> str:
+    """' and none was given (LABEL)' where the user can give one."""
+    return f" and none was given ({label})" if label else ""
+
+
+def _try_basis(lens, basis_file, pitch, settings, kernel_size, focus_m, custom_response, grid, label="--basis"):
+    """(PSFSource, None) where the lens's PSF basis serves the request, else (None, why); ``label``: the
+    option that gives a basis file (None: none)."""
+    path = Path(basis_file) if basis_file else shipped_store(lens.id)
+    if path is None:
+        return None, f"no PSF basis of {lens.id} ships with this engine{_none_given(label)}"
+    try:
+        store = open_store(path)
+        store.check_lens(lens)
+    except OpticsError as e:
+        return None, str(e)
+    stored = store.pixel_pitch_mm
+    if pitch is not None and not (pitch >= stored or same_pitch(pitch, stored)):
+        return None, (f"the image's pixel pitch {pitch * 1000:.6g} um is finer than the {stored * 1000:.6g} um "
+                      f"{path} holds {lens.id} at")
+    k = resampled_size(store.kernel_size, stored, stored if pitch is None else pitch)
+    if kernel_size is not None and kernel_size != k:
+        return None, f"a {kernel_size} px kernel was asked for; {path} serves {lens.id} at {k} px at this pitch"
+    if custom_response:
+        return None, "a custom spectral response was given; the PSF basis holds the shipped one"
+    if focus_m is not None:
+        return None, f"focus {focus_m:g} m asked for; {path} holds {lens.id} at its prescribed focus"
+    if grid is not None and grid != store.grid:
+        return None, f"a library grid {grid} was asked for; {path} holds {store.grid}"
+    diff = _settings_differences(store.meta["psf_settings"], settings, rays_at_least=True, verb="holds")
+    if diff:
+        return None, "PSF settings differ from the stored ones: " + "; ".join(diff)
+    lib = BasisLibrary(store, lens, pixel_pitch_mm=pitch)
+    pixels = (f"{lib.pixel_pitch_mm * 1000:.4g} um pixels, its {stored * 1000:.4g} um kernels area-resampled"
+              if lib.resampled else f"{lib.pixel_pitch_mm * 1000:.4g} um pixels")
+    return PSFSource("basis", f"PSFs from the PSF basis {path} ({lens.id}, rank {store.rank}, {pixels}, "
+                              f"{lib.kernel_size} x {lib.kernel_size} px, prescribed focus)",
+                     lib, None, str(path)), None
+
+
+def _try_olf(lens, olf_file, pitch, settings, kernel_size, focus_m, custom_response, grid, label="--olf"):
+    """(PSFSource, None) where the OLF serves the request, else (None, why); ``label``: the option that gives
+    an OLF file (None: none)."""
+    path = Path(olf_file) if olf_file else (SHIPPED if SHIPPED.exists() else None)
+    if path is None:
+        return None, f"no OLF file ships with this engine{_none_given(label)}"
+    try:
+        olf = _load_olf(path)
+        reason = _why_not(olf, lens, pitch, settings, kernel_size, focus_m, custom_response)
+        if reason is not None:
+            return None, reason
+        lib = OLFLibrary(olf, lens, grid, pixel_pitch_mm=pitch, focus_m=focus_m)
+    except (LensMismatchError, ModelError, InputRangeError) as e:
+        return None, str(e)
+    k = lib.kernel_size
+    pixels = (f"{lib.pixel_pitch_mm * 1000:.4g} um pixels, its {lib.learned_pitch_mm * 1000:.4g} um kernels "
+              "area-resampled" if lib.resampled else f"{lib.pixel_pitch_mm * 1000:.4g} um pixels")
+    return PSFSource("olf", f"PSFs from the Omni-Lens-Field {path} ({lens.id}: its learned prescription, "
+                            f"{pixels}, {k} x {k} px, "
+                            + ("prescribed focus" if focus_m is None else f"focus {focus_m:g} m") + ")",
+                     lib, str(path)), None
+
+
+def _why_not(olf: OmniLensField, lens, pitch, settings, kernel_size, focus_m, custom_response) -> str | None:
+    """None if ``olf`` covers the request, else the reason (one phrase)."""
+    if olf.variant != "radial":
+        return f"{olf.path} is a {olf.variant!r} OLF (the renderer takes radial ones)"
+    if lens.id not in olf.lens_ids:
+        return f"{olf.path} did not learn lens {lens.id!r} (it learned {', '.join(olf.lens_ids)})"
+    if not olf.covers(lens):
+        return (f"{lens.id} ({lens.path}) differs optically from the prescription {olf.path} learned "
+                "(changed prescription: not served)")
+    entry = olf.lens_entry(lens.id)
+    learned = float(entry["pixel_pitch_mm"])
+    if pitch is not None and not (pitch >= learned or same_pitch(pitch, learned)):
+        return (f"the image's pixel pitch {pitch * 1000:.6g} um is finer than the {learned * 1000:.6g} um "
+                f"{olf.path} learned {lens.id} at (its kernels are area-resampled to coarser pitches only: "
+                "a finer one would invent detail)")
+    k = resampled_size(int(entry["kernel_size"]), learned, learned if pitch is None else pitch)
+    if kernel_size is not None and kernel_size != k:
+        return f"a {kernel_size} px kernel was asked for; {olf.path} serves {lens.id} at {k} px at this pitch"
+    if custom_response:
+        return "a custom spectral response was given; the OLF learned the shipped one"
+    diff = _settings_differences(entry["psf_settings"], settings)
+    if diff:
+        return "PSF settings differ from the learned ones: " + "; ".join(diff)
+    fr = entry.get("focus_range_m")
+    if focus_m is not None and not fr:
+        return f"focus {focus_m:g} m asked for; {olf.path} learned {lens.id} at its prescribed focus only"
+    if fr:
+        try:
+            olf.focus_diopters(lens.id, focus_m)
+        except InputRangeError:
+            if focus_m is None:
+                return f"{olf.path} learned {lens.id} across focus distances but not its prescribed focus; give one"
+            return f"focus {focus_m:g} m is outside the learned {fr[0]:g} m to {fr[1]:g} m"
+    return None
+
+
+__all__ = ["BasisLibrary", "OLFLibrary", "PSFSource", "psf_source", "shipped_olf_files", "SHIPPED", "WEIGHTS_DIR", "SOURCES"]
+
+
+MAX_FITTED_KERNEL = 129      # px: beyond this a patch-wise FFT blur costs more than it is worth here
+
+
+
+def open_library(lens, geometry, settings: PSFSettings | None = None,
+                 grid: LibraryGrid | None = None, *, response=None, cache: bool = True, fit_depth_m=None,
+                 progress=None) -> PSFLibrary:
+    """The lens's PSF library sampled at the image's pixel pitch.
+
+    settings.pixel_pitch_mm, if set, must be the geometry's (the PSFs of an
+    image are sampled at its own pitch). response: the sensor's spectral
+    response (default: the shipped one).
+    fit_depth_m: a depth map (metres) whose depth bins are computed now; if
+    their PSFs spill out of the settings' kernel (less than 99 % of the rays
+    inside, as a fast lens's defocus blur at full resolution does), the
+    library is reopened with the odd kernel size that holds them, at most
+    MAX_FITTED_KERNEL px (beyond that the usual KernelTooSmallWarning says
+    how much is clipped). Without it the kernel size is the settings'.
+    progress(done, total): called as PSF bins are computed."""
+    s = settings or PSFSettings()
+    if s.pixel_pitch_mm is not None and not math.isclose(s.pixel_pitch_mm, geometry.pixel_pitch_mm, rel_tol=SAME_GIVEN_RTOL):
+        raise InputRangeError("pixel pitch", s.pixel_pitch_mm,
+                              f"{geometry.pixel_pitch_mm:.6g} mm, the image's own pixel pitch (give one, not two)")
+    s = replace(s, pixel_pitch_mm=geometry.pixel_pitch_mm)
+    library = PSFLibrary.open(lens, s, grid, response, cache=cache)
+    library.progress = progress
+    if fit_depth_m is None:
+        return library
+    d = np.asarray(fit_depth_m, dtype=np.float64)
+    d = d[valid_depth_mask(d)]
+    if d.size == 0:
+        return library
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", KernelTooSmallWarning)       # answered below by a larger kernel
+        library.ensure(d, clamp_near=True, progress=progress)
+    need = int(library.kernel_size_needed[library.computed].max())
+    if need <= library.kernel_size or library.kernel_size >= MAX_FITTED_KERNEL:
+        return library
+    library = PSFLibrary.open(lens, replace(s, kernel_size=min(need | 1, MAX_FITTED_KERNEL)), grid, response,
+                              cache=cache)
+    library.progress = progress
+    library.ensure(d, clamp_near=True)
+    return library
+
+
+# Traced PSFs for a preview (the add-on's viewport) where no shipped basis or
+# OLF holds the request: fewer pupil rays and wavelengths, a proxy of the
+# render's (docs/addon.md gives its error and time against the full trace).
+PREVIEW_TRACE = {"pupil_samples": 24, "n_wavelengths": 9}
+
+
+@dataclass(frozen=True)
+class PSFRequest:
+    """Which PSFs a job asks for.
+
+    ``source``: 'basis', 'olf', 'trace' or None (the basis where it covers
+    the request, else the OLF, else traced). ``olf_file`` / ``basis_file``:
+    files instead of the shipped ones. ``settings``: the PSF settings (their
+    ``focus_distance_m`` the focus, metres, None: as prescribed; their pitch
+    is the image's). ``kernel_size``: an explicit kernel (px; None: the
+    settings', grown to hold the blur where ``fit_kernel``). ``response``:
+    the sensor's spectral response (None: the shipped curves). ``preview``:
+    PSFs that must be traced are traced with :data:`PREVIEW_TRACE`."""
+
+    source: str | None = None
+    olf_file: str | None = None
+    basis_file: str | None = None
+    settings: PSFSettings | None = None
+    kernel_size: int | None = None
+    response: object = None
+    fit_kernel: bool = True
+    preview: bool = False
+
+    def __post_init__(self):
+        if self.source not in (None,) + SOURCES:
+            raise InputRangeError("psf_source", self.source,
+                                  "basis, olf, trace, or none (the first of basis and olf that covers the request)")
+        if self.settings is not None and not isinstance(self.settings, PSFSettings):
+            raise InputRangeError("settings", self.settings, "PSFSettings, or None for the defaults")
+
+    @property
+    def focus_m(self) -> float | None:
+        return None if self.settings is None else self.settings.focus_distance_m
+
+    def focused(self, focus_m: float | None) -> "PSFRequest":
+        """The same request with the PSFs focused at ``focus_m`` (m, None: as prescribed)."""
+        return replace(self, settings=replace(self.settings or PSFSettings(), focus_distance_m=focus_m))
+
+
+@dataclass
+class PSFSourceResult:
+    """The PSFs serving a job: ``kind`` ('basis', 'olf' or 'trace'), why
+    (``message``, one line), ``library`` (always set), the files and the
+    ``quality`` ('full', or 'preview' for a preview's lighter trace)."""
+
+    kind: str
+    message: str
+    library: object
+    olf_file: str | None = None
+    basis_file: str | None = None
+    quality: str = "full"
+
+    def as_dict(self) -> dict:
+        return {"psf_source": self.kind, "psf_message": self.message, "psf_quality": self.quality,
+                "olf_file": self.olf_file if self.kind == "olf" else None,
+                "basis_file": self.basis_file if self.kind == "basis" else None}
+
+
+def choose(lens, geometry, request: PSFRequest) -> PSFSource:
+    """``psf_source``'s choice for a job's request at ``geometry``'s pixel pitch (mm)."""
+    return psf_source(lens, source=request.source, olf_file=request.olf_file, basis_file=request.basis_file,
+                      pixel_pitch_mm=geometry.pixel_pitch_mm, settings=request.settings,
+                      kernel_size=request.kernel_size, focus_m=request.focus_m,
+                      custom_response=request.response is not None)
+
+
+def open_source(lens, geometry, request: PSFRequest, *, fit_depth_m=None, control: Control | None = None,
+                chosen=None) -> PSFSourceResult:
+    """The PSFs of ``lens`` for an image at ``geometry`` (``render.geometry.
+    ImageGeometry``) as ``request`` asks: the basis or OLF library where one
+    serves it, else a traced library (cached on disk) whose kernel grows to
+    hold the blur of ``fit_depth_m`` (a depth map, metres; with
+    ``request.fit_kernel``). ``control`` reports the PSFs traced (stage
+    'PSFs') and stops the trace when cancelled. ``chosen``: the source
+    already chosen for this request (``psf_source``'s), not chosen again."""
+    control = control or Control()
+    src = chosen if chosen is not None else choose(lens, geometry, request)
+    control.say(src.message)
+    if src.library is not None:
+        return PSFSourceResult(src.kind, src.message, src.library, src.olf_file, src.basis_file)
+    settings, quality = request.settings or PSFSettings(), "full"
+    if request.preview:
+        settings, quality = replace(settings, **PREVIEW_TRACE), "preview"
+    library = open_library(lens, geometry, settings, response=request.response,
+                           fit_depth_m=fit_depth_m if request.fit_kernel else None, progress=control.counter("PSFs"))
+    return PSFSourceResult("trace", src.message, library, src.olf_file, src.basis_file, quality)
+
+
+def ensure_bins(library, depth_m, control: Control | None = None) -> None:
+    """Compute now every depth bin from the nearest to the farthest valid
+    depth of ``depth_m`` (metres), so that progress and cancel work while
+    PSFs are built (a patch's mean inverse depth can fall in a bin no pixel
+    touches, hence the whole span)."""
+    d = np.asarray(depth_m, np.float64)
+    d = d[d > 0]                    # NaN, 0 and negative depths are left sharp
+    if d.size == 0:
+        return
+    need = library.bins_needed(d, clamp_near=True)
+    control = control or Control()
+    library.ensure(bins=np.arange(need.min(), need.max() + 1), progress=control.counter("PSFs"))

@@ -1,0 +1,219 @@
+"""The import graph of the code, read from the source: every import counts,
+at the top of a file or inside a function (``import a``, ``from a import b``
+where b may be a module, relative imports resolved, ``importlib.
+import_module('a')`` and ``__import__('a')`` with a literal name).
+
+The rules, from docs/design.md ("Layers"):
+
+- every module of ``dcdi_core``, ``blender_addon`` and ``lab`` has a layer
+  in the table of docs/design.md, and imports only its own layer or lower
+  ones (nothing points back up: the engine never imports the add-on or the
+  lab, ``psf`` never imports ``render``, ...);
+- no cycle between files, within a layer or across;
+- the engine never imports Blender (``bpy``, ``bmesh``, ``mathutils``);
+- ``dcdi_core.models.runtime`` (numpy only, what the add-on bundles)
+  imports neither torch nor the training code; ``render``, ``correct``,
+  ``dfd`` and ``psf`` never import torch or ``models`` (a network is handed
+  in by the caller, never looked up below it).
+"""
+from __future__ import annotations
+
+import ast
+import re
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+TOP = ("dcdi_core", "blender_addon", "lab")
+BLENDER = ("bpy", "bmesh", "mathutils")
+NUMPY_ONLY = ("dcdi_core.models.runtime", "dcdi_core.render", "dcdi_core.correct", "dcdi_core.dfd", "dcdi_core.psf")
+NOT_IN_NUMPY_ONLY = ("torch", "dcdi_core.models.olf", "dcdi_core.models.dacn", "dcdi_core.models.depth",
+                     "dcdi_core.models.common")
+# render/accel_torch.py is the simulation's optional torch accelerator, imported only when asked for
+TORCH_ALLOWED = ("dcdi_core.render.accel_torch",)
+
+
+def layers(design: Path = ROOT / "docs" / "design.md") -> dict[str, int]:
+    """{dotted prefix: layer} from the table under '## Layers' in docs/design.md:
+    rows '| N | `name`, `name` ... |', names relative to dcdi_core except
+    blender_addon and lab."""
+    text = design.read_text(encoding="utf-8")
+    section = text.split("\n## Layers", 1)[1].split("\n## ", 1)[0]
+    out = {}
+    for row in re.finditer(r"^\|\s*(\d+)\s*\|(.*)\|\s*$", section, re.M):
+        for name in re.findall(r"`([\w.]+)`", row.group(2)):
+            full = name if name.split(".")[0] in TOP else "dcdi_core" if name == "dcdi_core" else f"dcdi_core.{name}"
+            out[full] = int(row.group(1))
+    return out
+
+
+def module_names(root: Path) -> dict[str, Path]:
+    """{dotted module name: file} of every .py file under the top folders of ``root``."""
+    out = {}
+    for top in TOP:
+        for path in sorted((root / top).rglob("*.py")) if (root / top).is_dir() else []:
+            parts = list(path.relative_to(root).with_suffix("").parts)
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            out[".".join(parts)] = path
+    return out
+
+
+def imports_of(path: Path, module: str, modules=()) -> list[tuple[int, str]]:
+    """(line, absolute dotted name) of every import in ``path`` (the module
+    ``module``); ``from a import b`` gives ``a.b`` (b may be a module) and
+    ``a``, unless every b is one of ``modules`` (``from . import x`` imports
+    the module x, not its package's __init__ again)."""
+    package = module.split(".") if path.name == "__init__.py" else module.split(".")[:-1]
+    out = []
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            out += [(node.lineno, a.name) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = package[:len(package) - node.level + 1] if node.level else []
+            head = ".".join(base + ([node.module] if node.module else []))
+            names = [f"{head}.{a.name}" for a in node.names if a.name != "*"]
+            if not names or any(n not in modules for n in names):
+                out.append((node.lineno, head))
+            out += [(node.lineno, n) for n in names]
+        elif isinstance(node, ast.Call):
+            f = node.func
+            name = f.attr if isinstance(f, ast.Attribute) else f.id if isinstance(f, ast.Name) else ""
+            if (name in ("import_module", "__import__") and node.args and isinstance(node.args[0], ast.Constant)
+                    and isinstance(node.args[0].value, str)):
+                out.append((node.lineno, node.args[0].value))
+    return out
+
+
+def _within(name: str, prefixes) -> bool:
+    return any(name == p or name.startswith(p + ".") for p in prefixes)
+
+
+def _layer(name: str, table: dict[str, int]) -> int | None:
+    """The layer of a module: its longest prefix in the table ('dcdi_core' alone
+    is the package's own __init__, not a prefix: a new package needs a row)."""
+    best = max((p for p in table if name == p or (p != "dcdi_core" and _within(name, (p,)))), key=len, default=None)
+    return None if best is None else table[best]
+
+
+def graph(root: Path) -> tuple[dict[str, set[str]], list[str]]:
+    """({module: modules of the tree it imports}, every (file:line: imports name) of the tree)."""
+    mods = module_names(root)
+    edges: dict[str, set[str]] = {m: set() for m in mods}
+    lines = []
+    for m, path in mods.items():
+        for line, name in imports_of(path, m, mods):
+            lines.append((m, path, line, name))
+            target = name
+            while target and target not in mods:
+                target = target.rpartition(".")[0]
+            if target and target != m:
+                edges[m].add(target)
+    return edges, lines
+
+
+def cycles(edges: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan, iterative)."""
+    index, low, on, stack, out, counter = {}, {}, set(), [], [], [0]
+    for start in sorted(edges):
+        if start in index:
+            continue
+        work = [(start, iter(sorted(edges[start])))]
+        index[start] = low[start] = counter[0]
+        counter[0] += 1
+        stack.append(start)
+        on.add(start)
+        while work:
+            v, it = work[-1]
+            w = next(it, None)
+            if w is not None:
+                if w not in index:
+                    index[w] = low[w] = counter[0]
+                    counter[0] += 1
+                    stack.append(w)
+                    on.add(w)
+                    work.append((w, iter(sorted(edges[w]))))
+                elif w in on:
+                    low[v] = min(low[v], index[w])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[v])
+            if low[v] == index[v]:
+                comp = []
+                while True:
+                    w = stack.pop()
+                    on.discard(w)
+                    comp.append(w)
+                    if w == v:
+                        break
+                if len(comp) > 1:
+                    out.append(sorted(comp))
+    return out
+
+
+def violations(root: Path, table: dict[str, int]) -> list[str]:
+    """Every break of the module docstring's rules in the tree below ``root``."""
+    edges, lines = graph(root)
+    out = [f"{m}: no layer in docs/design.md" for m in sorted(edges) if _layer(m, table) is None]
+    for m, path, line, name in lines:
+        where = f"{path.relative_to(root).as_posix()}:{line}: imports {name}"
+        mine, theirs = _layer(m, table), _layer(name, table)
+        if mine is not None and theirs is not None and theirs > mine:
+            out.append(f"{where} (upward: layer {mine} -> {theirs})")
+        if m.startswith("dcdi_core") and _within(name, BLENDER):
+            out.append(f"{where} (the engine never imports Blender)")
+        if (_within(m, NUMPY_ONLY) and not _within(m, TORCH_ALLOWED) and _within(name, NOT_IN_NUMPY_ONLY)):
+            out.append(f"{where} (numpy only: no torch, no training code)")
+        if _within(m, NUMPY_ONLY[1:]) and _within(name, ("dcdi_core.models",)):
+            out.append(f"{where} (a network is handed in, never imported below models)")
+    out += [f"cycle: {' -> '.join(c)}" for c in cycles(edges)]
+    return sorted(set(out))
+
+
+def test_the_layers_table_names_every_package():
+    table = layers()
+    for name in ("dcdi_core.errors", "dcdi_core.io", "dcdi_core.psf", "dcdi_core.render", "dcdi_core.models",
+                 "dcdi_core.app", "dcdi_core.cli", "blender_addon", "lab"):
+        assert name in table, name
+    assert table["dcdi_core.psf"] < table["dcdi_core.render"] < table["dcdi_core.models"] < table["dcdi_core.app"]
+    assert table["dcdi_core.cli"] < table["blender_addon"] < table["lab"]
+
+
+def test_the_tree_has_no_cycle_and_no_upward_import():
+    assert violations(ROOT, layers()) == []
+
+
+def test_the_checker_finds_each_kind_of_break(tmp_path):
+    """A cycle closed by an import inside a function, upward imports of each
+    form, torch below models; mentions are not imports."""
+    files = {
+        "dcdi_core/__init__.py": "",
+        "dcdi_core/psf/__init__.py": "",
+        "dcdi_core/psf/a.py": '"""import torch is only mentioned"""\nfrom . import b\n',
+        "dcdi_core/psf/b.py": "def f():\n    from .a import x\n",                        # closes a cycle a <-> b
+        "dcdi_core/psf/c.py": "def g():\n    from ..render import simulate\n",          # upward, in a function
+        "dcdi_core/render/__init__.py": "",
+        "dcdi_core/render/simulate.py": "import importlib\nimportlib.import_module('lab.study')\n",
+        "dcdi_core/correct/x.py": "from ..models.runtime import olf\nimport torch\nimport bpy\n",
+        "dcdi_core/models/runtime/y.py": "def h():\n    from ..dacn import train\n",
+        "dcdi_core/models/runtime/olf.py": "",
+        "dcdi_core/models/dacn/train.py": "",
+        "dcdi_core/stray.py": "",
+        "lab/study.py": "from dcdi_core.psf import a\n",                              # allowed: the lab uses the engine
+    }
+    for rel, text in files.items():
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_text(text)
+    table = {"dcdi_core": 0, "dcdi_core.psf": 2, "dcdi_core.render": 3, "dcdi_core.correct": 3,
+             "dcdi_core.models": 4, "lab": 8}
+    found = violations(tmp_path, table)
+    text = "\n".join(found)
+    assert "cycle: dcdi_core.psf.a -> dcdi_core.psf.b" in found
+    assert "dcdi_core/psf/c.py:2: imports dcdi_core.render.simulate (upward: layer 2 -> 3)" in found
+    assert "dcdi_core/render/simulate.py:2: imports lab.study (upward: layer 3 -> 8)" in found
+    assert "dcdi_core/correct/x.py:1: imports dcdi_core.models.runtime.olf (upward: layer 3 -> 4)" in found
+    assert "dcdi_core/correct/x.py:2: imports torch (numpy only: no torch, no training code)" in found
+    assert "dcdi_core/correct/x.py:3: imports bpy (the engine never imports Blender)" in found
+    assert "dcdi_core/models/runtime/y.py:2: imports dcdi_core.models.dacn.train (numpy only: no torch, no training code)" in found
+    assert "dcdi_core.stray: no layer in docs/design.md" in found
+    assert "lab/study.py" not in text and "only mentioned" not in text
