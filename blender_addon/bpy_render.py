@@ -94,6 +94,11 @@ def render_aif_depth(scene, camera_obj, height: int, width: int, samples: int, v
     world background)."""
     tmp_scene = scene.copy()
     tmp_scene.name = "dcdi-lens-bokeh-render"
+    settings = getattr(tmp_scene, "dcdi_lens_bokeh", None)
+    if settings is not None:
+        # the copy carries Lens in Renders: off, or the render hook would put this internal render
+        # through the lens too (a render window, a second lens stage, the user's Lens Render replaced)
+        settings.lens_in_renders = False
     cam_data = camera_obj.data.copy()
     cam_obj = bpy.data.objects.new("dcdi-lens-bokeh-camera", cam_data)
     workdir = Path(tempfile.mkdtemp(prefix="dcdi-lens-bokeh-"))

@@ -51,7 +51,9 @@ def _sharp_range(scene, s) -> str:
     return f"Sharp from {near:.2f} m to {far:.2f} m (focus {focus:.2f} m)"
 
 
-def draw_lens_bokeh(layout, context):
+def draw_lens_bokeh(layout, context, in_viewport: bool = True):
+    """The panel's rows. ``in_viewport``: drawn in the 3D view's sidebar, where
+    Focus on Click can pick a point (in Properties > Camera it could only fail)."""
     scene = context.scene
     s = scene.dcdi_lens_bokeh
     layout.use_property_split = True
@@ -74,7 +76,8 @@ def draw_lens_bokeh(layout, context):
         if dof.focus_object is None:
             col.prop(dof, "focus_distance", text="Camera Distance")
     row = col.row(align=True)
-    row.operator("dcdi.focus_pick", icon="EYEDROPPER")
+    if in_viewport:
+        row.operator("dcdi.focus_pick", icon="EYEDROPPER")
     row.operator("dcdi.focus_active_object", text="Active", icon="OBJECT_DATA")
     col.prop(s, "refocus")
     col = layout.column(align=True, heading="Kept Sharp")
@@ -180,7 +183,7 @@ class _LensBokehPanel:
     bl_label = "Lens Bokeh"
 
     def draw(self, context):
-        draw_lens_bokeh(self.layout, context)
+        draw_lens_bokeh(self.layout, context, in_viewport=self.bl_space_type == "VIEW_3D")
 
 
 class DCDI_PT_lens_bokeh_camera(_LensBokehPanel, bpy.types.Panel):

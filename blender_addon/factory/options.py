@@ -36,9 +36,9 @@ def parse(argv):
     p.add_argument("--resolution", type=int, nargs=2, default=[480, 640], metavar=("H", "W"),
                    help="image rows and columns (default 480 640)")
     p.add_argument("--cycles-samples", dest="samples", type=int, default=8, metavar="SPP",
-                   help="Cycles render samples per pixel, denoised (not images: see --count; default 8: 45.5 dB "
-                        "against 256 samples; 12: 46.7 dB for 30 %% more time; see python -m "
-                        "blender_addon.tools.render_noise)")
+                   help="Cycles render samples per pixel, denoised (not images: see --count; default 8: 36.6 dB "
+                        "against 128 samples on the textured scenes; 12: 37.6 dB for 41 %% more time; see "
+                        "docs/factory.md and python -m blender_addon.tools.render_noise)")
     p.add_argument("--no-denoise", action="store_true",
                    help="switch the denoiser off (a Blender without OpenImageDenoise renders undenoised anyway, "
                         "with a warning)")

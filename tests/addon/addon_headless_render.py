@@ -120,6 +120,29 @@ except TypeError as e:                                # a build without FFmpeg
 r.image_settings.media_type = "IMAGE"
 r.image_settings.file_format = "OPEN_EXR"
 
+# 4b. the add-on's own render (the preview's, Apply's) with Lens in Renders on: the hook leaves it alone
+bpy_render = sys.modules[f"{MODULE}.bpy_render"]
+last_before = LAST()
+lens_render = bpy.data.images.get(hook.RESULT_IMAGE)
+size_before = tuple(lens_render.size) if lens_render is not None else None
+calls = []
+_init = hook.on_render_init
+
+
+def _spy(sc, *a):
+    calls.append((sc.name, bool(getattr(sc, "dcdi_lens_bokeh", None) and sc.dcdi_lens_bokeh.lens_in_renders)))
+    return _init(sc, *a)
+
+
+bpy.app.handlers.render_init.append(_spy)
+own_rgb, own_z = bpy_render.render_aif_depth(scene, cam, 24, 32, 2)
+bpy.app.handlers.render_init.remove(_spy)
+res["own_render_calls"] = calls
+lens_render = bpy.data.images.get(hook.RESULT_IMAGE)
+res["own_render"] = {"shape": list(own_rgb.shape), "last_unchanged": LAST() is last_before,
+                     "run": SESSION.render_run is not None, "lens_render_size": [size_before, tuple(lens_render.size)
+                                                                               if lens_render is not None else None]}
+
 # 5. the panel: the switch, the effect, and Lock Interface asked for when it is off
 panel = importlib.import_module(f"{MODULE}.panel")
 
@@ -134,6 +157,10 @@ r.use_lock_interface = False
 res["panel_unlocked"] = draw()
 r.use_lock_interface = True
 res["panel_locked"] = draw()
+res["panel_operators"] = {where: [x[1] for x in log if x[0] == "operator"] for where, log in (
+    ("sidebar", draw()), ("properties", (lambda lay: (panel.draw_lens_bokeh(lay, bpy.context, in_viewport=False),
+                                                    lay.log)[1])(StubLayout())))}
+res["panel_in_viewport"] = {c.__name__: c.bl_space_type == "VIEW_3D" for c in panel.CLASSES}
 
 # 6. disabling the add-on removes the handlers
 bpy.ops.preferences.addon_disable(module=MODULE)

@@ -80,6 +80,19 @@ def test_a_movie_output_is_refused_with_what_to_do(rendered):
     assert "image sequence" in msg or msg.startswith("no movie format in this build")
 
 
+def test_the_add_ons_own_render_is_not_put_through_the_lens(rendered):
+    """The preview's and Apply's all-in-focus render (a copy of the scene,
+    which copies Lens in Renders) runs no lens stage: the user's last lens
+    render, its result image and the session's record are left as they were."""
+    own = rendered["own_render"]
+    assert own["shape"] == [24, 32, 3]
+    # the hook is called for the internal scene, and sees the switch off there
+    assert [tuple(c) for c in rendered["own_render_calls"]] == [("dcdi-lens-bokeh-render", False)]
+    assert own["last_unchanged"] and not own["run"]
+    before, after = own["lens_render_size"]
+    assert before == after
+
+
 def test_disabling_the_add_on_removes_its_handlers(rendered):
     assert rendered["handlers_after_disable"] == []
 
@@ -90,3 +103,12 @@ def test_the_panel_offers_the_switch_and_asks_for_lock_interface(rendered):
     unlocked = rendered["panel_unlocked"]
     assert any(kind == "prop" and t == "use_lock_interface" for kind, t, _ in unlocked)
     assert any(kind == "label" and "Lock Interface" in t for kind, t, _ in unlocked)
+
+
+def test_focus_on_click_is_offered_only_in_the_3d_view(rendered):
+    """Properties > Camera has no viewport to click in: the panel there leaves
+    Focus on Click out; the sidebar offers it."""
+    ops = rendered["panel_operators"]
+    assert "dcdi.focus_pick" in ops["sidebar"] and "dcdi.focus_pick" not in ops["properties"]
+    assert "dcdi.focus_active_object" in ops["properties"]
+    assert rendered["panel_in_viewport"] == {"DCDI_PT_lens_bokeh_camera": False, "DCDI_PT_lens_bokeh_sidebar": True}

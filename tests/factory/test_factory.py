@@ -315,3 +315,17 @@ def test_the_module_runs_the_factory():
                        capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr
     assert "--recipe RECIPE" in p.stdout and "--cycles-samples SPP" in p.stdout
+
+
+def test_the_samples_help_quotes_the_measured_default(capsys):
+    """--cycles-samples' help gives the default's PSNR that docs/factory.md's
+    render-noise table measures on today's scenes (its bold row), not an old figure."""
+    import re
+    from pathlib import Path
+    table = (Path(__file__).resolve().parents[2] / "docs" / "factory.md").read_text()
+    row = next(line for line in table.splitlines() if line.startswith("| **8** |"))
+    db = re.findall(r"\*\*([\d.]+)\*\*", row)[1]
+    with pytest.raises(SystemExit):
+        parse(["--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert f"default 8: {db} dB" in text
