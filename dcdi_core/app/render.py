@@ -21,6 +21,7 @@ from ..control import Cancelled, Control
 from .records import recorded_defaults
 from .sources import SourceCache
 from ..psf.sources import PSFRequest, PSFSourceResult, ensure_bins, open_source
+from ..psf.sampling import snap_focus
 
 
 def _array(name: str, value, ndim: int):
@@ -215,7 +216,9 @@ def bokeh(request: BokehRequest, control: Control | None = None, *, cache: Sourc
     render = render or RenderRequest(request.lens)
     t0 = time.perf_counter()
     plan = render.plan(*img.shape[:2], image=request.image_name)
-    options = BokehOptions(keep=request.keep, focus_m=request.focus_m, geometry=plan.geometry,
+    # nearby focus distances share PSFs where the request allows it (``psf.sampling``)
+    focus_m = snap_focus(request.lens, request.focus_m, plan.geometry.pixel_pitch_mm, request.psf.focus_tolerance_px)
+    options = BokehOptions(keep=request.keep, focus_m=focus_m, geometry=plan.geometry,
                            source_geometry=plan.source_geometry, distortion=request.distortion,
                            interpolation=render.interpolation, patch=render.patch, occlusion=request.occlusion,
                            settings=plan.settings, response=request.psf.response, fit_kernel=render.fit_kernel,
@@ -237,5 +240,7 @@ def bokeh(request: BokehRequest, control: Control | None = None, *, cache: Sourc
     seconds = {"psfs": t1 - t0, "bokeh": time.perf_counter() - t1}
     counts = depth_counts(depth, src.library.grid.near_m)
     notes += depth_notes(counts, f"the depth map of {request.image_name}", "left sharp")
+    if focus_m != request.focus_m:
+        counts["focus_used_m"] = float(focus_m)          # rounded within the request's focus tolerance
     return BokehResult(r.image.astype(np.float32), r.sharp, r.depth, plan.geometry, src, {**r.info, **counts},
                        notes + ([note] if note else []), seconds)

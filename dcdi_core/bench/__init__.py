@@ -4,8 +4,9 @@ Each benchmark times the real code path and a simple baseline in the same
 process and prints the ratio, so that figures from different machines compare.
 One module per group: ``trace`` (the tracer, beside Optiland 0.6.3 with
 ``optiland_spot.py``, and the PSF library), ``render`` (simulation and
-bokeh), ``correction`` (the deconvolution and the DACN), ``processes``
-(whole commands: times, peak memory, the depth estimate); ``timing`` holds
+bokeh), ``sampling`` (PSFs sampled for the image: error and time),
+``correction`` (the deconvolution and the DACN), ``processes`` (whole
+commands: times, peak memory, the depth estimate); ``timing`` holds
 their helpers. Each is imported when its benchmark runs.
 """
 from __future__ import annotations
@@ -25,6 +26,9 @@ def run(what: str, args) -> int:
     if what == "correction":
         from .correction import bench_correction
         return bench_correction(quick)
+    if what == "sampling":
+        from .sampling import bench_sampling
+        return bench_sampling(quick)
     if what == "render":
         from .render import bench_render
         return bench_render(quick)

@@ -19,13 +19,13 @@ def add_commands(sub) -> None:
     q = sub.add_parser("bench", help="benchmarks (times, not tests)",
                        description="Benchmarks of the engine; the dataset factory's is `python build.py bench "
                                    "factory` (it starts the Blender layer, which the engine never does).")
-    q.add_argument("what", choices=["trace", "psflib", "render", "dacn", "correction", "cli", "memory", "depth"],
-                   help="what to benchmark (cli: the simulate and bokeh commands' whole processes; memory: "
+    q.add_argument("what", choices=["trace", "psflib", "render", "sampling", "dacn", "correction", "cli", "memory", "depth"],
+                   help="what to benchmark (sampling: a focus change's PSFs sampled for the image, error against time; cli: the simulate and bokeh commands' whole processes; memory: "
                         "their peak memory per pixel, against the estimate that refuses images too large; depth: "
                         "dcdi depth estimate's whole process beside its goal)")
     q.add_argument("--rays", type=positive_int, default=1 << 20, help="rays per trace (default 2^20)")
     q.add_argument("--repeat", type=positive_int, default=3, help="timed repetitions (best is kept)")
-    q.add_argument("--quick", action="store_true", help="psflib, render, dacn, correction, depth: smaller (for tests)")
+    q.add_argument("--quick", action="store_true", help="psflib, render, sampling, dacn, correction, depth: smaller (for tests)")
     q.add_argument("--threads", type=positive_int, default=1, help="dacn: torch threads (default 1)")
     q.add_argument("--optiland", default=None, metavar="PYTHON",
                    help="trace: also the MOS-S1 spot work beside Optiland 0.6.3, run by this interpreter (one with "

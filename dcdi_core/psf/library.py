@@ -199,8 +199,10 @@ class PSFLibrary:
         """Sorted indices of the depth bins that these depths interpolate from
         (bins whose weight is exactly 0 are left out)."""
         i0, i1, t = self.depth_bins(depth_m, clamp_near=clamp_near)
-        need = np.concatenate([i0[t < 1.0].ravel(), i1[t > 0.0].ravel()])
-        return np.unique(need)
+        # a count per bin, not np.unique: a sort of every pixel's bin cost ~0.5 s at 1920 x 1080
+        n = len(self.diopters)
+        used = np.bincount(i0[t < 1.0].ravel(), minlength=n) + np.bincount(i1[t > 0.0].ravel(), minlength=n)
+        return np.flatnonzero(used)
 
     def ensure(self, depth_m=None, *, bins=None, clamp_near: bool = False, progress=None) -> list[int]:
         """Compute (or load) the bins that ``depth_m`` needs, or ``bins``;

@@ -241,20 +241,30 @@ class OmniLensField:
 
     # ------------------------------------------------------------- network
     def _weights(self, dtype):
+        """The layers' (W^T, b) in ``dtype``, W^T contiguous: a BLAS given a
+        transposed view may copy it or take a slower path (Debian's numpy 2.4
+        in Blender 5.2: 0.32 s against 0.08 s for one head of 512 PSFs)."""
         dtype = np.dtype(dtype)
         if dtype not in self._cast:
-            self._cast[dtype] = ([(w.astype(dtype), b.astype(dtype)) for w, b in self._trunk],
-                                 [(w.astype(dtype), b.astype(dtype)) for w, b in self._heads])
+            def cast(layers):
+                return [(np.ascontiguousarray(w.T, dtype), b.astype(dtype)) for w, b in layers]
+            self._cast[dtype] = (cast(self._trunk), cast(self._heads))
         return self._cast[dtype]
 
     def features(self, x, dtype=np.float32) -> np.ndarray:
         trunk, _ = self._weights(dtype)
         h = np.asarray(x, dtype=dtype)
-        for w, b in trunk:
-            h = h @ w.T
+        for wt, b in trunk:
+            h = h @ wt
             h += b
             np.maximum(h, 0, out=h)
         return h
+
+    @staticmethod
+    def _affine(h, wt, b):
+        out = h @ wt
+        out += b
+        return out
 
     def forward(self, x, lens_index: int | None = None, dtype=np.float32) -> np.ndarray:
         """The network on encoded inputs x (n, n_inputs): paper: (n, 3, k, k)
@@ -264,13 +274,13 @@ class OmniLensField:
         h = self.features(x, dtype)
         if self.variant == "paper":
             k = self.spec["kernel_sizes"][0]
-            out = np.concatenate([_sigmoid(h @ w.T + b) for w, b in heads], axis=1)
+            out = np.concatenate([_sigmoid(self._affine(h, wt, b)) for wt, b in heads], axis=1)
             return out.reshape(-1, 3, k, k)
         if lens_index is None:
             raise InputRangeError("lens_index", None, "a lens index (radial OLF: one head per lens)")
         k = self.spec["kernel_sizes"][lens_index]
-        w, b = heads[lens_index]
-        return _softmax((h @ w.T + b).reshape(-1, 3, k * k)).reshape(-1, 3, k, k)
+        wt, b = heads[lens_index]
+        return _softmax(self._affine(h, wt, b).reshape(-1, 3, k * k)).reshape(-1, 3, k, k)
 
     # ----------------------------------------------------------- checks
     def _check_range(self, name, values, lo, hi, unit=""):

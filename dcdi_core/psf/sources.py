@@ -41,6 +41,7 @@ from ..optics.errors import OpticsError
 from .basis import BasisLibrary, open_store, shipped_store
 from .compute import KernelTooSmallWarning, PSFSettings
 from .library import LibraryGrid, PSFLibrary, valid_depth_mask
+from .sampling import field_grid
 from .pitch import SAME_GIVEN_RTOL, area_resample, check_downsampling, resampled_size, same_pitch
 from ..shipped import NETWORKS, WEIGHTS_DIR
 from .olf import OmniLensField
@@ -180,7 +181,7 @@ PSF_SOURCE_LABELS = MappingProxyType({"psf_source": field("psf_source"), "basis"
 def psf_source(lens, *, source: str | None = None, olf_file=None, pixel_pitch_mm: float | None = None,
                settings: PSFSettings | None = None, kernel_size: int | None = None, focus_m=None,
                custom_response: bool = False, grid: LibraryGrid | None = None,
-               need_field: bool = True, basis_file=None, labels=None) -> PSFSource:
+               need_field: bool = True, basis_file=None, labels=None, olf_grid: LibraryGrid | None = None) -> PSFSource:
     """The PSF source for ``lens`` and a request: ``source`` 'basis' (the
     lens's compressed library), 'olf' (the OLF), each an error saying why if
     it cannot serve, 'trace', or None: the basis where it covers the request,
@@ -191,7 +192,8 @@ def psf_source(lens, *, source: str | None = None, olf_file=None, pixel_pitch_mm
     a focus distance (None: as prescribed), a custom spectral response.
     ``labels`` ({'psf_source', 'basis', 'olf'}: the CLI's options by
     request's fields by default, shown in each front end's words; a label None
-    leaves the option unnamed) name the choices in the messages."""
+    leaves the option unnamed) name the choices in the messages. ``olf_grid``:
+    the grid an OLF serves on when ``grid`` is None (a basis keeps its own)."""
     lab = {**PSF_SOURCE_LABELS, **(labels or {})}
     if source not in (None,) + SOURCES:
         raise InputRangeError("psf source", source,
@@ -206,7 +208,7 @@ def psf_source(lens, *, source: str | None = None, olf_file=None, pixel_pitch_mm
             continue
         src, why = (_try_basis if kind == "basis" else _try_olf)(
             lens, basis_file if kind == "basis" else olf_file, pixel_pitch_mm, settings, kernel_size, focus_m,
-            custom_response, grid, lab[kind])
+            custom_response, grid if kind == "basis" or grid is not None else olf_grid, lab[kind])
         if src is not None:
             return src
         if source == kind:
@@ -383,7 +385,12 @@ class PSFRequest:
     is the image's). ``kernel_size``: an explicit kernel (px; None: the
     settings', grown to hold the blur where ``fit_kernel``). ``response``:
     the sensor's spectral response (None: the shipped curves). ``preview``:
-    PSFs that must be traced are traced with :data:`PREVIEW_TRACE`."""
+    PSFs that must be traced are traced with :data:`PREVIEW_TRACE`.
+    ``field_step_px``: an OLF's or a trace's fields at most this many image
+    pixels apart (``sampling.field_grid``; None: the source's own grid).
+    ``focus_tolerance_px``: the focus may be rounded (``sampling.snap_focus``)
+    by at most this many pixels of blur diameter, so that nearby focus
+    distances share PSFs (None: the focus as asked; a job applies it)."""
 
     source: str | None = None
     olf_file: str | None = None
@@ -393,8 +400,14 @@ class PSFRequest:
     response: object = None
     fit_kernel: bool = True
     preview: bool = False
+    field_step_px: float | None = None
+    focus_tolerance_px: float | None = None
 
     def __post_init__(self):
+        for name in ("field_step_px", "focus_tolerance_px"):
+            v = getattr(self, name)
+            if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise InputRangeError(name, v, "> 0 pixels and finite, or None")
         if self.source not in (None,) + SOURCES:
             raise InputRangeError("psf_source", self.source,
                                   "basis, olf, trace, or none (the first of basis and olf that covers the request)")
@@ -434,7 +447,13 @@ def choose(lens, geometry, request: PSFRequest) -> PSFSource:
     return psf_source(lens, source=request.source, olf_file=request.olf_file, basis_file=request.basis_file,
                       pixel_pitch_mm=geometry.pixel_pitch_mm, settings=request.settings,
                       kernel_size=request.kernel_size, focus_m=request.focus_m,
-                      custom_response=request.response is not None)
+                      custom_response=request.response is not None,
+                      olf_grid=_request_grid(lens, geometry, request))
+
+
+def _request_grid(lens, geometry, request: PSFRequest) -> LibraryGrid | None:
+    """The grid an OLF or a trace samples for ``request`` (None: its own)."""
+    return field_grid(None, lens.sensor.semi_diagonal_mm, geometry.pixel_pitch_mm, request.field_step_px)
 
 
 def open_source(lens, geometry, request: PSFRequest, *, fit_depth_m=None, control: Control | None = None,
@@ -454,7 +473,7 @@ def open_source(lens, geometry, request: PSFRequest, *, fit_depth_m=None, contro
     settings, quality = request.settings or PSFSettings(), "full"
     if request.preview:
         settings, quality = replace(settings, **PREVIEW_TRACE), "preview"
-    library = open_library(lens, geometry, settings, response=request.response,
+    library = open_library(lens, geometry, settings, _request_grid(lens, geometry, request), response=request.response,
                            fit_depth_m=fit_depth_m if request.fit_kernel else None, progress=control.counter("PSFs"))
     return PSFSourceResult("trace", src.message, library, src.olf_file, src.basis_file, quality)
 
