@@ -175,10 +175,13 @@ def _sigmoid(z):
     return 0.5 * (1.0 + np.tanh(0.5 * z))
 
 
-def _softmax(z, axis=-1):
-    z = z - z.max(axis=axis, keepdims=True)
-    e = np.exp(z)
-    return e / e.sum(axis=axis, keepdims=True)
+def _softmax(z, axis=-1, *, overwrite: bool = False):
+    """Softmax along ``axis``; ``overwrite``: ``z`` (a temporary) becomes the result (no copies)."""
+    z = z if overwrite else z.copy()
+    z -= z.max(axis=axis, keepdims=True)
+    np.exp(z, out=z)
+    z /= z.sum(axis=axis, keepdims=True)
+    return z
 
 
 class OmniLensField:
@@ -280,7 +283,7 @@ class OmniLensField:
             raise InputRangeError("lens_index", None, "a lens index (radial OLF: one head per lens)")
         k = self.spec["kernel_sizes"][lens_index]
         wt, b = heads[lens_index]
-        return _softmax(self._affine(h, wt, b).reshape(-1, 3, k * k)).reshape(-1, 3, k, k)
+        return _softmax(self._affine(h, wt, b).reshape(-1, 3, k * k), overwrite=True).reshape(-1, 3, k, k)
 
     # ----------------------------------------------------------- checks
     def _check_range(self, name, values, lo, hi, unit=""):

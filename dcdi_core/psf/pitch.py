@@ -96,7 +96,7 @@ def area_resample(kernels, pitch_from_mm: float, pitch_to_mm: float, k_to: int |
     at ``pitch_to_mm`` (mm; >= ``pitch_from_mm``): each new pixel the integral
     of the piecewise-constant old kernel over its square. ``k_to`` (odd;
     default :func:`resampled_size`, which keeps every kernel's sum) may be
-    smaller, cropping. Returns float32 for float32 input, else float64."""
+    smaller, cropping. Returns (and computes in) float32 for float32 input, else float64."""
     a = np.asarray(kernels)
     if a.ndim < 2 or a.shape[-1] != a.shape[-2]:
         raise InputRangeError("kernels shape", a.shape, "(..., k, k) square kernels")
@@ -110,9 +110,11 @@ def area_resample(kernels, pitch_from_mm: float, pitch_to_mm: float, k_to: int |
     if same_pitch(pitch_from_mm, pitch_to_mm) and k_to == k:
         return a.copy()
     w = overlap_matrix(k, pitch_from_mm, int(k_to), pitch_to_mm)
+    # float32 kernels are resampled in float32 (rounding ~1e-7 of a kernel's peak, the kernels' own
+    # precision): twice as fast as float64 and half the memory for the OLF's thousands of kernels
     dtype = np.float32 if a.dtype == np.float32 else np.float64
-    out = w @ a.astype(np.float64) @ w.T             # matmul broadcasts over the leading axes
-    return out.astype(dtype)
+    w = w.astype(dtype)
+    return w @ a.astype(dtype, copy=False) @ w.T      # matmul broadcasts over the leading axes
 
 
 __all__ = ["area_resample", "overlap_matrix", "resampled_size", "check_downsampling", "same_pitch", "PITCH_RTOL",
