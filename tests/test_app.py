@@ -41,7 +41,8 @@ def test_bokeh_agrees(files, capsys):
     lens = load_lens("mos-s1")
     out, info = logic.run_bokeh(img, depth, lens, focus_m=1.0, keep=(0.7, 0.9))
     cli(capsys, "bokeh", "--image", d / "aif.exr", "--depth", d / "depth.exr", "--lens", "mos-s1",
-        "--focus", 1.0, "--keep", 0.7, 0.9, "-o", d / "b.exr")
+        "--focus", 1.0, "--keep", 0.7, 0.9, "--field-step", logic.FIELD_STEP_PX,
+        "--focus-tolerance", logic.FOCUS_TOLERANCE_PX, "-o", d / "b.exr")
     np.testing.assert_array_equal(read_image(d / "b.exr"), out)
     assert info["psf_source"] in ("basis", "olf", "trace")
 

@@ -43,6 +43,17 @@ def focus_value(text: str):
                                          f"got {text!r}") from None
 
 
+def pixels(text: str) -> float:
+    """A positive, finite number of pixels."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number of pixels, got {text!r}") from None
+    if not (v > 0 and math.isfinite(v)):
+        raise argparse.ArgumentTypeError(f"must be > 0 pixels and finite, got {text!r}")
+    return v
+
+
 def positive_int(text: str) -> int:
     v = int(text)
     if v < 1:
@@ -112,7 +123,7 @@ WORDS = {
     "tile": "--tile", "device": "--device", "focus_distance_m": "--focus", "fraction": "--perturb-fraction",
     "field": "--field", "angle_deg": "--angle", "deposit_sigma_px": "--deposit-sigma", "pupil_samples": "--rays",
     "n_wavelengths": "--wavelengths", "n_fields": "--fields", "n_depths": "--depths", "near_m": "--near",
-    "far_m": "--far",
+    "far_m": "--far", "field_step_px": "--field-step", "focus_tolerance_px": "--focus-tolerance",
 }
 
 

@@ -6,9 +6,10 @@ Engine imports are inside the handlers so that `dcdi --help` stays fast.
 from __future__ import annotations
 
 import contextlib
+from dataclasses import replace
 
 from .common import (UNITS, add_psf_options, add_psf_source_options, check_cache, check_olf_file,
-                     check_output, depth_value, dump, focus_value, in_cli_words, job_control, positive_int, psf_request,
+                     check_output, depth_value, dump, focus_value, in_cli_words, job_control, pixels, positive_int, psf_request,
                      psf_settings, response, say)
 
 
@@ -170,7 +171,9 @@ def bokeh_request(args, lens, request, resp, img, depth, recorded=None):
     return BokehRequest(img, depth, lens, keep=tuple(args.keep) if args.keep else None, focus_m=args.focus,
                         render=request, occlusion=not args.plain, distortion=args.distort,
                         multires=getattr(args, "multires", None), max_level=getattr(args, "max_level", None),
-                        exact_layers=getattr(args, "exact_layers", False), psf=psf_request(args, resp),
+                        exact_layers=getattr(args, "exact_layers", False),
+                        psf=replace(psf_request(args, resp), field_step_px=getattr(args, "field_step", None),
+                                    focus_tolerance_px=getattr(args, "focus_tolerance", None)),
                         recorded=recorded, image_name=f"the image {args.image}")
 
 
@@ -240,5 +243,12 @@ def add_commands(sub) -> None:
     q.add_argument("--exact-layers", action="store_true",
                    help="every depth layer at --patch with the tent, none merged (the former path: about twice "
                         "the time at the same error, docs/performance.md)")
+    q.add_argument("--field-step", type=pixels, default=None, metavar="PX",
+                   help="the PSFs' fields at most PX image pixels apart (fewer fields for a small image; the "
+                        "add-on uses 16; error and time: `dcdi bench sampling`); default: the PSF source's grid")
+    q.add_argument("--focus-tolerance", type=pixels, default=None, metavar="PX",
+                   help="the focus may be rounded (in diopters, towards infinity) by at most PX pixels of blur "
+                        "diameter, so that nearby focus distances share PSFs (the add-on uses 0.25); default: "
+                        "the focus as given")
     q.add_argument("--side-by-side", default=None, metavar="PNG", help="also write input | depth | result")
     q.set_defaults(func=cmd_bokeh)

@@ -247,7 +247,7 @@ def _try_basis(lens, basis_file, pitch, settings, kernel_size, focus_m, custom_r
     if custom_response:
         return None, "a custom spectral response was given; the PSF basis holds the shipped one"
     if focus_m is not None:
-        return None, f"focus {focus_m:g} m asked for; {path} holds {lens.id} at its prescribed focus"
+        return None, f"focus {focus_m:.3g} m asked for; {path} holds {lens.id} at its prescribed focus"
     if grid is not None and grid != store.grid:
         return None, f"a library grid {grid} was asked for; {path} holds {store.grid}"
     diff = _settings_differences(store.meta["psf_settings"], settings, rays_at_least=True, verb="holds")
@@ -280,7 +280,7 @@ def _try_olf(lens, olf_file, pitch, settings, kernel_size, focus_m, custom_respo
               "area-resampled" if lib.resampled else f"{lib.pixel_pitch_mm * 1000:.4g} um pixels")
     return PSFSource("olf", f"PSFs from the Omni-Lens-Field {path} ({lens.id}: its learned prescription, "
                             f"{pixels}, {k} x {k} px, "
-                            + ("prescribed focus" if focus_m is None else f"focus {focus_m:g} m") + ")",
+                            + ("prescribed focus" if focus_m is None else f"focus {focus_m:.3g} m") + ")",
                      lib, str(path)), None
 
 
@@ -309,7 +309,7 @@ def _why_not(olf: OmniLensField, lens, pitch, settings, kernel_size, focus_m, cu
         return "PSF settings differ from the learned ones: " + "; ".join(diff)
     fr = entry.get("focus_range_m")
     if focus_m is not None and not fr:
-        return f"focus {focus_m:g} m asked for; {olf.path} learned {lens.id} at its prescribed focus only"
+        return f"focus {focus_m:.3g} m asked for; {olf.path} learned {lens.id} at its prescribed focus only"
     if fr:
         try:
             olf.focus_diopters(lens.id, focus_m)
