@@ -6,14 +6,16 @@ and of their results back (images, the panel's lines). The jobs' decisions
 caches between jobs (lens files and folders, readouts, PSF sources, the
 loaded network) are the add-on's, held by its session (``session.SESSION``).
 
-Units: depths and distances in metres (from the lens's first vertex unless
-said otherwise), lens lengths in mm, angles in degrees.
+Units: depths and distances in metres (from the lens's first vertex, the
+front of the lens on its axis, unless said otherwise), lens lengths in mm,
+angles in degrees.
 """
 from __future__ import annotations
 
 import importlib.util
 import math
 import os
+import re
 import sys
 import tomllib
 import warnings
@@ -109,16 +111,42 @@ def lens_number(lens_id: str) -> int:
     return zlib.crc32(lens_id.encode()) & 0x7FFFFFFF
 
 
-def _lens_name(p: Path) -> str:
+def _lens_name(p: Path, limit: int = 28) -> str:
+    """The lens's name as the panel lists it: the file's ``name`` without the
+    figures its source states (``F/1.8``, ``f = 26.44 mm``: the panel shows
+    the traced ones, :func:`lens_readout`); where that is longer than
+    ``limit`` characters, shortened by whole parts, as far as needed: the
+    words an acronym of the name spells out ("MOS-S1 minimalist optical
+    system" -> "MOS-S1"), then a remark in brackets to its first part
+    ("(H-K9L singlet, stop in front)" -> "(H-K9L singlet)"), then the
+    remark. Never cut mid-word; the whole name is the list's tooltip. The
+    file's id where it has no name."""
     names = SESSION.lens_names
     key = (str(p), p.stat().st_mtime_ns)
     if key not in names:
         try:
             with open(p, "rb") as f:
-                name = str(tomllib.load(f).get("name") or p.stem)
+                name = str(tomllib.load(f).get("name") or "").strip()
         except (OSError, tomllib.TOMLDecodeError):
-            name = f"{p.stem} (unreadable file)"
-        names[key] = name
+            name = None
+        if name is None:
+            names[key] = f"{p.stem} (unreadable file)"
+            return names[key]
+
+        def tidy(text):
+            return re.sub(r"\s+", " ", text).replace("( ", "(").replace(" )", ")").strip(" ,;:-")
+
+        # the source's stated figures: "F/1.8", "f = 26.44 mm" (with the comma or space before them)
+        short = tidy(re.sub(r"[,;]?\s*\b(?:F\s*/\s*\d+(?:\.\d+)?|f\s*=\s*\d+(?:\.\d+)?\s*mm)\b", "", name))
+        if len(short) > limit:                      # an acronym's words spelled out after it
+            for acronym in re.findall(r"\b([A-Z]{2,})(?=[-\s]|$)", short):
+                words = r"\s+".join(rf"{c}[\w-]*" for c in acronym)
+                short = tidy(re.sub(rf"(?<=\S)\s+{words}\b", "", short, count=1, flags=re.IGNORECASE))
+        if len(short) > limit:                      # a remark in brackets: its first part
+            short = tidy(re.sub(r"\(([^(),]*),[^()]*\)", r"(\1)", short))
+        if len(short) > limit:                      # the remark
+            short = tidy(re.sub(r"\s*\([^()]*\)", "", short)) or short
+        names[key] = short or p.stem
     return names[key]
 
 
@@ -133,10 +161,16 @@ def load_lens_cached(path: str):
 
 
 def lens_readout(path: str) -> dict:
-    """Focal length (paraxial EFL, mm), F-number (paraxial), diagonal field of
-    view (real chief ray at field 1, degrees), entrance pupil position (mm
-    behind the first vertex) and sensor semi-diagonal (mm). Cached by file
-    and modification time (the real-ray field angle costs ~0.1 s)."""
+    """What the panel says of a lens: ``title`` (its name as the list shows
+    it, :func:`_lens_name`), ``name`` (the file's whole name), ``stated``
+    (the figures its source states: a dict, possibly empty), and the traced
+    figures: focal length (paraxial EFL, mm), F-number (paraxial), diagonal
+    field of view (real chief ray at field 1, degrees), entrance pupil
+    position (mm behind the front of the lens: its first surface on the
+    axis) and sensor semi-diagonal (mm). The panel shows the traced
+    figures only; a source's figures can differ (the 6P's table states
+    F/1.8 for a prescription that traces to F/1.64). Cached by file and
+    modification time (the real-ray field angle costs ~0.1 s)."""
     readouts = SESSION.readouts
     key = (path, os.stat(path).st_mtime_ns)
     if key not in readouts:
@@ -144,7 +178,8 @@ def lens_readout(path: str) -> dict:
         fo = paraxial.first_order(lens)
         half = float(analysis.real_field_angle_deg(lens, [1.0])[0])
         readouts[key] = {
-            "id": lens.id, "name": lens.name,
+            "id": lens.id, "name": lens.name, "title": _lens_name(Path(path)),
+            "stated": dict(getattr(lens, "stated", None) or {}),
             "focal_length_mm": float(fo.effective_focal_length_mm),
             "f_number": float(fo.f_number),
             "field_of_view_deg": 2.0 * half if half > 0 else None,
@@ -241,8 +276,56 @@ def clear_psf_sources() -> None:
     SESSION.sources.clear()
 
 
+# The PSFs the add-on's bokeh samples (``dcdi_core.psf.sampling``; error and
+# time in docs/addon.md): fields at most FIELD_STEP_PX image pixels apart (a
+# 480 x 270 preview needs 19 of the 64 a 1920 x 1080 frame gets), and the
+# focus rounded by at most FOCUS_TOLERANCE_PX pixels of blur diameter, so
+# that a focus pull's nearby distances and an animation's frames share PSFs.
+FIELD_STEP_PX = 16.0
+FOCUS_TOLERANCE_PX = 0.25
+
+
 def _source_info(source) -> dict:
-    return {"psf_source": source.kind, "psf_source_message": _note(source.message), "psf_quality": source.quality}
+    """The PSF source's kind, quality and message in the panel's words: no
+    file's path (the engine's own files are "the PSF basis / Omni-Lens-Field
+    that ships with the add-on", another file goes by its name) and no lens
+    id (the lens is the chosen one: "this lens")."""
+    message = _note(source.message)
+    import dcdi_core
+    engine = Path(dcdi_core.__file__).resolve().parent
+    lens = getattr(getattr(source, "library", None), "lens", None)
+    lens_path = str(getattr(lens, "path", "") or "")
+    paths = {str(p) for p in (getattr(source, "basis_file", None), getattr(source, "olf_file", None), lens_path)
+             if p}
+    paths |= set(re.findall(r"(?:^|(?<=[\s(]))(?:/|[A-Za-z]:[\\/])[^\s;,()]+", message))
+    for path in sorted(paths, key=len, reverse=True):         # a path before any path it starts with
+        name = Path(path).name
+        message = message.replace(f"({path})", "")             # "(/…/6p.toml)" after the lens it names
+        if path == lens_path:
+            message = message.replace(path, name)
+            continue
+        kind = "Omni-Lens-Field" if name.lower().startswith("olf") else "PSF basis"
+        try:
+            shipped = Path(path).resolve().is_relative_to(engine)
+        except (OSError, ValueError):
+            shipped = False
+        if shipped:
+            message = message.replace(f"the {kind} {path}", f"the {kind} that ships with the add-on")
+            message = message.replace(path, f"the shipped {kind}")
+        else:
+            message = message.replace(f"the {kind} {path}", f"the {kind} {name}").replace(path, name)
+    lens_id = getattr(lens, "id", None)
+    if lens_id:
+        i = re.escape(lens_id)
+        message = re.sub(rf"\(\s*{i}\s*[,:]\s*", "(", message)                 # "(6p, rank 160" -> "(rank 160"
+        message = re.sub(rf"\blens '{i}'", "this lens", message)
+        message = re.sub(rf"(?<![\w.-]){i}(?![\w-])", "this lens", message)
+    # other lenses (those an OLF learned) by name; listed here, not through the session's folder listing (a
+    # worker thread runs this)
+    for other_id, path in _list_lens_files(list(lens_dirs())):
+        message = re.sub(rf"(?<![\w.'-]){re.escape(other_id)}(?![\w'-])", _lens_name(Path(path)), message)
+    message = re.sub(r"[ \t]{2,}", " ", message).replace(" )", ")")
+    return {"psf_source": source.kind, "psf_source_message": message, "psf_quality": source.quality}
 
 
 def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], patch: int = 16,
@@ -257,13 +340,16 @@ def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], 
     with ``PREVIEW_TRACE`` (info's ``psf_quality`` 'preview'). Returns
     (image, info: the bokeh's, the PSF source and its message, and
     ``focus_note`` where nothing in view lies in the kept range)."""
+    psf = app.PSFRequest(preview=preview, field_step_px=FIELD_STEP_PX, focus_tolerance_px=FOCUS_TOLERANCE_PX)
     request = app.BokehRequest(image, depth, lens, keep=tuple(keep), focus_m=float(focus_m) if refocus else None,
-                               render=RenderRequest(lens, patch=patch), psf=app.PSFRequest(preview=preview),
-                               image_name="the render")
+                               render=RenderRequest(lens, patch=patch), psf=psf, image_name="the render")
     r = app.bokeh(request, _control(progress, cancelled), cache=SESSION.sources)
     info = dict(r.info, focus_m=float(focus_m), keep_m=[float(keep[0]), float(keep[1])], refocus=bool(refocus),
                 pixel_pitch_mm=float(r.geometry.pixel_pitch_mm), focus_note="; ".join(_note(n) for n in r.notes),
                 **_source_info(r.source))
+    if "focus_used_m" in r.info:            # the PSFs of a nearby focus serve this one (FOCUS_TOLERANCE_PX)
+        info["psf_source_message"] += (f"; its PSFs at {r.info['focus_used_m']:.3g} m serve the focus at "
+                                       f"{float(focus_m):.3g} m (blurs within {FOCUS_TOLERANCE_PX:g} px)")
     return r.image, info
 
 

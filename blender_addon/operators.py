@@ -126,14 +126,22 @@ class _JobOperator:
         return st is not None and not st.running
 
     def execute(self, context):
+        st = getattr(context.window_manager, "dcdi_lens_bokeh_status", None)
+        if st is not None:               # the status is this job's from now on (the last one's is stale)
+            st.job, st.inputs, st.message, st.psf_source = self.job_label, reading.inputs_key(context.scene), "", ""
+        t_start = time.perf_counter()
         try:
             job = self.prepare(context)
             t0 = time.perf_counter()
             result = self.compute(job)
         except _user_errors() as e:
+            if st is not None:
+                st.message = "failed"
             self.report({"ERROR"}, logic.message(e))
             return {"CANCELLED"}
         self.finish(context, job, result, time.perf_counter() - t0)
+        if st is not None:
+            st.message = f"done in {time.perf_counter() - t_start:.1f} s"
         return {"FINISHED"}
 
     def invoke(self, context, event):
@@ -141,6 +149,8 @@ class _JobOperator:
             return self.execute(context)
         st = context.window_manager.dcdi_lens_bokeh_status
         st.message, st.progress = self.first_message, 0.0
+        # the status is this job's from now on: its name and the settings it runs with (the last job's is stale)
+        st.job, st.inputs, st.psf_source = self.job_label, reading.inputs_key(context.scene), ""
         try:
             job = self.prepare(context)
         except _user_errors() as e:

@@ -2,6 +2,10 @@
 manager, not saved). Distances in metres (scene units times the scene's
 unit scale), resolutions in pixels."""
 
+import os
+import re
+import tomllib
+
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
@@ -11,9 +15,32 @@ from .session import SESSION
 DEFAULT_LENS = "6p"      # the paper's bokeh lens
 
 
+def lens_item_description(entry) -> str:
+    """The lens list's tooltip of ``entry``: its file's whole name (figures
+    in it said to be its source's: the panel's traced readout can differ
+    from them), and the file's name (no folder: the panel shows no paths).
+    Read once per file and modification time (the list's items are asked
+    for at every draw)."""
+    try:
+        key = ("tooltip", entry.path, os.stat(entry.path).st_mtime_ns)
+    except OSError:
+        return f"File: {os.path.basename(entry.path)}"
+    if key not in SESSION.lens_names:
+        try:
+            with open(entry.path, "rb") as f:
+                full = str(tomllib.load(f).get("name") or "").strip()
+        except (OSError, tomllib.TOMLDecodeError):
+            full = ""
+        stated = " (figures as its source states them; the panel shows the traced ones)" if re.search(
+            r"\bF\s*/\s*\d|\bf\s*=\s*\d", full) else ""
+        head = f"{full}{stated}. " if full else ""
+        SESSION.lens_names[key] = f"{head}File: {os.path.basename(entry.path)}"
+    return SESSION.lens_names[key]
+
+
 def _lens_items(self, context):
-    items = [(e.id, e.name if len(e.name) <= 40 else e.id, f"{e.name}\n{e.path}", thumbnails.icon(e) or "CAMERA_DATA",
-              e.number) for e in reading.catalogue()]
+    items = [(e.id, e.name, lens_item_description(e), thumbnails.icon(e) or "CAMERA_DATA", e.number)
+             for e in reading.catalogue()]
     if not items:
         items = [("NONE", "No lens files found", "no *.toml in the lens folders", "ERROR", 0)]
     # Blender keeps only references to enum item strings: the session holds them so that Python does not
@@ -37,8 +64,10 @@ class DCDI_LensBokehSettings(bpy.types.PropertyGroup):
         ("CAMERA", "Camera", "The active camera's own Depth of Field focus: its Focus Object, else its Focus "
                              "Distance (animated with the camera)")],
         default="DISTANCE")
-    focus_distance: FloatProperty(update=_settings_changed, name="Focus Distance", description="Distance from the lens's first vertex, "
-                                  "in scene units (metres at unit scale 1)", default=2.0, min=0.01, soft_max=50.0,
+    focus_distance: FloatProperty(update=_settings_changed, name="Focus Distance",
+                                  description="Distance to focus at, measured from the front of the lens (its "
+                                              "first surface, on the axis), in scene units (metres at unit "
+                                              "scale 1)", default=2.0, min=0.01, soft_max=50.0,
                                   subtype="DISTANCE", unit="LENGTH")
     focus_object: PointerProperty(update=_settings_changed, name="Focus Object", type=bpy.types.Object,
                                   description="Focus on this object's origin")
@@ -95,6 +124,10 @@ class DCDI_LensBokehStatus(bpy.types.PropertyGroup):
     running: BoolProperty(default=False)
     progress: FloatProperty(name="Progress", default=0.0, min=0.0, max=100.0, subtype="PERCENTAGE")
     message: StringProperty(default="")
+    job: StringProperty(default="", description="The job the message is about (Lens Bokeh, Lens Simulation, "
+                                                "Lens Correction)")
+    inputs: StringProperty(default="", description="The settings and camera the last job ran with "
+                                                   "(reading.inputs_key): its status shows while they are unchanged")
     psf_source: StringProperty(default="", description="Where the last bokeh's PSFs came from, and why")
     correction: StringProperty(default="", description="The method the last Correct Simulation ran, why, and "
                                                       "its time")

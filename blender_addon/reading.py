@@ -161,3 +161,27 @@ def focus_and_keep(scene, cam, settings, entrance_pupil_mm: float, depsgraph=Non
     s = scene.evaluated_get(depsgraph).dcdi_lens_bokeh if depsgraph is not None else settings
     mpu = metres_per_unit(scene)
     return focus, logic.keep_range(focus, s.keep_front * mpu, s.keep_behind * mpu)
+
+
+def inputs_key(scene) -> str:
+    """What a lens job's result depends on, in the panel and the camera: the
+    panel's settings, the active camera's name, placement, lens and depth
+    of field, the render's size. The status of the last job is shown while
+    this is unchanged (the panel, ``panel.status_lines``); a change of the
+    scene's objects is not in it."""
+    def placed(obj):
+        return None if obj is None else [obj.name, [round(v, 6) for row in obj.matrix_world for v in row]]
+
+    s = scene.dcdi_lens_bokeh
+    parts = [s.lens, s.focus_mode, round(s.focus_distance, 9), placed(s.focus_object), s.refocus,
+             round(s.keep_front, 9), round(s.keep_behind, 9), s.preview_size, s.samples, s.sensor_noise,
+             s.correction_method, s.correction_model]
+    cam = scene.camera
+    parts.append(placed(cam))
+    if cam is not None and cam.type == "CAMERA":
+        d = cam.data
+        parts += [d.type, round(d.lens, 6), round(d.sensor_width, 6), round(d.sensor_height, 6), d.sensor_fit,
+                  placed(d.dof.focus_object), round(d.dof.focus_distance, 9)]
+    r = scene.render
+    parts += [r.resolution_x, r.resolution_y, r.pixel_aspect_x, r.pixel_aspect_y, scene.unit_settings.scale_length]
+    return repr(parts)

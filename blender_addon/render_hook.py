@@ -241,7 +241,8 @@ def on_render_post(scene, *_):
         return
     seconds = time.perf_counter() - t0
     run.results = {frame: out}               # one frame held at a time
-    run.frames.append({"frame": frame, "focus_m": req.focus_m, "keep_m": list(req.keep), "effect": req.effect,
+    run.frames.append({"frame": frame, "focus_m": req.focus_m, "focus_used_m": info.get("focus_used_m", req.focus_m),
+                       "keep_m": list(req.keep), "effect": req.effect,
                        "seconds": seconds, "psf_source": info.get("psf_source"),
                        "focus_note": info.get("focus_note", "")})
     SESSION.last_render = {"frames": run.frames, "error": run.error, "last_image": out, "last_passes": (rgb, z)}

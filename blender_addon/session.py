@@ -108,6 +108,8 @@ class Session:
         # viewport: the preview's state (made by viewport.preview())
         self.preview = None
         self.thumbnails = Thumbnails()
+        # view_transform: the display tables of the last view settings (settings key -> table, newest last)
+        self.view_tables: dict = {}
 
     # -------------------------------------------------------------- what was added to Blender
     def hold(self, owner: str, remove) -> None:

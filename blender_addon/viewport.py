@@ -15,10 +15,17 @@ main thread):
   and a watcher timer compares, every ``WATCH_S``, what the preview shows
   with what the scene asks for now (the camera's own focus, a focus
   object's drivers: whatever changed without telling anyone);
-- the sharp image and metric depth: a low-sample Cycles render at the
-  preview size (``bpy_render.render_aif_depth``, about a second at 480 x
-  270), redone only when something other than the lens settings changed
-  (a focus or lens change reuses the last one);
+- the sharp image and its planar Z (camera-space depth, scene units): a
+  low-sample Cycles render at the preview size (``bpy_render.render_aif_depth``,
+  as Apply Lens Bokeh's), redone only when something other than the lens
+  settings changed. A focus, kept-range or lens change converts the same Z
+  to metres with the lens's entrance pupil and reruns the lens stage alone.
+  Blender's render API runs on the main thread only, and the render holds
+  it 0.3-2 s; so, where Blender has a window, a second Blender renders it
+  (``render_worker``: started with the preview, at a low CPU priority; the
+  main thread only writes the scene for it, a few ms) and the timer
+  collects its answer. Where that worker cannot run (background mode, no
+  Blender binary, it failed), the main thread renders;
 - the lens stage (``logic.run_bokeh``, PSFs that must be traced at the
   preview's quality ``logic.PREVIEW_TRACE``) on a worker thread; a newer change
   cancels it (the worker's ``cancelled()`` compares generations) and its
@@ -26,11 +33,14 @@ main thread):
 - the result becomes a GPU texture that a ``POST_PIXEL`` draw handler
   draws over the camera's frame.
 
-Colours: the linear result is drawn sRGB-encoded (the scene's view
-transform is not applied: a preview, not the render).
+Colours: the linear result goes through the scene's colour management
+(view transform, look, exposure, gamma, curves, display: ``view_transform``,
+a table Blender bakes once per setting) before it becomes the texture.
 """
 from __future__ import annotations
 
+import os
+import sys
 import threading
 import time
 
@@ -41,13 +51,15 @@ from dcdi_core import errors as dcdi_errors
 from dcdi_core.io import images as dcdi_images
 from dcdi_core.render import camera as dcdi_camera
 
-from . import bpy_render, logic, reading
+from . import bpy_render, logic, reading, render_worker
 from .session import SESSION
 
 DEBOUNCE_S = 0.25         # a refresh waits until changes have stopped this long
 POLL_S = 0.05             # the timer's period while a job runs
 FOCUS_PLANE_S = 2.0       # the focus plane stays drawn this long after a focus change
 WATCH_S = 0.2             # the watcher's period: what changed without a handler is seen this late
+LENS_NICE = 10            # the lens stage's thread's CPU priority (Linux): Blender's drawing goes first
+RENDER_LIMIT_S = 300.0    # the longest a render by the worker may take before it is given up (then the main thread's)
 # data-block types whose change needs a new sharp render (a lens or focus change
 # does not; the camera's data that shapes the render is in ``inputs``' sharp_key,
 # so a change of its focus alone reruns the lens stage only)
@@ -77,19 +89,29 @@ class Preview:
         self.error = ""
         self.focus_changed_at = 0.0
         self.last_focus: float | None = None
-        self.log: list[dict] = []            # per refresh: render_s, lens_s, cold (for the bench and tests)
+        self.last_pupil_mm = 0.0             # the entrance pupil of the lens the last refresh read (the focus plane)
+        self.log: list[dict] = []            # per refresh: render_s, lens_s, cold, source (for the bench and tests)
+        self.worker_renders = render_worker.RenderWorker()   # the second Blender that renders (module docstring)
+        self.rendering: dict | None = None   # the render asked of it and not yet collected
+        self.main_renders = 0                # of the sharp renders, those made on the main thread
+        self.worker_failed = ""              # why the worker failed a render: this Blender renders until the toggle
 
     # -------------------------------------------------------------- changes
-    def changed(self, scene_changed: bool) -> None:
+    def changed(self, scene_changed: bool, at_once: bool = False) -> None:
         """Something the preview shows changed (``scene_changed``: more than
-        the lens settings): cancel the running job, refresh after the debounce."""
+        the lens settings): cancel the running job, refresh after the
+        debounce (``at_once``: without it, the toggle's first refresh)."""
         if not self.enabled:
             return
         self.generation += 1
         self.scene_changed |= scene_changed
-        self.changed_at = time.perf_counter()
-        if not bpy.app.background and not bpy.app.timers.is_registered(_tick):
-            bpy.app.timers.register(_tick, first_interval=DEBOUNCE_S)
+        self.changed_at = time.perf_counter() - (DEBOUNCE_S if at_once else 0.0)
+        if bpy.app.background:
+            return
+        if at_once and bpy.app.timers.is_registered(_tick):
+            bpy.app.timers.unregister(_tick)
+        if not bpy.app.timers.is_registered(_tick):
+            bpy.app.timers.register(_tick, first_interval=0.0 if at_once else DEBOUNCE_S)
 
     def stop(self) -> None:
         self.enabled = False
@@ -97,13 +119,18 @@ class Preview:
         self.changed_at = None
         self.result = self.texture = self.sharp = self.served = self.asked = None
         self.error = ""
+        self.rendering = None
+        self.worker_renders.stop()
 
     def check(self, context=None) -> None:
         """Mark the preview stale when what the scene asks for now differs
         from what the last refresh was started for (no-op while one is
         pending: it reads the settings when it starts)."""
-        if self.enabled and self.changed_at is None and wanted(context or bpy.context) != self.asked:
-            self.changed(scene_changed=False)
+        if not self.enabled or self.changed_at is not None:
+            return
+        now = wanted(context or bpy.context)
+        if now != self.asked:
+            self.changed(scene_changed=False, at_once=_switched(self.asked, now))
 
     # -------------------------------------------------------------- the refresh
     def tick(self, context=None) -> float | None:
@@ -117,6 +144,13 @@ class Preview:
             if self.worker.is_alive():
                 return POLL_S
             self._collect()
+        if self.rendering is not None:
+            if not self.rendering["done"].is_set() and \
+                    time.perf_counter() - self.rendering["t0"] < RENDER_LIMIT_S:
+                return POLL_S
+            started = self._collect_render(context)
+            if started is not None:
+                return started
         if self.changed_at is None:
             return None
         wait = DEBOUNCE_S - (time.perf_counter() - self.changed_at)
@@ -124,43 +158,101 @@ class Preview:
             return wait
         self.changed_at = None
         self.asked = wanted(context)
+        return self._run(lambda: self._start(context), context)
+
+    def _run(self, step, context) -> float | None:
+        """Run a step of the refresh; its error is shown in the panel."""
         try:
-            self._start(context)
+            step()
         except (logic.BokehInputError, dcdi_errors.DcdiError, RuntimeError, ValueError, OSError) as e:
             self.error = logic.message(e)
             _redraw(context)
             return None
-        return POLL_S if self.worker is not None else None
+        return POLL_S if self.worker is not None or self.rendering is not None else None
 
     def _start(self, context) -> None:
         a = inputs(context)
-        scene, cam, lens, ep, mpu = a["scene"], a["camera"], a["lens"], a["entrance_pupil_mm"], a["mpu"]
-        h, w, focus, keep, sharp_key, request = a["h"], a["w"], a["focus"], a["keep"], a["sharp_key"], a["request"]
+        scene, cam, focus, sharp_key = a["scene"], a["camera"], a["focus"], a["sharp_key"]
         s = scene.dcdi_lens_bokeh
         if self.last_focus is not None and focus != self.last_focus:
             self.focus_changed_at = time.perf_counter()
-        self.last_focus = focus
-        cold = self.sharp is None
-        render_s = 0.0
+        self.last_focus, self.last_pupil_mm = focus, a["entrance_pupil_mm"]
         if self.scene_changed or self.sharp is None or self.sharp["key"] != sharp_key:
+            if self._ask_worker(context, scene, cam, a["h"], a["w"], s.samples, sharp_key):
+                self.scene_changed = False           # what changes from now on needs another render
+                return                               # the lens stage starts when the render is collected
             t0 = time.perf_counter()
-            rgb, z = bpy_render.render_aif_depth(scene, cam, h, w, s.samples, context.view_layer.name)
-            depth = dcdi_camera.depth_from_planar_z(z, ep, mpu)
-            render_s = time.perf_counter() - t0
-            self.sharp = {"key": sharp_key, "rgb": rgb, "depth": depth, "version": self.renders}
-            self.renders += 1
+            rgb, z = bpy_render.render_aif_depth(scene, cam, a["h"], a["w"], s.samples, context.view_layer.name)
+            self._keep_sharp(sharp_key, rgb, z, time.perf_counter() - t0, "main")
             self.scene_changed = False
-        served = (self.sharp["version"], request)
+        self._start_lens(a)
+
+    def _ask_worker(self, context, scene, cam, h: int, w: int, samples: int, sharp_key) -> bool:
+        """Ask the render worker for the sharp render; False where it cannot
+        (background mode, it does not run, it failed: the main thread renders)."""
+        worker = self.worker_renders
+        if bpy.app.background or self.worker_failed or not (worker.alive() or worker.start()):
+            return False
+        try:
+            pending = worker.request(context, scene, cam, h, w, samples, context.view_layer.name)
+        except (RuntimeError, OSError) as e:
+            print(f"Lens Bokeh preview: {e}; rendering in this Blender")
+            return False
+        pending.update(key=sharp_key, generation=self.generation, cold=self.sharp is None)
+        self.rendering = pending
+        return True
+
+    def _collect_render(self, context) -> float | None:
+        """The worker's render is in (or given up): keep it and, when nothing
+        changed meanwhile, start the lens stage on it. Returns what
+        :meth:`tick` returns when it started something, else None."""
+        r, self.rendering = self.rendering, None
+        if not r["done"].is_set() or "error" in r:
+            why = r.get("error") or f"no answer in {RENDER_LIMIT_S:.0f} s"
+            print(f"Lens Bokeh preview: the render worker failed ({why}); rendering in this Blender")
+            self.worker_renders.stop()
+            self.worker_failed = why
+            self.scene_changed = True                # render it again, here
+            if self.changed_at is None:
+                self.changed_at = time.perf_counter() - DEBOUNCE_S
+            return None
+        self._keep_sharp(r["key"], r["rgb"], r["z"], r["seconds"], "worker", cold=r["cold"],
+                         main_s=r["write_s"], steps=dict(r.get("steps", {}), write_s=r["write_s"],
+                                                         started_s=self.worker_renders.ready_s))
+        if r["generation"] != self.generation or self.changed_at is not None:
+            return None                              # a newer change's refresh is pending: it uses this render
+        return self._run(lambda: self._start_lens(inputs(context)), context)
+
+    def _keep_sharp(self, key, rgb, z, render_s: float, source: str, cold: bool | None = None,
+                    main_s: float | None = None, steps: dict | None = None) -> None:
+        self.sharp = {"key": key, "rgb": rgb, "z": z, "depth": None, "depth_of": None, "version": self.renders,
+                      "render_s": render_s, "source": source, "main_s": render_s if main_s is None else main_s,
+                      "cold": (self.renders == 0) if cold is None else cold, "fresh": True, "steps": steps or {}}
+        self.renders += 1
+        self.main_renders += source == "main"
+
+    def _start_lens(self, a: dict) -> None:
+        """The lens stage on the kept sharp render, on a thread."""
+        lens, ep, mpu, focus, keep = a["lens"], a["entrance_pupil_mm"], a["mpu"], a["focus"], a["keep"]
+        sharp = self.sharp
+        if sharp["depth_of"] != (ep, mpu):           # the lens's pupil or the scene's unit changed: Z -> metres
+            sharp["depth"] = dcdi_camera.depth_from_planar_z(sharp["z"], ep, mpu)
+            sharp["depth_of"] = (ep, mpu)
+        served = (sharp["version"], a["request"])
         if self.served == served and self.result is not None:
             return                                   # nothing the preview shows has changed
+        fresh, sharp["fresh"] = sharp["fresh"], False    # the render is counted by the first refresh using it
         gen = self.generation
-        job = self.job = {"generation": gen, "key": served, "render_s": render_s, "cold": cold,
+        job = self.job = {"generation": gen, "key": served, "render_s": sharp["render_s"] if fresh else 0.0,
+                          "main_s": sharp["main_s"] if fresh else 0.0, "cold": sharp["cold"] and fresh,
+                          "source": sharp["source"] if fresh else None, "steps": sharp["steps"] if fresh else {},
                           "t0": time.perf_counter()}
-        sharp, refocus = self.sharp, bool(s.refocus)
+        rgb, depth, refocus = sharp["rgb"], sharp["depth"], bool(a["scene"].dcdi_lens_bokeh.refocus)
 
         def run():
+            _lower_thread_priority()
             try:
-                out, info = logic.run_bokeh(sharp["rgb"], sharp["depth"], lens, focus_m=focus, keep=keep,
+                out, info = logic.run_bokeh(rgb, depth, lens, focus_m=focus, keep=keep,
                                             refocus=refocus, cancelled=lambda: self.generation != gen,
                                             preview=True)
                 job["out"], job["info"] = out, info
@@ -184,9 +276,22 @@ class Preview:
         self.result = {"image": job["out"], "info": job["info"], "generation": job["generation"],
                        "render_s": job["render_s"], "lens_s": job["lens_s"]}
         self.served = job["key"]
-        self.log.append({"render_s": job["render_s"], "lens_s": job["lens_s"], "cold": job["cold"]})
+        self.log.append({"render_s": job["render_s"], "lens_s": job["lens_s"], "cold": job["cold"],
+                         "source": job["source"], "main_s": job["main_s"], "render_steps": job["steps"]})
         self.texture = _texture(job["out"])
         _redraw(bpy.context)
+
+
+def _lower_thread_priority() -> None:
+    """The calling thread at a lower CPU priority (Linux: a thread's own nice
+    value), so that Blender's drawing, and the software rasteriser's threads
+    where OpenGL runs on the CPU, go before the lens stage."""
+    if sys.platform.startswith("linux"):
+        try:
+            tid = threading.get_native_id()
+            os.setpriority(os.PRIO_PROCESS, tid, max(LENS_NICE, os.getpriority(os.PRIO_PROCESS, tid)))
+        except (AttributeError, OSError):
+            pass
 
 
 def preview() -> Preview:
@@ -205,11 +310,13 @@ def inputs(context) -> dict:
     h, w = r.preview_shape()
     cam, lens, path, ep, mpu = r.camera, r.lens, r.lens_path, r.entrance_pupil_mm, r.metres_per_unit
     d = cam.data
-    sharp_key = (cam.name, tuple(map(tuple, cam.matrix_world)), h, w, r.samples, round(ep, 9), mpu, d.lens,
+    # the sharp image and its planar Z depend on the camera, not on the lens (its pupil converts the Z to
+    # metres at the lens stage) nor on the scene's unit
+    sharp_key = (cam.name, tuple(map(tuple, cam.matrix_world)), h, w, r.samples, d.lens,
                  d.sensor_width, d.sensor_height, d.sensor_fit, d.shift_x, d.shift_y, d.clip_start, d.clip_end)
     return {"scene": scene, "camera": cam, "lens": lens, "path": path, "entrance_pupil_mm": ep, "h": h, "w": w,
             "mpu": mpu, "focus": r.focus_m, "keep": r.keep, "sharp_key": sharp_key,
-            "request": (lens.id, path, r.focus_m, r.keep, r.refocus)}
+            "request": (lens.id, path, r.focus_m, r.keep, r.refocus, round(ep, 9), mpu)}
 
 
 def wanted(context) -> tuple:
@@ -221,6 +328,16 @@ def wanted(context) -> tuple:
     except (logic.BokehInputError, dcdi_errors.DcdiError, ValueError, OSError) as e:
         return ("error", logic.message(e))
     return a["sharp_key"], a["request"]
+
+
+def _switched(before, now) -> bool:
+    """Whether only a switch changed between two :func:`wanted` values: the
+    lens or Refocus Lens (one click, no slider's stream of values to wait
+    out: the refresh starts at once)."""
+    if before is None or before[0] == "error" or now[0] == "error" or before[0] != now[0]:
+        return False
+    (lens0, path0, focus0, keep0, refocus0, *rest0), (lens1, path1, focus1, keep1, refocus1, *rest1) = before[1], now[1]
+    return (focus0, keep0) == (focus1, keep1) and (lens0, path0, refocus0, rest0) != (lens1, path1, refocus1, rest1)
 
 
 def _tick():
@@ -246,13 +363,22 @@ def settings_changed(settings, context) -> None:
 
 
 def _texture(image: np.ndarray):
-    """A GPU texture of the linear (H, W, 3) image, sRGB-encoded; None without a GPU (background)."""
+    """A GPU texture of the linear (H, W, 3) image as the scene's colour
+    management displays a render (``view_transform``: display values, drawn
+    as they are); None without a GPU (background). Should Blender fail to
+    bake the view transform, the sRGB encoding, and the console says why."""
     if bpy.app.background:
         return None
     import gpu
+
+    from . import view_transform
     h, w = image.shape[:2]
     rgba = np.ones((h, w, 4), np.float32)
-    rgba[..., :3] = dcdi_images.linear_to_srgb(np.clip(image, 0.0, None))
+    try:
+        rgba[..., :3] = view_transform.to_display(image, bpy.context.scene)
+    except (RuntimeError, OSError, ValueError, TypeError) as e:
+        print(f"Lens Bokeh preview: the scene's view transform could not be baked ({e}); showing sRGB")
+        rgba[..., :3] = dcdi_images.linear_to_srgb(np.clip(np.nan_to_num(image), 0.0, 1.0))
     buf = gpu.types.Buffer("FLOAT", h * w * 4, rgba[::-1].ravel())
     return gpu.types.GPUTexture((w, h), format="RGBA16F", data=buf)
 
@@ -314,11 +440,7 @@ def draw_focus_plane():
         return
     import gpu
     from gpu_extras.batch import batch_for_shader
-    try:
-        ep = logic.lens_readout(reading.chosen_lens(scene.dcdi_lens_bokeh)[1])["entrance_pupil_mm"]
-    except (logic.BokehInputError, dcdi_errors.DcdiError, OSError):
-        return
-    corners = [tuple(c) for c in focus_plane_corners(scene, p.last_focus, ep)]
+    corners = [tuple(c) for c in focus_plane_corners(scene, p.last_focus, p.last_pupil_mm)]
     shader = gpu.shader.from_builtin("UNIFORM_COLOR")
     batch = batch_for_shader(shader, "TRIS", {"pos": corners}, indices=((0, 1, 2), (0, 2, 3)))
     gpu.state.blend_set("ALPHA")
@@ -392,6 +514,9 @@ def set_enabled(enabled: bool, context=None) -> None:
         return
     p.enabled = True
     p.scene_changed = True
+    p.worker_failed = ""
+    if not bpy.app.background:
+        p.worker_renders.start()                    # ready in a second or two; the first render waits for it
     for name, fn in _APP_HANDLERS:
         if fn not in getattr(bpy.app.handlers, name):
             getattr(bpy.app.handlers, name).append(fn)
@@ -402,8 +527,7 @@ def set_enabled(enabled: bool, context=None) -> None:
             bpy.types.SpaceView3D.draw_handler_add(draw_preview, (), "WINDOW", "POST_PIXEL"),
             bpy.types.SpaceView3D.draw_handler_add(draw_focus_plane, (), "WINDOW", "POST_VIEW"))
         SESSION.hold("preview", lambda: _remove_handlers(draw))
-    p.changed(scene_changed=True)
-    p.changed_at -= DEBOUNCE_S                       # the toggle's own refresh starts at once
+    p.changed(scene_changed=True, at_once=True)      # the toggle's own refresh starts at once
 
 
 def _remove_handlers(draw) -> None:

@@ -17,7 +17,7 @@ ZIP, OUT = start()
 
 import bpy  # noqa: E402
 import numpy as np  # noqa: E402
-from addon_scene import MODULE, build_scene, install  # noqa: E402
+from addon_scene import settle as shared_settle, MODULE, build_scene, install  # noqa: E402
 
 res: dict = {}
 scene, cam, cube = build_scene()
@@ -38,15 +38,7 @@ st = bpy.context.window_manager.dcdi_lens_bokeh_status
 
 
 def settle(limit_s=120.0):
-    """Step the refresh until it has nothing left to do (the debounce waited out)."""
-    t = time.perf_counter()
-    while True:
-        nxt = P.tick()
-        if nxt is None:
-            return
-        if time.perf_counter() - t > limit_s:
-            raise RuntimeError("the preview did not settle")
-        time.sleep(min(nxt, 0.05))
+    shared_settle(P, limit_s)
 
 
 def snap(name):

@@ -131,3 +131,17 @@ def build_scene():
     scene.world = bpy.data.worlds.new("black")
     scene.render.resolution_x, scene.render.resolution_y = 640, 480
     return scene, cam, cube
+
+
+def settle(preview, limit_s=120.0):
+    """Step the viewport preview's refresh (``preview.tick``) until it has
+    nothing left to do (the debounce waited out)."""
+    import time
+    t = time.perf_counter()
+    while True:
+        nxt = preview.tick()
+        if nxt is None:
+            return
+        if time.perf_counter() - t > limit_s:
+            raise RuntimeError("the preview did not settle")
+        time.sleep(min(nxt, 0.05))

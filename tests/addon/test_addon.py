@@ -142,7 +142,7 @@ def _modules(addon_zip) -> list[str]:
 # what the add-on may not need in Blender's own Python: its bpy modules, the
 # networks' torch code, the reports' plotting
 _BPY_ONLY = {f"{EXT_ID}.{m}" for m in ("operators", "panel", "props", "bpy_render", "render_hook", "viewport",
-                                       "thumbnails", "reading")}
+                                       "thumbnails", "reading", "view_transform", "gpu_capture")}
 
 
 def test_every_module_of_the_zip_imports(addon_zip, tmp_path):
@@ -418,7 +418,12 @@ except RuntimeError as e:
 # the 6P, learned across focus: refocused (Refocus Lens on, the default) inside the range, served
 lens6 = logic.load_lens_cached(dict((e.id, e.path) for e in logic.lens_catalogue())["6p"])
 out6, info6 = logic.run_bokeh(img, depth, lens6, focus_m=1.0, keep=(0.9, 1.1))
-assert info6["psf_source"] == "olf" and "focus 1 m" in info6["psf_source_message"], info6["psf_source_message"]
+# the PSFs of a focus within logic.FOCUS_TOLERANCE_PX of blur serve 1 m (psf.sampling), said in the message
+from dcdi_core.psf import sampling
+used = sampling.snap_focus(lens6, 1.0, info6["pixel_pitch_mm"], logic.FOCUS_TOLERANCE_PX)
+assert info6.get("focus_used_m", 1.0) == used and 1.0 <= used <= 1.2, (used, info6)
+assert info6["psf_source"] == "olf" and "focus %.3g m" % used in info6["psf_source_message"] \
+    and "serve the focus at 1 m" in info6["psf_source_message"], info6["psf_source_message"]
 assert np.abs(out6 - img)[16:32, 20:44].max() < 1e-6 and np.abs(out6 - img)[depth > 5].mean() > 1e-3
 near = depth.copy()
 near[16:32, 20:44] = 0.5
@@ -600,7 +605,7 @@ def _panel_lines(drawn, icon):
     for kind, text, ic in drawn:
         if kind == "label" and ic == "BLANK1":
             if inside:
-                out[-1] += text
+                out[-1] += " " + text          # the lines of a text wrapped at its words
             continue
         inside = kind == "label" and ic == icon
         if inside:
@@ -1022,3 +1027,187 @@ def test_the_preview_traces_what_no_shipped_source_holds_at_its_own_quality(tmp_
     same, _ = logic.run_bokeh(img, depth, lens, focus_m=2.0, keep=(2.0, 2.0), refocus=False)
     assert info_held["psf_source"] == "basis" and info_held["psf_quality"] == "full"
     assert np.array_equal(held, same)
+
+
+# ------------------------------------------------------------------ the panel, readable by an artist
+# the checkout's add-on registered in pip bpy, its panel drawn into a recording layout (what it asks
+# Blender for: each text and icon, whether properties are split); prints JSON
+_PANEL = r"""
+import json, sys
+sys.path.insert(0, {root!r})
+sys.path.insert(0, {here!r})
+import bpy
+import blender_addon
+from blender_addon import panel, reading
+from addon_scene import build_scene
+blender_addon.register()
+scene, cam, cube = build_scene()
+s = scene.dcdi_lens_bokeh
+st = bpy.context.window_manager.dcdi_lens_bokeh_status
+
+
+class Rec:
+    def __init__(self, log, split=False):
+        object.__setattr__(self, "log", log)
+        object.__setattr__(self, "use_property_split", split)
+
+    def _child(self, *a, **k):
+        self.log.append(("layout", k.get("heading", ""), None, self.use_property_split))
+        return Rec(self.log, self.use_property_split)
+
+    row = column = box = split = _child
+
+    def label(self, text="", icon="NONE", **k):
+        self.log.append(("label", text, icon, self.use_property_split))
+
+    def operator(self, idname, **k):
+        self.log.append(("operator", idname, k.get("icon", "NONE"), self.use_property_split))
+        return Rec([])
+
+    def prop(self, data, name, **k):
+        text = k.get("text", data.bl_rna.properties[name].name)
+        self.log.append(("prop", name, k.get("icon", "NONE"), self.use_property_split, text))
+
+    def template_icon(self, **k):
+        pass
+
+
+def draw():
+    log = []
+    panel.draw_lens_bokeh(Rec(log), bpy.context)
+    return log
+
+
+def stamp():                  # the status as an operator leaves it (the settings it ran with)
+    if hasattr(reading, "inputs_key"):
+        st.job, st.inputs = "Lens Bokeh", reading.inputs_key(scene)
+
+
+res = {{}}
+s.lens = "6p"
+s.lens_in_renders = True
+scene.render.use_lock_interface = False
+res["drawn"] = draw()
+s.lens_in_renders = False
+st.message, st.psf_source = "done in 5.9 s", "PSFs from the PSF basis that ships with the add-on (rank 160)"
+stamp()
+res["done"] = draw()
+s.focus_distance = 3.0
+res["changed"] = draw()
+res["focus_tooltip"] = s.bl_rna.properties["focus_distance"].description
+print(json.dumps(res))
+"""
+
+
+@pytest.fixture(scope="module")
+def panel_drawn(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("panel")
+    env = dict(os.environ, BLENDER_USER_RESOURCES=str(tmp / "user"), DCDI_CACHE_DIR=str(tmp / "cache"))
+    env.pop("DCDI_LENS_PATH", None)
+    code = _PANEL.format(root=str(ROOT), here=str(Path(__file__).resolve().parent))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=tmp, timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_the_lens_list_names_lenses_whole_without_stated_figures():
+    """The lens list shows each lens's name (not its id, not cut), without the
+    figures its source states (the readout shows the traced ones), short
+    enough for the list's field; a file without a name goes by its id."""
+    names = {e.id: e.name for e in logic.lens_catalogue()}
+    assert names["6p"] == "6P lens (OptiFusion)" and names["double-gauss"] == "Double Gauss"
+    assert names["mos-s1"] == "MOS-S1 (H-K9L singlet)" and names["mos-s2"] == "MOS-S2 (model-glass singlet)"
+    for lens_id, name in names.items():
+        assert name != lens_id and "F/" not in name and len(name) <= 28, names
+
+
+def test_the_lens_name_is_shortened_by_whole_parts_only(tmp_path):
+    from blender_addon import logic as lg
+    cases = {"": "x", "A very long imported Zemax lens title with many words":
+             "A very long imported Zemax lens title with many words",
+             "Cooke triplet F/4.5, f = 50 mm": "Cooke triplet",
+             "Tessar (Zeiss, 1902, four elements), F/6.3": "Tessar (Zeiss)"}
+    for i, (given, want) in enumerate(cases.items()):
+        p = tmp_path / f"l{i}" / "x.toml"
+        p.parent.mkdir()
+        p.write_text(f'name = "{given}"\n')
+        assert lg._lens_name(p) == want, given
+
+
+def test_the_psf_source_line_names_no_path_and_no_lens_id():
+    """Where the PSFs came from, as the panel and the report say it: the
+    engine's files are "shipped", no absolute path, no lens id."""
+    from types import SimpleNamespace
+    from dcdi_core.optics.lens import load_lens
+    from dcdi_core.psf.sources import psf_source
+    for lens_id, focus, want in (("6p", None, "PSFs from the PSF basis that ships with the add-on ("),
+                                 ("6p", 2.0, "PSFs from the Omni-Lens-Field that ships with the add-on ("),
+                                 ("mos-s1", 2.0, "PSFs traced: ")):
+        lens = load_lens(lens_id)
+        src = psf_source(lens, pixel_pitch_mm=0.05, focus_m=focus)
+        assert str(src.basis_file or src.olf_file or "/") in src.message or src.kind == "trace"
+        got = logic._source_info(SimpleNamespace(kind=src.kind, message=src.message, quality="full",
+                                                 basis_file=src.basis_file, olf_file=src.olf_file,
+                                                 library=SimpleNamespace(lens=lens)))["psf_source_message"]
+        assert got.startswith(want), got
+        assert "/" not in got.replace("F/", "") and ".npz" not in got, got
+        assert lens_id not in got, got
+
+
+def _labels(log):
+    return [x[1] for x in log if x[0] == "label"]
+
+
+def test_the_panels_switches_show_their_names(panel_drawn):
+    """Preview in Viewport, Lens in Renders, Lock Interface: never an icon
+    in a split layout (Blender draws that button as its icon alone)."""
+    props = {x[1]: x for x in panel_drawn["drawn"] if x[0] == "prop"}
+    for name, text in (("viewport_preview", "Preview in Viewport"), ("lens_in_renders", "Lens in Renders"),
+                       ("use_lock_interface", "Lock Interface")):
+        _, _, icon, split, shown = props[name]
+        assert shown == text and not (split and icon != "NONE"), props[name]
+
+
+def test_the_panel_shows_one_readout_the_traced_one(panel_drawn):
+    texts = _labels(panel_drawn["drawn"])
+    figures = [t for t in texts if "F/" in t]
+    assert figures == ["f = 26.45 mm, F/1.64, FoV 63.8\N{DEGREE SIGN}"], texts
+    assert "6P lens (OptiFusion)" in texts
+
+
+def test_kept_sharp_is_a_label_over_its_two_settings(panel_drawn):
+    log = panel_drawn["drawn"]
+    at = next(i for i, x in enumerate(log) if x[0] == "prop" and x[1] == "keep_front")
+    before = [x for x in log[:at] if x[0] != "layout"]
+    assert before[-1][:2] == ["label", "Kept Sharp"], before[-1]
+    assert [log[at][4], next(x for x in log[at + 1:] if x[0] == "prop")[4]] == ["In Front", "Behind"]
+    assert not any(x[0] == "layout" and x[1] == "Kept Sharp" for x in log)
+
+
+def test_panel_warnings_wrap_at_whole_words(panel_drawn):
+    """A warning over several labels holds its words whole and in order (it
+    was cut every 48 characters, mid-word)."""
+    text = ("Turn Lock Interface on: the lens reads the scene while Blender renders (F12 in the window; "
+            "command-line renders do not need it)")
+    log = [x for x in panel_drawn["drawn"] if x[0] == "label"]
+    at = next(i for i, x in enumerate(log) if x[1].startswith("Turn Lock"))
+    lines = [log[at][1]]
+    for x in log[at + 1:]:
+        if x[2] != "BLANK1":
+            break
+        lines.append(x[1])
+    assert len(lines) > 1 and " ".join(lines).split() == text.split(), lines
+
+
+def test_the_status_describes_the_settings_as_they_are(panel_drawn):
+    """The last job's "done in 5.9 s" and its PSF source show while the
+    settings are those it ran with; after a change, not."""
+    assert any("done in 5.9 s" in t for t in _labels(panel_drawn["done"]))
+    assert any(t.startswith("PSFs from") for t in _labels(panel_drawn["done"]))
+    changed = _labels(panel_drawn["changed"])
+    assert not any("done in" in t or t.startswith("PSFs from") for t in changed), changed
+
+
+def test_the_focus_tooltip_speaks_an_artists_words(panel_drawn):
+    tip = panel_drawn["focus_tooltip"]
+    assert "vertex" not in tip and "front of the lens" in tip, tip

@@ -12,6 +12,7 @@ import pytest
 
 from headless_run import run_headless
 from test_addon import ROOT, addon_zip  # noqa: F401  (the zip fixture)
+from blender_addon import logic
 
 
 @pytest.fixture(scope="module")
@@ -39,7 +40,8 @@ def test_a_rendered_still_equals_dcdi_bokeh_of_its_passes(rendered, tmp_path):
     near, far = frame["keep_m"]
     cmd = [sys.executable, "-m", "dcdi_core", "bokeh", "--image", str(tmp_path / "aif.exr"), "--depth",
            str(tmp_path / "depth.exr"), "--lens", "6p", "--focus", repr(frame["focus_m"]), "--keep", repr(near),
-           repr(far), "-o", str(tmp_path / "cli.exr")]
+           repr(far), "--field-step", repr(logic.FIELD_STEP_PX), "--focus-tolerance", repr(logic.FOCUS_TOLERANCE_PX),
+           "-o", str(tmp_path / "cli.exr")]
     p = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT,
                        env=dict(os.environ, DCDI_CACHE_DIR=str(out / "psf-cache")))
     assert p.returncode == 0, p.stderr[-2000:]
@@ -59,14 +61,19 @@ def test_an_animated_focus_object_is_followed_frame_by_frame(rendered):
     assert got.keys() == want.keys() == {1, 2, 3}
     assert all(abs(got[f] - want[f]) < 1e-6 for f in want)
     assert want[3] - want[1] == pytest.approx(1.0, abs=1e-6)         # the cube moved 1 m away
-    # each new focus builds its PSFs (frame 1's focus was the still's: kept)
-    assert sorted(mv["builds"]) == sorted([want[2], want[3]])
+    # each new focus builds its PSFs, those of a focus within the blur tolerance shared (logic.FOCUS_TOLERANCE_PX;
+    # frame 1's focus was the still's: kept)
+    used = {f["frame"]: f["focus_used_m"] for f in mv["frames"]}
+    assert all(used[f] >= want[f] for f in want) and used[3] > used[1]
+    assert sorted(mv["builds"]) == sorted({used[2], used[3]} - {used[1]})
 
 
 def test_a_fixed_focus_builds_its_psfs_once_for_every_frame(rendered):
     fx = rendered["fixed"]
     assert fx["error"] is None and [f["frame"] for f in fx["frames"]] == [1, 2, 3]
-    assert fx["builds"] == [1.0]
+    used = {f["focus_used_m"] for f in fx["frames"]}
+    assert len(used) == 1 and 1.0 <= used.pop() < 1.1
+    assert len(fx["builds"]) <= 1                  # once (none if an earlier job's PSFs serve 1 m)
 
 
 def test_the_scenes_settings_are_left_as_the_user_set_them(rendered):

@@ -69,3 +69,37 @@ def test_every_lens_gets_a_psf_grid_thumbnail(preview):
     assert t["made"] == t["lenses"] and t["sizes"] == [[95, 95]] * t["lenses"]
     assert len(t["made_calls"]) == t["lenses"] == len(set(t["made_calls"]))   # each made once
     assert t["lens_after"] == "mos-s1"
+
+
+@pytest.fixture(scope="module")
+def lens_changes(addon_zip, tmp_path_factory):  # noqa: F811
+    pytest.importorskip("bpy")
+    return run_headless("addon_headless_preview_lens.py", addon_zip, tmp_path_factory.mktemp("preview-lens"))
+
+
+def test_a_lens_change_reruns_the_lens_stage_on_the_same_render(lens_changes):
+    """The sharp render keeps its planar Z; a lens change (a switch: its
+    refresh starts without the debounce) converts it with the new lens's
+    entrance pupil and renders nothing (the pupils differ, so a depth kept
+    from the first lens would show)."""
+    from blender_addon import logic
+    from dcdi_core.render.camera import depth_from_planar_z
+    r, d = lens_changes, lens_changes["dir"]
+    first = r["first"]
+    assert first["error"] == "" and first["render_calls"] == 1 and first["renders"] == 1 and first["lens"] == "6p"
+    rgb, z = np.load(d / "sharp_rgb.npy"), np.load(d / "sharp_z.npy")
+    for name, lens_id in (("mos", "mos-s1"), ("back", "6p")):
+        c = r[name]
+        assert r[f"{name}_pending"] and r[f"{name}_at_once"] and c["error"] == "" and c["lens"] == lens_id, c
+        assert c["render_calls"] == 1 and c["renders"] == 1 and c["version"] == 0 and c["render_s"] == 0.0, c
+        lens = logic.load_lens_cached(str(ROOT / "lenses" / f"{lens_id}.toml"))
+        ep = logic.lens_readout(str(ROOT / "lenses" / f"{lens_id}.toml"))["entrance_pupil_mm"]
+        depth = depth_from_planar_z(z, ep, 1.0)
+        assert np.array_equal(np.load(d / f"{name}_depth.npy"), depth)
+        want, _ = logic.run_bokeh(rgb, depth, lens, focus_m=c["focus_m"], keep=tuple(c["keep_m"]), refocus=False,
+                                  preview=True)
+        assert np.abs(np.load(d / f"{name}.npy") - want).max() <= 1e-6 * max(1.0, float(want.max()))
+    assert r["mos"]["refreshes"] == 2 and r["back"]["refreshes"] == 3
+    pupils = [logic.lens_readout(str(ROOT / "lenses" / f"{x}.toml"))["entrance_pupil_mm"] for x in ("6p", "mos-s1")]
+    assert abs(pupils[0] - pupils[1]) > 0.1, pupils                  # the lenses' pupils differ
+    assert not np.array_equal(np.load(d / "mos_depth.npy"), np.load(d / "first_depth.npy"))

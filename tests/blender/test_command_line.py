@@ -12,6 +12,7 @@ import pytest
 
 # the fixtures by import: a conftest.py here would shadow tests/conftest.py's helpers
 from realblender_support import ROOT, addon_zip, blender, run_inside, user_folders  # noqa: F401
+from blender_addon import logic  # noqa: E402  (the add-on's PSF sampling, given to the command alike)
 
 pytestmark = pytest.mark.realblender
 
@@ -45,7 +46,8 @@ def test_a_command_line_animation_gets_the_lens_frame_by_frame(blender, addon_zi
         cli = tmp_path / f"cli{frame}.exr"
         cmd = [sys.executable, "-m", "dcdi_core", "bokeh", "--image", str(tmp_path / f"aif{frame}.exr"),
                "--depth", str(tmp_path / f"depth{frame}.exr"), "--lens", "6p", "--focus", repr(focus),
-               "--keep", repr(focus - front), repr(focus + behind), "-o", str(cli)]
+               "--keep", repr(focus - front), repr(focus + behind), "--field-step", repr(logic.FIELD_STEP_PX),
+               "--focus-tolerance", repr(logic.FOCUS_TOLERANCE_PX), "-o", str(cli)]
         p = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT,
                            env=dict(os.environ, DCDI_CACHE_DIR=str(tmp_path / "psf-cache")))
         assert p.returncode == 0, p.stderr[-2000:]

@@ -20,6 +20,9 @@ SCREEN_P99_TOL = 0.12
 # the longest a refresh may take after a change (a refocused minimalist lens traces its PSFs: about 10 s on
 # 2 busy cores); $DCDI_TEST_REFRESH_LIMIT_S shortens it to show the test failing on a build that never refreshes
 REFRESH_LIMIT_S = float(os.environ.get("DCDI_TEST_REFRESH_LIMIT_S", 60))
+# the 3D view's shading through the preview's changes ($DCDI_TEST_PREVIEW_SHADING: MATERIAL to measure
+# Blender's EEVEE drawing on software OpenGL)
+PREVIEW_SHADING = os.environ.get("DCDI_TEST_PREVIEW_SHADING", "SOLID")
 
 
 def _resample(img: np.ndarray, h: int, w: int) -> np.ndarray:
@@ -36,13 +39,17 @@ def _resample(img: np.ndarray, h: int, w: int) -> np.ndarray:
 
 
 def screen_error(work, cap) -> tuple[float, float]:
-    """(mean, 99th percentile) |screen - engine result| inside the camera
-    frame (3 px in from its border: the frame's outline), sRGB in [0, 1]."""
+    """(mean, 99th percentile) |screen - the preview's texture| inside the
+    camera frame (3 px in from its border: the frame's outline), display
+    values in [0, 1]. The texture holds the engine's result as the add-on
+    encodes it for display (read back from the GPU); a capture without it
+    (an older build) is compared with the result sRGB-encoded."""
     shot = linear_to_srgb(read_image(work / cap["png"]))
     left, top, right, bottom = cap["box"]
     l, t, r, b = int(np.ceil(left)) + 3, int(np.ceil(top)) + 3, int(np.floor(right)) - 3, int(np.floor(bottom)) - 3
     drawn = shot[t:b, l:r]
-    engine = linear_to_srgb(np.clip(np.load(work / cap["npy"]), 0.0, None))
+    engine = np.load(work / cap["texture"]) if cap.get("texture") else \
+        linear_to_srgb(np.clip(np.load(work / cap["npy"]), 0.0, None))
     # the engine's image over the whole frame, then the same inset
     full = _resample(engine, int(round(bottom - top)), int(round(right - left)))
     ref = full[t - int(round(top)):b - int(round(top)), l - int(round(left)):r - int(round(left))]
@@ -56,7 +63,8 @@ def preview_run(blender, addon_zip, tmp_path_factory):
     work = tmp_path_factory.mktemp("ui-preview")
     return work, run_inside(blender, "ui_preview.py", work, {"zip": str(addon_zip), "lens": "6p",
                                                              "preview_size": 480, "resolution": [1920, 1080],
-                                                             "refresh_limit_s": REFRESH_LIMIT_S}, ui=True)
+                                                             "refresh_limit_s": REFRESH_LIMIT_S,
+                                                             "shading": PREVIEW_SHADING}, ui=True)
 
 
 def test_preview_follows_every_change(preview_run):
@@ -73,8 +81,9 @@ def test_preview_lens_only_changes_do_not_render(preview_run):
     _, res = preview_run
     by = {(c["via"], c["change"]): c for c in res["changes"]}
     lens_only = [("python", n) for n in ("focus distance", "focus distance again", "camera focus distance",
-                                         "kept range", "refocus off", "refocus on", "frame change")]
-    lens_only += [("ui", n) for n in ("focus distance", "kept range", "refocus off", "focus mode next",
+                                         "kept range", "refocus off", "refocus on", "lens", "lens again",
+                                         "frame change")]
+    lens_only += [("ui", n) for n in ("focus distance", "kept range", "refocus off", "lens", "focus mode next",
                                       "focus mode next again", "frame change")]
     for key in lens_only:
         assert not by[key]["rendered"], f"{key} rendered the scene anew: {by[key]}"
@@ -88,6 +97,96 @@ def test_preview_lens_only_changes_do_not_render(preview_run):
     assert py["kept range"]["shown"]["keep_m"][1] == pytest.approx(py["kept range"]["shown"]["focus_m"] + 1.5)
     assert py["refocus off"]["shown"]["refocus"] is False
     assert py["preview size"]["shown"]["shape"][1] == 240
+
+
+# the preview's steps the main thread's heartbeat is judged in
+PREVIEW_STEPS = [("python", n) for n in ("toggle", "focus distance", "focus distance again", "lens", "lens again",
+                                         "object moved", "preview size")]
+PREVIEW_STEPS += [("ui", n) for n in ("focus distance", "lens", "object moved", "preview size")]
+BLOCK_GOAL_S = 0.25          # the longest the main thread may stop during the preview's steps
+FIRST_GOAL_S = 1.0           # the toggle to the first result drawn; a lens change to its result drawn
+
+
+def _steps(res, keys):
+    by = {(c["via"], c["change"]): c for c in res["changes"]}
+    return [by[k] for k in keys]
+
+
+def test_the_add_on_holds_the_main_thread_briefly(preview_run):
+    """Every call of the add-on's timers, handlers and draw callbacks
+    returned within the goal (its own time: the result's texture, made
+    inside one, is judged below), through every change, and no sharp render
+    ran on the main thread (the render worker made them all)."""
+    _, res = preview_run
+    for c in res["changes"]:
+        if "the worker failing" in c["change"] or c["change"] == "object moved after":
+            continue                         # the main thread renders (test_the_preview_renders_itself_...)
+        assert c["addon_call"]["call_s"] <= BLOCK_GOAL_S, (c["via"], c["change"], c["addon_call"])
+        if c.get("rendered"):
+            assert c["source"] == "worker" and c["main_render"] is False and c["main_s"] <= 0.1, c
+
+
+def test_the_preview_renders_itself_when_the_worker_fails(preview_run):
+    _, res = preview_run
+    by = {c["change"]: c for c in res["changes"] if c["via"] == "python"}
+    for name in ("object moved, the worker failing", "object moved after"):
+        c = by[name]
+        assert c["refreshed"] and c["current"] and c["rendered"] and c["source"] == "main" and c["main_render"], c
+    assert res["worker_failed"] == "a failure made by the test"
+
+
+@pytest.mark.xfail(strict=False, reason="measured: the first texture 0.41-0.57 s, the scene's view transform baked "
+                                        "on the main thread (blender_addon/view_transform.py), the others 0.01-0.02 s")
+def test_the_result_texture_is_made_briefly(preview_run):
+    _, res = preview_run
+    slow = {f"{c['via']} {c['change']}": c["texture_call"] for c in res["changes"]
+            if c["texture_call"]["call_s"] > BLOCK_GOAL_S}
+    assert not slow, slow
+
+
+@pytest.mark.xfail(strict=False, reason="measured in Debian's Blender 5.2.2 on llvmpipe, 2 cores, Viewport "
+                                        "Anti-Aliasing off: the toggle 0.56-0.76 s, of which 0.41-0.57 s the first "
+                                        "texture's view-transform bake on the main thread (blender_addon/"
+                                        "view_transform.py); every other step 0.14-0.29 s (one drawing of the 3D "
+                                        "view: 0.14-0.18 s)")
+def test_the_main_thread_never_stops_during_the_preview(preview_run):
+    """The heartbeat (a 20 ms timer on the main thread) never waited longer
+    than the goal from a change to its result drawn. (The Solid view's
+    anti-aliasing, which draws the view 8 more times after each change of
+    the scene, is off: ui_preview.py.)"""
+    _, res = preview_run
+    over = {f"{c['via']} {c['change']}": c["heartbeat"] for c in _steps(res, PREVIEW_STEPS)
+            if c["heartbeat"]["gap_s"] > BLOCK_GOAL_S}
+    assert not over, (over, {"idle": res["idle_heartbeat"], "one 3D view drawing": res["redraw_heartbeat"]})
+
+
+@pytest.mark.xfail(strict=False, reason="measured in Debian's Blender 5.2.2 on llvmpipe, 2 cores: the first result "
+                                        "drawn 1.9-2.4 s after the toggle (the render worker's start 0.8 s, the "
+                                        "lens 0.4-0.5 s, the view-transform bake 0.41-0.57 s); a lens change "
+                                        "0.4-0.8 s through Python, 2.6-3.0 s through the panel (the new lens's "
+                                        "PSFs: its lens stage 2.2-2.6 s)")
+def test_the_first_result_and_a_lens_change_within_a_second(preview_run):
+    _, res = preview_run
+    slow = {f"{c['via']} {c['change']}": c["drawn_s"] for c in _steps(res, [("python", "toggle"), ("python", "lens"),
+                                                                          ("python", "lens again"), ("ui", "lens")])
+            if c["drawn_s"] is None or c["drawn_s"] > FIRST_GOAL_S}
+    assert not slow, slow
+
+
+def test_the_gpu_planar_z_equals_the_cycles_z_pass(preview_run):
+    """The planar Z drawn on the GPU (tests/blender/inside/gpu_capture.py)
+    against Cycles's Z pass of the same camera, on the test scene with a
+    subdivided sphere and a tilted plane: equal to float precision inside
+    surfaces, apart only on silhouette pixels. (Solid shading's colour is
+    nothing like the render: why the preview does not take its colour from
+    the GPU.)"""
+    _, res = preview_run
+    d = res["depth_check"]
+    assert d["background_mismatch"] == 0 and d["median_rel"] <= 1e-5 and d["interior_max_rel"] <= 1e-4, d
+    assert d["over_1pct_interior"] == 0 and d["over_1pct"] <= 0.02 * d["edge_pixels"], d
+    assert d["gpu_s"] < d["cycles_s"], d
+    if d["shading"] == "SOLID":
+        assert d["colour_mean_abs"] > 0.1, d
 
 
 def test_changes_through_the_ui_took_effect(preview_run):
@@ -105,10 +204,14 @@ def test_changes_through_the_ui_took_effect(preview_run):
 
 
 def test_preview_drawn_pixels_equal_the_engine_result(preview_run):
+    """The screen inside the camera frame shows the preview's texture, and
+    that texture was made of the engine's result shown (its display
+    encoding is tested with the view transform's own tests)."""
     work, res = preview_run
     for key in ("first_capture", "focus_capture"):
         mean, p99 = screen_error(work, res[key])
         assert mean <= SCREEN_MEAN_TOL and p99 <= SCREEN_P99_TOL, (key, mean, p99)
+        assert res[key]["texture_of_result"], key
 
 
 def test_preview_off_removes_its_handlers(preview_run):

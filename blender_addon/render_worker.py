@@ -1,0 +1,240 @@
+"""The viewport preview's Cycles renders in a second Blender, so that the
+user's Blender never waits for them.
+
+Blender's render API runs only on the main thread, and a Cycles render of
+the preview (480 x 270, a few samples) holds that thread for 0.3-2 s: the
+window stops responding. Instead, while the preview is on, a background
+Blender (``bpy.app.binary_path -b --factory-startup``, at a low CPU
+priority) runs this file as its script: for each request it opens the scene
+as the user's Blender wrote it a moment before (``bpy.data.libraries.write``
+of the scene and what it uses: a few ms on the main thread), renders it with
+``bpy_render.render_aif_depth`` (the same all-in-focus colour and planar Z
+as Apply Lens Bokeh's) and hands the pixels back as .npy files. A thread of
+the user's Blender reads its answers; the preview's timer collects them.
+
+What the worker sees is the scene as saved: the objects, their modifiers
+and materials, the world, packed images and image files (paths made
+absolute); an image painted but not saved, or a mesh in Edit Mode before
+:func:`write_scene` flushes it, is what a saved file would hold. No add-on
+runs in it (factory settings), nor Python drivers unless the user's Blender
+trusts the file's scripts.
+
+Protocol: one JSON object a line on stdin (a request) and, on stdout, lines
+that start with ``MARK`` (Blender prints its own lines there too): first
+``{"ready": true}``, then one answer per request, ``{"id", "rgb", "z",
+"load_s", "render_s", "save_s"}`` or ``{"id", "error"}``.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+MARK = "DCDI-RENDER-WORKER "
+NICE = 19                 # the worker's CPU priority: the UI's drawing (llvmpipe's threads too) goes first
+HERE = Path(__file__).resolve().parent
+
+
+# ------------------------------------------------------------------ the user's Blender's side
+class RenderWorker:
+    """A background Blender rendering the preview's requests, one at a time."""
+
+    def __init__(self):
+        self.proc: subprocess.Popen | None = None
+        self.dir: Path | None = None
+        self.ready = threading.Event()
+        self.pending: dict | None = None     # the request in flight (see :meth:`request`)
+        self.error = ""                      # why the worker stopped or could not start
+        self.started_at = 0.0
+        self.ready_s: float | None = None    # how long it took to start
+        self.count = 0
+        self._lock = threading.Lock()
+
+    def start(self) -> bool:
+        """Start the worker unless it runs (it takes a second or two to be
+        ready; requests sent before wait in its input). False when it cannot."""
+        import bpy
+        if self.alive():
+            return True
+        binary = getattr(bpy.app, "binary_path", "")
+        if bpy.app.background or not binary or not os.path.exists(binary):
+            self.error = "no Blender binary to run the preview's renders in"
+            return False
+        self.stop()
+        self.dir = Path(tempfile.mkdtemp(prefix="dcdi-preview-"))
+        import dcdi_core
+        env = dict(os.environ, DCDI_RENDER_WORKER_PATH=json.dumps([str(Path(dcdi_core.__file__).parents[1])]))
+        cmd = [binary, "-b", "--factory-startup", "--python-exit-code", "1"]
+        if getattr(bpy.app, "autoexec", False):
+            cmd.append("--enable-autoexec")          # the user's Blender runs the file's Python drivers: so does this
+        cmd += ["--python", str(Path(__file__).resolve())]
+        nice = shutil.which("nice") if os.name == "posix" else None
+        if nice:
+            cmd = [nice, "-n", str(NICE), *cmd]      # every thread of it, Cycles' too
+        try:
+            self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                         stderr=subprocess.DEVNULL, text=True, encoding="utf-8", errors="replace",
+                                         bufsize=1, env=env)
+        except OSError as e:
+            self.error = f"the preview's render worker did not start: {e}"
+            self.proc = None
+            return False
+        self.ready.clear()
+        self.error = ""
+        self.started_at = time.perf_counter()
+        threading.Thread(target=self._read, args=(self.proc,), name="dcdi-render-worker-reader",
+                         daemon=True).start()
+        return True
+
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def busy(self) -> bool:
+        return self.pending is not None and not self.pending["done"].is_set()
+
+    def request(self, context, scene, camera, h: int, w: int, samples: int, view_layer: str) -> dict:
+        """Write the scene and ask for its render; returns the request:
+        ``done`` (an Event), then ``rgb``, ``z`` or ``error``, ``seconds``
+        (request to answer) and ``write_s`` (the main thread's share)."""
+        if not self.alive():
+            raise RuntimeError(self.error or "the preview's render worker is not running")
+        if self.busy():
+            raise RuntimeError("the preview's render worker is busy")
+        self.count += 1
+        n = self.count
+        blend = self.dir / f"scene-{n % 2}.blend"
+        t0 = time.perf_counter()
+        write_scene(context, scene, blend)
+        req = {"id": n, "blend": str(blend), "scene": scene.name, "camera": camera.name, "h": h, "w": w,
+               "samples": samples, "view_layer": view_layer, "rgb": str(self.dir / f"rgb-{n % 2}.npy"),
+               "z": str(self.dir / f"z-{n % 2}.npy")}
+        pending = {"id": n, "done": threading.Event(), "t0": t0, "write_s": time.perf_counter() - t0}
+        with self._lock:
+            self.pending = pending
+        try:
+            self.proc.stdin.write(json.dumps(req) + "\n")
+            self.proc.stdin.flush()
+        except (OSError, ValueError) as e:
+            self.error = f"the preview's render worker stopped: {e}"
+            pending["error"] = self.error
+            pending["done"].set()
+        return pending
+
+    def _read(self, proc) -> None:
+        """The reader thread: the worker's answers, until it ends."""
+        import numpy as np
+        for line in proc.stdout:
+            if not line.startswith(MARK):
+                continue
+            try:
+                msg = json.loads(line[len(MARK):])
+            except ValueError:
+                continue
+            if msg.get("ready"):
+                self.ready_s = time.perf_counter() - self.started_at
+                self.ready.set()
+                continue
+            with self._lock:
+                pending = self.pending
+            if pending is None or msg.get("id") != pending["id"]:
+                continue
+            if "error" in msg:
+                pending["error"] = msg["error"]
+            else:
+                try:
+                    pending["rgb"], pending["z"] = np.load(msg["rgb"]), np.load(msg["z"])
+                except (OSError, ValueError) as e:
+                    pending["error"] = f"the render worker's pixels could not be read: {e}"
+            pending["seconds"] = time.perf_counter() - pending["t0"]
+            pending["steps"] = {k: msg[k] for k in ("load_s", "render_s", "save_s") if k in msg}
+            pending["done"].set()
+        code = proc.wait()
+        if proc is self.proc and not self.error:
+            self.error = f"the preview's render worker ended (exit {code})"
+        with self._lock:
+            pending = self.pending
+        if proc is self.proc and pending is not None and not pending["done"].is_set():
+            pending["error"] = self.error
+            pending["done"].set()
+
+    def stop(self) -> None:
+        """End the worker (it ends at the end of its input; killed if it
+        does not within a few seconds, by a thread) and remove its files."""
+        proc, folder, self.proc, self.dir, self.pending = self.proc, self.dir, None, None, None
+        self.ready.clear()
+        if proc is not None:
+            try:
+                proc.stdin.close()
+            except OSError:
+                pass
+            threading.Thread(target=_end, args=(proc,), name="dcdi-render-worker-end", daemon=True).start()
+        if folder is not None:
+            shutil.rmtree(folder, ignore_errors=True)
+
+
+def _end(proc) -> None:
+    try:
+        proc.wait(5)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
+def write_scene(context, scene, path: Path) -> None:
+    """Write ``scene`` and every data-block it uses to ``path`` (file
+    paths made absolute), Edit Mode's changes flushed first."""
+    import bpy
+    for ob in getattr(context, "objects_in_mode", ()) or ():
+        if ob.mode == "EDIT":
+            ob.update_from_editmode()
+    bpy.data.libraries.write(str(path), {scene}, path_remap="ABSOLUTE", compress=False)
+
+
+# ------------------------------------------------------------------ the worker's side
+def _reply(msg: dict) -> None:
+    sys.stdout.write(MARK + json.dumps(msg) + "\n")
+    sys.stdout.flush()
+
+
+def serve() -> None:
+    """The worker's loop: a request a line until its input ends."""
+    import importlib.util
+
+    import bpy
+    import numpy as np
+    for p in json.loads(os.environ.get("DCDI_RENDER_WORKER_PATH", "[]")):
+        if p not in sys.path:
+            sys.path.insert(0, p)
+    spec = importlib.util.spec_from_file_location("dcdi_render_worker_bpy_render", HERE / "bpy_render.py")
+    bpy_render = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bpy_render)
+    _reply({"ready": True})
+    for line in sys.stdin:
+        try:
+            req = json.loads(line)
+        except ValueError:
+            continue
+        t0 = time.perf_counter()
+        try:
+            bpy.ops.wm.open_mainfile(filepath=req["blend"], load_ui=False)
+            scene = bpy.data.scenes[req["scene"]]
+            t1 = time.perf_counter()
+            rgb, z = bpy_render.render_aif_depth(scene, bpy.data.objects[req["camera"]], req["h"], req["w"],
+                                                 req["samples"], req["view_layer"])
+            t2 = time.perf_counter()
+            np.save(req["rgb"], rgb)
+            np.save(req["z"], z)
+            _reply({"id": req["id"], "rgb": req["rgb"], "z": req["z"], "load_s": t1 - t0, "render_s": t2 - t1,
+                    "save_s": time.perf_counter() - t2})
+        except Exception as e:          # noqa: BLE001 - answered: the preview renders itself instead
+            _reply({"id": req.get("id"), "error": f"{type(e).__name__}: {e}"})
+
+
+if __name__ == "__main__":
+    serve()
