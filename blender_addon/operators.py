@@ -29,7 +29,7 @@ from bpy.props import BoolProperty, StringProperty
 from dcdi_core import errors as dcdi_errors
 from dcdi_core.render import camera as dcdi_camera
 
-from . import bpy_render, logic, reading
+from . import bpy_render, logic, reading, viewport
 from .session import SESSION
 
 AIF_IMAGE = "Lens Bokeh AiF"
@@ -43,21 +43,30 @@ def _user_errors():
 
 def render_inputs(context, scene_reading: "reading.SceneReading"):
     """The active camera rendered all-in-focus at the preview size: (rgb,
-    depth in metres from the lens's first vertex, seconds)."""
+    depth in metres from the lens's first vertex, seconds). The viewport
+    preview's render where it is the scene's now (``viewport.kept_render``):
+    no render then, nothing on the main thread."""
     r = scene_reading
     h, w = r.preview_shape()
     t0 = time.perf_counter()
-    rgb, z = bpy_render.render_aif_depth(context.scene, r.camera, h, w, r.samples, context.view_layer.name)
+    kept = viewport.kept_render(context)
+    rgb, z = kept if kept is not None else bpy_render.render_aif_depth(context.scene, r.camera, h, w, r.samples,
+                                                                       context.view_layer.name)
     depth = dcdi_camera.depth_from_planar_z(z, r.entrance_pupil_mm, r.metres_per_unit)
-    return rgb, depth, time.perf_counter() - t0
+    return rgb, depth, time.perf_counter() - t0, kept is not None
+
+
+def _render_words(job) -> str:
+    """How a job's sharp render came: 'render 1.2 s', or the preview's kept."""
+    return "the preview's render" if job.get("render_kept") else f"render {job['render_s']:.1f} s"
 
 
 def prepare(context):
     """Check the settings, render AiF + depth; returns the bokeh job's inputs."""
     r = reading.read_scene(context.scene)
-    rgb, depth, seconds = render_inputs(context, r)
+    rgb, depth, seconds, kept = render_inputs(context, r)
     return {"rgb": rgb, "depth": depth, "lens": r.lens, "focus_m": r.focus_m, "keep": r.keep,
-            "refocus": r.refocus, "render_s": seconds}
+            "refocus": r.refocus, "render_s": seconds, "render_kept": kept}
 
 
 def bokeh_of(job, **kw):
@@ -76,7 +85,7 @@ def finish(op, context, job, out, info, seconds: float, store_inputs: bool):
     context.window_manager.dcdi_lens_bokeh_status.psf_source = info["psf_source_message"]
     note = f"; {info['focus_note']}" if info.get("focus_note") else ""
     op.report({"INFO"}, f"Lens Bokeh: {w} x {h} px, kept sharp {job['keep'][0]:.2f}-{job['keep'][1]:.2f} m "
-                        f"({info['kept_pixels']} px), render {job['render_s']:.1f} s, bokeh {seconds:.1f} s; "
+                        f"({info['kept_pixels']} px), {_render_words(job)}, bokeh {seconds:.1f} s; "
                         f"{info['psf_source_message']}{note}")
 
 
@@ -246,9 +255,9 @@ CORRECTED_IMAGE = "Lens Corrected"
 def prepare_simulation(context):
     """Check the settings and render AiF + depth for Simulate."""
     r = reading.read_scene(context.scene, focus=False)
-    rgb, depth, seconds = render_inputs(context, r)
+    rgb, depth, seconds, kept = render_inputs(context, r)
     return {"rgb": rgb, "depth": depth, "lens": r.lens, "noise": bool(context.scene.dcdi_lens_bokeh.sensor_noise),
-            "render_s": seconds}
+            "render_s": seconds, "render_kept": kept}
 
 
 class DCDI_OT_simulate_lens(_JobOperator, bpy.types.Operator):
@@ -277,8 +286,8 @@ class DCDI_OT_simulate_lens(_JobOperator, bpy.types.Operator):
         st.correction = ""                   # the last correction was of another simulation
         h, w = out.shape[:2]
         noise = ", sensor noise" if job["noise"] else ""
-        self.report({"INFO"}, f"Lens Simulation: {job['lens'].id}, {w} x {h} px{noise}, render "
-                              f"{job['render_s']:.1f} s, simulation {seconds:.1f} s; {info['psf_source_message']}")
+        self.report({"INFO"}, f"Lens Simulation: {job['lens'].id}, {w} x {h} px{noise}, {_render_words(job)}, "
+                              f"simulation {seconds:.1f} s; {info['psf_source_message']}")
 
 
 def correction_blocker(context) -> str | None:

@@ -301,6 +301,21 @@ def preview() -> Preview:
     return SESSION.preview
 
 
+def kept_render(context):
+    """The preview's last sharp render (rgb, planar Z) where it is what a
+    render of the scene now would give (the preview on, nothing changed
+    since: the same camera, size, samples and scene), else None: Apply Lens
+    Bokeh then runs the lens stage alone, rendering nothing."""
+    p = SESSION.preview
+    if p is None or not p.enabled or p.sharp is None or p.scene_changed or p.rendering is not None:
+        return None
+    try:
+        key = inputs(context)["sharp_key"]
+    except (logic.BokehInputError, dcdi_errors.DcdiError, ValueError, OSError):
+        return None
+    return (p.sharp["rgb"], p.sharp["z"]) if p.sharp["key"] == key else None
+
+
 def inputs(context) -> dict:
     """What a refresh works from: the camera, the lens, the preview's size,
     the focus and kept range (m), and the keys that say when the sharp

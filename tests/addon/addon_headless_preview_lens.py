@@ -63,5 +63,18 @@ for name, lens in (("mos", "mos-s1"), ("back", "6p")):
     settle()
     res[name] = snap(name)
 
+# Apply Lens Bokeh with the preview on and up to date: the preview's render serves it (no render)
+before = len(calls)
+bpy.ops.dcdi.apply_lens_bokeh()
+res["apply_kept"] = {"render_calls": len(calls) - before, "message": st.message}
+np.save(OUT / "apply.npy", np.array(bpy.data.images["Lens Bokeh"].pixels[:], np.float32))
+# ... and after an object moved, its own render again
+cube.location.x += 0.1
+bpy.context.view_layer.update()
+viewport.on_depsgraph_update(bpy.context.scene, bpy.context.evaluated_depsgraph_get())
+P.scene_changed = True          # what the depsgraph handler marks (background mode: no handler call order)
+before = len(calls)
+bpy.ops.dcdi.apply_lens_bokeh()
+res["apply_moved"] = {"render_calls": len(calls) - before}
 st.viewport_preview = False
 (OUT / "result.json").write_text(json.dumps(res, indent=1, default=str))

@@ -100,6 +100,17 @@ def test_a_lens_change_reruns_the_lens_stage_on_the_same_render(lens_changes):
                                   preview=True)
         assert np.abs(np.load(d / f"{name}.npy") - want).max() <= 1e-6 * max(1.0, float(want.max()))
     assert r["mos"]["refreshes"] == 2 and r["back"]["refreshes"] == 3
+
     pupils = [logic.lens_readout(str(ROOT / "lenses" / f"{x}.toml"))["entrance_pupil_mm"] for x in ("6p", "mos-s1")]
     assert abs(pupils[0] - pupils[1]) > 0.1, pupils                  # the lenses' pupils differ
     assert not np.array_equal(np.load(d / "mos_depth.npy"), np.load(d / "first_depth.npy"))
+
+
+def test_apply_uses_the_preview_render_while_it_is_the_scene_s(lens_changes):
+    """Apply Lens Bokeh with the preview on and nothing changed since its
+    render runs the lens stage on that render (no render on the main
+    thread); after an object moved it renders its own."""
+    r, d = lens_changes, lens_changes["dir"]
+    assert r["apply_kept"]["render_calls"] == 0, r["apply_kept"]
+    assert r["apply_moved"]["render_calls"] == 1, r["apply_moved"]
+    assert np.isfinite(np.load(d / "apply.npy")).all()
