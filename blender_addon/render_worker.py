@@ -98,10 +98,14 @@ class RenderWorker:
     def busy(self) -> bool:
         return self.pending is not None and not self.pending["done"].is_set()
 
-    def request(self, context, scene, camera, h: int, w: int, samples: int, view_layer: str) -> dict:
+    def request(self, context, scene, camera, h: int, w: int, samples: int, view_layer: str,
+                bake_key: tuple | None = None) -> dict:
         """Write the scene and ask for its render; returns the request:
         ``done`` (an Event), then ``rgb``, ``z`` or ``error``, ``seconds``
-        (request to answer) and ``write_s`` (the main thread's share)."""
+        (request to answer) and ``write_s`` (the main thread's share).
+        ``bake_key``: also bake the scene's view-transform table there
+        (``view_transform.bake``, 0.3-0.6 s that the main thread is spared),
+        returned as ``table`` under that key (None where it failed)."""
         if not self.alive():
             raise RuntimeError(self.error or "the preview's render worker is not running")
         if self.busy():
@@ -114,7 +118,10 @@ class RenderWorker:
         req = {"id": n, "blend": str(blend), "scene": scene.name, "camera": camera.name, "h": h, "w": w,
                "samples": samples, "view_layer": view_layer, "rgb": str(self.dir / f"rgb-{n % 2}.npy"),
                "z": str(self.dir / f"z-{n % 2}.npy")}
-        pending = {"id": n, "done": threading.Event(), "t0": t0, "write_s": time.perf_counter() - t0}
+        if bake_key is not None:
+            req["table"] = str(self.dir / f"table-{n % 2}.npz")
+        pending = {"id": n, "done": threading.Event(), "t0": t0, "write_s": time.perf_counter() - t0,
+                   "bake_key": bake_key}
         with self._lock:
             self.pending = pending
         try:
@@ -151,6 +158,7 @@ class RenderWorker:
                     pending["rgb"], pending["z"] = np.load(msg["rgb"]), np.load(msg["z"])
                 except (OSError, ValueError) as e:
                     pending["error"] = f"the render worker's pixels could not be read: {e}"
+                pending["table"] = _read_table(msg, pending.get("bake_key"))
             pending["seconds"] = time.perf_counter() - pending["t0"]
             pending["steps"] = {k: msg[k] for k in ("load_s", "render_s", "save_s") if k in msg}
             pending["done"].set()
@@ -178,6 +186,25 @@ class RenderWorker:
             shutil.rmtree(folder, ignore_errors=True)
 
 
+def _read_table(msg: dict, key):
+    """The view-transform table the worker baked (``view_transform.Table``
+    under ``key``), or None (none asked, or it failed: the main thread bakes)."""
+    if key is None or "table" not in msg:
+        return None
+    import numpy as np
+    from .view_transform import Table
+    try:
+        with np.load(msg["table"]) as f:
+            values, levels = f["values"].astype(np.float32), f["levels"].astype(np.float64)
+        n = len(levels)
+        if values.shape != (n, n, n, 3) or not np.isfinite(values).all():
+            return None
+        return Table(key, values, levels, float(levels[1]), float(levels[-1]), int(msg["steps_per_stop"]),
+                     float(msg["bake_s"]))
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
 def _end(proc) -> None:
     try:
         proc.wait(5)
@@ -197,6 +224,15 @@ def write_scene(context, scene, path: Path) -> None:
 
 
 # ------------------------------------------------------------------ the worker's side
+def _view_transform():
+    """The add-on's ``view_transform`` module, imported in the worker the first
+    time a table is asked for (its package: this file's folder)."""
+    import importlib
+    if str(HERE.parent) not in sys.path:
+        sys.path.insert(0, str(HERE.parent))
+    return importlib.import_module(f"{HERE.name}.view_transform")
+
+
 def _reply(msg: dict) -> None:
     sys.stdout.write(MARK + json.dumps(msg) + "\n")
     sys.stdout.flush()
@@ -230,8 +266,17 @@ def serve() -> None:
             t2 = time.perf_counter()
             np.save(req["rgb"], rgb)
             np.save(req["z"], z)
-            _reply({"id": req["id"], "rgb": req["rgb"], "z": req["z"], "load_s": t1 - t0, "render_s": t2 - t1,
-                    "save_s": time.perf_counter() - t2})
+            answer = {"id": req["id"], "rgb": req["rgb"], "z": req["z"], "load_s": t1 - t0, "render_s": t2 - t1,
+                      "save_s": time.perf_counter() - t2}
+            if req.get("table"):
+                try:
+                    t = _view_transform().bake(scene)
+                    with open(req["table"], "wb") as f:
+                        np.savez(f, values=t.values, levels=t.levels)
+                    answer.update(table=req["table"], steps_per_stop=t.steps_per_stop, bake_s=t.bake_s)
+                except Exception:        # noqa: BLE001 - no table: the user's Blender bakes it
+                    pass
+            _reply(answer)
         except Exception as e:          # noqa: BLE001 - answered: the preview renders itself instead
             _reply({"id": req.get("id"), "error": f"{type(e).__name__}: {e}"})
 

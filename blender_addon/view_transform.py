@@ -251,6 +251,21 @@ def to_display(image: np.ndarray, scene=None) -> np.ndarray:
     return apply(table(scene if scene is not None else bpy.context.scene), image)
 
 
+def has_table(scene) -> bool:
+    """Whether the table of ``scene``'s view settings now is kept (no bake needed)."""
+    return settings_key(scene) in SESSION.view_tables
+
+
+def keep(t: Table) -> None:
+    """Keep a table baked elsewhere (the preview's render worker, a second
+    Blender that opened the same scene) under its key, as :func:`table` would."""
+    tables = SESSION.view_tables
+    tables.pop(t.key, None)
+    while len(tables) >= KEPT_TABLES:
+        tables.pop(next(iter(tables)))
+    tables[t.key] = t
+
+
 def forget() -> None:
     """Drop the kept tables (the tests; the session's end drops them too)."""
     SESSION.view_tables.clear()

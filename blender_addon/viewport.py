@@ -193,8 +193,10 @@ class Preview:
         worker = self.worker_renders
         if bpy.app.background or self.worker_failed or not (worker.alive() or worker.start()):
             return False
+        from . import view_transform
         try:
-            pending = worker.request(context, scene, cam, h, w, samples, context.view_layer.name)
+            bake = None if view_transform.has_table(scene) else view_transform.settings_key(scene)
+            pending = worker.request(context, scene, cam, h, w, samples, context.view_layer.name, bake_key=bake)
         except (RuntimeError, OSError) as e:
             print(f"Lens Bokeh preview: {e}; rendering in this Blender")
             return False
@@ -216,6 +218,9 @@ class Preview:
             if self.changed_at is None:
                 self.changed_at = time.perf_counter() - DEBOUNCE_S
             return None
+        if r.get("table") is not None:              # the display table baked there: none to bake here
+            from . import view_transform
+            view_transform.keep(r["table"])
         self._keep_sharp(r["key"], r["rgb"], r["z"], r["seconds"], "worker", cold=r["cold"],
                          main_s=r["write_s"], steps=dict(r.get("steps", {}), write_s=r["write_s"],
                                                          started_s=self.worker_renders.ready_s))
