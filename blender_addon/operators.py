@@ -160,21 +160,36 @@ class _JobOperator:
         st.message, st.progress = self.first_message, 0.0
         # the status is this job's from now on: its name and the settings it runs with (the last job's is stale)
         st.job, st.inputs, st.psf_source = self.job_label, reading.inputs_key(context.scene), ""
+        # the click returns at once: the status ("rendering all-in-focus...") and the released button are
+        # drawn before the first timer event prepares the job (its render, where one is needed, holds the
+        # main thread: with Preview in Viewport on and current, none is; see render_inputs)
+        self._worker = None
+        st.running = True
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.1, window=context.window)
+        wm.progress_begin(0, 100)
+        wm.modal_handler_add(self)
+        if context.workspace is not None:
+            context.workspace.status_text_set(f"{self.job_label}: {self.first_message} (Esc cancels)")
+        _redraw(context)
+        return {"RUNNING_MODAL"}
+
+    def _start(self, context):
+        """The first timer event: check and render (``prepare``), then the
+        heavy part on its thread. Returns None, or the modal's answer where
+        the job could not start."""
+        st = context.window_manager.dcdi_lens_bokeh_status
         try:
             job = self.prepare(context)
         except _user_errors() as e:
+            self._end(context)
             st.message = ""
             self.report({"ERROR"}, logic.message(e))
             return {"CANCELLED"}
         self._worker = _Worker(job, self.compute)
         SESSION.jobs.add(self._worker)
         self._worker.thread.start()
-        st.running = True
-        wm = context.window_manager
-        self._timer = wm.event_timer_add(0.1, window=context.window)
-        wm.progress_begin(0, 100)
-        wm.modal_handler_add(self)
-        return {"RUNNING_MODAL"}
+        return None
 
     def _end(self, context):
         self._ended = True
@@ -195,13 +210,16 @@ class _JobOperator:
         w = self._worker
         st = context.window_manager.dcdi_lens_bokeh_status
         if event.type == "ESC":
-            w.cancel = True
+            if w is not None:
+                w.cancel = True
             self._end(context)
             st.message, st.progress = "cancelled", 0.0
             self.report({"WARNING"}, f"{self.job_label} cancelled")
             return {"CANCELLED"}
         if event.type != "TIMER":
             return {"PASS_THROUGH"}
+        if w is None:                        # the first timer event: the click's status is drawn by now
+            return self._start(context) or {"RUNNING_MODAL"}
         if w.thread.is_alive():
             pct = 100.0 * w.fraction
             st.progress = pct

@@ -145,15 +145,14 @@ def test_the_result_texture_is_made_briefly(preview_run):
     assert not slow, slow
 
 
-@pytest.mark.xfail(strict=False, reason="measured in Debian's Blender 5.2.2 on llvmpipe, 2 cores, Viewport "
-                                        "Anti-Aliasing off: every step 0.15-0.25 s, the toggle 0.24 s, a lens "
-                                        "change through the panel up to 0.25-0.29 s (one drawing of the 3D view "
-                                        "alone: 0.14-0.18 s)")
 def test_the_main_thread_never_stops_during_the_preview(preview_run):
     """The heartbeat (a 20 ms timer on the main thread) never waited longer
     than the goal from a change to its result drawn. (The Solid view's
     anti-aliasing, which draws the view 8 more times after each change of
-    the scene, is off: ui_preview.py.)"""
+    the scene, is off: ui_preview.py.) Measured in Debian's Blender 5.2.2 on
+    llvmpipe, two cores: 0.15-0.22 s at these steps, the toggle 0.24 s; one
+    drawing of the 3D view alone takes 0.14-0.18 s there, so the margin is
+    small: a step over the goal says by how much."""
     _, res = preview_run
     over = {f"{c['via']} {c['change']}": c["heartbeat"] for c in _steps(res, PREVIEW_STEPS)
             if c["heartbeat"]["gap_s"] > BLOCK_GOAL_S}
@@ -236,6 +235,17 @@ def test_buttons_run_as_clicks_with_progress(operators_run):
     assert res["bokeh_image"] == [240, 180] and res["bokeh_finite"]
     assert res["corrections"]["AUTO"].startswith("Deconvolution") and res["corrections"]["DECONVOLUTION"]
     assert res["new_images"] == ["Lens Bokeh", "Lens Corrected", "Lens Simulation"]
+
+
+def test_a_click_returns_at_once_and_says_what_runs(operators_run):
+    """A button's click returns before the job's render and checks: the
+    status already says what runs (and the button is released), the job
+    prepares at the modal timer's first event (it held the main thread for
+    the render, 0.4-1.5 s, with no word said)."""
+    _, res = operators_run
+    for j in res["jobs"]:
+        assert j["click_s"] <= BLOCK_GOAL_S, j
+        assert j["after_click"]["running"] and j["after_click"]["message"].endswith("..."), j
 
 
 def test_esc_cancels_a_running_bokeh(operators_run):

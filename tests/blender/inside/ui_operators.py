@@ -53,11 +53,14 @@ def run_job(name, op_name):
     """A sub-generator: click, follow the progress until the job ends."""
     t = time.perf_counter()
     started = click(op_name)
+    click_s = time.perf_counter() - t                # the click's own call: the job is prepared later
+    after_click = {"message": status.message, "running": status.running}
     seen = []
     while status.running and time.perf_counter() - t < 300:
         seen.append(round(status.progress, 1))
         yield 0.05
-    rec = {"job": name, "started": started, "seconds": round(time.perf_counter() - t, 3), "message": status.message,
+    rec = {"job": name, "started": started, "click_s": round(click_s, 3), "after_click": after_click,
+           "seconds": round(time.perf_counter() - t, 3), "message": status.message,
            "progress_seen": sorted(set(seen)), "running_after": status.running,
            "workers_left": len(SESSION.jobs)}
     RESULT.setdefault("jobs", []).append(rec)
