@@ -56,7 +56,7 @@ def build(bpy, samples: int):
 # (key, what, goal in seconds): the waits set for the add-on (Debian's Blender 5.2, 2 cores, quiet)
 GOALS = (("preview_first", "Preview in Viewport, first result after the toggle (480 x 270)", 1.0),
          ("preview_focus_new", "preview after a focus change to a new distance (debounce included)", 0.3),
-         ("preview_lens_change", "preview after a lens change, no new render (debounce included)", 1.0),
+         ("preview_lens_change", "preview after a lens change, no new render (a switch: no debounce)", 1.0),
          ("apply_worst", "Apply Lens Bokeh at 480 x 270, cold, the slowest shipped lens", 2.0),
          ("f12_lens", "F12 at 1920 x 1080, the lens stage", 3.0),
          ("animation_keyed_lens", "keyframed-focus animation at 1920 x 1080, lens stage a frame (mean)", 3.0))
@@ -140,7 +140,7 @@ def goals_table(out: dict, debounce_s: float) -> list[str]:
     got = {
         "preview_first": out["preview_first"]["wall_s"],
         "preview_focus_new": debounce_s + max(r["wall_s"] for r in out["preview_focus_new"]),
-        "preview_lens_change": debounce_s + max(r["wall_s"] for r in out["preview_lens_change"]),
+        "preview_lens_change": max(r["wall_s"] for r in out["preview_lens_change"]),
         "apply_worst": max(r["wall_s"] for r in out["apply"].values()),
         "f12_lens": out["f12"]["lens_s"],
         "animation_keyed_lens": sum(out["animation_keyed"]["lens_s"]) / len(out["animation_keyed"]["lens_s"]),
