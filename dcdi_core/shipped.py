@@ -74,12 +74,14 @@ REFINEMENT = Network("dfd-refine", "learned refinement of the depth from blur", 
                      beats_constant_depth=("mos-s1", "mos-s2"))
 
 
-def basis_file(lens_id: str) -> Path | None:
-    """The shipped PSF basis of ``lens_id`` (psf/data/basis/<lens>.npz), or None;
+def basis_file(lens_id: str, focus_stack: bool = False) -> Path | None:
+    """The shipped PSF basis of ``lens_id`` (psf/data/basis/<lens>.npz; with
+    ``focus_stack``, its focus stack psf/data/basis/focus/<lens>.npz), or None;
     ``lens_id`` must be a name (``names.NAME_RULE``): it becomes the file's name."""
     from .errors import InputRangeError
     from .names import check_name
-    p = BASIS_DIR / f"{check_name(lens_id, 'lens id', error=InputRangeError)}.npz"
+    name = f"{check_name(lens_id, 'lens id', error=InputRangeError)}.npz"
+    p = (BASIS_DIR / "focus" if focus_stack else BASIS_DIR) / name
     return p if p.is_file() else None
 
 

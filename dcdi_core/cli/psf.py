@@ -158,13 +158,17 @@ def cmd_psflib_compress(args) -> int:
 
     from ..optics.lens import load_lens
     from ..progress import psf_progress
-    from ..psf.basis import SHIPPED_RECIPES, BasisRecipe, build_store
+    from ..psf.basis import SHIPPED_FOCUS_RECIPES, SHIPPED_RECIPES, BasisRecipe, build_store
     lens = load_lens(args.lens)
     check_output(args.output, "-o", suffix=".npz")
     check_cache(args)
-    recipe = SHIPPED_RECIPES.get(lens.id, BasisRecipe())
+    if args.focus_slices is not None:
+        recipe = SHIPPED_FOCUS_RECIPES.get(lens.id, replace(SHIPPED_RECIPES.get(lens.id, BasisRecipe()), near_rays=None))
+    else:
+        recipe = SHIPPED_RECIPES.get(lens.id, BasisRecipe())
     over = {name: getattr(args, name) for name in ("rank", "rays", "n_fields", "n_depths", "pitch_factor",
-                                                    "kernel_size", "near_rays") if getattr(args, name) is not None}
+                                                    "kernel_size", "near_rays", "focus_slices")
+            if getattr(args, name) is not None}
     recipe = replace(recipe, **over)
     t = time.perf_counter()
     store = build_store(lens, recipe, cache_dir=False if args.no_cache else None,
@@ -174,7 +178,9 @@ def cmd_psflib_compress(args) -> int:
     print(f"wrote {args.output}: {lens.id}, rank {store.rank} of {store.kernel_size} x {store.kernel_size} px "
           f"kernels at {store.pixel_pitch_mm * 1000:.4g} um, {recipe.n_depths + 1} depth bins x {recipe.n_fields} "
           f"fields, {recipe.rays} rays" + (f" ({recipe.near_rays} to {recipe.near_until_m:g} m)" if recipe.near_rays
-                                           else "") + f"; {size_of(args.output) / 1e6:.2f} MB; "
+                                           else "")
+          + (f", {recipe.focus_slices} focus distances (infinity to {recipe.focus_near_m:g} m)"
+             if recipe.focus_slices else "") + f"; {size_of(args.output) / 1e6:.2f} MB; "
           f"{time.perf_counter() - t:.1f} s")
     return 0
 
@@ -284,6 +290,10 @@ def add_commands(sub) -> None:
     c.add_argument("--near-rays", type=positive_int, default=None, metavar="N",
                    help="pupil grid N x N for the depth bins at or nearer than 1 m (where the blur is largest "
                         "and a kernel's ray noise too)")
+    c.add_argument("--focus-slices", type=positive_int, default=None, metavar="N",
+                   help="a focus stack: the library traced at N focus distances, uniform in 1/focus from "
+                        "infinity to 0.7 m, one basis for all (serves the lens refocused anywhere in that range; "
+                        "defaults: the lens's shipped focus-stack recipe)")
     c.add_argument("--no-cache", action="store_true", help="do not read or write the PSF cache")
     c.set_defaults(func=cmd_psflib_compress)
     s_ = psub.add_parser("show", help="a PNG grid of PSFs across field and depth")

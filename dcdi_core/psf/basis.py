@@ -51,6 +51,7 @@ from .pitch import area_resample, check_downsampling, resampled_size, same_pitch
 
 FORMAT = "dcdi-psf-basis"
 FORMAT_VERSION = 1
+MAX_FOCUS_SLICES = 64                   # focus distances of a focus stack
 STORE_DIR = BASIS_DIR                   # the shipped stores (``shipped.BASIS_DIR``)
 
 
@@ -75,6 +76,15 @@ class BasisRecipe:
     ripple_floor: float = 3e-4
     near_rays: int | None = None        # more rays for the bins at or nearer than near_until_m
     near_until_m: float = 1.0
+    focus_slices: int | None = None     # a focus stack: this many focus distances, uniform in 1/focus
+    focus_near_m: float = 0.7           # ... from infinity to this distance
+
+    def focus_diopters(self) -> np.ndarray | None:
+        """The stack's focus distances as diopters (1/m), increasing from 0
+        (infinity) to 1 / ``focus_near_m``; None for a store at the prescribed focus."""
+        if self.focus_slices is None:
+            return None
+        return np.linspace(0.0, 1.0 / self.focus_near_m, self.focus_slices)
 
     FLAGS = {"rays": "--rays", "n_fields": "--fields", "n_depths": "--depths", "pitch_factor": "--pitch-factor",
              "rank": "--rank", "kernel_size": "--kernel"}
@@ -93,6 +103,10 @@ class BasisRecipe:
             raise InputRangeError("near_until_m", self.near_until_m, f"[{self.near_m}, {self.far_m}) m")
         if not (0.0 <= self.ripple_floor < 0.1):
             raise InputRangeError("ripple_floor", self.ripple_floor, "[0, 0.1) of a kernel's peak")
+        if self.focus_slices is not None and not 2 <= self.focus_slices <= MAX_FOCUS_SLICES:
+            raise InputRangeError("focus_slices (--focus-slices)", self.focus_slices, f"[2, {MAX_FOCUS_SLICES}]")
+        if not (0.0 < self.focus_near_m < math.inf):
+            raise InputRangeError("focus_near_m", self.focus_near_m, "> 0 and finite metres")
 
     @property
     def grid(self) -> LibraryGrid:
@@ -127,9 +141,22 @@ SHIPPED_RECIPES = {
 }
 
 
-def shipped_store(lens_id: str) -> Path | None:
-    """The shipped store file of a lens, or None (``shipped.basis_file``)."""
-    return basis_file(lens_id)
+# The shipped focus stacks (`dcdi psflib compress LENS --focus-slices 6`): the
+# lenses the OLF did not learn across focus (the singlets refocus by moving
+# the sensor). Six focus distances uniform in 1/focus from infinity to 0.7 m;
+# between two, `BasisStore.at_focus` matches each depth's defocus exactly and
+# interpolates only what else changes with the focus, so that few slices do
+# (`python -m lab focus-stack`: its error against tracing and its time, docs/psf.md).
+SHIPPED_FOCUS_RECIPES = {
+    "mos-s1": BasisRecipe(kernel_size=41, n_fields=32, rank=48, rays=128, focus_slices=6),
+    "mos-s2": BasisRecipe(kernel_size=47, n_fields=32, rank=48, rays=128, focus_slices=6),
+}
+
+
+def shipped_store(lens_id: str, focus_stack: bool = False) -> Path | None:
+    """The shipped store file of a lens (its focus stack with ``focus_stack``),
+    or None (``shipped.basis_file``)."""
+    return basis_file(lens_id, focus_stack)
 
 
 # ----------------------------------------------------------------- building
@@ -231,6 +258,60 @@ class BasisStore:
     def rank(self) -> int:
         return int(self.basis.shape[1])
 
+    @property
+    def focus_diopters(self) -> np.ndarray | None:
+        """A focus stack's focus distances (1/m, increasing; 0 is infinity), None for one focus."""
+        fd = self.meta.get("focus_diopters")
+        return None if fd is None else np.asarray(fd, float)
+
+    def focus_range_m(self) -> tuple[float, float]:
+        """A focus stack's (nearest, farthest) focus distance, metres (inf where it reaches infinity)."""
+        fd = self.focus_diopters
+        return 1.0 / fd[-1], (math.inf if fd[0] == 0 else 1.0 / fd[0])
+
+    def covers_focus(self, focus_m) -> bool:
+        fd = self.focus_diopters
+        d = _diopters(focus_m)
+        return fd is not None and d is not None and fd[0] - 1e-12 <= d <= fd[-1] + 1e-12
+
+    def at_focus(self, focus_m, *, match_defocus: bool = True) -> "BasisStore":
+        """The one-focus store a focus stack gives at ``focus_m`` (metres, or
+        inf), within its range.
+
+        Between the stored focus distances a and b about it (diopters f_a <=
+        f <= f_b, t = (f - f_a) / (f_b - f_a)), a depth bin at g diopters
+        gets (1 - t) C_a(g - f + f_a) + t C_b(g - f + f_b), C_s(x) being
+        focus s's coefficients linear in diopters along its depth bins: the
+        bin's thin-lens defocus (g - f) is each term's own, so that only what
+        else changes with the focus (the magnification, the aberrations) is
+        interpolated. Where a shifted depth falls outside the depth bins
+        (beyond infinity, nearer than the nearest bin), the other focus
+        serves alone. Coefficients are linear in the kernels, so this is
+        interpolating kernels. ``match_defocus`` False: each bin's kernels
+        at the two focus distances interpolated as they are (what the depth
+        shift improves on: ``python -m lab focus-stack``)."""
+        fd = self.focus_diopters
+        if fd is None:
+            raise InputRangeError("focus stack", self.path, "a focus-stack PSF basis (this one holds one focus)")
+        if not self.covers_focus(focus_m):
+            near, far = self.focus_range_m()
+            raise InputRangeError("focus_m", focus_m, f"{near:.3g} m to {far:.3g} m (the focus stack {self.path})")
+        f = min(max(_diopters(focus_m), fd[0]), fd[-1])
+        a = int(np.clip(np.searchsorted(fd, f, side="right") - 1, 0, len(fd) - 2))
+        t = (f - fd[a]) / (fd[a + 1] - fd[a])
+        g = self.grid.diopters
+        xa, xb = (g - f + fd[a], g - f + fd[a + 1]) if match_defocus else (g, g)
+        lo, hi = g.min() - 1e-9, g.max() + 1e-9
+        ina, inb = (xa >= lo) & (xa <= hi), (xb >= lo) & (xb <= hi)
+        wb = np.where(ina & inb, t, np.where(ina, 0.0, 1.0))
+        coeffs = ((1.0 - wb)[:, None, None, None] * _along_depth(self.coeffs[a], g, xa)
+                  + wb[:, None, None, None] * _along_depth(self.coeffs[a + 1], g, xb)).astype(np.float32)
+        meta = {key: v for key, v in self.meta.items() if key != "focus_diopters"}
+        meta["psf_settings"] = dict(meta["psf_settings"], focus_distance_m=float(focus_m))
+        meta["checksum"] = f"{self.meta.get('checksum')}@{float(focus_m):.9g}"
+        meta["focus_from_stack"] = {"focus_diopters": [float(fd[a]), float(fd[a + 1])], "t": float(t)}
+        return BasisStore(meta, self.basis, coeffs, ~np.any(coeffs != 0, axis=(-1, -2)), self.path)
+
     def kernels_at_bins(self, bins, dtype=np.float32) -> np.ndarray:
         """Kernels (len(bins), F, 3, k, k) of whole depth bins (every field)."""
         b, k = self._cast(dtype)
@@ -304,6 +385,26 @@ class BasisStore:
         return cls(meta, basis, coeffs, arrays["zero_energy"], str(path))
 
 
+def _diopters(focus_m) -> float | None:
+    """1 / ``focus_m`` (0 for infinity); None for anything not a positive distance."""
+    try:
+        f = float(focus_m)
+    except (TypeError, ValueError):
+        return None
+    return None if not f > 0 else (0.0 if math.isinf(f) else 1.0 / f)
+
+
+def _along_depth(coeffs: np.ndarray, g: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``coeffs`` (D+1, ...) given at depth bins of diopters ``g`` (decreasing)
+    at diopters ``x`` (D+1,), linear in diopters, clamped to the bins' range."""
+    gs = g[::-1]                                    # increasing
+    xs = np.clip(x, gs[0], gs[-1])
+    i = np.clip(np.searchsorted(gs, xs, side="right") - 1, 0, len(gs) - 2)
+    w = ((xs - gs[i]) / (gs[i + 1] - gs[i])).reshape((-1,) + (1,) * (coeffs.ndim - 1))
+    c = coeffs[::-1]
+    return (1.0 - w) * c[i] + w * c[i + 1]
+
+
 # ----------------------------------------------------------------- loading
 # the limits of a store's metadata, checked on load (the shipped: k 41-77,
 # rank 48-168, grids of 32-64 fields by 40-96 depths)
@@ -329,6 +430,12 @@ def check_store(meta: dict, arrays: dict, fail) -> None:
     grid = check_grid(rec.sub("grid"), k, fail)
     check_psf_settings(rec.sub("psf_settings"), fail)
     rows = (grid["n_depths"] + 1, grid["n_fields"])
+    if meta.get("focus_diopters") is not None:         # a focus stack: one set of coefficients per focus
+        fd = rec.numbers("focus_diopters", 0.0, 1e3, (2, MAX_FOCUS_SLICES))
+        if np.any(np.diff(np.asarray(fd, float)) <= 0):
+            raise fail("focus_diopters not increasing", field="focus_diopters",
+                       allowed=f"2-{MAX_FOCUS_SLICES} increasing diopters (1/focus distance, 0 = infinity)")
+        rows = (len(fd),) + rows
     check_array(arrays, "basis_half", (3, rank, k, k // 2 + 1), fail)
     check_array(arrays, "coeffs", rows + (3, rank), fail)
     check_array(arrays, "zero_energy", rows, fail, kinds="b")
@@ -384,11 +491,9 @@ def mirror_symmetric(basis: np.ndarray, tol: float = 1e-4) -> bool:
     return bool(np.abs(b - b[..., ::-1]).max() <= tol * max(np.abs(b).max(), 1e-30))
 
 
-def compress(library: PSFLibrary, rank: int, *, kernel_size: int | None = None, build_s: float = 0.0,
-             ripple_floor: float = RIPPLE_FLOOR) -> BasisStore:
-    """The store of a fully computed traced library: its kernels (centred
-    ``kernel_size`` crop, renormalised, if given) factorised to ``rank`` per
-    channel."""
+def _cropped(library: PSFLibrary, kernel_size: int | None):
+    """(kernels (D+1, F, 3, k, k) float64 cropped to ``kernel_size`` and each
+    channel renormalised, the energy each crop holds of the arriving energy, k)."""
     if not library.computed.all():
         raise InputRangeError("library", f"{int(library.computed.sum())} of {len(library.computed)} depth bins",
                               "every depth bin computed (build it first)")
@@ -400,28 +505,65 @@ def compress(library: PSFLibrary, rank: int, *, kernel_size: int | None = None, 
     crop = psf[..., r0 - h:r0 + h + 1, r0 - h:r0 + h + 1]
     held = crop.sum(axis=(-1, -2)) * (1.0 - library.energy_outside)        # of the arriving energy
     s = crop.sum(axis=(-1, -2), keepdims=True)
-    crop = np.divide(crop, s, out=np.zeros_like(crop), where=s > 0)
-    d, f = crop.shape[:2]
-    basis, coeffs = factorise(crop.reshape(d * f, 3, k, k), rank)
-    live = ~library.zero_energy
-    meta = {"lens_id": library.meta["lens_id"], "lens_file": library.meta["lens_file"],
+    return np.divide(crop, s, out=np.zeros_like(crop), where=s > 0), held, k
+
+
+def _store_meta(library: PSFLibrary, k: int, rank: int, held: np.ndarray, live: np.ndarray, build_s: float,
+                ripple_floor: float) -> dict:
+    return {"lens_id": library.meta["lens_id"], "lens_file": library.meta["lens_file"],
             "lens_fingerprint": library.meta["lens_fingerprint"],
             "psf_settings": replace(library.settings, kernel_size=k).as_dict(),
             "grid": asdict(library.grid), "pixel_pitch_mm": library.pixel_pitch_mm, "kernel_size": k,
-            "rank": int(basis.shape[1]), "response_sha256": library.meta["response"]["sha256"],
+            "rank": int(rank), "response_sha256": library.meta["response"]["sha256"],
             "psf_algorithm": library.meta["algorithm"],
             "energy_held_min": float(held[live].min()) if live.any() else 1.0,
             "build_s": float(build_s), "ripple_floor": float(ripple_floor)}
+
+
+def compress(library: PSFLibrary, rank: int, *, kernel_size: int | None = None, build_s: float = 0.0,
+             ripple_floor: float = RIPPLE_FLOOR) -> BasisStore:
+    """The store of a fully computed traced library: its kernels (centred
+    ``kernel_size`` crop, renormalised, if given) factorised to ``rank`` per
+    channel."""
+    crop, held, k = _cropped(library, kernel_size)
+    d, f = crop.shape[:2]
+    basis, coeffs = factorise(crop.reshape(d * f, 3, k, k), rank)
+    meta = _store_meta(library, k, basis.shape[1], held, ~library.zero_energy, build_s, ripple_floor)
     return BasisStore(meta, basis.astype(np.float32), coeffs.reshape(d, f, 3, -1).astype(np.float32),
                       library.zero_energy.copy())
 
 
-def traced_library(lens, recipe: BasisRecipe, *, cache_dir=None, progress=None, log=None) -> tuple:
+def compress_stack(libraries: list, focus_diopters, rank: int, *, kernel_size: int | None = None,
+                   build_s: float = 0.0, ripple_floor: float = RIPPLE_FLOOR) -> BasisStore:
+    """A focus stack: the libraries of one lens and grid traced at
+    ``focus_diopters`` (1/m, increasing; one library each), factorised
+    together (one basis, coefficients per focus)."""
+    fd = np.asarray(focus_diopters, float)
+    if len(libraries) != len(fd) or len(fd) < 2 or np.any(np.diff(fd) <= 0):
+        raise InputRangeError("focus_diopters", fd.tolist(), "increasing, one per library, at least 2")
+    if len({(lib.meta["lens_fingerprint"], lib.grid) for lib in libraries}) != 1:
+        raise InputRangeError("libraries", "of different lenses or grids", "one lens, one grid")
+    crops = [_cropped(lib, kernel_size) for lib in libraries]
+    k = crops[0][2]
+    stack = np.stack([c[0] for c in crops])                        # (S, D+1, F, 3, k, k)
+    n_s, d, f = stack.shape[:3]
+    basis, coeffs = factorise(stack.reshape(n_s * d * f, 3, k, k), rank)
+    zero = np.stack([lib.zero_energy for lib in libraries])
+    held = np.stack([c[1] for c in crops])
+    meta = _store_meta(libraries[0], k, basis.shape[1], held, ~zero, build_s, ripple_floor)
+    meta["psf_settings"]["focus_distance_m"] = None
+    meta["focus_diopters"] = [float(x) for x in fd]
+    return BasisStore(meta, basis.astype(np.float32), coeffs.reshape(n_s, d, f, 3, -1).astype(np.float32), zero)
+
+
+def traced_library(lens, recipe: BasisRecipe, *, cache_dir=None, progress=None, log=None,
+                   focus_m: float | None = None) -> tuple:
     """(the fully computed traced library ``recipe`` describes, seconds traced
     now: 0 if it all came from the PSF cache). ``cache_dir`` None: the
     default cache, False: none. With ``near_rays``, the bins at or nearer
     than ``near_until_m`` come from a second library traced with that many
-    rays (the same grid and settings otherwise)."""
+    rays (the same grid and settings otherwise). ``focus_m``: refocused
+    there (metres, inf; None: as prescribed)."""
     import warnings
     from .compute import KernelTooSmallWarning
     seconds = 0.0
@@ -435,11 +577,12 @@ def traced_library(lens, recipe: BasisRecipe, *, cache_dir=None, progress=None, 
             done = lib.ensure(bins=bins, progress=progress)
         seconds += (time.perf_counter() - t) if done else 0.0
         if log:
-            log(f"{lens.id}: {len(bins)} depth bins x {len(lib.fields)} fields at {settings.pupil_samples} rays "
+            log(f"{lens.id}: {len(bins)} depth bins x {len(lib.fields)} fields at {settings.pupil_samples} rays"
+                + ("" if focus_m is None else f", focus {focus_m:.4g} m") + " "
                 + (f"traced in {time.perf_counter() - t:.0f} s" if done else "from the cache"))
         return lib
 
-    settings = recipe.settings(lens)
+    settings = replace(recipe.settings(lens), focus_distance_m=focus_m)
     lib = trace(settings, np.arange(len(recipe.grid.depths_m)))
     if recipe.near_rays:
         near = recipe.near_bins()
@@ -450,10 +593,20 @@ def traced_library(lens, recipe: BasisRecipe, *, cache_dir=None, progress=None, 
 
 
 def build_store(lens, recipe: BasisRecipe, *, cache_dir=None, progress=None, log=None) -> BasisStore:
-    """Trace ``lens``'s library as ``recipe`` says (:func:`traced_library`)
-    and compress it."""
-    lib, seconds = traced_library(lens, recipe, cache_dir=cache_dir, progress=progress, log=log)
-    store = compress(lib, recipe.rank, build_s=seconds, ripple_floor=recipe.ripple_floor)
+    """Trace ``lens``'s library as ``recipe`` says (:func:`traced_library`;
+    one per focus distance of a focus stack) and compress it."""
+    fd = recipe.focus_diopters()
+    if fd is not None:
+        libs, seconds = [], 0.0
+        for d in fd:
+            lib, s = traced_library(lens, recipe, cache_dir=cache_dir, progress=progress, log=log,
+                                    focus_m=math.inf if d == 0 else 1.0 / d)
+            libs.append(lib)
+            seconds += s
+        store = compress_stack(libs, fd, recipe.rank, build_s=seconds, ripple_floor=recipe.ripple_floor)
+    else:
+        lib, seconds = traced_library(lens, recipe, cache_dir=cache_dir, progress=progress, log=log)
+        store = compress(lib, recipe.rank, build_s=seconds, ripple_floor=recipe.ripple_floor)
     store.meta["near_rays"] = recipe.near_rays
     store.meta["near_until_m"] = recipe.near_until_m if recipe.near_rays else None
     return store
@@ -463,10 +616,19 @@ def build_store(lens, recipe: BasisRecipe, *, cache_dir=None, progress=None, log
 class BasisLibrary(PSFLibrary):
     """A PSF library of one lens whose bins are reconstructed from a
     :class:`BasisStore` (never traced), at the store's grid, at its pixel
-    pitch or a coarser one (area-resampled)."""
+    pitch or a coarser one (area-resampled); a focus stack's at ``focus_m``
+    (:meth:`BasisStore.at_focus`)."""
 
-    def __init__(self, store: BasisStore, lens, *, pixel_pitch_mm: float | None = None):
+    def __init__(self, store: BasisStore, lens, *, pixel_pitch_mm: float | None = None, focus_m=None):
         store.check_lens(lens)
+        if store.focus_diopters is not None:        # a focus stack serves the focus given
+            if focus_m is None:
+                near, far = store.focus_range_m()
+                raise InputRangeError("focus_m", None, f"a focus distance {near:.3g} m to {far:.3g} m "
+                                                       f"(the focus stack {store.path})")
+            store = store.at_focus(focus_m)
+        elif focus_m is not None:
+            raise InputRangeError("focus_m", focus_m, f"None: {store.path} holds {lens.id} at its prescribed focus")
         stored = store.pixel_pitch_mm
         pitch = stored if pixel_pitch_mm is None else float(pixel_pitch_mm)
         check_downsampling(stored, pitch, f"pixel pitch (mm; {store.path} holds {lens.id} at {stored:.6g} mm)")
@@ -528,5 +690,5 @@ def open_store(path) -> BasisStore:
         raise BasisFileError(f"{path}: not a readable PSF basis file ({type(e).__name__}: {e.strerror})") from None
 
 
-__all__ = ["BasisLibrary", "BasisRecipe", "BasisStore", "BasisFileError", "SHIPPED_RECIPES", "build_store",
-           "compress", "factorise", "open_store", "reconstruct", "shipped_store", "STORE_DIR"]
+__all__ = ["BasisLibrary", "BasisRecipe", "BasisStore", "BasisFileError", "SHIPPED_RECIPES",
+           "SHIPPED_FOCUS_RECIPES", "build_store", "compress", "compress_stack", "factorise", "open_store", "reconstruct", "shipped_store", "STORE_DIR"]

@@ -228,15 +228,27 @@ def _none_given(label: str | None) -> str:
 
 def _try_basis(lens, basis_file, pitch, settings, kernel_size, focus_m, custom_response, grid, label="--basis"):
     """(PSFSource, None) where the lens's PSF basis serves the request, else (None, why); ``label``: the
-    option that gives a basis file (None: none)."""
-    path = Path(basis_file) if basis_file else shipped_store(lens.id)
+    option that gives a basis file (None: none). A refocused lens is served by a focus stack (the shipped
+    one of the lens, or the file given) that covers the focus."""
+    stack = focus_m is not None
+    path = Path(basis_file) if basis_file else shipped_store(lens.id, focus_stack=stack)
     if path is None:
+        if stack:
+            return None, (f"focus {focus_m:.3g} m asked for; no focus-stack PSF basis of {lens.id} ships with "
+                          f"this engine{_none_given(label)}")
         return None, f"no PSF basis of {lens.id} ships with this engine{_none_given(label)}"
     try:
         store = open_store(path)
         store.check_lens(lens)
     except OpticsError as e:
         return None, str(e)
+    if stack and store.focus_diopters is None:
+        return None, f"focus {focus_m:.3g} m asked for; {path} holds {lens.id} at its prescribed focus"
+    if stack and not store.covers_focus(focus_m):
+        near, far = store.focus_range_m()
+        return None, f"focus {focus_m:.3g} m is outside {path}'s {near:.3g} m to {far:.3g} m"
+    if not stack and store.focus_diopters is not None:
+        return None, f"{path} is a focus stack: it serves {lens.id} refocused, not at its prescribed focus"
     stored = store.pixel_pitch_mm
     if pitch is not None and not (pitch >= stored or same_pitch(pitch, stored)):
         return None, (f"the image's pixel pitch {pitch * 1000:.6g} um is finer than the {stored * 1000:.6g} um "
@@ -246,18 +258,21 @@ def _try_basis(lens, basis_file, pitch, settings, kernel_size, focus_m, custom_r
         return None, f"a {kernel_size} px kernel was asked for; {path} serves {lens.id} at {k} px at this pitch"
     if custom_response:
         return None, "a custom spectral response was given; the PSF basis holds the shipped one"
-    if focus_m is not None:
-        return None, f"focus {focus_m:.3g} m asked for; {path} holds {lens.id} at its prescribed focus"
     if grid is not None and grid != store.grid:
         return None, f"a library grid {grid} was asked for; {path} holds {store.grid}"
     diff = _settings_differences(store.meta["psf_settings"], settings, rays_at_least=True, verb="holds")
     if diff:
         return None, "PSF settings differ from the stored ones: " + "; ".join(diff)
-    lib = BasisLibrary(store, lens, pixel_pitch_mm=pitch)
+    lib = BasisLibrary(store, lens, pixel_pitch_mm=pitch, focus_m=focus_m)
     pixels = (f"{lib.pixel_pitch_mm * 1000:.4g} um pixels, its {stored * 1000:.4g} um kernels area-resampled"
               if lib.resampled else f"{lib.pixel_pitch_mm * 1000:.4g} um pixels")
+    focus = "prescribed focus"
+    if stack:
+        near, far = store.focus_range_m()
+        focus = (f"a focus stack: focus {focus_m:.3g} m from {len(store.focus_diopters)} focus distances "
+                 f"{near:.3g} m to {far:.3g} m")
     return PSFSource("basis", f"PSFs from the PSF basis {path} ({lens.id}, rank {store.rank}, {pixels}, "
-                              f"{lib.kernel_size} x {lib.kernel_size} px, prescribed focus)",
+                              f"{lib.kernel_size} x {lib.kernel_size} px, {focus})",
                      lib, None, str(path)), None
 
 

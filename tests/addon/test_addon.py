@@ -347,7 +347,11 @@ def test_numpy_exr_reader_matches_openimageio(headless):
 
 def test_cancel_stops_the_psf_build_and_progress_is_reported(tmp_path, monkeypatch):
     from dcdi_core.optics.lens import load_lens
+    from dcdi_core.psf import sources
     monkeypatch.setenv("DCDI_CACHE_DIR", str(tmp_path / "cache"))
+    # traced PSFs (no focus stack of MOS-S1 to serve its refocus): what is cancelled is the trace
+    monkeypatch.setattr(sources, "shipped_store", lambda lens_id, focus_stack=False: None)
+    logic.SESSION.sources.clear()
     img = np.random.default_rng(0).random((24, 32, 3), dtype=np.float32)
     depth = np.full((24, 32), 8.0, np.float32)
     depth[8:16, 10:20] = 1.0
@@ -409,10 +413,13 @@ depth[16:32, 20:44] = 1.0
 out, info = logic.run_bokeh(img, depth, lens, focus_m=1.0, keep=(0.9, 1.1), refocus=False)
 assert info["psf_source"] == "basis" and "PSF basis" in info["psf_source_message"], info["psf_source_message"]
 assert np.abs(out - img)[16:32, 20:44].max() < 1e-6 and np.abs(out - img)[depth > 5].mean() > 1e-3
+# refocused (Refocus Lens on): MOS-S1's focus stack serves it inside 0.7 m to infinity, nearer is traced
+outr, infor = logic.run_bokeh(img, depth, lens, focus_m=1.0, keep=(0.9, 1.1))
+assert infor["psf_source"] == "basis" and "a focus stack" in infor["psf_source_message"], infor["psf_source_message"]
+assert np.abs(outr - img)[16:32, 20:44].max() < 1e-6 and np.abs(outr - img)[depth > 5].mean() > 1e-3
 try:
-    logic.run_bokeh(img, depth, lens, focus_m=1.0, keep=(0.9, 1.1))
-    raise SystemExit("a refocused lens the basis and the OLF hold at its prescribed focus only was served "
-                     "without tracing")
+    logic.run_bokeh(img, np.where(depth < 5, 0.5, depth).astype(np.float32), lens, focus_m=0.5, keep=(0.45, 0.55))
+    raise SystemExit("a focus nearer than the focus stack's 0.7 m was served without tracing")
 except RuntimeError as e:
     assert "ray tracer" in str(e)
 # the 6P, learned across focus: refocused (Refocus Lens on, the default) inside the range, served
@@ -440,9 +447,9 @@ print("ok", info["psf_source_message"])
 def test_bundled_engine_serves_the_olf_with_torch_blocked(addon_zip, tmp_path):
     """The unpacked zip alone, torch blocked by an import hook: the vendored
     OLF serves kernels, and a bokeh of a shipped lens as prescribed runs
-    through it with the tracer patched to raise (refocused: MOS-S1, learned
-    at its prescribed focus only, traces; the 6P, learned across focus, is
-    served inside the learned range and traced outside it)."""
+    through it with the tracer patched to raise (refocused: MOS-S1 from its
+    focus stack, the 6P from the OLF, learned across focus, each inside 0.7 m
+    to infinity and traced nearer)."""
     out = _isolated_run(_BUNDLED_OLF, addon_zip, tmp_path, DCDI_CACHE_DIR=str(tmp_path / "cache"),
                         OMP_NUM_THREADS="1")
     assert out.startswith("ok") and "area-resampled" in out, out
@@ -1010,7 +1017,12 @@ def test_the_preview_traces_what_no_shipped_source_holds_at_its_own_quality(tmp_
     of the full trace; where a shipped source serves, the preview is the
     full result, bit for bit."""
     from dcdi_core.optics.lens import load_lens
+    from dcdi_core.psf import sources
     monkeypatch.setenv("DCDI_CACHE_DIR", str(tmp_path / "cache"))
+    # refocused MOS-S2 without its focus stack: what no shipped source holds
+    shipped = sources.shipped_store
+    monkeypatch.setattr(sources, "shipped_store", lambda lens_id, focus_stack=False:
+                        None if focus_stack else shipped(lens_id))
     logic.clear_psf_sources()
     rng = np.random.default_rng(0)
     img = rng.random((36, 48, 3), dtype=np.float32)
@@ -1142,7 +1154,8 @@ def test_the_psf_source_line_names_no_path_and_no_lens_id():
     from dcdi_core.psf.sources import psf_source
     for lens_id, focus, want in (("6p", None, "PSFs from the PSF basis that ships with the add-on ("),
                                  ("6p", 2.0, "PSFs from the Omni-Lens-Field that ships with the add-on ("),
-                                 ("mos-s1", 2.0, "PSFs traced: ")):
+                                 ("mos-s1", 2.0, "PSFs from the PSF basis that ships with the add-on ("),
+                                 ("mos-s1", 0.5, "PSFs traced: ")):
         lens = load_lens(lens_id)
         src = psf_source(lens, pixel_pitch_mm=0.05, focus_m=focus)
         assert str(src.basis_file or src.olf_file or "/") in src.message or src.kind == "trace"

@@ -37,7 +37,7 @@ def no_basis(monkeypatch):
     """The OLF against tracing alone: no shipped PSF basis goes first (the
     basis's place in the choice: tests/psf/test_psf_basis.py)."""
     from dcdi_core.psf import sources as library
-    monkeypatch.setattr(library, "shipped_store", lambda lens_id: None)
+    monkeypatch.setattr(library, "shipped_store", lambda lens_id, focus_stack=False: None)
 
 
 @pytest.fixture(scope="module")

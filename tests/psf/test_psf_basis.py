@@ -14,7 +14,8 @@ from dcdi_core.cli import main
 from dcdi_core.errors import InputRangeError
 from dcdi_core.optics.errors import OpticsError
 from dcdi_core.optics.lens import load_lens
-from dcdi_core.psf.basis import (RIPPLE_FLOOR, SHIPPED_RECIPES, BasisFileError, BasisLibrary, BasisRecipe, BasisStore,
+from dcdi_core.psf.basis import (RIPPLE_FLOOR, SHIPPED_FOCUS_RECIPES, SHIPPED_RECIPES, BasisFileError, BasisLibrary,
+                                 BasisRecipe, BasisStore,
                                  compress, factorise, mirror_symmetric, reconstruct, shipped_store)
 from dcdi_core.psf.compute import PSFSettings
 from dcdi_core.psf.library import LibraryGrid, PSFLibrary
@@ -177,6 +178,9 @@ def test_every_recipe_ships():
     total = sum(shipped_store(l).stat().st_size for l in SHIPPED)
     olf = ROOT / "dcdi_core" / "models" / "weights" / "olf-radial.npz"
     assert total + olf.stat().st_size <= 24e6
+    # the singlets' focus stacks beside them (tests/psf/test_focus_stack.py): 2.3-2.5 MB each
+    stacks = [shipped_store(l, focus_stack=True) for l in SHIPPED_FOCUS_RECIPES]
+    assert all(stacks) and all(p.stat().st_size <= 3e6 for p in stacks), stacks
 
 
 # traced now with 512 rays at the basis's pitch: (lens, field, depth m, least PSNR dB on the
