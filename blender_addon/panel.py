@@ -212,6 +212,7 @@ def draw_lens_bokeh(layout, context, in_viewport: bool = True):
     Focus on Click can pick a point (in Properties > Camera it could only fail)."""
     scene = context.scene
     s = scene.dcdi_lens_bokeh
+    viewport.warm_up(context)                  # the preview's render worker starts ahead of the toggle
     layout.use_property_split = True
     layout.use_property_decorate = False
     row = layout.row(align=True)

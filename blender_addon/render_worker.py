@@ -20,8 +20,11 @@ runs in it (factory settings), nor Python drivers unless the user's Blender
 trusts the file's scripts.
 
 Protocol: one JSON object a line on stdin (a request) and, on stdout, lines
-that start with ``MARK`` (Blender prints its own lines there too): first
-``{"ready": true}``, then one answer per request, ``{"id", "rgb", "z",
+that start with ``MARK`` (Blender prints its own lines there too): first,
+where the worker was started warm (``$DCDI_RENDER_WORKER_WARM``: a scene to
+open, bake the view-transform table of and render a few pixels of before
+anything is asked), ``{"warm": true, "table", "steps_per_stop", "bake_s"}``;
+then ``{"ready": true}``, then one answer per request, ``{"id", "rgb", "z",
 "load_s", "render_s", "save_s"}`` or ``{"id", "error"}``.
 """
 from __future__ import annotations
@@ -55,10 +58,27 @@ class RenderWorker:
         self.ready_s: float | None = None    # how long it took to start
         self.count = 0
         self._lock = threading.Lock()
+        self.warm_key = None                 # the view settings the warm-up bakes a table for
+        self.warm_table = None               # that table, once baked (view_transform.Table)
 
-    def start(self) -> bool:
+    def _warm_request(self, context, scene) -> dict | None:
+        """The warm-up's request (the scene written for it), or None where it cannot be written."""
+        from . import view_transform
+        blend = self.dir / "warm.blend"
+        try:
+            write_scene(context, scene, blend)
+        except (RuntimeError, OSError):
+            return None
+        self.warm_key = view_transform.settings_key(scene)
+        return {"blend": str(blend), "scene": scene.name, "table": str(self.dir / "warm-table.npz")}
+
+    def start(self, context=None, scene=None) -> bool:
         """Start the worker unless it runs (it takes a second or two to be
-        ready; requests sent before wait in its input). False when it cannot."""
+        ready; requests sent before wait in its input). False when it cannot.
+        With ``scene`` (the warm-up before the preview is turned on), the
+        worker first opens it, bakes its view-transform table (kept as
+        ``warm_table``) and renders a few pixels (Cycles' start), so that the
+        preview's first render finds all of that done."""
         import bpy
         if self.alive():
             return True
@@ -70,6 +90,11 @@ class RenderWorker:
         self.dir = Path(tempfile.mkdtemp(prefix="dcdi-preview-"))
         import dcdi_core
         env = dict(os.environ, DCDI_RENDER_WORKER_PATH=json.dumps([str(Path(dcdi_core.__file__).parents[1])]))
+        self.warm_key = None
+        if scene is not None:
+            warm = self._warm_request(context, scene)
+            if warm is not None:
+                env["DCDI_RENDER_WORKER_WARM"] = json.dumps(warm)
         cmd = [binary, "-b", "--factory-startup", "--python-exit-code", "1"]
         if getattr(bpy.app, "autoexec", False):
             cmd.append("--enable-autoexec")          # the user's Blender runs the file's Python drivers: so does this
@@ -147,6 +172,9 @@ class RenderWorker:
                 self.ready_s = time.perf_counter() - self.started_at
                 self.ready.set()
                 continue
+            if msg.get("warm"):
+                self.warm_table = _read_table(msg, self.warm_key)
+                continue
             with self._lock:
                 pending = self.pending
             if pending is None or msg.get("id") != pending["id"]:
@@ -176,6 +204,7 @@ class RenderWorker:
         does not within a few seconds, by a thread) and remove its files."""
         proc, folder, self.proc, self.dir, self.pending = self.proc, self.dir, None, None, None
         self.ready.clear()
+        self.warm_key = self.warm_table = None
         if proc is not None:
             try:
                 proc.stdin.close()
@@ -238,6 +267,27 @@ def _reply(msg: dict) -> None:
     sys.stdout.flush()
 
 
+WARM_PX = 8              # the warm-up render's size: what starts Cycles, no more
+
+
+def _warm_up(req: dict, bpy, bpy_render, np) -> None:
+    """Before the first request: open the scene, bake its view-transform
+    table and render WARM_PX pixels square (Cycles' first render loads its
+    kernels). Whatever fails here is done again by the first request."""
+    try:
+        bpy.ops.wm.open_mainfile(filepath=req["blend"], load_ui=False)
+        scene = bpy.data.scenes[req["scene"]]
+        t = _view_transform().bake(scene)
+        with open(req["table"], "wb") as f:
+            np.savez(f, values=t.values, levels=t.levels)
+        _reply({"warm": True, "table": req["table"], "steps_per_stop": t.steps_per_stop, "bake_s": t.bake_s})
+        cam = scene.camera
+        if cam is not None and cam.type == "CAMERA":
+            bpy_render.render_aif_depth(scene, cam, WARM_PX, WARM_PX, 1, scene.view_layers[0].name)
+    except Exception:           # noqa: BLE001 - the first request does it all again
+        pass
+
+
 def serve() -> None:
     """The worker's loop: a request a line until its input ends."""
     import importlib.util
@@ -250,6 +300,9 @@ def serve() -> None:
     spec = importlib.util.spec_from_file_location("dcdi_render_worker_bpy_render", HERE / "bpy_render.py")
     bpy_render = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bpy_render)
+    warm = os.environ.get("DCDI_RENDER_WORKER_WARM")
+    if warm:
+        _warm_up(json.loads(warm), bpy, bpy_render, np)
     _reply({"ready": True})
     for line in sys.stdin:
         try:

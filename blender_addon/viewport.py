@@ -95,6 +95,8 @@ class Preview:
         self.rendering: dict | None = None   # the render asked of it and not yet collected
         self.main_renders = 0                # of the sharp renders, those made on the main thread
         self.worker_failed = ""              # why the worker failed a render: this Blender renders until the toggle
+        self.panel_seen_at = 0.0             # when the panel was last drawn (the warm-up's idle limit)
+        self.warm_tried = False              # the warm-up started a worker (again only after it ended idle)
 
     # -------------------------------------------------------------- changes
     def changed(self, scene_changed: bool, at_once: bool = False) -> None:
@@ -194,6 +196,9 @@ class Preview:
         if bpy.app.background or self.worker_failed or not (worker.alive() or worker.start()):
             return False
         from . import view_transform
+        if worker.warm_table is not None:            # baked by the warm-up (warm_up)
+            view_transform.keep(worker.warm_table)
+            worker.warm_table = None
         try:
             bake = None if view_transform.has_table(scene) else view_transform.settings_key(scene)
             pending = worker.request(context, scene, cam, h, w, samples, context.view_layer.name, bake_key=bake)
@@ -223,7 +228,8 @@ class Preview:
             view_transform.keep(r["table"])
         self._keep_sharp(r["key"], r["rgb"], r["z"], r["seconds"], "worker", cold=r["cold"],
                          main_s=r["write_s"], steps=dict(r.get("steps", {}), write_s=r["write_s"],
-                                                         started_s=self.worker_renders.ready_s))
+                                                         started_s=self.worker_renders.ready_s,
+                                                         baked=r.get("bake_key") is not None))
         if r["generation"] != self.generation or self.changed_at is not None:
             return None                              # a newer change's refresh is pending: it uses this render
         return self._run(lambda: self._start_lens(inputs(context)), context)
@@ -560,6 +566,59 @@ def _remove_handlers(draw) -> None:
     for timer in (_tick, _watch):
         if not bpy.app.background and bpy.app.timers.is_registered(timer):
             bpy.app.timers.unregister(timer)
+
+
+# ------------------------------------------------------------------ the warm-up
+# While the panel is drawn and the preview is off, the render worker starts
+# ahead of the toggle (a background Blender's start, 0.8 s; the scene's
+# view-transform table, 0.4 s; Cycles' first render): the toggle's first
+# picture then waits for its render and the lens stage only. A worker the
+# preview never used ends WARM_IDLE_S after the panel was last drawn.
+WARM_IDLE_S = 300.0
+WARM_CHECK_S = 10.0
+
+
+def warm_up(context) -> None:
+    """The panel's drawing calls this: start the warm-up (a timer: a draw
+    callback starts no process) unless the preview is on or it ran."""
+    if bpy.app.background:
+        return
+    p = preview()
+    p.panel_seen_at = time.perf_counter()
+    if p.enabled or p.warm_tried or p.worker_failed or p.worker_renders.alive():
+        return
+    if not bpy.app.timers.is_registered(_warm):
+        bpy.app.timers.register(_warm, first_interval=0.0)
+        if not SESSION.holds("warm-up"):
+            SESSION.hold("warm-up", _stop_warm_timer)
+
+
+def _stop_warm_timer() -> None:
+    if bpy.app.timers.is_registered(_warm):
+        bpy.app.timers.unregister(_warm)
+
+
+def _warm() -> float | None:
+    """The warm-up's timer: start the worker once, then end it when the panel
+    has not been drawn for WARM_IDLE_S while the preview stayed off."""
+    p = preview()
+    if p.enabled:
+        return None                                  # the preview has the worker now
+    worker = p.worker_renders
+    if not p.warm_tried:
+        p.warm_tried = True
+        context = bpy.context
+        scene = getattr(context, "scene", None)
+        if scene is None or not worker.start(context, scene):
+            return None
+        return WARM_CHECK_S
+    if not worker.alive():
+        return None
+    if time.perf_counter() - p.panel_seen_at > WARM_IDLE_S:
+        worker.stop()
+        p.warm_tried = False                         # the panel drawn again warms up again
+        return None
+    return WARM_CHECK_S
 
 
 def toggle_update(status, context) -> None:

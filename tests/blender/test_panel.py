@@ -271,7 +271,9 @@ def test_the_status_describes_the_settings_as_they_are(panel_run):
     assert res["focus_back"]["lines"] and res["focus_back"]["lines"][0][0].startswith("Lens Bokeh: done in")
     assert res["second_started"] == ["RUNNING_MODAL"] and res["second_running"]["running"]
     assert res["second_running"]["psf_source"] == ""                 # the last job's source is gone
-    assert res["after_second"]["psf_source"].startswith("PSFs traced"), res["after_second"]
+    # the second job: MOS-S1 refocused, served by its focus stack
+    assert res["after_second"]["psf_source"].startswith("PSFs from the PSF basis") and \
+        "a focus stack" in res["after_second"]["psf_source"], res["after_second"]
 
 
 def test_tooltips_speak_plainly(panel_run):
@@ -290,3 +292,13 @@ def test_the_panel_is_captured(panel_run):
         assert (work / res[key]).stat().st_size > 10_000, key
     assert (work / res["docs_image"]).stat().st_size < 300_000
     print(f"the panel's screenshots: {work}")           # pytest -s shows where (kept as pytest keeps tmp folders)
+
+
+def test_the_drawn_panel_starts_the_preview_worker_warm(panel_run):
+    """With the panel drawn and the preview off, the render worker starts
+    ahead of the toggle and bakes the scene's view-transform table there,
+    so that the toggle's first picture waits for neither."""
+    _, res = panel_run
+    warm = res["warm"]
+    assert warm["alive"] and warm["waited_s"] is not None and warm["table"], warm
+    assert warm["preview_on"] is False, warm

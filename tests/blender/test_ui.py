@@ -169,6 +169,16 @@ def test_the_main_thread_never_stops_during_the_preview(preview_run):
                       f"one 3D view drawing: {res['redraw_heartbeat']['gap_s']} s")
 
 
+def test_the_toggle_finds_the_worker_warm(preview_run):
+    """Drawn, the panel starts the render worker (viewport.warm_up), which
+    bakes the view-transform table ahead: the toggle's first render asks
+    for no bake and no start."""
+    _, res = preview_run
+    assert res["warm_table"], res.get("warm_s")
+    toggle = _steps(res, [("python", "toggle")])[0]
+    assert toggle["source"] == "worker" and toggle["render_steps"]["baked"] is False, toggle
+
+
 @pytest.mark.xfail(strict=False, reason="measured in Debian's Blender 5.2.2 on llvmpipe, 2 cores: the first result "
                                         "drawn 1.9-2.4 s after the toggle (the render worker's start 0.8 s, the "
                                         "lens 0.4-0.5 s, the view-transform bake there 0.4 s); a lens change "

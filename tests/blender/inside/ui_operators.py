@@ -81,9 +81,10 @@ def steps():
     yield 1.0
     subprocess.run(["import", "-window", "root", str(OUT / "apply.png")], check=True, timeout=60)
 
-    # Esc during a run whose PSFs are traced (a minimalist lens refocused: no
-    # shipped source holds it), once its progress shows
-    s.lens, s.refocus, s.focus_distance = "mos-s2", True, 3.3
+    # Esc during a run whose PSFs are traced (the double Gauss refocused to
+    # 0.5 m: nearer than the OLF learned it, no shipped source holds it; its
+    # wide kernels trace for seconds), once its progress shows
+    s.lens, s.refocus, s.focus_distance = "double-gauss", True, 0.5
     t = time.perf_counter()
     RESULT["esc_started"] = click("apply_lens_bokeh")
     yield from wait_until(lambda: 0 < status.progress < 100, 60)

@@ -38,6 +38,7 @@ logic = importlib.import_module(f"{MODULE}.logic")
 reading = importlib.import_module(f"{MODULE}.reading")
 thumbnails = importlib.import_module(f"{MODULE}.thumbnails")
 SESSION = importlib.import_module(f"{MODULE}.session").SESSION
+viewport = importlib.import_module(f"{MODULE}.viewport")
 s = scene.dcdi_lens_bokeh
 s.lens = "6p"
 s.focus_mode = "DISTANCE"
@@ -231,6 +232,12 @@ def steps():
     ctx.view_layer.objects.active = cam              # Properties > Camera shows the panel
     props.spaces.active.context = "DATA"
     RESULT["sidebar_category"] = yield from sidebar_tab(view)
+    # the panel drawn, the preview off: the preview's render worker starts warm (viewport.warm_up)
+    worker = viewport.preview().worker_renders
+    waited = yield from wait_until(lambda: worker.ready.is_set(), 60.0, 0.05)
+    RESULT["warm"] = {"alive": worker.alive(), "ready_s": worker.ready_s, "waited_s": waited,
+                      "table": worker.warm_table is not None and worker.warm_table.key == worker.warm_key,
+                      "preview_on": viewport.preview().enabled, "error": worker.error}
     # Properties scrolled down to the panel (after Lens, Depth of Field, Camera...)
     pr = next(r for r in props.regions if r.type == "WINDOW")
     yield from uidrive.hover(win, pr.x + pr.width / 2, pr.y + pr.height / 2)
