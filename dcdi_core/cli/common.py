@@ -233,6 +233,28 @@ def add_subcommands(parser, dest: str, metavar: str = "SUBCOMMAND"):
     return parser.add_subparsers(dest=dest, required=True, metavar=metavar)
 
 
+def add_aperture_options(q) -> None:
+    """The iris: --f-number, --blades, --blade-rotation (``optics.aperture``)."""
+    from ..optics.aperture import MAX_BLADES, MAX_F_NUMBER, MIN_BLADES
+    q.add_argument("--f-number", type=float, default=None, metavar="N",
+                   help=f"the lens stopped down to f/N, from its widest (its prescription's stop) to f/"
+                        f"{MAX_F_NUMBER:g}; a wider one is refused (default: wide open)")
+    q.add_argument("--blades", type=int, default=0, metavar="N",
+                   help=f"the iris's blades: 0 round (default), or {MIN_BLADES}-{MAX_BLADES}: a regular polygon "
+                        "(its corners on the f-number's circle)")
+    q.add_argument("--blade-rotation", type=float, default=0.0, metavar="DEG",
+                   help="with --blades: a corner's angle from up towards the right, degrees (default 0)")
+
+
+def load_lens_with_aperture(args, name: str | None = None):
+    """The lens ``name`` (default ``args.lens``) stopped down and shaped as
+    the aperture options say (checked before any work)."""
+    from ..optics.aperture import Aperture, stopped_down
+    from ..optics.lens import load_lens
+    aperture = Aperture(args.f_number, args.blades, args.blade_rotation)
+    return stopped_down(load_lens(args.lens if name is None else name), aperture)
+
+
 def add_psf_options(q, *, sensor_focus: bool = True, render: bool = False) -> None:
     """The PSF settings' options. ``sensor_focus``: --focus moves the sensor
     (bokeh and dof give --focus a meaning of their own); ``render``: the

@@ -8,9 +8,9 @@ from __future__ import annotations
 import math
 import time
 
-from .common import (UNITS, add_psf_options, add_psf_source_options, add_subcommands, check_cache,
+from .common import (UNITS, add_aperture_options, add_psf_options, add_psf_source_options, add_subcommands, check_cache,
                      check_olf_file, check_output, check_wavelength, depth_value, positive_int,
-                     print_table_or_json, psf_settings, response, say)
+                     load_lens_with_aperture, print_table_or_json, psf_settings, response, say)
 from .lens import add_field_options, no_ray_error
 
 
@@ -71,11 +71,10 @@ def _write_kernel(path, kernel, pitch) -> None:
 
 
 def cmd_psf(args) -> int:
-    from ..optics.lens import load_lens
     from ..psf.compute import check_psf_memory, pixel_pitch_mm, psf
     from ..psf.plots import depth_label, psf_grid_png
     from ..render.pictures import require_matplotlib
-    lens = load_lens(args.lens)
+    lens = load_lens_with_aperture(args)
     check_output(args.out, "--out", suffix=".npz")
     check_output(args.png, "--png", suffix=".png")
     if args.png:
@@ -251,6 +250,7 @@ def add_commands(sub) -> None:
     q.add_argument("--out", default=None, metavar="FILE.npz", help="write psf (3,k,k) and pixel_pitch_mm")
     q.add_argument("--png", default=None, metavar="FILE.png", help="write a picture of the kernel")
     q.add_argument("--json", action="store_true", help="print JSON")
+    add_aperture_options(q)
     add_psf_options(q)
     add_psf_source_options(q)
     q.set_defaults(func=cmd_psf)

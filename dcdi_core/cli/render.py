@@ -8,8 +8,9 @@ from __future__ import annotations
 import contextlib
 from dataclasses import replace
 
-from .common import (UNITS, add_psf_options, add_psf_source_options, check_cache, check_olf_file,
-                     check_output, depth_value, dump, focus_value, in_cli_words, job_control, pixels, positive_int, psf_request,
+from .common import (UNITS, add_aperture_options, add_psf_options, add_psf_source_options, check_cache, check_olf_file,
+                     check_output, depth_value, dump, focus_value, in_cli_words, job_control, load_lens_with_aperture,
+                     pixels, positive_int, psf_request,
                      psf_settings, response, say)
 
 
@@ -42,6 +43,7 @@ def add_rgbd_options(q, *, sensor_focus: bool, depth_required: bool = True,
                         "visible band weighted by the sensor's response")
     q.add_argument("--interpolation", default=DEFAULT_INTERPOLATION, choices=INTERPOLATIONS,
                    help=f"how the distortion warp resamples the image (default {DEFAULT_INTERPOLATION})")
+    add_aperture_options(q)
     add_psf_options(q, sensor_focus=sensor_focus, render=True)
     add_psf_source_options(q)
 
@@ -118,8 +120,7 @@ def render_inputs(args, *, sensor_focus: bool):
     """Everything simulate and bokeh check before any work: the lens, the
     outputs, the request, the response file, the images, the geometry.
     Returns (lens, request, plan, response, image, depth)."""
-    from ..optics.lens import load_lens
-    lens = load_lens(args.lens)
+    lens = load_lens_with_aperture(args)
     check_render_outputs(args)
     request = render_request(args, lens, sensor_focus=sensor_focus)
     resp = response(args)

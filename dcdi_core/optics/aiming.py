@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import surfaces as S
+from .aperture import inside_iris
 from ..errors import InputRangeError
 from .lens import Lens
 from .paraxial import first_order
@@ -195,10 +196,13 @@ def stop_grid(lens: Lens, n: int) -> np.ndarray:
     equal area of the real stop)."""
     if n < 1:
         raise InputRangeError("rays", n, ">= 1")
-    r = lens.surfaces[lens.stop_index].semi_diameter_mm
+    stop = lens.surfaces[lens.stop_index]
+    r = stop.semi_diameter_mm
     c = ((np.arange(n) + 0.5) / n * 2.0 - 1.0) * r
     x, y = np.meshgrid(c, c)
     keep = x * x + y * y <= r * r
+    if stop.blades:                                 # a bladed iris: its polygon (each sample an equal area of it)
+        keep &= inside_iris(x, y, stop.blades, stop.blade_rotation_deg, r)
     if n == 1:
         keep[:] = True
     return np.stack([x[keep], y[keep]], axis=-1)

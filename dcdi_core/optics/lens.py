@@ -94,6 +94,7 @@ class Lens:
     wavelength_nm: float = D_LINE_NM
     path: str = "<dict>"
     content_hash: str = ""
+    iris: str = ""          # stopped down from the prescription ('f/8, 6 blades': optics.aperture), or ""
 
     @property
     def vertex_z_mm(self) -> np.ndarray:
@@ -157,7 +158,7 @@ class Lens:
     def with_surfaces(self, surfaces) -> "Lens":
         """A copy with other surfaces (used by perturbation and refocusing)."""
         return Lens(self.id, self.name, tuple(surfaces), self.sensor, self.stated, self.source,
-                    self.notes, self.wavelength_nm, self.path, "")
+                    self.notes, self.wavelength_nm, self.path, "", self.iris)
 
     # ------------------------------------------------------------------ loading
     @classmethod
@@ -390,6 +391,7 @@ def lens_fingerprint(lens: "Lens") -> str:
     # an odd asphere's terms only where there are any: the fingerprints (and caches) of all other lenses unchanged
     parts = [repr([(s.radius_mm, s.thickness_mm, s.semi_diameter_mm, s.conic, s.aspheric_coefficients, s.stop)
                    + ((s.odd_aspheric_coefficients,) if s.odd_aspheric_coefficients else ())
+                   + ((s.blades, s.blade_rotation_deg) if s.blades else ())     # likewise a bladed iris
                    for s in lens.surfaces]),
              np.round(n, 12).tobytes().hex(), repr(lens.sensor), repr(lens.wavelength_nm)]
     return hashlib.sha256("|".join(parts).encode()).hexdigest()

@@ -63,6 +63,10 @@ class Surface:
     label: str = ""
     # an odd asphere's terms b_i r^i, i = 1, 2, ... (mm^(1 - i)), added to the sag
     odd_aspheric_coefficients: tuple[float, ...] = field(default_factory=tuple)
+    # the iris (the stop only): 0 round, n >= 5 a regular n-gon inscribed in the
+    # semi-diameter's circle, a corner at blade_rotation_deg from +y towards +x
+    blades: int = 0
+    blade_rotation_deg: float = 0.0
 
     @property
     def curvature(self) -> float:

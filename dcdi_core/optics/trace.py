@@ -19,6 +19,7 @@ import numpy as np
 
 from ..parallel import thread_pool
 from . import surfaces as S
+from .aperture import inside_iris
 from .profiles import Plane, Profile, profile_of
 
 # rays per chunk: 256 kB per coordinate array keeps a chunk's working set in
@@ -63,6 +64,7 @@ class _Step:
     sd2: float           # squared semi-diameter (inf: no aperture)
     refract: bool        # False where the media on both sides are identical
     index: int
+    iris: tuple | None = None   # a bladed stop: (blades, rotation deg, semi-diameter mm)
 
 
 def _steps(lens, upto: int | None, apertures: bool) -> list[_Step]:
@@ -72,8 +74,9 @@ def _steps(lens, upto: int | None, apertures: bool) -> list[_Step]:
         s = lens.surfaces[i]
         before = lens.surfaces[i - 1].material if i > 0 else None
         same = (before is s.material) or (before is None and s.material.name == "air")
+        iris = (s.blades, s.blade_rotation_deg, s.semi_diameter_mm) if apertures and s.blades else None
         out.append(_Step(float(lens.vertex_z_mm[i]), profile_of(s),
-                         s.semi_diameter_mm ** 2 if apertures else np.inf, not same, i))
+                         s.semi_diameter_mm ** 2 if apertures else np.inf, not same, i, iris))
     if upto is None:  # the sensor: a plane without aperture
         out.append(_Step(float(lens.sensor_z_mm), Plane(), np.inf, False, len(lens.surfaces)))
     return out
@@ -128,6 +131,10 @@ def _trace_chunk(steps, mu_tables, widx, x, y, z, dx, dy, dz, status, failed,
             kill(t < -1e-9, S.BACKWARD)
         if np.isfinite(st.sd2) and r2.max() > st.sd2:
             kill(r2 > st.sd2, S.VIGNETTED)
+        if st.iris is not None:
+            outside = ~inside_iris(xs, ys, *st.iris)
+            if outside.any():
+                kill(outside, S.VIGNETTED)
         ok = None if alive[0] else status == S.OK
         if zl is not None:
             zl += st.z_vertex

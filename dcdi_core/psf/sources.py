@@ -221,6 +221,13 @@ def psf_source(lens, *, source: str | None = None, olf_file=None, pixel_pitch_mm
                      None if olf_path is None else str(olf_path))
 
 
+def _stopped_down(lens, path) -> str | None:
+    """Why a store of the lens wide open does not serve it stopped down (None: it is not)."""
+    if not getattr(lens, "iris", ""):
+        return None
+    return f"{lens.id} is stopped down ({lens.iris}); {path} holds it as prescribed (wide open)"
+
+
 def _none_given(label: str | None) -> str:
     """' and none was given (LABEL)' where the user can give one."""
     return f" and none was given ({label})" if label else ""
@@ -241,7 +248,7 @@ def _try_basis(lens, basis_file, pitch, settings, kernel_size, focus_m, custom_r
         store = open_store(path)
         store.check_lens(lens)
     except OpticsError as e:
-        return None, str(e)
+        return None, _stopped_down(lens, path) or str(e)
     if stack and store.focus_diopters is None:
         return None, f"focus {focus_m:.3g} m asked for; {path} holds {lens.id} at its prescribed focus"
     if stack and not store.covers_focus(focus_m):
@@ -306,7 +313,7 @@ def _why_not(olf: OmniLensField, lens, pitch, settings, kernel_size, focus_m, cu
     if lens.id not in olf.lens_ids:
         return f"{olf.path} did not learn lens {lens.id!r} (it learned {', '.join(olf.lens_ids)})"
     if not olf.covers(lens):
-        return (f"{lens.id} ({lens.path}) differs optically from the prescription {olf.path} learned "
+        return _stopped_down(lens, olf.path) or (f"{lens.id} ({lens.path}) differs optically from the prescription {olf.path} learned "
                 "(changed prescription: not served)")
     entry = olf.lens_entry(lens.id)
     learned = float(entry["pixel_pitch_mm"])
