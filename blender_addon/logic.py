@@ -29,6 +29,7 @@ import dcdi_core.models          # TORCH_VERSION, TorchMissingError: no torch im
 from dcdi_core import app
 from dcdi_core.errors import DcdiError, in_words
 from dcdi_core.optics import analysis, paraxial, zemax
+from dcdi_core.optics.aperture import MAX_BLADES, MAX_F_NUMBER, MIN_BLADES, Aperture, stopped_down, wide_open_f_number
 from dcdi_core.optics.lens import Lens, lens_dirs
 from dcdi_core.psf import compute
 from dcdi_core.render import camera as dcdi_camera
@@ -241,6 +242,25 @@ def preview_shape(res_x: int, res_y: int, aspect_x: float, aspect_y: float, long
     if w_disp >= h_disp:
         return max(8, round(long_side * h_disp / w_disp)), long_side
     return long_side, max(8, round(long_side * w_disp / h_disp))
+
+
+def camera_aperture(lens, f_stop: float, blades: int, rotation_rad: float):
+    """(``lens`` stopped down to a camera's ``f_stop`` with its iris's
+    ``blades`` (Blender's: 0 round, 3 or more a polygon) turned by
+    ``rotation_rad``; a note, or ''). An F-Stop at or wider than the lens's
+    widest leaves it wide open, said in the note (a camera's F-Stop is the
+    artist's, not the lens's: it is never refused)."""
+    n0 = wide_open_f_number(lens)
+    blades = int(blades) if int(blades) >= MIN_BLADES else 0
+    note = ""
+    if not (math.isfinite(f_stop) and f_stop > n0 * (1.0 + 1e-3)):
+        if f_stop < n0 * (1.0 - 1e-3):
+            note = f"F-Stop {f_stop:.3g} is wider than this lens's widest, f/{n0:.3g}: the lens wide open"
+        f_stop = None
+    else:
+        f_stop = min(float(f_stop), MAX_F_NUMBER)
+    rotation = math.degrees(float(rotation_rad)) if math.isfinite(rotation_rad) else 0.0
+    return stopped_down(lens, Aperture(f_stop, min(blades, MAX_BLADES), rotation if blades else 0.0)), note
 
 
 def keep_range(focus_m: float, front_m: float, behind_m: float) -> tuple[float, float]:

@@ -377,7 +377,7 @@ def _redraw(context):
 
 
 class DCDI_OT_match_camera(bpy.types.Operator):
-    """Set the active camera's focal length and sensor to the lens's (paraxial focal length; the sensor's diagonal spans the render; both scaled up together where Blender's 1 mm minimum sensor would change the field of view)"""
+    """Set the active camera's focal length, sensor and F-Stop to the lens's (paraxial focal length; the sensor's diagonal spans the render; both scaled up together where Blender's 1 mm minimum sensor would change the field of view; the F-Stop wide open)"""
 
     bl_idname = "dcdi.match_camera_to_lens"
     bl_label = "Match Camera to Lens"
@@ -396,11 +396,14 @@ class DCDI_OT_match_camera(bpy.types.Operator):
         c = pinhole.blender_camera_settings()
         for name, value in c.items():
             setattr(cam.data, name, value)
+        # the lens wide open: Camera Aperture then stops it down from there
+        cam.data.dof.aperture_fstop = logic.wide_open_f_number(lens)
         scale = pinhole.blender_scale()
         scaled = (f" (the lens's {pinhole.focal_length_mm:.3g} mm and its sensor scaled x{scale:.3g} to Blender's "
                   "1 mm minimum; the field of view is the lens's)" if scale > 1 else "")
         self.report({"INFO"}, f"{cam.name}: focal length {c['lens']:.2f} mm, sensor "
-                              f"{c['sensor_width']:.2f} x {c['sensor_height']:.2f} mm{scaled}")
+                              f"{c['sensor_width']:.2f} x {c['sensor_height']:.2f} mm{scaled}, "
+                              f"F-Stop {cam.data.dof.aperture_fstop:.3g} (wide open)")
         return {"FINISHED"}
 
 

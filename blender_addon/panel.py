@@ -174,6 +174,32 @@ def _readout(layout, context, settings):
         _wrapped(row, context, THUMBNAIL_NOTE, max_lines=5, indent_px=BOX_PX + 70)
 
 
+def _aperture(layout, context, settings) -> None:
+    """Camera Aperture, and when on the camera's own F-Stop, Blades and
+    Rotation (what stops the lens down), with a note where its F-Stop is
+    wider than the lens's."""
+    col = layout.column(align=True)
+    col.prop(settings, "use_camera_aperture")
+    cam = context.scene.camera
+    if not settings.use_camera_aperture or cam is None or cam.type != "CAMERA":
+        return
+    dof = cam.data.dof
+    col.prop(dof, "aperture_fstop", text="F-Stop")
+    col.prop(dof, "aperture_blades", text="Blades")
+    col.prop(dof, "aperture_rotation", text="Rotation")
+    path = reading.lens_file(settings.lens)
+    if path is None:
+        return
+    try:
+        lens = logic.load_lens_cached(path)
+        _, note = logic.camera_aperture(lens, float(dof.aperture_fstop), int(dof.aperture_blades),
+                                        float(dof.aperture_rotation))
+    except (dcdi_errors.DcdiError, ValueError, OSError) as e:
+        note = logic.message(e)
+    if note:
+        _wrapped(layout, context, note, "INFO", max_lines=3)
+
+
 def _sharp_range(scene, s) -> str:
     """The depths kept sharp, as the operator will compute them (metres from
     the front of the lens), or why they cannot be computed yet."""
@@ -237,6 +263,7 @@ def draw_lens_bokeh(layout, context, in_viewport: bool = True):
         row.operator("dcdi.focus_pick", icon="EYEDROPPER")
     row.operator("dcdi.focus_active_object", text="Active", icon="OBJECT_DATA")
     col.prop(s, "refocus")
+    _aperture(layout, context, s)
     # a column's heading shows only before a checkbox when properties are split: a label of its own
     layout.label(text="Kept Sharp")
     col = layout.column(align=True)

@@ -76,6 +76,13 @@ class DCDI_LensBokehSettings(bpy.types.PropertyGroup):
                                       "for each focus, then cached). Off: the lens as its prescription stands, the "
                                       "kept range still sharp; a shipped lens is then served by the bundled "
                                       "Omni-Lens-Field network, with no tracing")
+    use_camera_aperture: BoolProperty(update=_settings_changed, name="Camera Aperture", default=False,
+                                      description="Stop the lens down to the active camera's F-Stop, shaped by its "
+                                                  "Blades and Rotation (Properties > Camera > Depth of Field > "
+                                                  "Aperture): the PSFs are traced for that stop, then cached. An "
+                                                  "F-Stop wider than the lens's own leaves it wide open. Off: the "
+                                                  "lens wide open, its round stop as prescribed, served by the "
+                                                  "bundled PSF stores")
     keep_front: FloatProperty(update=_settings_changed, name="In Front", description="Depth kept sharp in front of the focus, scene units",
                               default=0.3, min=0.0, soft_max=10.0, subtype="DISTANCE", unit="LENGTH")
     keep_behind: FloatProperty(update=_settings_changed, name="Behind", description="Depth kept sharp behind the focus, scene units",

@@ -43,6 +43,7 @@ class SceneReading:
     render_size: tuple[int, int, float, float]       # resolution x, y; pixel aspect x, y
     preview_size: int
     samples: int
+    aperture_note: str = ""          # why the camera's F-Stop was not used as it stands ('': it was, or not asked)
 
     def preview_shape(self) -> tuple[int, int]:
         """(height, width) of the preview: the render's aspect, its long side the Preview Size."""
@@ -62,13 +63,14 @@ def read_scene(scene, *, focus: bool = True, depsgraph=None, lens_path: str | No
     else:
         lens = logic.load_lens_cached(lens_path)
     ep = logic.lens_readout(lens_path)["entrance_pupil_mm"]
+    lens, note = camera_aperture(cam, s, lens)
     focus_m = keep = None
     if focus:
         focus_m, keep = focus_and_keep(scene, cam, s, ep, depsgraph)
     r = scene.render
     return SceneReading(cam, lens, lens_path, ep, metres_per_unit(scene), focus_m, keep, bool(s.refocus),
                         (r.resolution_x, r.resolution_y, r.pixel_aspect_x, r.pixel_aspect_y), s.preview_size,
-                        s.samples)
+                        s.samples, note)
 
 
 # ------------------------------------------------------------------ the parts
@@ -88,6 +90,18 @@ def camera(scene):
         raise logic.BokehInputError(f"camera {cam.name!r} is {cam.data.type.lower()}: "
                                     "Lens Bokeh needs a perspective camera (Camera > Type > Perspective)")
     return cam
+
+
+def camera_aperture(cam, settings, lens):
+    """(the lens, stopped down to the camera's F-Stop and shaped by its Blades
+    and Rotation when Camera Aperture is on; a note for the panel, or ''):
+    ``logic.camera_aperture`` on the camera's Depth of Field settings. The
+    entrance pupil's position does not move with the stop (paraxially)."""
+    if not settings.use_camera_aperture:
+        return lens, ""
+    dof = cam.data.dof
+    return logic.camera_aperture(lens, float(dof.aperture_fstop), int(dof.aperture_blades),
+                                 float(dof.aperture_rotation))
 
 
 def user_lens_dir(create: bool = False) -> str:
@@ -182,6 +196,8 @@ def inputs_key(scene) -> str:
         d = cam.data
         parts += [d.type, round(d.lens, 6), round(d.sensor_width, 6), round(d.sensor_height, 6), d.sensor_fit,
                   placed(d.dof.focus_object), round(d.dof.focus_distance, 9)]
+        if s.use_camera_aperture:
+            parts += [round(d.dof.aperture_fstop, 6), d.dof.aperture_blades, round(d.dof.aperture_rotation, 6)]
     r = scene.render
     parts += [r.resolution_x, r.resolution_y, r.pixel_aspect_x, r.pixel_aspect_y, scene.unit_settings.scale_length]
     return repr(parts)

@@ -342,7 +342,7 @@ def inputs(context) -> dict:
                  d.sensor_width, d.sensor_height, d.sensor_fit, d.shift_x, d.shift_y, d.clip_start, d.clip_end)
     return {"scene": scene, "camera": cam, "lens": lens, "path": path, "entrance_pupil_mm": ep, "h": h, "w": w,
             "mpu": mpu, "focus": r.focus_m, "keep": r.keep, "sharp_key": sharp_key,
-            "request": (lens.id, path, r.focus_m, r.keep, r.refocus, round(ep, 9), mpu)}
+            "request": (lens.id, path, r.focus_m, r.keep, r.refocus, round(ep, 9), mpu, lens.iris)}
 
 
 def wanted(context) -> tuple:

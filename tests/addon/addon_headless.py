@@ -116,6 +116,22 @@ for m, fn in tracers.items():
 s.refocus = True
 s.lens = "6p"
 
+# Camera Aperture: the camera's F-Stop and blades stop the lens down (traced: the
+# shipped stores hold it wide open); an F-Stop wider than the lens's: wide open, said
+reading = sys.modules[f"{MODULE}.reading"]
+res["matched_fstop"] = cam.data.dof.aperture_fstop
+s.use_camera_aperture = True
+cam.data.dof.aperture_fstop, cam.data.dof.aperture_blades, cam.data.dof.aperture_rotation = 4.0, 6, 0.0
+st.psf_source = ""
+res["aperture_apply"] = {"iris": reading.read_scene(scene).lens.iris, "result": sorted(bpy.ops.dcdi.apply_lens_bokeh()),
+                         "status": st.psf_source}
+np.save(OUT / "aperture-f4.npy", bpy_render.get_image("Lens Bokeh"))
+cam.data.dof.aperture_fstop = 1.2
+wide = reading.read_scene(scene)
+res["aperture_wide"] = {"iris": wide.lens.iris, "note": wide.aperture_note}
+s.use_camera_aperture = False
+cam.data.dof.aperture_fstop, cam.data.dof.aperture_blades = res["matched_fstop"], 0
+
 # a focus on empty space: nothing between 3.7 and 4.3 m (the cube is nearer,
 # the wall farther), so everything is out of focus
 s.focus_mode = "DISTANCE"

@@ -493,6 +493,28 @@ def test_first_apply_with_refocus_on_a_focus_lens_traces_nothing(headless):
     assert np.abs(out - aif)[depth > 7.0].mean() > 1e-3
 
 
+def test_camera_aperture_stops_the_lens_down_to_the_cameras_f_stop(headless):
+    """Camera Aperture on, the camera at f/4 with 6 blades: the 6P (matched
+    wide open, f/1.64) is stopped down and traced (the status says the
+    stores hold it wide open), the kept cube as before, the far wall less
+    blurred than wide open; an F-Stop wider than the lens's leaves it wide
+    open, saying so."""
+    assert headless["matched_fstop"] == pytest.approx(headless["readout"]["f_number"], rel=1e-3)
+    run = headless["aperture_apply"]
+    assert run["iris"] == "f/4, 6 blades" and run["result"] == ["FINISHED"], run
+    assert "is stopped down (f/4, 6 blades)" in run["status"], run["status"]
+    aif = np.load(headless["dir"] / "aif.npy")
+    depth = np.load(headless["dir"] / "depth.npy")[..., 0]
+    f4, wide = np.load(headless["dir"] / "aperture-f4.npy"), np.load(headless["dir"] / "out.npy")
+    f = headless["focus_m"]
+    kept = (depth >= f - headless["keep_m"][0]) & (depth <= f + headless["keep_m"][1])
+    assert np.abs(f4 - aif)[kept].max() < 1e-5
+    far = depth > 7.0
+    assert 1e-4 < np.abs(f4 - aif)[far].mean() < 0.7 * np.abs(wide - aif)[far].mean()
+    assert headless["aperture_wide"]["iris"] == "f/1.64, 6 blades"          # wide open, its blades kept
+    assert "F-Stop 1.2 is wider than this lens's widest, f/1.64" in headless["aperture_wide"]["note"]
+
+
 # ------------------------------------------------------------------ the DCDI round trip in Blender
 ROUND_TRIP_LENS = "mos-s2"          # the lens of test_dacn_train's tiny pairs
 
@@ -1224,3 +1246,22 @@ def test_the_status_describes_the_settings_as_they_are(panel_drawn):
 def test_the_focus_tooltip_speaks_an_artists_words(panel_drawn):
     tip = panel_drawn["focus_tooltip"]
     assert "vertex" not in tip and "front of the lens" in tip, tip
+
+
+def test_a_cameras_aperture_is_never_refused():
+    """logic.camera_aperture: Blender's F-Stop, Blades and Rotation as the
+    artist set them: stopped down, or wide open with a note where the
+    F-Stop is wider than the lens's; blades below 3 round; far stops at
+    f/128."""
+    lens = logic.load_lens_cached(dict((e.id, e.path) for e in logic.lens_catalogue())["mos-s1"])
+    stopped, note = logic.camera_aperture(lens, 8.0, 6, math.radians(15.0))
+    assert stopped.iris == "f/8, 6 blades" and note == ""
+    stop = stopped.surfaces[stopped.stop_index]
+    assert stop.blades == 6 and stop.blade_rotation_deg == pytest.approx(15.0)
+    assert logic.camera_aperture(lens, 2.8, 0, 0.0) == (lens, "F-Stop 2.8 is wider than this lens's widest, "
+                                                               "f/5: the lens wide open")
+    assert logic.camera_aperture(lens, 5.0, 0, 0.0) == (lens, "")
+    assert logic.camera_aperture(lens, 8.0, 2, 1.0)[0].iris == "f/8"
+    assert logic.camera_aperture(lens, 1e6, 5, 0.0)[0].iris == "f/128, 5 blades"
+    for bad in (math.nan, math.inf, 0.0, -1.0):
+        assert logic.camera_aperture(lens, bad, 6, math.nan)[0].iris in ("", "f/5, 6 blades")
