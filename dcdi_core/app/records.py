@@ -73,12 +73,24 @@ def recorded_defaults(render, lens, record, shape, image_name: str, *, focus: bo
     from ..io.capture_record import prescription_sha256
     notes = []
     if record.prescription_sha256 is not None and record.prescription_sha256 != prescription_sha256(lens):
-        notes.append(f"{image_name} was made with a different prescription of {lens.id} (perturbed or edited: "
-                     "its prescription hash differs); it is used as given")
+        notes.append(_prescription_note(record, lens, image_name))
     if not changes:
         return render, notes
     # the request checks its values again, naming the record's fields where they came from it
     return replace(render, **changes, labels={**render.labels, **labels}), notes
+
+
+def _prescription_note(record, lens, image_name: str) -> str:
+    """Why the recorded prescription differs from ``lens``: another stop
+    (the record's iris against the lens's), else an edited or perturbed copy."""
+    made = (record.extra or {}).get("iris") or ""
+    here = getattr(lens, "iris", "")
+    if made or here:
+        return (f"{image_name} was made with {lens.id} {f'stopped down ({made})' if made else 'wide open'}, this "
+                f"job's {lens.id} is {f'stopped down ({here})' if here else 'wide open'}: give the capture's "
+                "--f-number and --blades to use its PSFs; used as given")
+    return (f"{image_name} was made with a different prescription of {lens.id} (perturbed or edited: its "
+            "prescription hash differs); it is used as given")
 
 
 def _check_recorded_focus(lens, focus_m: float, wavelength_nm, blame: str) -> None:

@@ -125,6 +125,8 @@ def simulate(request: SimulateRequest, control: Control | None = None, *,
                             "each takes its patch's blur, a patch with none is left sharp")
     from .records import simulated_record
     extra = {} if render.fixed_depth_m is None else {"fixed_depth_m": float(render.fixed_depth_m)}
+    if getattr(lens, "iris", ""):
+        extra["iris"] = lens.iris                      # stopped down ('f/4, 6 blades'): optics.aperture
     if perturbation is not None:
         extra["perturb_seed"] = int(render.perturb_seed)
     record = simulated_record(lens, plan.geometry, focus_distance_m=plan.settings.focus_distance_m,

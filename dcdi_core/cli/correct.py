@@ -6,8 +6,9 @@ has been checked and needs it.
 """
 from __future__ import annotations
 
-from .common import (UNITS, add_device_option, add_psf_options, add_psf_source_options, check_cache, check_olf_file,
-                     check_output, depth_value, dump, in_cli_words, job_control, positive_int, psf_request, response,
+from .common import (UNITS, add_aperture_options, add_device_option, add_psf_options, add_psf_source_options, check_cache, check_olf_file,
+                     check_output, depth_value, dump, in_cli_words, job_control, load_lens_with_aperture, positive_int,
+                     psf_request, response,
                      say)
 from .render import add_focus_options, add_rgbd_options, check_image_fits, quiet_input_warnings, render_inputs
 
@@ -139,7 +140,8 @@ def cmd_correct(args) -> int:
     lens = None
     if args.lens is not None:
         from ..optics.lens import load_lens
-        lens = load_lens(args.lens)
+        # the deconvolution's lens at the capture's stop (`dacn correct` has no aperture options)
+        lens = load_lens_with_aperture(args) if hasattr(args, "f_number") else load_lens(args.lens)
     check_correction(lens.id if lens is not None else None, args.method, args.model)
     _early_network(args, "model")
     deconvolves = lens is not None and args.method != "dacn" and args.model is None
@@ -350,6 +352,7 @@ def correct_parser(subparsers, name: str, *, network_only: bool = False, **kw):
         t.add_argument("--axis", type=float, nargs=2, default=None, metavar=("ROW", "COL"),
                        help="the optical axis's pixel position in the image (default: its centre)")
         add_deconv_options(t)
+        add_aperture_options(t)
         add_psf_options(t, sensor_focus=True, render=True)
         add_psf_source_options(t)
     t.add_argument("--tile", type=positive_int, default=256, help="the network's tile size, px (default 256)")

@@ -195,3 +195,30 @@ def test_bench_cli_quick_times_the_whole_processes(capsys):
     for job in ("dcdi --help (start-up)", "dcdi simulate", "dcdi bokeh --focus 1.5"):
         line = next(ln for ln in out.splitlines() if ln.strip().startswith(job))
         assert " s (" in line and "s CPU" in line
+
+
+def test_the_aperture_stops_bokeh_simulate_and_correct_down(scene, capsys):
+    """--f-number and --blades on bokeh, simulate and correct: a stopped-down
+    bokeh blurs less than wide open; a capture simulated stopped down records
+    its stop, and correcting it at another stop says so; a wider stop than
+    the lens's is one line before any work."""
+    d, img = scene
+    io = ["--image", str(d / "aif.exr"), "--depth", str(d / "depth.exr")]
+    for name, extra in (("wide", []), ("f8", ["--f-number", "8", "--blades", "6"])):
+        assert main(["bokeh", *io, "--lens", "6p", "--focus", "1.2", "-o", str(d / f"{name}.exr"), *FAST,
+                     *extra]) == 0
+    capsys.readouterr()
+    wide, f8 = read_image(d / "wide.exr"), read_image(d / "f8.exr")
+    assert 0 < np.abs(f8 - img).mean() < 0.8 * np.abs(wide - img).mean()
+    assert main(["simulate", *io, "--lens", "mos-s1", "--f-number", "8", "--blades", "6", "-o", str(d / "sim.exr"),
+                 "--no-distortion", *FAST]) == 0
+    capsys.readouterr()
+    correct = ["correct", "--image", str(d / "sim.exr"), "--depth", str(d / "depth.exr"), "--lens", "mos-s1",
+               "--method", "deconv", *FAST]
+    assert main([*correct, "-o", str(d / "c1.exr")]) == 0
+    assert "stopped down (f/8, 6 blades), this job's mos-s1 is wide open" in capsys.readouterr().err
+    assert main([*correct, "--f-number", "8", "--blades", "6", "-o", str(d / "c2.exr")]) == 0
+    assert "stopped down" not in capsys.readouterr().err
+    code = main(["bokeh", *io, "--lens", "6p", "--focus", "1.2", "-o", str(d / "x.exr"), "--f-number", "1.2"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code != 0 and len(err) == 1 and "f/1.64" in err[0] and not (d / "x.exr").exists()
