@@ -46,3 +46,34 @@ def test_a_lone_light_blurs_out_to_its_kernels_reach(lens_lib):
     assert want[halo].sum() > 0.05 * want[20:61, 20:61].sum()      # a halo worth testing
     np.testing.assert_allclose(got[halo].sum(), want[halo].sum(), rtol=0.02)
     assert np.isfinite(got).all()
+
+
+def test_a_faint_layer_behind_stays_as_faint_as_its_coverage():
+    """The layered composite (bokeh._composite_block): what lies behind a
+    layer counts as whole where its coverage reaches OPAQUE_COVER (the colour
+    spread from around fills a hidden part: no dark seam), and in proportion
+    where it is fainter: a bright light's faint blur (coverage 0.002, colour
+    30 once normalised) seen under a nearly opaque layer stays faint instead
+    of lighting it up. Where the layer covers nothing, what lies behind is
+    left as it was."""
+    from dcdi_core.render.bokeh import OPAQUE_COVER, _composite_block
+    board = 0.5
+
+    def over(behind_colour, behind_cover, cover):
+        col = np.full((1, 1, 3), behind_colour, np.float32)
+        acc = np.full((1, 1, 3), behind_cover, np.float32)
+        blurred = np.concatenate([np.full(3, board * cover), np.full(3, cover)]).astype(np.float32)[None, None]
+        _composite_block(col, acc, blurred)
+        return float(col[0, 0, 0]), float(acc[0, 0, 0])
+
+    got, acc = over(30.0, 0.002, 0.97)
+    # counted whole, the light behind would add 30 x 0.03 = 0.9: in proportion, 30 x 0.002 / 0.05 x 0.03
+    assert abs(got - board) < 0.05 and acc == pytest.approx(0.97 + 0.03 * 0.002, rel=1e-5)
+    # behind seen enough: whole, as a continuous surface crossing layers needs
+    for seen in (OPAQUE_COVER, 0.3, 1.0):
+        got, _ = over(0.2, seen, 0.5)
+        assert got == pytest.approx(0.5 * board + 0.5 * 0.2, rel=1e-5)
+    # nothing behind: the layer's own colour, normalised
+    assert over(0.0, 0.0, 0.01)[0] == pytest.approx(board, rel=1e-5)
+    # a layer that covers nothing leaves what lies behind bit for bit
+    assert over(0.123, 0.4, 0.0) == (np.float32(0.123), np.float32(0.4))
