@@ -36,7 +36,7 @@ THUMBNAIL = 73.0
 SPLIT = 0.4
 SLACK_PX = 1.0           # blf's widths are fractional
 
-LENS_IDS = ("6p", "double-gauss", "mos-s1", "mos-s2")
+LENS_IDS = tuple(sorted(p.stem for p in (ROOT / "lenses").glob("*.toml")))     # the paper's four and the catalogue
 ABSOLUTE_PATH = re.compile(r"(?:^|[\s\"'(])(?:/[\w.+-]+){2,}|[A-Za-z]:\\")
 
 
