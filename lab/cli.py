@@ -7,7 +7,7 @@
                                         dacn-study, dfd-refine-study, olf-sweep, depth-from-blur,
                                         bench-defocus, bokeh-variants, capture-records,
                                         resample-accuracy, focus-stack, aperture, catalogue-table,
-                                        contact-sheet, cli-reference, reproduce
+                                        contact-sheet, large-bokeh, cli-reference, reproduce
 
 `python -m lab COMMAND --help` says more; lab/README.md lists which figure or
 table of docs/ each one makes. The lab uses the engine (``dcdi_core``); the
@@ -44,6 +44,8 @@ MODULES = {
                                                "(docs/image-formation.md)"),
     "focus-stack": ("focus_stack_report", "a focus stack's PSFs against tracing, and their time (docs/psf.md)"),
     "catalogue-table": ("catalogue_table", "the lens catalogue's figures beside its sources' (lenses/README.md)"),
+    "large-bokeh": ("large_bokeh", "an 85 mm f/1.4 at 1920 x 1080 with a 190-px background blur, timed whole "
+                                   "(docs/performance.md)"),
     "contact-sheet": ("contact_sheet", "one scene through every lens wide open, and one lens stopped down "
                                        "(lenses/README.md)"),
     "aperture": ("aperture_report", "the iris on the PSFs: defocus blur against the f-number, the blades' "
