@@ -200,24 +200,42 @@ THUMBNAIL_TILE_PX = 31
 def psf_thumbnail(lens, tile: int = THUMBNAIL_TILE_PX) -> np.ndarray:
     """A grid of the lens's RGB PSFs (THUMBNAIL_FIELDS x THUMBNAIL_DEPTHS_M),
     each tile ``tile`` px at the pixel pitch of a 600-px-diagonal image on
-    its sensor, scaled to its own peak and gamma-encoded (1/2.2) so that
-    halos show: float32 (H, W, 3) in [0, 1], rows top to bottom, 1-px
-    gaps. Quick settings (32 x 32 pupil rays, 5 wavelengths): a picture of
-    the lens's character, not its exact PSFs."""
+    its sensor, or at the coarser one that holds the widest of them (a fast
+    photographic lens focused at infinity blurs a point at 1 m over many
+    times the tile: clipped, every tile would be a flat square), scaled to
+    its own peak and gamma-encoded (1/2.2) so that halos show: float32 (H,
+    W, 3) in [0, 1], rows top to bottom, 1-px gaps. Quick settings (32 x 32
+    pupil rays, twice the tile's width where the blur fills it; 5
+    wavelengths): a picture of the lens's character, not its exact PSFs."""
     pitch = 2.0 * lens.sensor.semi_diagonal_mm / 600.0
-    settings = compute.PSFSettings(kernel_size=tile, pupil_samples=32, n_wavelengths=5, pixel_pitch_mm=pitch)
+    kernels, needed = _thumbnail_kernels(lens, tile, pitch)
+    if needed > tile:                                  # one pitch for the grid: its tiles compare
+        # a disc as wide as the tile: two rays a pixel across it, so the pupil's grid does not show
+        kernels, _ = _thumbnail_kernels(lens, tile, pitch * needed / tile, rays=2 * tile)
     nf, nd = len(THUMBNAIL_FIELDS), len(THUMBNAIL_DEPTHS_M)
     out = np.zeros((nf * (tile + 1) - 1, nd * (tile + 1) - 1, 3), np.float32)
+    for (i, j), k in kernels.items():
+        img = np.moveaxis(np.nan_to_num(k, nan=0.0), 0, -1)
+        peak = float(img.max())
+        tile_img = (img / peak) ** (1.0 / 2.2) if peak > 0 else img
+        out[i * (tile + 1):i * (tile + 1) + tile, j * (tile + 1):j * (tile + 1) + tile] = tile_img
+    return out
+
+
+def _thumbnail_kernels(lens, tile: int, pitch: float, rays: int = 32) -> tuple[dict, int]:
+    """({(row, column): RGB kernel (3, tile, tile)} of the thumbnail's grid at
+    ``pitch`` mm with ``rays`` per pupil side, the widest kernel any of them
+    needs (99 % of its rays), px)."""
+    settings = compute.PSFSettings(kernel_size=tile, pupil_samples=rays, n_wavelengths=5, pixel_pitch_mm=pitch)
+    kernels, needed = {}, 0
     for i, f in enumerate(THUMBNAIL_FIELDS):
         for j, d in enumerate(THUMBNAIL_DEPTHS_M):
             with warnings.catch_warnings():
-                warnings.simplefilter("ignore")         # a PSF larger than the tile is clipped: a picture
-                k = compute.psf(lens, depth_m=d, field=f, settings=settings).psf
-            img = np.moveaxis(np.nan_to_num(k, nan=0.0), 0, -1)
-            peak = float(img.max())
-            tile_img = (img / peak) ** (1.0 / 2.2) if peak > 0 else img
-            out[i * (tile + 1):i * (tile + 1) + tile, j * (tile + 1):j * (tile + 1) + tile] = tile_img
-    return out
+                warnings.simplefilter("ignore")         # a PSF larger than the tile is clipped: measured below
+                b = compute.psf(lens, depth_m=d, field=f, settings=settings)
+            kernels[i, j] = b.psf
+            needed = max(needed, int(b.kernel_size_needed))
+    return kernels, needed
 
 
 def import_zemax(zmx_path: str, out_dir: str) -> str:

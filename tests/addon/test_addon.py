@@ -1265,3 +1265,17 @@ def test_a_cameras_aperture_is_never_refused():
     assert logic.camera_aperture(lens, 1e6, 5, 0.0)[0].iris == "f/128, 5 blades"
     for bad in (math.nan, math.inf, 0.0, -1.0):
         assert logic.camera_aperture(lens, bad, 6, math.nan)[0].iris in ("", "f/5, 6 blades")
+
+
+def test_a_wide_blur_gets_a_coarser_thumbnail_not_a_flat_square():
+    """The Nikkor 85mm f/1.4 as prescribed (focused at infinity) blurs a point
+    at 1 m far over a 31-px tile at a 600-px diagonal's pitch: its thumbnail
+    is drawn at the pitch that holds the widest, so each tile shows a disc
+    with dark corners (not a clipped, flat square) and the far point stays
+    a small spot."""
+    lens = logic.load_lens_cached(dict((e.id, e.path) for e in logic.lens_catalogue())["nikkor-85mm-f1-4"])
+    t = logic.THUMBNAIL_TILE_PX
+    img = logic.psf_thumbnail(lens)
+    near, far = img[:t, :t], img[:t, 2 * (t + 1):2 * (t + 1) + t]        # field 0: 1 m and infinity
+    assert near[t // 2, t // 2].max() > 0.3 and near[:3, :3].max() < 0.05 and near[-3:, -3:].max() < 0.05
+    assert (far.max(axis=-1) > 0.5).sum() < 0.05 * t * t
