@@ -11,9 +11,11 @@ from .common import (UNITS, add_subcommands, check_output, check_wavelength, dep
 
 def cmd_lens_list(args) -> int:
     from ..optics.lens import available_lenses, load_lens
-    for lid in available_lenses():
+    ids = available_lenses()
+    width = max((len(i) for i in ids), default=0)          # the names in one column
+    for lid in ids:
         lens = load_lens(lid)
-        print(f"{lid:<14} {lens.name}  ({lens.path})")
+        print(f"{lid:<{width}} {lens.name}  ({lens.path})")
     return 0
 
 
