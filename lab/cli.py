@@ -55,7 +55,7 @@ MODULES = {
 }
 
 #: the reports' options that never name a path, beside the `dcdi` command's (``dcdi_core.cli.files.NOT_PATHS``)
-NOT_PATHS = frozenset({"count", "held_out_points", "pitch_only", "points"})
+NOT_PATHS = frozenset({"count", "held_out_points", "pitch_only", "points", "compare"})
 
 #: what each report reads and writes (``dcdi_core.cli.files.Spec``), checked before any work
 SPECS = {

@@ -91,6 +91,14 @@ class BokehOptions:
     of their touching pixels within this fraction of a layer's width in
     diopters) are blurred as one (a floor is not cut into bands), in [0,
     1]; None: never. Neither applies with ``multires``.
+
+    large_blur: where the traced library's kernel, grown to its cap
+    (``psf.sources.MAX_FITTED_KERNEL`` px), clips a layer's blur (more than 1 %
+    of a channel's energy outside), that layer is
+    blurred at 1/f of the resolution (f = 2, 4 or 8: the smallest whose
+    kernel holds it) with PSFs traced at f times the pitch, and brought back
+    by Keys' cubic (``multires.coarse_blur``); False: clipped, with the
+    library's warning. The occlusion-aware renderer only, without ``multires``.
     """
 
     keep: tuple[float, float] | None = None
@@ -113,6 +121,7 @@ class BokehOptions:
     coarse_patch: int = 16
     interp_eps: float | None = 0.002
     seam_tol: float | None = 0.25
+    large_blur: bool = True
 
     def __post_init__(self):
         from .distortion import check_interpolation
@@ -120,7 +129,7 @@ class BokehOptions:
         for name in ("geometry", "source_geometry"):
             if getattr(self, name) is not None and not isinstance(getattr(self, name), ImageGeometry):
                 raise InputRangeError(name, getattr(self, name), "an ImageGeometry, or None")
-        for name in ("distortion", "occlusion", "fit_kernel"):
+        for name in ("distortion", "occlusion", "fit_kernel", "large_blur"):
             check_flag(name, getattr(self, name))
         check_interpolation(self.interpolation)
         check_patch(self.patch)
@@ -228,6 +237,7 @@ class _BokehScene:
     kept: np.ndarray           # (H, W) bool: in the keep range
     grow: int                  # px around a layer's pixels that its blur reaches (whole patches)
     info: dict
+    lens: object = None        # the lens (a large blur's coarse PSFs are traced for it)
 
     def result(self, image: np.ndarray, info: dict, pm: PSFMap | None = None) -> RenderResult:
         return RenderResult(image, info, self.img if self.moved else None, pm,
@@ -262,7 +272,7 @@ def _bokeh_scene(image, depth, lens, options: BokehOptions, library: PSFLibrary 
     # each layer (plain: each patch group) is blurred on its own patch-aligned
     # bounding box, grown by the kernel's reach: outside it the blur is zero
     grow = box_reach(library.kernel_size, options.patch)
-    return _BokehScene(img, d, moved, geometry, library, valid, inv, kept, grow, info)
+    return _BokehScene(img, d, moved, geometry, library, valid, inv, kept, grow, info, lens)
 
 
 def _plain_bokeh(sc: _BokehScene, options: BokehOptions, cancelled) -> RenderResult:
@@ -378,6 +388,9 @@ def _layered_bokeh(sc: _BokehScene, options: BokehOptions, cancelled, layer_prog
         sc.library.ensure(bins=sc.library.bins_needed(sc.depth[sc.valid], clamp_near=True))
         table = mr.radius_table(sc.library)
     info = dict(sc.info, layer_levels=[])            # multires: per layer, its patches at each level
+    large = _large_blur(sc, options)
+    if large is not None:
+        info["large_blur_factor"] = large.f
     for n_done, (mask, is_sharp) in enumerate(order):
         if layer_progress is not None:
             layer_progress(n_done, len(order))
@@ -395,7 +408,14 @@ def _layered_bokeh(sc: _BokehScene, options: BokehOptions, cancelled, layer_prog
             col[ys, xs] = np.where(a, sc.img[ys, xs], col[ys, xs])
             acc[ys, xs] = np.where(a, np.float32(1.0), acc[ys, xs])
             continue
-        blurred, levels = _blur_layer(sc, options, mask, ys, xs, table, choice)
+        if large is not None and _clipped(sc.library, sc.depth[mask]):
+            ys, xs = slice(0, mask.shape[0]), slice(0, mask.shape[1])
+            blurred, levels = _blur_layer_coarse(sc, mask, large), None
+            _clamp_overshoot(blurred, sc.img[mask].max(axis=0))
+            info.setdefault("large_blur_layers", 0)
+            info["large_blur_layers"] += 1
+        else:
+            blurred, levels = _blur_layer(sc, options, mask, ys, xs, table, choice)
         if levels is not None:
             info["layer_levels"].append([int((levels == s_).sum()) for s_ in range(options.max_level + 1)])
             if int(levels.max()) > 0:
@@ -405,6 +425,79 @@ def _layered_bokeh(sc: _BokehScene, options: BokehOptions, cancelled, layer_prog
         layer_progress(len(order), len(order))
     info["layers"] = len(order)
     return sc.result(col, info)
+
+
+LARGE_BLUR_MAX_LEVEL = 3        # a large blur at 1/8 of the resolution at most: kernels up to 8 x the library's
+
+
+@dataclass(frozen=True)
+class _LargeBlur:
+    """What blurs the layers the image-pitch kernel clips: ``f`` (the
+    resolution's divisor), the PSFs traced at f times the pitch and the
+    coarse grid's geometry."""
+
+    f: int
+    library: PSFLibrary
+    geometry: ImageGeometry
+
+
+CLIPPED = 0.01              # a kernel that leaves more than this fraction of a channel's energy out clips a blur
+
+
+def _clipped(library, depth_m: np.ndarray) -> bool:
+    """Whether the library's kernel leaves more than CLIPPED of a channel's
+    energy out, in any of these depths' bins (what its warning says)."""
+    bins = library.bins_needed(depth_m[valid_depth_mask(depth_m)], clamp_near=True)
+    if not len(bins):
+        return False
+    return bool(library.energy_outside[bins].max() > CLIPPED)
+
+
+def _large_blur(sc: _BokehScene, options: BokehOptions) -> _LargeBlur | None:
+    """The coarse PSFs of a large blur (BokehOptions.large_blur), or None
+    where the library's kernel holds every layer's blur (or is not traced:
+    a PSF basis or the OLF says nothing clips)."""
+    lib = sc.library
+    blurred = sc.valid & ~sc.kept
+    from ..psf import sources
+    # a kernel below the cap was chosen (a given library, an explicit size): it is the caller's, clipped or not
+    if (not options.large_blur or options.multires is not None or sc.lens is None or not isinstance(lib, PSFLibrary)
+            or lib.kernel_size < sources.MAX_FITTED_KERNEL or not blurred.any()):
+        return None
+    lib.ensure(bins=lib.bins_needed(sc.depth[blurred], clamp_near=True))
+    need = int(lib.kernel_size_needed[lib.computed].max())
+    if need <= lib.kernel_size or not _clipped(lib, sc.depth[blurred]):
+        return None
+    f = 2 ** min(LARGE_BLUR_MAX_LEVEL, math.ceil(math.log2(need / lib.kernel_size)))
+    h, w = sc.depth.shape
+    gc = mr.coarse_geometry(sc.geometry, f, -(-h // f), -(-w // f))
+    settings = replace(lib.settings, pixel_pitch_mm=None, kernel_size=PSFSettings().kernel_size)
+    coarse = open_library(sc.lens, gc, settings, lib.grid, response=lib.response, fit_depth_m=sc.depth[blurred])
+    return _LargeBlur(f, coarse, gc)
+
+
+def _blur_layer_coarse(sc: _BokehScene, mask: np.ndarray, large: _LargeBlur) -> np.ndarray:
+    """The layer ``mask``'s premultiplied colour and coverage blurred at 1/f
+    of the resolution with the coarse PSFs, on the whole frame (float32 (H,
+    W, 6), as ``_blur_layer``'s): the blocks without layer pixels take the
+    layer's mean depth, so its blur reaches as far as its kernels do."""
+    af = mask[..., None].astype(np.float32)
+    layer = np.concatenate([sc.img * af, af], axis=-1)
+    inv = sc.inv[mask]
+    mean = float(inv.mean()) if inv.size else 0.0
+    fill = np.where(mask, sc.depth, (1.0 / mean) if mean > 0 else np.inf)
+    f, lib = large.f, large.library
+    # coarse_blur area-resamples kernels from the geometry's pitch to f times it: here the library is
+    # already at f times the pitch, so it is given the coarse grid's geometry and f = 1 for the kernels
+    h, w = mask.shape
+    img = mr.block_mean(mr.pad_to(layer, f), f)
+    dc = mr.coarse_depth(mr.pad_to(fill, f), mr.pad_to(np.ones_like(mask), f), lib.grid.far_m, f)
+    pm = psf_map(lib, large.geometry, dc, COARSE_PATCH, clamp_field=True)
+    out = patch_convolve(img, pm.kernels, COARSE_PATCH, ConvolveOptions(), identity=pm.identity, pairs=LAYER_PAIRS)
+    return mr.upsample(out, f, h, w, "cubic", averages=True)
+
+
+COARSE_PATCH = 16           # px of the coarse grid: a large blur's patches (as the fine path's 16)
 
 
 def _layer_patch(sc: _BokehScene, options: BokehOptions, mask) -> layer_patch.PatchChoice:

@@ -1,6 +1,8 @@
 """The layered bokeh spreads a layer's blur as far as its kernels reach, not
 only as far as the tent blend of the patches that hold the layer's pixels."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -77,3 +79,39 @@ def test_a_faint_layer_behind_stays_as_faint_as_its_coverage():
     assert over(0.0, 0.0, 0.01)[0] == pytest.approx(board, rel=1e-5)
     # a layer that covers nothing leaves what lies behind bit for bit
     assert over(0.123, 0.4, 0.0) == (np.float32(0.123), np.float32(0.4))
+
+
+def test_a_blur_the_kernel_clips_is_rendered_at_reduced_resolution(monkeypatch, tmp_path):
+    """BokehOptions.large_blur: with the fitted kernel capped far below a
+    layer's blur (MAX_FITTED_KERNEL made 15 px here; the 6P's far background
+    needs 63), that layer is blurred at 1/f of the resolution with PSFs
+    traced at f times the pitch: five bright lights' bokeh is much closer to
+    a reference whose 121-px kernels hold it than with the clipped kernel
+    (which shrinks each disc to the kernel), the sharp subject is kept as it
+    is, and a constant image stays constant."""
+    import dcdi_core.psf.sources as sources
+    monkeypatch.setenv("DCDI_CACHE_DIR", str(tmp_path))
+    lens = load_lens("6p")
+    geom = ImageGeometry.from_pixel_pitch(lens, 96, 128, 0.0122, center_px=(47.5, 63.5))
+    rng = np.random.default_rng(0)
+    img = np.full((96, 128, 3), 0.05, np.float32)
+    for y, x in ((15, 20), (20, 100), (80, 30), (75, 110), (48, 15)):
+        img[y - 1:y + 2, x - 1:x + 2] = 20.0
+    img[30:66, 40:80] = 0.2 + 0.6 * rng.random((36, 40, 3))
+    depth = np.full((96, 128), 10.0, np.float32)
+    depth[30:66, 40:80] = 1.2
+    fast = PSFSettings(pupil_samples=24, n_wavelengths=3)
+
+    def run(image=img, **kw):
+        return bokeh(image, depth, lens, BokehOptions(focus_m=1.2, keep=(1.1, 1.3), geometry=geom, **kw))
+    ref = run(fit_kernel=False, large_blur=False, settings=replace(fast, kernel_size=121)).image
+    monkeypatch.setattr(sources, "MAX_FITTED_KERNEL", 15)
+    clipped = run(settings=replace(fast, kernel_size=15), large_blur=False).image
+    large = run(settings=replace(fast, kernel_size=15))
+    assert large.info["large_blur_factor"] in (4, 8) and large.info["large_blur_layers"] >= 1
+    far = depth > 5
+    err = {k: float(np.sqrt(np.mean((v - ref)[far] ** 2))) for k, v in (("clipped", clipped), ("large", large.image))}
+    assert err["large"] < 0.5 * err["clipped"], err
+    assert np.abs(large.image - img)[34:62, 44:76].max() < 1e-5            # the subject, in focus, as it was
+    flat = run(np.full_like(img, 0.5), settings=replace(fast, kernel_size=15)).image
+    assert np.abs(flat - 0.5).max() < 2e-3
