@@ -234,8 +234,9 @@ def bokeh(request: BokehRequest, control: Control | None = None, *, cache: Sourc
     t1 = time.perf_counter()
     control.report("depth layers", 0, 1)
     try:
+        # progress: the PSFs a large blur traces at a coarser pitch (render.bokeh's large_blur), if any
         r = render_bokeh(img, depth, request.lens, options, library=src.library, cancelled=control.cancelled,
-                         layer_progress=control.counter("depth layers"))
+                         progress=control.counter("PSFs"), layer_progress=control.counter("depth layers"))
     except RenderCancelled:
         raise Cancelled("cancelled") from None
     note = _focus_note(depth, keep)

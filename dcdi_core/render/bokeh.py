@@ -220,7 +220,7 @@ def bokeh(image, depth, lens, options: BokehOptions, *, library: PSFLibrary | No
     scene = _bokeh_scene(image, depth, lens, options, library, progress)
     if not options.occlusion:
         return _plain_bokeh(scene, options, cancelled)
-    return _layered_bokeh(scene, options, cancelled, layer_progress)
+    return _layered_bokeh(scene, options, cancelled, layer_progress, progress)
 
 
 @dataclass
@@ -368,7 +368,7 @@ def _layer_order(sc: _BokehScene, n_layers: int, seam_tol: float | None = None) 
     return [(m_, s_) for _, m_, s_ in order]
 
 
-def _layered_bokeh(sc: _BokehScene, options: BokehOptions, cancelled, layer_progress) -> RenderResult:
+def _layered_bokeh(sc: _BokehScene, options: BokehOptions, cancelled, layer_progress, progress=None) -> RenderResult:
     """The occlusion-aware renderer: the layers, back to front, each layer's
     colour and coverage blurred alike and composited over what lies behind."""
     # ``col`` is the colour seen so far, un-premultiplied, with ``acc`` its
@@ -388,7 +388,7 @@ def _layered_bokeh(sc: _BokehScene, options: BokehOptions, cancelled, layer_prog
         sc.library.ensure(bins=sc.library.bins_needed(sc.depth[sc.valid], clamp_near=True))
         table = mr.radius_table(sc.library)
     info = dict(sc.info, layer_levels=[])            # multires: per layer, its patches at each level
-    large = _large_blur(sc, options)
+    large = _large_blur(sc, options, cancelled, progress)
     if large is not None:
         info["large_blur_factor"] = large.f
     for n_done, (mask, is_sharp) in enumerate(order):
@@ -453,10 +453,11 @@ def _clipped(library, depth_m: np.ndarray) -> bool:
     return bool(library.energy_outside[bins].max() > CLIPPED)
 
 
-def _large_blur(sc: _BokehScene, options: BokehOptions) -> _LargeBlur | None:
+def _large_blur(sc: _BokehScene, options: BokehOptions, cancelled=None, progress=None) -> _LargeBlur | None:
     """The coarse PSFs of a large blur (BokehOptions.large_blur), or None
     where the library's kernel holds every layer's blur (or is not traced:
-    a PSF basis or the OLF says nothing clips)."""
+    a PSF basis or the OLF says nothing clips). Their bins are traced with
+    ``progress(done, total)`` called, and ``cancelled()`` asked, after each."""
     lib = sc.library
     blurred = sc.valid & ~sc.kept
     from ..psf import sources
@@ -472,7 +473,13 @@ def _large_blur(sc: _BokehScene, options: BokehOptions) -> _LargeBlur | None:
     h, w = sc.depth.shape
     gc = mr.coarse_geometry(sc.geometry, f, -(-h // f), -(-w // f))
     settings = replace(lib.settings, pixel_pitch_mm=None, kernel_size=PSFSettings().kernel_size)
-    coarse = open_library(sc.lens, gc, settings, lib.grid, response=lib.response, fit_depth_m=sc.depth[blurred])
+    def bins_done(done, total):
+        if cancelled is not None and cancelled():
+            raise Cancelled("bokeh cancelled")
+        if progress is not None:
+            progress(done, total)
+    coarse = open_library(sc.lens, gc, settings, lib.grid, response=lib.response, fit_depth_m=sc.depth[blurred],
+                          progress=bins_done)
     return _LargeBlur(f, coarse, gc)
 
 

@@ -115,3 +115,16 @@ def test_a_blur_the_kernel_clips_is_rendered_at_reduced_resolution(monkeypatch, 
     assert np.abs(large.image - img)[34:62, 44:76].max() < 1e-5            # the subject, in focus, as it was
     flat = run(np.full_like(img, 0.5), settings=replace(fast, kernel_size=15)).image
     assert np.abs(flat - 0.5).max() < 2e-3
+    # the coarse PSFs' trace reports its bins and stops on a cancel (an empty cache: they are traced)
+    from dcdi_core.render.base import Cancelled
+    monkeypatch.setenv("DCDI_CACHE_DIR", str(tmp_path / "empty"))
+    opts = BokehOptions(focus_m=1.2, keep=(1.1, 1.3), geometry=geom, settings=replace(fast, kernel_size=15))
+    with pytest.raises(Cancelled):
+        bokeh(img, depth, lens, opts, cancelled=lambda: True)
+    seen = {}
+    for large_blur in (False, True):                   # the fine bins (cached by now) and then the coarse ones
+        monkeypatch.setenv("DCDI_CACHE_DIR", str(tmp_path / f"empty-{large_blur}"))
+        seen[large_blur] = []
+        bokeh(img, depth, lens, replace(opts, large_blur=large_blur),
+              progress=lambda done, total, out=seen[large_blur]: out.append((done, total)))
+    assert len(seen[True]) > len(seen[False]) and seen[True][-1][0] == seen[True][-1][1]
