@@ -109,6 +109,21 @@ def read_npz(path, fail, *, meta_required: bool = True) -> tuple[dict | None, di
     return meta, arrays
 
 
+def read_format(path, fail, fmt: str, version: int) -> tuple[dict, dict]:
+    """:func:`read_npz` of a file that names its ``format`` and ``version``
+    and carries a :func:`checksum` in its metadata: each checked, in that
+    order, before any field is read."""
+    meta, arrays = read_npz(path, fail)
+    if meta.get("format") != fmt:
+        raise fail(f"format {str(meta.get('format'))[:80]!r}", field="format", allowed=repr(fmt))
+    if meta.get("version") != version:
+        raise fail(f"version {str(meta.get('version'))[:80]!r}", field="version",
+                   allowed=f"{version} (what this software reads)")
+    if meta.get("checksum") != checksum(meta, arrays):
+        raise fail("checksum mismatch (the file is corrupt or was edited)", field="checksum")
+    return meta, arrays
+
+
 def _members(zf: zipfile.ZipFile, size: int, fail) -> dict:
     """{array name: ZipInfo}, refused before any is read if there are too
     many, one is not a plain .npy member, or together they would inflate

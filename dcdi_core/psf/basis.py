@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_path
-from ..io.npzfile import FileCache, Record, check_array, check_declared_bytes, checksum, file_error_text, read_npz
+from ..io.npzfile import FileCache, Record, check_array, check_declared_bytes, checksum, file_error_text, read_format
 from ..errors import InputRangeError, field
 from ..optics.errors import OpticsError
 from .compute import PSFSettings
@@ -370,14 +370,7 @@ class BasisStore:
         before the basis is expanded."""
         path = Path(path)
         fail = basis_fail(path)
-        meta, arrays = read_npz(path, fail)
-        if meta.get("format") != FORMAT:
-            raise fail(f"format {str(meta.get('format'))[:80]!r}", field="format", allowed=repr(FORMAT))
-        if meta.get("version") != FORMAT_VERSION:
-            raise fail(f"version {str(meta.get('version'))[:80]!r}", field="version",
-                       allowed=f"{FORMAT_VERSION} (what this software reads)")
-        if meta.get("checksum") != checksum(meta, arrays):
-            raise fail("checksum mismatch (the file is corrupt or was edited)", field="checksum")
+        meta, arrays = read_format(path, fail, FORMAT, FORMAT_VERSION)
         check_store(meta, arrays, fail)
         half, coeffs = arrays["basis_half"].astype(np.float32), arrays["coeffs"].astype(np.float32)
         k = int(meta["kernel_size"])

@@ -263,6 +263,61 @@ class PSFBatch:
     timings_s: dict = field(default_factory=dict)
 
 
+@dataclass
+class RayKernels:
+    """The kernels of a batch of sources from their rays (``rays_to_kernels``)."""
+
+    psf: np.ndarray                    # (b, 3, k, k) float32
+    energy_outside: np.ndarray         # (b, 3)
+    vignetted_fraction: np.ndarray     # (b, 3)
+    centroid_mm: np.ndarray            # (b, 3, 2)
+    rms_radius_mm: np.ndarray          # (b, 3)
+    kernel_size_needed: np.ndarray     # (b,) 0 where the kernel does not clip
+
+
+def rays_to_kernels(x: np.ndarray, y: np.ndarray, valid: np.ndarray, cy: np.ndarray, weights: np.ndarray,
+                    n_p: int, pitch: float, settings: PSFSettings) -> RayKernels:
+    """Kernels of ``b`` sources from their rays on the sensor: ``x``, ``y``
+    (b, W, P) mm (float64; overwritten), ``valid`` (b, W, P) the rays that
+    arrived, ``cy`` (b,) the kernel centre (the chief ray's height, mm),
+    ``weights`` (W, 3) a ray's channel energy per wavelength, ``n_p`` the
+    pupil samples launched per wavelength. The one place rays become kernels,
+    whether they were traced or read from a ray map (``psf.raymap``)."""
+    k = settings.kernel_size
+    raw = deposit(x / pitch, (y - cy[:, None, None]) / pitch, valid, weights, k,
+                  settings.oversample, settings.deposit_sigma_px)
+    # per-wavelength sums -> per-channel ray statistics (dead rays are finite: zero them)
+    vf = valid.astype(np.float64)
+    nv = vf.sum(-1)                                              # (b, W)
+    x *= vf
+    y *= vf
+    sx, sy = x.sum(-1), y.sum(-1)
+    s2 = (x * x + y * y).sum(-1)
+    arrived = nv @ weights                                       # (b, 3) energy that reached the sensor
+    safe = np.where(arrived > 0, arrived, 1.0)
+    cx_c, cy_c = (sx @ weights) / safe, (sy @ weights) / safe
+    centroid = np.stack([cx_c, cy_c], -1)
+    rms = np.sqrt(np.maximum((s2 @ weights) / safe - cx_c ** 2 - cy_c ** 2, 0.0))
+    vig = 1.0 - arrived / (n_p * weights.sum(0))
+    inside = raw.sum(axis=(-1, -2))
+    outside = np.where(arrived > 0, 1.0 - inside / safe, 0.0)
+    norm = np.where(inside > 0, inside, 1.0)[..., None, None]
+    kern = np.where(inside[..., None, None] > 0, raw / norm, 0.0)
+    # light that reached the sensor but fell wholly outside the kernel (a
+    # kernel far too small, warned about): all of it at the chief ray's
+    # pixel, so that each channel still sums to 1 (never a black kernel)
+    lost = (inside <= 0) & (arrived > 0)
+    if lost.any():
+        kern[..., k // 2, k // 2] = np.where(lost, 1.0, kern[..., k // 2, k // 2])
+    needed = np.zeros(len(cy), np.int64)
+    for i in np.flatnonzero(outside.max(-1) > CLIP_WARNING):   # only where the kernel clips: a quantile per source
+        v = valid[i]
+        cheb = np.maximum(np.abs(x[i][v]), np.abs(y[i][v] - cy[i])) / pitch
+        q = np.quantile(cheb, 0.99) if cheb.size else 0.0
+        needed[i] = 2 * int(math.ceil(q + 1.5)) + 1
+    return RayKernels(kern.astype(np.float32), outside, vig, centroid, rms, needed)
+
+
 def _illumination_geometry(lens: Lens, aimed: Aimed, h_mm: np.ndarray) -> np.ndarray:
     """Unnormalised image irradiance per unit object radiance, from the chief
     rays (first order in pupil aberration): pupil area seen through the lens
@@ -300,7 +355,6 @@ def compute_sources(lens: Lens, aimed: Aimed, settings: PSFSettings, wavelengths
     lens = focused_lens(lens, settings)
     k = settings.kernel_size
     pitch = pixel_pitch_mm(lens, settings)
-    sigma = settings.deposit_sigma_px
     dtype = np.dtype(settings.precision)
     wl = np.asarray(wavelengths_nm, dtype=np.float64)
     weights = np.asarray(weights, dtype=np.float64)
@@ -339,39 +393,11 @@ def compute_sources(lens: Lens, aimed: Aimed, settings: PSFSettings, wavelengths
         t2 = time.perf_counter()
         x = b.position_mm[..., 0].astype(np.float64)
         y = b.position_mm[..., 1].astype(np.float64)
-        valid = b.valid
-        raw = deposit(x / pitch, (y - cy[:, None, None]) / pitch, valid, weights, k,
-                      settings.oversample, sigma)
-        # per-wavelength sums -> per-channel ray statistics (dead rays are finite: zero them)
-        vf = valid.astype(np.float64)
-        nv = vf.sum(-1)                                              # (b, W)
-        x *= vf
-        y *= vf
-        sx, sy = x.sum(-1), y.sum(-1)
-        s2 = (x * x + y * y).sum(-1)
-        arrived = nv @ weights                                       # (b, 3) energy that reached the sensor
-        safe = np.where(arrived > 0, arrived, 1.0)
-        cx_c, cy_c = (sx @ weights) / safe, (sy @ weights) / safe
-        centroid[sl] = np.stack([cx_c, cy_c], -1)
-        rms[sl] = np.sqrt(np.maximum((s2 @ weights) / safe - cx_c ** 2 - cy_c ** 2, 0.0))
-        vig[sl] = 1.0 - arrived / (n_p * weights.sum(0))
-        inside = raw.sum(axis=(-1, -2))
-        outside[sl] = np.where(arrived > 0, 1.0 - inside / safe, 0.0)
-        norm = np.where(inside > 0, inside, 1.0)[..., None, None]
-        kern = np.where(inside[..., None, None] > 0, raw / norm, 0.0)
-        # light that reached the sensor but fell wholly outside the kernel (a
-        # kernel far too small, warned about): all of it at the chief ray's
-        # pixel, so that each channel still sums to 1 (never a black kernel)
-        lost = (inside <= 0) & (arrived > 0)
-        if lost.any():
-            kern[..., k // 2, k // 2] = np.where(lost, 1.0, kern[..., k // 2, k // 2])
-        psf[sl] = kern.astype(np.float32)
-        clipped = np.flatnonzero(outside[sl].max(-1) > CLIP_WARNING)
-        for i in clipped:   # only where the kernel clips: a quantile per source
-            v = valid[i]
-            cheb = np.maximum(np.abs(x[i][v]), np.abs(y[i][v] - cy[i])) / pitch
-            q = np.quantile(cheb, 0.99) if cheb.size else 0.0
-            needed[start + i] = 2 * int(math.ceil(q + 1.5)) + 1
+        kern = rays_to_kernels(x, y, b.valid, cy, weights, n_p, pitch, settings)
+        psf[sl], outside[sl], vig[sl], centroid[sl], rms[sl] = (kern.psf, kern.energy_outside,
+                                                               kern.vignetted_fraction, kern.centroid_mm,
+                                                               kern.rms_radius_mm)
+        needed[sl] = kern.kernel_size_needed
         times["aim"] += t1 - t0
         times["trace"] += t2 - t1
         times["deposit"] += time.perf_counter() - t2
