@@ -333,8 +333,8 @@ def _source_info(source) -> dict:
     engine = Path(dcdi_core.__file__).resolve().parent
     lens = getattr(getattr(source, "library", None), "lens", None)
     lens_path = str(getattr(lens, "path", "") or "")
-    paths = {str(p) for p in (getattr(source, "basis_file", None), getattr(source, "olf_file", None), lens_path)
-             if p}
+    paths = {str(p) for p in (getattr(source, "basis_file", None), getattr(source, "olf_file", None),
+                              getattr(source, "raymap_file", None), lens_path) if p}
     paths |= set(re.findall(r"(?:^|(?<=[\s(]))(?:/|[A-Za-z]:[\\/])[^\s;,()]+", message))
     for path in sorted(paths, key=len, reverse=True):         # a path before any path it starts with
         name = Path(path).name
@@ -342,7 +342,8 @@ def _source_info(source) -> dict:
         if path == lens_path:
             message = message.replace(path, name)
             continue
-        kind = "Omni-Lens-Field" if name.lower().startswith("olf") else "PSF basis"
+        kind = ("Omni-Lens-Field" if name.lower().startswith("olf") else
+                "ray map" if Path(path).parent.name == "raymap" else "PSF basis")
         try:
             shipped = Path(path).resolve().is_relative_to(engine)
         except (OSError, ValueError):

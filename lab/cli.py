@@ -6,7 +6,7 @@
     python -m lab COMMAND ...           a study, a benchmark against a reference, a tool:
                                         dacn-study, dfd-refine-study, olf-sweep, depth-from-blur,
                                         bench-defocus, bokeh-variants, capture-records,
-                                        resample-accuracy, focus-stack, aperture, catalogue-table,
+                                        resample-accuracy, focus-stack, raymap, aperture, catalogue-table,
                                         contact-sheet, large-bokeh, cli-reference, reproduce
 
 `python -m lab COMMAND --help` says more; lab/README.md lists which figure or
@@ -48,6 +48,8 @@ MODULES = {
                                    "(docs/performance.md)"),
     "contact-sheet": ("contact_sheet", "one scene through every lens wide open, and one lens stopped down "
                                        "(lenses/README.md)"),
+    "raymap": ("raymap_report", "the catalogue's ray maps against tracing at held-out field, depth, focus and "
+                                "f-number, beside a PSF basis (docs/psf.md)"),
     "aperture": ("aperture_report", "the iris on the PSFs: defocus blur against the f-number, the blades' "
                                     "polygons (docs/psf.md)"),
     "cli-reference": ("cli_reference", "the `dcdi` command's reference page, docs/cli.md, from its parser"),
@@ -55,7 +57,7 @@ MODULES = {
 }
 
 #: the reports' options that never name a path, beside the `dcdi` command's (``dcdi_core.cli.files.NOT_PATHS``)
-NOT_PATHS = frozenset({"count", "held_out_points", "pitch_only", "points", "compare"})
+NOT_PATHS = frozenset({"count", "held_out_points", "pitch_only", "points", "compare", "basis_lens", "seed"})
 
 #: what each report reads and writes (``dcdi_core.cli.files.Spec``), checked before any work
 SPECS = {

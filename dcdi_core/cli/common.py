@@ -283,12 +283,14 @@ def add_psf_options(q, *, sensor_focus: bool = True, render: bool = False) -> No
 
 
 def add_psf_source_options(q) -> None:
-    q.add_argument("--psf-source", choices=["basis", "olf", "trace"], default=None,
+    q.add_argument("--psf-source", choices=["basis", "raymap", "olf", "trace"], default=None,
                    help="where the PSFs come from: the lens's PSF basis (a compressed traced library, "
-                        "prescribed focus), the Omni-Lens-Field (each an error if it cannot serve the "
+                        "prescribed focus), its ray map (the catalogue's lenses: any focus, f-number, "
+                        "blades and pixel pitch), the Omni-Lens-Field (each an error if it cannot serve the "
                         "request) or ray tracing; default: the basis where it covers the lens (its "
-                        "prescription) and the request (pixel pitch, focus, PSF settings), else the OLF "
-                        "where it covers it, else tracing; a line on standard error says which and why")
+                        "prescription) and the request (pixel pitch, focus, PSF settings), else the ray "
+                        "map, else the OLF where it covers it, else tracing; a line on standard error "
+                        "says which and why")
     q.add_argument("--basis", default=None, metavar="FILE.npz",
                    help="the PSF basis file to serve PSFs from (default: the lens's shipped one in "
                         "dcdi_core/psf/data/basis; `dcdi psflib compress` writes one)")

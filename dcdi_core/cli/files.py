@@ -54,6 +54,7 @@ SPECS = {
     ("psf",): Spec(reads=("lens", *PSF_SOURCE), writes=("out", "png"), others=("depth",)),
     ("psflib", "build"): Spec(reads=("lens", "response"), writes=("output",)),
     ("psflib", "compress"): Spec(reads=("lens",), writes=("output",)),
+    ("psflib", "raymap"): Spec(reads=("lens",), writes=("output",)),
     ("psflib", "show"): Spec(reads=("library", "response"), writes=("png",)),
     ("simulate",): Spec(reads=RENDER_READS, writes=("output", "sharp_out")),
     ("bokeh",): Spec(reads=RENDER_READS, writes=("output", "side_by_side")),
@@ -88,7 +89,7 @@ NOT_PATHS = frozenset("""
     focus_range focus_bins kind variants no_refocus baseline_depth no_noise no_saturate sensor_px placement
     no_deconvolved shard crop schedule warmup loss ema_decay crop_choice validate_every input rdicab d2cb racm
     depth_encoding condition channels groups blocks train_scenes name pictures_count lpips widths quick
-    frames what repeat field_step focus_tolerance focus_slices f_number blades blade_rotation
+    frames what repeat field_step focus_tolerance focus_slices f_number blades blade_rotation degree
 """.split())
 
 

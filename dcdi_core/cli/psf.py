@@ -23,7 +23,7 @@ def choose_psf_source(args, lens, *, pixel_pitch_mm, settings, focus_m, extra_re
     from ..errors import ModelError
     from ..psf.sources import PSFSource, psf_source
     if extra_reason is not None and args.psf_source != "trace":
-        if args.psf_source in ("olf", "basis"):
+        if args.psf_source in ("olf", "basis", "raymap"):
             raise ModelError(f"--psf-source {args.psf_source}: it cannot serve this request: {extra_reason}")
         src = PSFSource("trace", f"PSFs traced: {extra_reason}")
     else:
@@ -96,12 +96,13 @@ def cmd_psf(args) -> int:
                "pixel_pitch_mm": pitch, "psf_source": src.kind,
                "olf_file": src.olf_file if src.kind == "olf" else None,
                "basis_file": src.basis_file if src.kind == "basis" else None,
+               "raymap_file": src.raymap_file if src.kind == "raymap" else None,
                "channel_sums": [float(v) for v in kernel.sum(axis=(-1, -2))]}
         if args.out:
             _write_kernel(args.out, kernel, pitch)
         if args.png:
             psf_grid_png(kernel[None, None], [f"field {args.field}"], [depth_label(args.depth)], args.png,
-                         f"{lens.name} ({'PSF basis' if src.kind == 'basis' else 'OLF'})", pitch)
+                         f"{lens.name} ({ {'basis': 'PSF basis', 'raymap': 'ray map'}.get(src.kind, 'OLF')})", pitch)
         print_table_or_json(res, args.json)
         return 0
     r = psf(lens, depth_m=args.depth, field=args.field, angle_deg=args.angle, settings=settings,
@@ -181,6 +182,26 @@ def cmd_psflib_compress(args) -> int:
           + (f", {recipe.focus_slices} focus distances (infinity to {recipe.focus_near_m:g} m)"
              if recipe.focus_slices else "") + f"; {size_of(args.output) / 1e6:.2f} MB; "
           f"{time.perf_counter() - t:.1f} s")
+    return 0
+
+
+def cmd_psflib_raymap(args) -> int:
+    from dataclasses import replace
+
+    from ..optics.lens import load_lens
+    from ..progress import psf_progress
+    from ..psf.raymap import RayMapRecipe, build
+    lens = load_lens(args.lens)
+    check_output(args.output, "-o", suffix=".npz")
+    over = {name: getattr(args, name) for name in ("n_fields", "n_depths", "degree") if getattr(args, name) is not None}
+    recipe = replace(RayMapRecipe(), **over)
+    t = time.perf_counter()
+    rm = build(lens, recipe, progress=psf_progress(f"ray map {lens.id}"))
+    rm.save(args.output)
+    from ..outputs import size_of
+    print(f"wrote {args.output}: {lens.id}, {recipe.n_depths + 1} depths x {recipe.n_fields} fields x "
+          f"{recipe.n_wavelengths} wavelengths, degree {recipe.degree}, {len(rm.clip_surfaces)} clipping surfaces; "
+          f"{size_of(args.output) / 1e6:.2f} MB; {time.perf_counter() - t:.1f} s")
     return 0
 
 
@@ -296,6 +317,19 @@ def add_commands(sub) -> None:
                         "defaults: the lens's shipped focus-stack recipe)")
     c.add_argument("--no-cache", action="store_true", help="do not read or write the PSF cache")
     c.set_defaults(func=cmd_psflib_compress)
+    r = psub.add_parser("raymap", help="a lens's ray map: its rays as polynomials of the stop (any focus, "
+                                       "f-number, blades and pixel pitch without tracing)",
+                        description="Traces the lens as prescribed (wide open) at a grid of depths x fields x "
+                                    "wavelengths and fits where each ray lands as polynomials of where it "
+                                    "crosses the stop, the PSF source `--psf-source raymap` serves "
+                                    "(dcdi_core/psf/raymap.py; defaults: RayMapRecipe, about a minute). " + UNITS)
+    r.add_argument("lens", help="lens id or .toml path")
+    r.add_argument("-o", "--output", required=True, metavar="FILE.npz", help="the ray map file to write")
+    r.add_argument("--fields", dest="n_fields", type=positive_int, default=None, help="fields over [0, 1] (16)")
+    r.add_argument("--depths", dest="n_depths", type=positive_int, default=None,
+                   help="finite depths uniform in 1/depth from 0.4 m, plus infinity (16)")
+    r.add_argument("--degree", type=positive_int, default=None, help="the landing point's polynomial degree (15)")
+    r.set_defaults(func=cmd_psflib_raymap)
     s_ = psub.add_parser("show", help="a PNG grid of PSFs across field and depth")
     s_.add_argument("library", help="a library file (.npz from psflib build: its own settings and bins), a PSF "
                                     "basis (.npz from psflib compress), or a lens id or .toml path (its library "

@@ -45,9 +45,13 @@ from .sampling import field_grid
 from .pitch import SAME_GIVEN_RTOL, area_resample, check_downsampling, resampled_size, same_pitch
 from ..shipped import NETWORKS, WEIGHTS_DIR
 from .olf import OmniLensField
+from .raymap import RayMap, RayMapLibrary, open_raymap, shipped_raymap
 
 SHIPPED = WEIGHTS_DIR / "olf-radial.npz"
-SOURCES = ("basis", "olf", "trace")
+SOURCES = ("basis", "raymap", "olf", "trace")
+# each source in a message's words
+SOURCE_NAMES = {"basis": "PSF basis", "raymap": "ray map", "olf": "Omni-Lens-Field"}
+SHORT_NAMES = {"basis": "basis", "raymap": "ray map", "olf": "OLF"}
 
 
 def shipped_olf_files() -> list[Path]:
@@ -133,14 +137,16 @@ class OLFLibrary(PSFLibrary):
 @dataclass
 class PSFSource:
     """Which PSF source serves a request: ``kind`` 'basis' (a compressed
-    traced library), 'olf' (each with its library) or 'trace' (library None:
-    the caller opens a traced one), and why."""
+    traced library), 'raymap' (the lens's ray map), 'olf' (each with its
+    library) or 'trace' (library None: the caller opens a traced one), and
+    why."""
 
     kind: str
     message: str
     library: PSFLibrary | None = None
     olf_file: str | None = None
     basis_file: str | None = None
+    raymap_file: str | None = None
 
 
 def _settings_differences(learned: dict, settings: PSFSettings | None, *, rays_at_least: bool = False,
@@ -181,7 +187,8 @@ PSF_SOURCE_LABELS = MappingProxyType({"psf_source": field("psf_source"), "basis"
 def psf_source(lens, *, source: str | None = None, olf_file=None, pixel_pitch_mm: float | None = None,
                settings: PSFSettings | None = None, kernel_size: int | None = None, focus_m=None,
                custom_response: bool = False, grid: LibraryGrid | None = None,
-               need_field: bool = True, basis_file=None, labels=None, olf_grid: LibraryGrid | None = None) -> PSFSource:
+               need_field: bool = True, basis_file=None, labels=None, olf_grid: LibraryGrid | None = None,
+               response=None) -> PSFSource:
     """The PSF source for ``lens`` and a request: ``source`` 'basis' (the
     lens's compressed library), 'olf' (the OLF), each an error saying why if
     it cannot serve, 'trace', or None: the basis where it covers the request,
@@ -193,7 +200,9 @@ def psf_source(lens, *, source: str | None = None, olf_file=None, pixel_pitch_mm
     ``labels`` ({'psf_source', 'basis', 'olf'}: the CLI's options by
     request's fields by default, shown in each front end's words; a label None
     leaves the option unnamed) name the choices in the messages. ``olf_grid``:
-    the grid an OLF serves on when ``grid`` is None (a basis keeps its own)."""
+    the grid an OLF serves on when ``grid`` is None (a basis keeps its own).
+    ``response``: the custom spectral response itself, which a ray map
+    serves (the others refuse any)."""
     lab = {**PSF_SOURCE_LABELS, **(labels or {})}
     if source not in (None,) + SOURCES:
         raise InputRangeError("psf source", source,
@@ -202,20 +211,23 @@ def psf_source(lens, *, source: str | None = None, olf_file=None, pixel_pitch_mm
         return PSFSource("trace", "PSFs traced" + (f" ({lab['psf_source']} trace)" if lab["psf_source"] else ""))
     reasons: list[str] = []
     # an OLF file given without a basis file is the source asked for: it goes first
-    order = ("olf", "basis") if olf_file and not basis_file else ("basis", "olf")
+    order = ("olf", "basis", "raymap") if olf_file and not basis_file else ("basis", "raymap", "olf")
     for kind in order:
         if source not in (None, kind):
             continue
-        src, why = (_try_basis if kind == "basis" else _try_olf)(
-            lens, basis_file if kind == "basis" else olf_file, pixel_pitch_mm, settings, kernel_size, focus_m,
-            custom_response, grid if kind == "basis" or grid is not None else olf_grid, lab[kind])
+        if kind == "raymap":
+            src, why = _try_raymap(lens, pixel_pitch_mm, settings, kernel_size, custom_response and response is None,
+                                   response, grid if grid is not None else olf_grid)
+        else:
+            src, why = (_try_basis if kind == "basis" else _try_olf)(
+                lens, basis_file if kind == "basis" else olf_file, pixel_pitch_mm, settings, kernel_size, focus_m,
+                custom_response, grid if kind == "basis" or grid is not None else olf_grid, lab[kind])
         if src is not None:
             return src
         if source == kind:
-            what = "PSF basis" if kind == "basis" else "Omni-Lens-Field"
-            raise ModelError(f"{lab['psf_source'] or 'PSF source'} {kind}: the {what} cannot serve this request: "
-                             f"{why}")
-        reasons.append(f"{'basis' if kind == 'basis' else 'OLF'}: {why}")
+            raise ModelError(f"{lab['psf_source'] or 'PSF source'} {kind}: the {SOURCE_NAMES[kind]} cannot serve "
+                             f"this request: {why}")
+        reasons.append(f"{SHORT_NAMES[kind]}: {why}")
     olf_path = Path(olf_file) if olf_file else (SHIPPED if SHIPPED.exists() else None)
     return PSFSource("trace", "PSFs traced: " + "; ".join(reasons), None,
                      None if olf_path is None else str(olf_path))
@@ -306,6 +318,39 @@ def _try_olf(lens, olf_file, pitch, settings, kernel_size, focus_m, custom_respo
                      lib, str(path)), None
 
 
+def _try_raymap(lens, pitch, settings, kernel_size, unknown_response, response, grid):
+    """(PSFSource, None) where the lens's shipped ray map serves the request
+    (any focus, f-number, blades, pixel pitch, kernel and rays: ``psf.
+    raymap``), else (None, why)."""
+    path = shipped_raymap(lens.id)
+    if path is None:
+        return None, f"no ray map of {lens.id} ships with this engine"
+    if unknown_response:
+        return None, "a custom spectral response was asked for without its curves"
+    try:
+        rm = open_raymap(path)
+        lib = raymap_library(rm, lens, pitch, settings, kernel_size, response, grid)
+    except (OpticsError, InputRangeError) as e:
+        return None, str(e)
+    focus = "prescribed focus" if lib.settings.focus_distance_m is None else \
+        f"focus {lib.settings.focus_distance_m:.3g} m"
+    iris = f", {lens.iris}" if getattr(lens, "iris", "") else ""
+    return PSFSource("raymap", f"PSFs from the ray map {path} ({lens.id}{iris}, {lib.pixel_pitch_mm * 1000:.4g} um "
+                               f"pixels, {lib.kernel_size} x {lib.kernel_size} px, {focus}; no tracing)",
+                     lib, None, None, str(path)), None
+
+
+def raymap_library(rm: RayMap, lens, pitch, settings: PSFSettings | None, kernel_size=None, response=None,
+                   grid: LibraryGrid | None = None) -> RayMapLibrary:
+    """A library of ``lens`` from its ray map at ``pitch`` (mm; None: the
+    lens's sensor) with the request's PSF settings (their focus) and kernel."""
+    s = settings or PSFSettings()
+    s = replace(s, pixel_pitch_mm=pitch if pitch is not None else s.pixel_pitch_mm)
+    if kernel_size is not None:
+        s = replace(s, kernel_size=int(kernel_size))
+    return RayMapLibrary(rm, lens, s, grid, response)
+
+
 def _why_not(olf: OmniLensField, lens, pitch, settings, kernel_size, focus_m, custom_response) -> str | None:
     """None if ``olf`` covers the request, else the reason (one phrase)."""
     if olf.variant != "radial":
@@ -369,7 +414,23 @@ def open_library(lens, geometry, settings: PSFSettings | None = None,
         raise InputRangeError("pixel pitch", s.pixel_pitch_mm,
                               f"{geometry.pixel_pitch_mm:.6g} mm, the image's own pixel pitch (give one, not two)")
     s = replace(s, pixel_pitch_mm=geometry.pixel_pitch_mm)
-    library = PSFLibrary.open(lens, s, grid, response, cache=cache)
+    return _fitted(lambda st: PSFLibrary.open(lens, st, grid, response, cache=cache), s, fit_depth_m, progress)
+
+
+def open_raymap_library(rm: RayMap, lens, geometry, settings: PSFSettings | None, grid: LibraryGrid | None = None,
+                        response=None, fit_depth_m=None, progress=None) -> RayMapLibrary:
+    """``open_library``'s library served by the lens's ray map (never traced):
+    at the image's pitch, its kernel grown alike to hold ``fit_depth_m``'s blur."""
+    s = replace(settings or PSFSettings(), pixel_pitch_mm=geometry.pixel_pitch_mm)
+    return _fitted(lambda st: RayMapLibrary(rm, lens, st, grid, response), s, fit_depth_m, progress)
+
+
+def _fitted(make, settings: PSFSettings, fit_depth_m, progress):
+    """``make(settings)``'s library; with a depth map ``fit_depth_m``, its bins
+    computed now and, where their PSFs spill out of the kernel (less than
+    99 % of the rays inside), made again with the odd kernel that holds them,
+    at most MAX_FITTED_KERNEL px."""
+    library = make(settings)
     library.progress = progress
     if fit_depth_m is None:
         return library
@@ -383,8 +444,7 @@ def open_library(lens, geometry, settings: PSFSettings | None = None,
     need = int(library.kernel_size_needed[library.computed].max())
     if need <= library.kernel_size or library.kernel_size >= MAX_FITTED_KERNEL:
         return library
-    library = PSFLibrary.open(lens, replace(s, kernel_size=min(need | 1, MAX_FITTED_KERNEL)), grid, response,
-                              cache=cache)
+    library = make(replace(settings, kernel_size=min(need | 1, MAX_FITTED_KERNEL)))
     library.progress = progress
     library.ensure(d, clamp_near=True)
     return library
@@ -447,9 +507,10 @@ class PSFRequest:
 
 @dataclass
 class PSFSourceResult:
-    """The PSFs serving a job: ``kind`` ('basis', 'olf' or 'trace'), why
-    (``message``, one line), ``library`` (always set), the files and the
-    ``quality`` ('full', or 'preview' for a preview's lighter trace)."""
+    """The PSFs serving a job: ``kind`` ('basis', 'raymap', 'olf' or
+    'trace'), why (``message``, one line), ``library`` (always set), the
+    files and the ``quality`` ('full', or 'preview' for a preview's lighter
+    trace or ray map)."""
 
     kind: str
     message: str
@@ -457,6 +518,7 @@ class PSFSourceResult:
     olf_file: str | None = None
     basis_file: str | None = None
     quality: str = "full"
+    raymap_file: str | None = None
 
     def as_dict(self) -> dict:
         return {"psf_source": self.kind, "psf_message": self.message, "psf_quality": self.quality,
@@ -470,7 +532,7 @@ def choose(lens, geometry, request: PSFRequest) -> PSFSource:
                       pixel_pitch_mm=geometry.pixel_pitch_mm, settings=request.settings,
                       kernel_size=request.kernel_size, focus_m=request.focus_m,
                       custom_response=request.response is not None,
-                      olf_grid=_request_grid(lens, geometry, request))
+                      olf_grid=_request_grid(lens, geometry, request), response=request.response)
 
 
 def _request_grid(lens, geometry, request: PSFRequest) -> LibraryGrid | None:
@@ -490,11 +552,19 @@ def open_source(lens, geometry, request: PSFRequest, *, fit_depth_m=None, contro
     control = control or Control()
     src = chosen if chosen is not None else choose(lens, geometry, request)
     control.say(src.message)
-    if src.library is not None:
+    if src.library is not None and src.kind != "raymap":
         return PSFSourceResult(src.kind, src.message, src.library, src.olf_file, src.basis_file)
     settings, quality = request.settings or PSFSettings(), "full"
     if request.preview:
         settings, quality = replace(settings, **PREVIEW_TRACE), "preview"
+    fit = fit_depth_m if request.fit_kernel and request.kernel_size is None else None
+    if src.kind == "raymap":          # the same settings as a trace would take, its kernel grown alike
+        lib = src.library
+        if request.kernel_size is not None:
+            settings = replace(settings, kernel_size=request.kernel_size)
+        library = open_raymap_library(lib.raymap, lens, geometry, settings, lib.grid, lib.response, fit,
+                                      control.counter("PSFs"))
+        return PSFSourceResult("raymap", src.message, library, quality=quality, raymap_file=src.raymap_file)
     library = open_library(lens, geometry, settings, _request_grid(lens, geometry, request), response=request.response,
                            fit_depth_m=fit_depth_m if request.fit_kernel else None, progress=control.counter("PSFs"))
     return PSFSourceResult("trace", src.message, library, src.olf_file, src.basis_file, quality)

@@ -24,6 +24,7 @@ from ..errors import InputRangeError
 from ..psf.compute import PSFSettings
 from ..parallel import thread_pool, workers
 from ..psf.library import PSFLibrary
+from ..psf.raymap import RayMapLibrary
 from . import layer_patch
 from . import multires as mr
 from .convolve import METHODS, ConvolveOptions, box_reach, patch_box, patch_convolve
@@ -455,8 +456,9 @@ def _clipped(library, depth_m: np.ndarray) -> bool:
 
 def _large_blur(sc: _BokehScene, options: BokehOptions, cancelled=None, progress=None) -> _LargeBlur | None:
     """The coarse PSFs of a large blur (BokehOptions.large_blur), or None
-    where the library's kernel holds every layer's blur (or is not traced:
-    a PSF basis or the OLF says nothing clips). Their bins are traced with
+    where the library's kernel holds every layer's blur (or cannot say:
+    a PSF basis or the OLF says nothing clips). A ray map's coarse PSFs come
+    from the same ray map. Their bins are traced with
     ``progress(done, total)`` called, and ``cancelled()`` asked, after each."""
     lib = sc.library
     blurred = sc.valid & ~sc.kept
@@ -478,8 +480,12 @@ def _large_blur(sc: _BokehScene, options: BokehOptions, cancelled=None, progress
             raise Cancelled("bokeh cancelled")
         if progress is not None:
             progress(done, total)
-    coarse = open_library(sc.lens, gc, settings, lib.grid, response=lib.response, fit_depth_m=sc.depth[blurred],
-                          progress=bins_done)
+    if isinstance(lib, RayMapLibrary):        # the coarse PSFs from the same ray map: never traced
+        coarse = sources.open_raymap_library(lib.raymap, lib.lens, gc, settings, lib.grid, lib.response,
+                                             sc.depth[blurred], bins_done)
+    else:
+        coarse = open_library(sc.lens, gc, settings, lib.grid, response=lib.response, fit_depth_m=sc.depth[blurred],
+                              progress=bins_done)
     return _LargeBlur(f, coarse, gc)
 
 

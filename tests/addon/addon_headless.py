@@ -111,6 +111,19 @@ t = time.perf_counter()
 res["olf_apply_refocus"] = {"result": sorted(bpy.ops.dcdi.apply_lens_bokeh()), "status": st.psf_source,
                             "seconds": time.perf_counter() - t}
 np.save(OUT / "olf-6p-refocus.npy", bpy_render.get_image("Lens Bokeh"))
+# a catalogue lens refocused and stopped down by the camera's aperture: served by
+# its ray map, tracing nothing
+s.lens = "zeiss-jena-tessar-50mm-f2-8"
+s.use_camera_aperture = True
+fstop0 = cam.data.dof.aperture_fstop
+cam.data.dof.aperture_fstop, cam.data.dof.aperture_blades = 5.6, 6
+st.psf_source = ""
+t = time.perf_counter()
+res["raymap_apply"] = {"result": sorted(bpy.ops.dcdi.apply_lens_bokeh()), "status": st.psf_source,
+                       "seconds": time.perf_counter() - t}
+np.save(OUT / "raymap-tessar.npy", bpy_render.get_image("Lens Bokeh"))
+s.use_camera_aperture = False
+cam.data.dof.aperture_fstop, cam.data.dof.aperture_blades = fstop0, 0
 for m, fn in tracers.items():
     sys.modules[f"{engine}.{m}"].compute_sources = fn
 s.refocus = True

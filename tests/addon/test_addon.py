@@ -493,6 +493,20 @@ def test_first_apply_with_refocus_on_a_focus_lens_traces_nothing(headless):
     assert np.abs(out - aif)[depth > 7.0].mean() > 1e-3
 
 
+def test_a_catalogue_lens_stopped_down_and_refocused_traces_nothing(headless):
+    """A catalogue lens with Camera Aperture on (f/5.6, 6 blades) and
+    Refocus Lens on, the tracer patched to raise: finished, served by its
+    ray map (the status says so and names the iris), the far wall blurred."""
+    run = headless["raymap_apply"]
+    assert run["result"] == ["FINISHED"], run
+    assert run["status"].startswith("PSFs from the ray map") and "f/5.6, 6 blades" in run["status"], run
+    out = np.load(headless["dir"] / "raymap-tessar.npy")
+    aif = np.load(headless["dir"] / "aif.npy")
+    depth = np.load(headless["dir"] / "depth.npy")[..., 0]
+    assert out.shape == aif.shape and np.isfinite(out).all()
+    assert np.abs(out - aif)[depth > 7.0].mean() > 1e-4
+
+
 def test_camera_aperture_stops_the_lens_down_to_the_cameras_f_stop(headless):
     """Camera Aperture on, the camera at f/4 with 6 blades: the 6P (matched
     wide open, f/1.64) is stopped down and traced (the status says the

@@ -128,3 +128,27 @@ def test_a_blur_the_kernel_clips_is_rendered_at_reduced_resolution(monkeypatch, 
         bokeh(img, depth, lens, replace(opts, large_blur=large_blur),
               progress=lambda done, total, out=seen[large_blur]: out.append((done, total)))
     assert len(seen[True]) > len(seen[False]) and seen[True][-1][0] == seen[True][-1][1]
+
+
+def test_a_ray_maps_large_blur_takes_its_coarse_psfs_from_the_map(monkeypatch):
+    """A library served by a ray map (a catalogue lens) blurs a layer its
+    kernel clips at reduced resolution with coarse PSFs from the same map:
+    nothing is traced, and a constant image stays constant."""
+    import dcdi_core.psf.sources as sources
+    from dcdi_core.psf.raymap import RayMapLibrary, open_raymap, shipped_raymap
+    lens = load_lens("zeiss-jena-tessar-50mm-f2-8")
+    geom = ImageGeometry.from_pixel_pitch(lens, 64, 96, 0.02, center_px=(31.5, 47.5))
+    lib = RayMapLibrary(open_raymap(shipped_raymap(lens.id)), lens,
+                        PSFSettings(kernel_size=15, pupil_samples=24, n_wavelengths=3, pixel_pitch_mm=0.02,
+                                    focus_distance_m=1.2))
+    monkeypatch.setattr(sources, "MAX_FITTED_KERNEL", 15)
+
+    def no_trace(*a, **k):
+        raise AssertionError("traced")
+    monkeypatch.setattr("dcdi_core.psf.library.compute_sources", no_trace)
+    depth = np.full((64, 96), 10.0, np.float32)
+    depth[20:44, 30:66] = 1.2
+    out = bokeh(np.full((64, 96, 3), 0.5, np.float32), depth, lens,
+                BokehOptions(focus_m=1.2, keep=(1.1, 1.3), geometry=geom), library=lib)
+    assert out.info["large_blur_factor"] >= 2
+    assert np.abs(out.image - 0.5).max() < 2e-3
