@@ -5,12 +5,13 @@ its full-frame sensor, focused at 1.5 m on an elliptical subject, the rest
 a textured background at 10 m with twenty small lights (40 x brighter) in
 it: the background's blur is about 190 px across. ``app.bokeh`` as `dcdi
 bokeh --focus 1.5` runs it (the occlusion-aware layers, fields 16 image
-pixels apart as in the add-on), PSFs from an empty cache, so traced.
+pixels apart as in the add-on), PSFs from the lens's ray map (as the add-on's
+Apply takes them; ``psf.raymap``).
 Prints the wall and CPU seconds (PSFs, bokeh), the process's peak RSS, the
 kernel size and what it clips. The goal: <= 4 s whole and <= 3 GB on 2
 cores, kernels up to 400 px.
 
-``--compare``: then the same image three ways with the traced PSFs (the
+``--compare``: then the same image three ways with traced PSFs (the
 PSF cache of the first run's pitch set aside): a reference whose 201-px
 kernels hold the blur, every layer at full resolution; the kernels clipped
 at 129 px (the renderer before ``BokehOptions.large_blur``); and the
@@ -79,7 +80,7 @@ def main(argv=None) -> int:
         print(f"  warning: {w.message}")
     f = r.info.get("large_blur_factor")
     print(f"  layers {r.info.get('layers')}, of which {r.info.get('large_blur_layers', 0)} blurred at 1/{f} of the "
-          "resolution (PSFs traced at that pitch)" if f else "  every layer at full resolution")
+          "resolution (PSFs at that pitch, from the same source)" if f else "  every layer at full resolution")
     print(f"  goal: <= 4 s ({'met' if wall <= 4 else 'not met'}), <= 3 GB ({'met' if peak <= 3072 else 'not met'})")
     if args.compare:
         compare(img, depth, lens)
