@@ -109,6 +109,19 @@ def read_npz(path, fail, *, meta_required: bool = True) -> tuple[dict | None, di
     return meta, arrays
 
 
+def write_format(path, meta: dict, arrays: dict, fmt: str, version: int) -> None:
+    """Write ``arrays`` and ``meta`` (JSON) with its ``format``, ``version``
+    and :func:`checksum`, compressed and atomically: what :func:`read_format` reads."""
+    import numpy as np
+
+    from ..atomic import atomic_path
+    meta = dict(meta, format=fmt, version=version)
+    meta["checksum"] = checksum(meta, arrays)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, meta=np.array(json.dumps(meta)), **arrays)
+
+
 def read_format(path, fail, fmt: str, version: int) -> tuple[dict, dict]:
     """:func:`read_npz` of a file that names its ``format`` and ``version``
     and carries a :func:`checksum` in its metadata: each checked, in that

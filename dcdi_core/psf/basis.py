@@ -31,7 +31,6 @@ its prescribed focus.
 """
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import asdict, dataclass, replace
@@ -39,8 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path
-from ..io.npzfile import FileCache, Record, check_array, check_declared_bytes, checksum, file_error_text, read_format
+from ..io.npzfile import (FileCache, Record, check_array, check_declared_bytes, file_error_text, read_format,
+                          write_format)
 from ..errors import InputRangeError, field
 from ..optics.errors import OpticsError
 from .compute import PSFSettings
@@ -355,12 +354,7 @@ class BasisStore:
         if not mirror_symmetric(self.basis):
             raise InputRangeError("basis", "not mirror-symmetric across the radial axis",
                                   "a radial library's kernels (rows along the radius)")
-        arrays = self.file_arrays()
-        meta = dict(self.meta, format=FORMAT, version=FORMAT_VERSION)
-        meta["checksum"] = checksum(meta, arrays)
-        with atomic_path(path) as tmp:
-            with open(tmp, "wb") as f:
-                np.savez_compressed(f, meta=np.array(json.dumps(meta)), **arrays)
+        write_format(path, self.meta, self.file_arrays(), FORMAT, FORMAT_VERSION)
 
     @classmethod
     def load(cls, path) -> "BasisStore":

@@ -32,7 +32,6 @@ raymap`` (docs/psf.md).
 """
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import asdict, dataclass, replace
@@ -40,9 +39,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path
 from ..errors import InputRangeError
-from ..io.npzfile import FileCache, Record, check_array, checksum, file_error_text, read_format
+from ..io.npzfile import FileCache, Record, check_array, file_error_text, read_format, write_format
 from ..optics.aiming import aim_chief, pupil_rays, sources, stop_grid
 from ..optics.errors import OpticsError
 from ..optics.lens import Lens, lens_fingerprint
@@ -278,12 +276,7 @@ class RayMap:
 
     # --------------------------------------------------------------- storage
     def save(self, path) -> None:
-        meta = dict(self.meta, format=FORMAT, version=FORMAT_VERSION)
-        arrays = {k: np.asarray(v) for k, v in self.arrays.items()}
-        meta["checksum"] = checksum(meta, arrays)
-        with atomic_path(path) as tmp:
-            with open(tmp, "wb") as fh:
-                np.savez_compressed(fh, meta=np.array(json.dumps(meta)), **arrays)
+        write_format(path, self.meta, {k: np.asarray(v) for k, v in self.arrays.items()}, FORMAT, FORMAT_VERSION)
 
     @classmethod
     def load(cls, path) -> "RayMap":
