@@ -125,6 +125,33 @@ def monomials(u: np.ndarray, v: np.ndarray, degree: int, parity: int) -> np.ndar
     return pu[:, e[:, 0]] * pv[:, e[:, 1]]
 
 
+def monomial_set(uv: np.ndarray, recipe: "RayMapRecipe") -> dict:
+    """{(degree, parity): monomials (P, n)} of every polynomial a map of
+    ``recipe`` evaluates, at stop points ``uv`` (P, 2)."""
+    u, v = uv[:, 0], uv[:, 1]
+    return {(deg, p): monomials(u, v, deg, p)
+            for deg in {recipe.degree, recipe.chroma_degree, recipe.clip_degree} for p in (0, 1)}
+
+
+class _MonomialCache:
+    """The last few stop grids' :func:`monomial_set` (a library evaluates one
+    grid for every depth bin; a refocus or a new pitch keeps it)."""
+
+    def __init__(self, size: int = 4):
+        self.size, self.kept = size, {}
+
+    def __call__(self, uv: np.ndarray, recipe) -> dict:
+        key = (uv.shape, hash(uv.tobytes()), recipe)
+        if key not in self.kept:
+            while len(self.kept) >= self.size:
+                self.kept.pop(next(iter(self.kept)))
+            self.kept[key] = monomial_set(uv, recipe)
+        return self.kept[key]
+
+
+_MONOMIALS = _MonomialCache()
+
+
 def n_terms(degree: int) -> tuple[int, int]:
     """(odd, even) monomial counts of a degree."""
     return len(exponents(degree, 1)), len(exponents(degree, 0))
@@ -226,13 +253,15 @@ class RayMap:
         out["ok"] = self.arrays["ok"][idx].all(axis=0)
         return out
 
-    def rays(self, depth_m: float, fields, dz_mm: float, uv: np.ndarray, wavelengths_nm, semi_diagonal_mm: float):
+    def rays(self, depth_m: float, fields, dz_mm: float, uv: np.ndarray, wavelengths_nm, semi_diagonal_mm: float,
+             mono: dict | None = None):
         """The rays of sources at one depth (m, ``inf`` allowed) and
         ``fields`` (S,) on the sensor moved by ``dz_mm``, launched at ``uv``
         (P, 2) (stop coordinates / the prescribed stop radius): returns x, y
         (S, W, P) mm on that sensor (float64), valid (S, W, P), the chief
         ray's height (S,) mm, the illumination geometry (S,) and its axial
-        reference (a number)."""
+        reference (a number). ``mono``: :func:`monomial_set` of ``uv`` (made
+        here if None; a library that evaluates many sources makes it once)."""
         d = float(depth_m)
         at = self._at_depth(0.0 if math.isinf(d) else 1.0 / d)
         f = np.asarray(fields, np.float64)
@@ -252,21 +281,22 @@ class RayMap:
         u, v = uv[:, 0], uv[:, 1]
         r = self.recipe
         no, ne = n_terms(r.degree)
-        mo, me = monomials(u, v, r.degree, 1), monomials(u, v, r.degree, 0)
+        mono = _MONOMIALS(uv, r) if mono is None else mono
+        mo, me = mono[r.degree, 1], mono[r.degree, 0]
         # the two planes mixed: a ray is straight behind the last surface
         a = dz_mm / float(self.meta["far_plane_mm"])
         plane = (1.0 - a) * xy[..., 0, :] + a * xy[..., 1, :]                 # (S, n)
         dplane = (1.0 - a) * chroma[..., 0, :] + a * chroma[..., 1, :]       # (S, Ws, n')
         ho, he = n_terms(r.chroma_degree)
-        x = (plane[..., :no] @ mo.T)[:, None, :] + dplane[..., :ho] @ monomials(u, v, r.chroma_degree, 1).T
-        y = (plane[..., no:] @ me.T)[:, None, :] + dplane[..., ho:] @ monomials(u, v, r.chroma_degree, 0).T
+        x = (plane[..., :no] @ mo.T)[:, None, :] + dplane[..., :ho] @ mono[r.chroma_degree, 1].T
+        y = (plane[..., no:] @ me.T)[:, None, :] + dplane[..., ho:] @ mono[r.chroma_degree, 0].T
         # (S, Ws, P) at the stored wavelengths -> the asked ones, linear in wavelength
         a = _wavelength_weights(np.asarray(wavelengths_nm, np.float64), self.wavelengths_nm)
         x = np.einsum("wk,skp->swp", a, x)
         y = np.einsum("wk,skp->swp", a, y)
         valid = ok[:, None] & (u * u + v * v + reach[:, :1] * v + reach[:, 1:] <= 0.0)
         co, ce = n_terms(r.clip_degree)
-        mco, mce = monomials(u, v, r.clip_degree, 1), monomials(u, v, r.clip_degree, 0)
+        mco, mce = mono[r.clip_degree, 1], mono[r.clip_degree, 0]
         for k, clear in enumerate(self.clear_mm):
             xk, yk = clip[:, k, :co] @ mco.T, clip[:, k, co:] @ mce.T
             valid &= xk * xk + yk * yk <= clear * clear
@@ -381,8 +411,7 @@ def build(lens: Lens, recipe: RayMapRecipe | None = None, *, progress=None) -> R
     targets = stop_grid(lens, recipe.fit_samples)
     uv = targets / r0
     u, v = uv[:, 0], uv[:, 1]
-    m = {(deg, p): monomials(u, v, deg, p) for deg in {recipe.degree, recipe.chroma_degree, recipe.clip_degree}
-         for p in (0, 1)}
+    m = monomial_set(uv, recipe)
     wl = recipe.wavelengths_nm
     dio = recipe.diopters
     depths = np.where(dio > 0, 1.0 / np.where(dio > 0, dio, 1.0), np.inf)
@@ -547,6 +576,7 @@ class RayMapLibrary(PSFLibrary):
         """The kernels and figures of ``fields`` (S,) at one depth, batched over rays."""
         lens, s = self.lens, self.settings
         uv = stop_grid(lens, s.pupil_samples) / self.raymap.stop_radius_mm
+        mono = _MONOMIALS(uv, self.raymap.recipe)
         wl, w = np.asarray(self.meta["wavelengths_nm"]), np.asarray(self.meta["channel_weights"])
         pitch = pixel_pitch_mm(lens, s)
         sd = lens.sensor.semi_diagonal_mm
@@ -554,7 +584,7 @@ class RayMapLibrary(PSFLibrary):
         parts = []
         for start in range(0, len(fields), per):
             f = np.asarray(fields[start:start + per], np.float64)
-            x, y, valid, cy, geo, ref = self.raymap.rays(depth_m, f, self.dz_mm, uv, wl, sd)
+            x, y, valid, cy, geo, ref = self.raymap.rays(depth_m, f, self.dz_mm, uv, wl, sd, mono)
             kern = rays_to_kernels(x, y, valid, cy, w, len(uv), pitch, s)
             vig = np.clip(kern.vignetted_fraction, 0.0, 1.0)
             ri = geo * (1.0 - vig[:, 1]) / ref if ref > 0 else np.zeros(len(f))
