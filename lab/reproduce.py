@@ -3,8 +3,10 @@
     python -m lab reproduce NAME --out OUT [--seed S] [--dry-run]
     python -m lab reproduce --list
 
-A config is data: the factory frames it renders (``[[frames]]``: folder,
-scene recipe, count, seed, the factory's lens), the DA2T pairs made of them
+A config is data: the textures it makes (``[[textures]]``: folder, count,
+seed; ``dcdi dataset textures``), the factory frames it renders
+(``[[frames]]``: folder, scene recipe, count, seed, the factory's lens, a
+textures folder), the DA2T pairs made of them
 (``[[pairs]]``: folder, frame folders, lens, ``dcdi dacn pairs`` options),
 the training (``[[train]]``: a study of the lab or a ``dcdi`` trainer, its
 options) and the export (``[export]``) that writes OUT/weights/<weights>,
@@ -76,6 +78,8 @@ def _need(cond: bool, path: Path, what: str) -> None:
 def _check(cfg: dict, path: Path) -> None:
     _need(isinstance(cfg.get("seed"), int), path, "'seed' (the shipped file's training seed) must be an integer")
     _need(cfg.get("train"), path, "no [[train]] step")
+    for x in cfg.get("textures", []):
+        _need({"folder", "count", "seed"} <= set(x), path, f"[[textures]] {x}: folder, count, seed")
     for f in cfg.get("frames", []):
         _need({"folder", "recipe", "count", "seed"} <= set(f), path, f"[[frames]] {f}: folder, recipe, count, seed")
     for p in cfg.get("pairs", []):
@@ -119,10 +123,15 @@ def steps(cfg: dict, out: Path, seed: int | None = None, python: str = sys.execu
     o = lambda folder: str(out / folder)  # noqa: E731
     dcdi, lab = [python, "-m", "dcdi_core"], [python, "-m", "lab"]
     out_steps = []
+    for x in cfg.get("textures", []):
+        out_steps.append(Step("textures", (*dcdi, "dataset", "textures", "-o", o(x["folder"]), "--count",
+                                           str(x["count"]), "--seed", str(x["seed"]))))
     for f in cfg.get("frames", []):
+        textures = ("--textures", o(f["textures"])) if "textures" in f else ()
         out_steps.append(Step("frames", (python, "-m", "blender_addon.factory", "--recipe", f["recipe"], "--count",
                                          str(f["count"]), "--lens", f.get("lens", FACTORY_LENS), "--out",
-                                         o(f["folder"]), "--seed", str(f["seed"]), *options(f.get("options")))))
+                                         o(f["folder"]), "--seed", str(f["seed"]), *textures,
+                                         *options(f.get("options")))))
     for p in cfg.get("pairs", []):
         for frames in p["frames"]:
             out_steps.append(Step("pairs", (*dcdi, "dacn", "pairs", o(frames), "--lens", p["lens"], "-o",

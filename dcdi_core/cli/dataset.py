@@ -1,5 +1,7 @@
 """`dcdi dataset stats`: what a data set's frames hold (``app.dataset_stats``):
-texture, depth mix, clipping, and how much blur each lens leaves to correct."""
+texture, depth mix, clipping, and how much blur each lens leaves to correct.
+`dcdi dataset textures`: a folder of textures with photographs' statistics
+(``dataset.natural``) for any ``--textures DIR``."""
 from __future__ import annotations
 
 import sys
@@ -14,6 +16,17 @@ def cmd_dataset_stats(args) -> int:
                                    seed=args.seed)
     run_report(args.dirs, options, args.out, log=lambda t: print(t, file=sys.stderr, flush=True))
     print((Path(args.out) / "report.md").read_text(encoding="utf-8"), end="")
+    return 0
+
+
+def cmd_dataset_textures(args) -> int:
+    import json
+
+    from ..dataset.natural import write_textures
+    paths = write_textures(args.out, args.count, args.seed, args.size,
+                           progress=lambda i, n: print(f"\rtextures {i}/{n}", end="" if i < n else "\n",
+                                                       file=sys.stderr, flush=True))
+    print(json.dumps({"out": str(args.out), "textures": len(paths), "seed": args.seed, "size_px": args.size}))
     return 0
 
 
@@ -33,3 +46,12 @@ def add_commands(sub) -> None:
     r.add_argument("--out", default="out/dataset-stats", help="folder for report.md, results.json and a picture "
                                                               "per recipe (default out/dataset-stats)")
     r.set_defaults(func=cmd_dataset_stats)
+    t = dsub.add_parser("textures", help="a folder of seeded textures with photographs' statistics (1/f^a spectra "
+                                         "with a drawn per texture, edges, natural colours; docs/depth.md) for "
+                                         "the factory's --textures DIR")
+    t.add_argument("-o", "--out", required=True, metavar="DIR", help="the folder (made if missing; existing "
+                                                                     "natural-NNNN.png files are never overwritten)")
+    t.add_argument("--count", type=positive_int, default=64, help="how many textures (default 64)")
+    t.add_argument("--size", type=positive_int, default=512, help="each texture's side, px (default 512)")
+    t.add_argument("--seed", type=int, default=0, help="texture i is drawn from (seed, i) (default 0)")
+    t.set_defaults(func=cmd_dataset_textures)

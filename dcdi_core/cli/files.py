@@ -74,6 +74,7 @@ SPECS = {
     ("depth", "train"): Spec(reads=("data",), into=("output",), updates=("data",)),
     ("depth", "export"): Spec(reads=("run",), writes=("output",)),
     ("dataset", "stats"): Spec(reads=("dirs", "lens"), into=("out",)),
+    ("dataset", "textures"): Spec(into=("out",)),
     ("bench",): Spec(reads=("optiland",)),
     ("demo",): Spec(into=("out",)),
 }
@@ -89,7 +90,7 @@ NOT_PATHS = frozenset("""
     focus_range focus_bins kind variants no_refocus baseline_depth no_noise no_saturate sensor_px placement
     no_deconvolved shard crop schedule warmup loss ema_decay crop_choice validate_every input rdicab d2cb racm
     depth_encoding condition channels groups blocks train_scenes name pictures_count lpips widths quick
-    frames what repeat field_step focus_tolerance focus_slices f_number blades blade_rotation degree
+    frames what repeat field_step focus_tolerance focus_slices f_number blades blade_rotation degree count uncertain_depth
 """.split())
 
 
