@@ -35,6 +35,8 @@ MODULES = {
                                              "(docs/depth.md)"),
     "olf-sweep": ("olf_sweep", "the Omni-Lens-Field's size x learning-rate sweep (docs/olf.md)"),
     "depth-from-blur": ("depth_from_blur_report", "the depth from a capture's blur against the truth (docs/depth.md)"),
+    "dof-rule": ("dof_rule_report", "when dcdi dof trusts the depth from the capture's blur: the chain's gain "
+                                    "against the frame's confidence (docs/depth.md)"),
     "bench-defocus": ("bench_defocus", "the lens bokeh beside Blender's Defocus node: the engine's side and the "
                                        "scores (python build.py bench render; docs/performance.md)"),
     "bokeh-variants": ("bokeh_variants", "the bokeh's variants, error against time (docs/performance.md)"),

@@ -1,9 +1,12 @@
 """How well a capture's own blur tells depth (`python -m lab
 depth-from-blur`): synthetic captures at the paper's pitch (12.2 um) with
 sensor noise (full well 10000 e-, read noise 3 e-), each lens's PSFs,
-crops of 384 x 512 px at the sensor's centre and its corner; two scenes: 'planes' (4 x 4 fronto-parallel dead-leaves planes,
-each at a depth drawn uniform in inverse depth over 0.7-10 m) and 'leaves'
-(dead-leaves RGB-D frames: occluding shapes at metric depths).
+crops of 384 x 512 px at the sensor's centre and its corner; scenes: 'planes' (4 x 4 fronto-parallel dead-leaves planes,
+each at a depth drawn uniform in inverse depth over 0.7-10 m), 'leaves'
+(dead-leaves RGB-D frames: occluding shapes at metric depths), and two like
+photographs, textured with natural-statistics textures of a set no training
+uses (``dataset.natural``, seed 1000): 'natural-planes' (the 4 x 4 planes,
+each its own texture) and 'natural' (dead leaves of large shapes).
 
 Rows per lens and scene: the estimator (``dfd.estimate_depth``, defaults)
 against the best constant (each frame's own median depth: an oracle no
@@ -43,6 +46,49 @@ def leaves(seed: int, h: int, w: int):
     return img, depth
 
 
+# photograph-like frames: shapes larger than a tile, each textured with a natural-statistics texture
+# (dataset.natural) of a set drawn from TEXTURE_SEED, which no training set uses
+TEXTURE_SEED = 1000
+NATURAL_LEAVES = dict(coverage=1.5, size_exponent=2.2, min_radius_px=16.0, max_radius_frac=0.8, thin_share=0.03,
+                      photo_share=1.0, texel_per_px=(0.8, 2.0))
+_natural = {}
+
+
+def natural_library():
+    """48 natural-statistics textures of TEXTURE_SEED, written once per process to a temporary folder."""
+    if "lib" not in _natural:
+        import tempfile
+
+        from dcdi_core.dataset.natural import write_textures
+        from dcdi_core.dataset.textures import TextureLibrary
+        _natural["dir"] = tempfile.TemporaryDirectory(prefix="dcdi-natural-")
+        write_textures(_natural["dir"].name, 48, seed=TEXTURE_SEED)
+        _natural["lib"] = TextureLibrary.from_folder(_natural["dir"].name)
+    return _natural["lib"]
+
+
+def natural(seed: int, h: int, w: int):
+    from dcdi_core.dataset.leaves import LeavesOptions, leaves_rgbd
+    img, depth, _ = leaves_rgbd(seed, h, w, LeavesOptions(**NATURAL_LEAVES), textures=natural_library())
+    return img, depth
+
+
+def natural_planes(seed: int, h: int, w: int):
+    """4 x 4 planes (as ``planes``), each its own natural-statistics texture."""
+    from dcdi_core.dataset.natural import natural_texture
+    _, depth = planes(seed, h, w)
+    rng = np.random.default_rng([TEXTURE_SEED, seed])
+    img = np.empty((h, w, 3), np.float32)
+    th, tw = h // 4, w // 4
+    for i in range(4):
+        for j in range(4):
+            img[i * th:(i + 1) * th, j * tw:(j + 1) * tw] = natural_texture(rng, 256)[:th, :tw]
+    return img, depth
+
+
+SCENES = {"planes": planes, "leaves": leaves, "natural": natural, "natural-planes": natural_planes}
+
+
 def geometry(lens, where: str):
     from dcdi_core.render.geometry import ImageGeometry
     h, w = SIZE
@@ -70,20 +116,20 @@ def oracle_tiles(img, lens, g, library, capture, tile: int, distortion: bool = T
     return depths[np.argmin(err, 0)]
 
 
-def frame(lens, library, scene: str, seed: int, where: str, refine=None):
+def frame(lens, library, scene: str, seed: int, where: str, refine=None, options=None, with_oracle: bool = True):
     from dcdi_core.dfd import estimate_depth
     from dcdi_core.render.noise import add_sensor_noise
     from dcdi_core.render.simulate import SimulateOptions, simulate
     g = geometry(lens, where)
-    img, depth = (planes if scene == "planes" else leaves)(seed, *SIZE)
+    img, depth = SCENES[scene](seed, *SIZE)
     capture = add_sensor_noise(simulate(img, depth, lens, SimulateOptions(geometry=g), library=library).image,
                                seed=seed + 1)
     t, c = time.perf_counter(), time.process_time()
-    est = estimate_depth(capture, library, g, refine=refine)
+    est = estimate_depth(capture, library, g, options, refine=refine)
     seconds = (time.perf_counter() - t, time.process_time() - c)
     tile = est.tile_diopters.shape
     s = SIZE[0] // tile[0] if SIZE[0] % tile[0] == 0 else 32
-    oracle = oracle_tiles(img, lens, g, library, capture, s)
+    oracle = oracle_tiles(img, lens, g, library, capture, s) if with_oracle else np.full(tile, np.nan)
     near, far = library.grid.near_m, library.grid.far_m
     ok = np.isfinite(depth) & (depth >= near) & (depth <= far)
     truth = depth[ok]
@@ -93,7 +139,15 @@ def frame(lens, library, scene: str, seed: int, where: str, refine=None):
     gy, gx = np.gradient(capture.mean(-1))
     texture = np.pad(gx ** 2 + gy ** 2, ((0, tile[0] * s - SIZE[0]), (0, tile[1] * s - SIZE[1])))
     texture = texture.reshape(tile[0], s, tile[1], s).mean((1, 3))
-    return {"est": np.abs(est.depth_m[ok] - truth) / truth,
+    # pixels within 4 px of a depth edge (the true depth jumps by more than 10 % between neighbours)
+    logd = np.log(np.where(np.isfinite(depth) & (depth > 0), depth, far))
+    jump = np.zeros(depth.shape, bool)
+    jump[:, 1:] |= np.abs(np.diff(logd, axis=1)) > 0.1
+    jump[1:, :] |= np.abs(np.diff(logd, axis=0)) > 0.1
+    from numpy.lib.stride_tricks import sliding_window_view
+    edge = sliding_window_view(np.pad(jump, 4), (9, 9)).any(axis=(-1, -2))
+    err = np.abs(est.depth_m - depth) / depth
+    return {"est": err[ok], "edge": err[ok & edge],
             "const": np.abs(np.median(truth) - truth) / truth,
             "oracle": np.abs(oracle - tile_truth) / tile_truth,
             "tiles": np.abs(1.0 / est.tile_diopters - tile_truth) / tile_truth,
@@ -101,10 +155,10 @@ def frame(lens, library, scene: str, seed: int, where: str, refine=None):
             "seconds": seconds}
 
 
-def tables(lenses, scenes, seeds, wheres, refine=None) -> None:
+def tables(lenses, scenes, seeds, wheres, refine=None, options=None, with_oracle: bool = True) -> None:
     from dcdi_core.app import PSFRequest, open_source
     from dcdi_core.optics.lens import load_lens
-    rows, detail = [], []
+    rows, detail, every = [], [], []
     for lens_id in lenses:
         lens = load_lens(lens_id)
         for scene in scenes:
@@ -115,15 +169,17 @@ def tables(lenses, scenes, seeds, wheres, refine=None) -> None:
                 if refine:
                     from dcdi_core.app.depth import refinement
                     refiner, _ = refinement("auto" if refine == "shipped" else refine, lens_id, PITCH_MM)
-                frames += [frame(lens, library, scene, seed, where, refiner) for seed in seeds]
+                frames += [frame(lens, library, scene, seed, where, refiner, options, with_oracle) for seed in seeds]
             cat = {k: np.concatenate([np.ravel(f[k]) for f in frames]) for k in
-                   ("est", "const", "oracle", "tiles", "conf", "tile_truth", "field", "texture")}
+                   ("est", "edge", "const", "oracle", "tiles", "conf", "tile_truth", "field", "texture")}
+            every.append(cat)
             est, const = cat["est"].mean(), cat["const"].mean()
             wall = np.mean([f["seconds"][0] for f in frames])
             cpu = np.mean([f["seconds"][1] for f in frames])
             sure = cat["conf"] >= 0.5
+            edge = f"{cat['edge'].mean():.3f}" if cat["edge"].size else "-"
             rows.append(f"| {lens_id} | {scene} | {len(frames)} | {est:.3f} | {const:.3f} | {est / const:.2f} | "
-                        f"{cat['oracle'].mean():.3f} | {cat['tiles'][sure].mean():.3f} ({sure.mean():.0%}) | "
+                        f"{edge} | {cat['oracle'].mean():.3f} | {cat['tiles'][sure].mean():.3f} ({sure.mean():.0%}) | "
                         f"{wall:.1f} ({cpu:.1f}) |")
             tex = np.quantile(cat["texture"], [1 / 3, 2 / 3])
             for name, sel in (("texture low third", cat["texture"] <= tex[0]),
@@ -136,12 +192,24 @@ def tables(lenses, scenes, seeds, wheres, refine=None) -> None:
                 if sel.any():
                     detail.append(f"| {lens_id} | {scene} | {name} | {sel.sum()} | {cat['tiles'][sel].mean():.3f} | "
                                   f"{cat['oracle'][sel].mean():.3f} | {cat['conf'][sel].mean():.2f} |")
+    conf = np.concatenate([c["conf"] for c in every])
+    hit = np.concatenate([c["tiles"] for c in every]) <= 0.15
+    calibration = []
+    for lo, hi in ((0.0, 0.2), (0.2, 0.4), (0.4, 0.6), (0.6, 0.8), (0.8, 1.0)):
+        sel = (conf >= lo) & ((conf < hi) if hi < 1.0 else (conf <= hi))
+        if sel.any():
+            calibration.append(f"| {lo:.1f}-{hi:.1f} | {sel.sum()} | {hit[sel].mean():.2f} |")
     print(f"Depth from blur: {SIZE[0]} x {SIZE[1]} crops at {PITCH_MM * 1000:g} um (centre and corner of the "
           f"sensor), noise 10000 e- / 3 e-, seeds {', '.join(map(str, seeds))}\n")
-    print("| lens | scene | frames | AbsRel | constant (median) | ratio | oracle (sharp known) | "
-          "confident tiles (share) | wall s (CPU s) per frame |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("| lens | scene | frames | AbsRel | constant (median) | ratio | AbsRel within 4 px of a depth edge | "
+          "oracle (sharp known) | confident tiles (share) | wall s (CPU s) per frame |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     print("\n".join(rows))
+    print("\nCalibration (all lenses and scenes above): the share of tiles within 15 % of the truth, by "
+          "confidence\n")
+    print("| confidence | tiles | within 15 % |")
+    print("|---|---|---|")
+    print("\n".join(calibration))
     print("\nTile errors (AbsRel of the tiles' estimates before filling):\n")
     print("| lens | scene | tiles | count | AbsRel | oracle | mean confidence |")
     print("|---|---|---|---|---|---|---|")
@@ -201,7 +269,7 @@ def pairs_table(pairs: dict, count: int, options=None, oracle: bool = True, refi
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m lab depth-from-blur", description=__doc__.split("\n\n")[0])
     p.add_argument("--lenses", nargs="+", default=["mos-s1", "mos-s2"])
-    p.add_argument("--scenes", nargs="+", default=["planes", "leaves"], choices=["planes", "leaves"])
+    p.add_argument("--scenes", nargs="+", default=["planes", "leaves"], choices=list(SCENES))
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     p.add_argument("--where", nargs="+", default=["centre", "corner"], choices=["centre", "corner"])
     p.add_argument("--pairs", action="append", default=None, metavar="LENS=DIR",
@@ -210,19 +278,19 @@ def main(argv=None) -> int:
     p.add_argument("--count", type=int, default=1000, help="pairs per lens at most")
     p.add_argument("--set", action="append", default=[], metavar="OPTION=VALUE",
                    help="an estimator option (DepthFromBlurOptions) other than its default, e.g. temperature=10")
-    p.add_argument("--no-oracle", action="store_true", help="pairs: leave out the oracle (it simulates 21 depths)")
+    p.add_argument("--no-oracle", action="store_true", help="leave out the oracle (it simulates 21 depths)")
     p.add_argument("--refine", default=None, metavar="shipped|FILE",
                    help="with the learned refinement: each lens's shipped one, or a file (default: the evidence alone)")
     a = p.parse_args(argv)
-    if a.pairs:
-        import ast
+    import ast
 
-        from dcdi_core.dfd import DepthFromBlurOptions
-        options = DepthFromBlurOptions(**{k: ast.literal_eval(v) for k, v in (x.split("=", 1) for x in a.set)})
+    from dcdi_core.dfd import DepthFromBlurOptions
+    options = DepthFromBlurOptions(**{k: ast.literal_eval(v) for k, v in (x.split("=", 1) for x in a.set)})
+    if a.pairs:
         pairs_table(dict(x.split("=", 1) for x in a.pairs), a.count, options, oracle=not a.no_oracle,
                     refine=a.refine)
         return 0
-    tables(a.lenses, a.scenes, a.seeds, a.where, a.refine)
+    tables(a.lenses, a.scenes, a.seeds, a.where, a.refine, options, not a.no_oracle)
     return 0
 
 

@@ -33,15 +33,16 @@ def test_demo_writes_the_strip_the_side_pictures_and_the_table(demo_out):
     report = (demo_out / "report.md").read_text()
     rows = [line for line in report.splitlines() if line.startswith("| synthetic |")]
     assert len(rows) == 2                                       # the estimated depth's and the true depth's
-    estimated = next(r for r in rows if len(r.strip("|").split("|")) == 6)
+    estimated = next(r for r in rows if len(r.strip("|").split("|")) == 7)
     known = next(r for r in rows if len(r.strip("|").split("|")) == 4)
     cells = [c.strip() for c in estimated.strip("|").split("|")]
-    assert all(math.isfinite(float(c)) for c in cells[1:5])
+    assert all(math.isfinite(float(c)) for c in cells[1:5] + [cells[5].split()[0], cells[6].split()[0]])
     assert all(math.isfinite(float(c)) for c in known.strip("|").split("|")[1:])
-    # where the estimated depth's chain is no closer to the ideal than the uncorrected capture's, the report
-    # says that DCDI needs a depth map and leads with the true depth's chain
+    # where the estimated depth's chain is no closer to the ideal than the uncorrected capture's, or `dcdi dof`
+    # would refuse its depth, the report says that DCDI needs a depth map and leads with the true depth's chain
     s = json.loads((demo_out / "dcdi_scores.json").read_text())["synthetic"]
-    worse = s["dof_psnr"] <= s["dof_uncorrected_psnr"]
+    worse = s["dof_psnr"] <= s["dof_uncorrected_psnr"] or bool(s["dof_refuses"])
+    assert 0.0 <= s["corrected_share"] <= 1.0
     assert ("DCDI needs a depth map here" in report) == worse
     assert (report.index(known) < report.index(estimated)) == worse
     assert "no factory scene: no Blender in this test" in report
@@ -57,7 +58,9 @@ def test_demo_scores_are_finite_and_measure_the_chain(demo_out):
     # the capture is aberrated and noisy: far from its sharp truth, not identical to it
     assert 10 < s["capture_psnr"] < 45
     assert 10 < s["dof_psnr"] < 60 and 10 < s["dof_uncorrected_psnr"] < 60
-    assert s["dof_psnr"] != s["dof_uncorrected_psnr"]
+    # the correction kept nowhere (the rule, on this tiny frame) is exactly the uncorrected capture's bokeh
+    assert (s["dof_psnr"] == s["dof_uncorrected_psnr"]) == (s["corrected_share"] == 0.0)
+    assert s["whole_dof_psnr"] != s["dof_uncorrected_psnr"]
     assert 0 <= s["depth_delta1"] <= 1 and s["depth_abs_rel"] >= 0
     assert {"capture", "correction", "depth", "psfs and bokeh", "references"} <= set(s["seconds"])
 

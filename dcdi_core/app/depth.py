@@ -59,6 +59,7 @@ class DepthResult:
     info: dict
     notes: list
     seconds: dict
+    posterior: object = None      # dfd.TilePosterior: the tiles' evidence, for app.dof's rule
 
 
 def recorded_better(lens_id: str, pitch_mm: float) -> bool:
@@ -133,7 +134,91 @@ def estimate(request: DepthRequest, control: Control | None = None) -> DepthResu
         notes = notes + [f"only {share:.0%} of {request.image_name}'s tiles have a confident depth (texture above "
                          "the noise): the rest is filled from them; check the confidence map"]
     seconds = {"psfs": t_psf, **est.info["seconds"]}
-    return DepthResult(est.depth_m, est.confidence, plan.geometry, info, notes, seconds)
+    return DepthResult(est.depth_m, est.confidence, plan.geometry, info, notes, seconds, est.posterior)
+
+
+def target_blur(lens, pixel_pitch_mm: float, focus_m=None, keep=None):
+    """The target lens's thin-lens defocus blur diameter (px) as a function
+    of depth (m, array): ``keep`` (near, far) metres kept sharp, else
+    focused at ``focus_m`` (metres, inf; None or 'prescribed': as its
+    prescription stands)."""
+    from ..optics.paraxial import prescribed_focus_diopters
+    from ..psf.sampling import blur_px_per_diopter
+    k = blur_px_per_diopter(lens, pixel_pitch_mm)
+    if keep is not None:
+        lo, hi = 1.0 / float(keep[1]), 1.0 / float(keep[0])
+        return lambda z: k * np.maximum(np.maximum(lo - 1.0 / np.asarray(z), 1.0 / np.asarray(z) - hi), 0.0)
+    if focus_m is None or isinstance(focus_m, str):
+        f = prescribed_focus_diopters(lens)
+    else:
+        f = 0.0 if not np.isfinite(float(focus_m)) else 1.0 / float(focus_m)
+    return lambda z: k * np.abs(1.0 / np.asarray(z, np.float64) - f)
+
+
+@dataclass(frozen=True)
+class DofDepthRule:
+    """Where `dcdi dof` uses the correction when the depth is read from the
+    capture's blur, and when it refuses.
+
+    A wrong depth costs more after the correction than before it: the
+    target lens then blurs a sharp image by the wrong amount, where the
+    capture's own blur had hidden part of the error (measured: the demo's
+    far board read at 2.2 m instead of 3-6 m). Per tile, the posterior over
+    depth (``dfd.TilePosterior``) gives the expected error of the bokeh's
+    blur with and without the correction, on a log scale (a natural
+    texture's lost detail grows with the log of the blur ratio): the target
+    lens's blur at the estimate (with ``residual_px`` of blur left by the
+    correction, or the camera's blur at each hypothesis without it) against
+    its blur at each hypothesis. ``neighbours``: the share of a tile's
+    posterior taken from its 3 x 3 neighbourhood's (a pixel of a tile may
+    lie on a neighbour's surface). The correction is kept where it is
+    expected to bring the bokeh nearer (blended across a tile); below
+    ``min_share`` of the frame the correction would do almost nothing, and
+    `dcdi dof` asks for a depth map instead. Measured by `python -m lab
+    dof-rule` (docs/depth.md)."""
+
+    residual_px: float = 1.5
+    floor_px: float = 1.0
+    min_share: float = 0.2
+    neighbours: float = 0.5
+
+    def __post_init__(self):
+        from ..errors import InputRangeError
+        for name, lo, hi in (("residual_px", 0.0, 1e3), ("floor_px", 1e-3, 1e3), ("min_share", 0.0, 1.01),
+                             ("neighbours", 0.0, 1.0)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or not lo <= v <= hi:
+                raise InputRangeError(f"DofDepthRule.{name}", v, f"a number {lo:g} to {hi:g}")
+
+    def gain(self, post, blur_of) -> np.ndarray:
+        """(nph, npw): the expected log-blur error without the correction
+        less that with it (> 0: the correction helps the bokeh there)."""
+        # blur diameters add in quadrature, each at least a pixel (floor_px): nothing is sharper than that
+        floor2 = self.floor_px ** 2
+        bt = np.sqrt(blur_of(post.depths_m) ** 2 + floor2)[:, None, None]                    # the ideal's
+        at2 = (blur_of(post.estimate_m) ** 2)[None] + floor2
+        with_fix = np.abs(np.log(np.sqrt(at2 + self.residual_px ** 2) / bt))
+        without = np.abs(np.log(np.sqrt(at2 + np.nan_to_num(post.camera_blur_px) ** 2) / bt))
+        p = post.posterior
+        if self.neighbours > 0:
+            # a pixel of a tile may lie on a neighbour's surface (a depth edge, shapes smaller than a tile): its
+            # posterior is partly its 3 x 3 neighbourhood's, so disagreeing neighbours make it less sure
+            from ..dfd.fill import box
+            p = (1.0 - self.neighbours) * p + self.neighbours * box(p, 1)
+        return (p * (without - with_fix)).sum(0)
+
+    def mask(self, post, blur_of, shape) -> np.ndarray:
+        """(H, W) float32 in [0, 1]: the correction's weight at each pixel."""
+        from ..dfd.fill import upsample
+        keep = (self.gain(post, blur_of) > 0).astype(np.float64)
+        return np.clip(upsample(keep, post.tile_px, shape), 0.0, 1.0).astype(np.float32)
+
+    def verdict(self, share: float) -> str | None:
+        """None where `dcdi dof` runs, else why it refuses (one clause)."""
+        if share < self.min_share:
+            return (f"the correction would help the bokeh on only {share:.0%} of the frame (it runs from "
+                    f"{self.min_share:.0%})")
+        return None
 
 
 def blur_estimator(lens, render=None, psf: PSFRequest | None = None, recorded=None, image_name="the capture",
@@ -147,9 +232,12 @@ def blur_estimator(lens, render=None, psf: PSFRequest | None = None, recorded=No
     class BlurDepth(DepthEstimator):
         name = "blur"
 
+        result = None          # the last estimate's DepthResult: its confidence, for app.dof's rule
+
         def _estimate(self, img):
             request = DepthRequest(img, lens, render=render, psf=psf or PSFRequest(), recorded=recorded,
                                    image_name=image_name, frame=frame)
-            return estimate(request).depth_m
+            self.result = estimate(request)
+            return self.result.depth_m
 
     return BlurDepth()

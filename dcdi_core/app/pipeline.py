@@ -28,11 +28,22 @@ class DofRequest:
     the depth is ``estimator``'s) then ``bokeh`` (a :class:`BokehRequest`
     of the target lens, its image and depth filled here: the corrected
     image and the depth used). ``estimator``: a
-    ``models.depth.estimators.DepthEstimator``, or None with a depth map."""
+    ``models.depth.estimators.DepthEstimator``, or None with a depth map.
+    ``uncertain_depth``: where the depth read from the capture's blur is
+    too uncertain for the correction to help the bokeh on enough of the
+    frame (``app.depth.DofDepthRule``), 'refuse' (a ``ModelError`` asking
+    for a depth map, before the correction) or 'accept' (run, with a
+    note). Either way the correction is kept only where the rule expects it
+    to help."""
 
     correct: CorrectRequest
     bokeh: BokehRequest
     estimator: object = None
+    uncertain_depth: str = "refuse"
+
+    def __post_init__(self):
+        if self.uncertain_depth not in ("refuse", "accept"):
+            raise InputRangeError("uncertain_depth", self.uncertain_depth, "'refuse' or 'accept'")
 
 
 @dataclass
@@ -42,7 +53,8 @@ class DofResult:
     image); ``depth_m`` and ``depth_source`` ('given' or the estimator's
     name); ``correction``: the :class:`CorrectResult` (None for a sharp
     image); ``bokeh``: the :class:`BokehResult`; ``notes``; ``seconds`` per
-    stage."""
+    stage; ``corrected_share``: where the depth was read from the blur, the
+    share of the frame the correction was kept on (else None)."""
 
     image: np.ndarray
     corrected: np.ndarray
@@ -52,6 +64,7 @@ class DofResult:
     bokeh: BokehResult
     notes: list
     seconds: dict
+    corrected_share: float | None = None   # the share of the frame the correction was kept on (a blur depth)
 
     def correction_dict(self) -> dict:
         if self.correction is None:
@@ -77,6 +90,39 @@ def _depth(capture, request: DofRequest, seconds: dict) -> tuple[np.ndarray, str
     return depth, request.estimator.name
 
 
+def _correction_weight(request: DofRequest, shape):
+    """(the correction's weight (H, W) float32 in [0, 1], notes), or (None,
+    []) where the depth was given or has no posterior: where the depth was
+    read from the capture's blur, the correction is kept only where it is
+    expected to bring the bokeh nearer (``app.depth.DofDepthRule``); where
+    that is too little of the frame, refused ('refuse') or said ('accept')."""
+    result = getattr(request.estimator, "result", None)
+    post = getattr(result, "posterior", None)
+    if request.correct.depth_m is not None or post is None or request.correct.lens is None:
+        return None, []
+    from .depth import DofDepthRule, target_blur
+    from .render import bokeh_plan
+    b = request.bokeh
+    plan = bokeh_plan(b, shape)
+    keep = b.keep
+    blur_of = target_blur(b.lens, plan.geometry.pixel_pitch_mm, None if keep is not None else b.focus_m, keep)
+    rule = DofDepthRule()
+    weight = rule.mask(post, blur_of, shape)
+    share = float(weight.mean())
+    why = rule.verdict(share)
+    notes = [f"the depth was read from the capture's blur: the correction is kept on {share:.0%} of the frame, "
+             "where it is expected to bring the bokeh nearer the target lens's (elsewhere the capture as it is)"]
+    if why is None:
+        return weight, notes
+    if request.uncertain_depth == "accept":
+        return weight, notes + [f"the depth read from the capture's blur is too uncertain here ({why}): "
+                                "a depth map would do more"]
+    from ..errors import ModelError
+    raise ModelError(f"the depth read from the capture's blur is too uncertain here: {why}. Give a depth map "
+                     "(--depth DEPTH.exr: an RGB-D camera's or a metric estimator's), or run anyway with "
+                     "--uncertain-depth accept")
+
+
 def dof(request: DofRequest, control: Control | None = None, *, networks=None, cache=None) -> DofResult:
     """Run a :class:`DofRequest`: depth (given or estimated), correction,
     then the target lens's bokeh (module docstring)."""
@@ -84,14 +130,18 @@ def dof(request: DofRequest, control: Control | None = None, *, networks=None, c
     capture = _array("capture", request.correct.capture, 3)
     seconds, notes = {}, []
     depth, depth_source = _depth(capture, request, seconds)
+    weight, notes = _correction_weight(request, capture.shape[:2])     # refused here, before the correction
     corrected, fixed = capture, None
     if request.correct.lens is not None:
         fixed = correct(replace(request.correct, capture=capture, depth_m=depth), control, networks=networks)
         corrected = fixed.image
+        if weight is not None:
+            corrected = (weight[..., None] * corrected + (1.0 - weight[..., None]) * capture).astype(np.float32)
         seconds.update(fixed.seconds)
         notes += fixed.notes
     t0 = time.perf_counter()
     b = run_bokeh(replace(request.bokeh, image=corrected, depth_m=depth), control, cache=cache)
     seconds["psfs and bokeh"] = time.perf_counter() - t0
     notes = list(dict.fromkeys(notes + b.notes))         # the depth's notes once, not per stage
-    return DofResult(b.image, corrected, depth, depth_source, fixed, b, notes, seconds)
+    share = None if weight is None else float(weight.mean())
+    return DofResult(b.image, corrected, depth, depth_source, fixed, b, notes, seconds, share)

@@ -202,6 +202,14 @@ def _focus_note(depth, keep) -> str | None:
             "everything is out of focus")
 
 
+def bokeh_plan(request: BokehRequest, shape):
+    """The render plan (``render.request.RenderPlan``) a bokeh of ``shape``
+    (rows, cols) runs on, with what the image's record says."""
+    render, _ = recorded_defaults(request.render, request.lens, request.recorded, tuple(shape), request.image_name,
+                                  focus=False, lens_bound=False)
+    return (render or RenderRequest(request.lens)).plan(*shape, image=request.image_name)
+
+
 def bokeh(request: BokehRequest, control: Control | None = None, *, cache: SourceCache | None = None) -> BokehResult:
     """Run a :class:`BokehRequest`. The PSF bins the scene blurs are built
     first (progress 'PSFs', cancel between bins), then the layers (progress

@@ -272,7 +272,8 @@ def cmd_dof(args) -> int:
         import torch
         torch.set_num_threads(args.threads)
     with quiet_input_warnings():
-        r = dof(DofRequest(correct_request, bokeh_request(args, lens, request, resp, None, None), estimator),
+        r = dof(DofRequest(correct_request, bokeh_request(args, lens, request, resp, None, None), estimator,
+                           args.uncertain_depth),
                 job_control("dcdi dof", args))
     notes = in_cli_words(args, r.notes)
     for note in notes:
@@ -393,6 +394,10 @@ def add_commands(sub) -> None:
                         "else the shipped network where it is (none), else --depth is asked for)")
     q.add_argument("--depth-checkpoint", default=None, metavar="PATH",
                    help="the estimator's checkpoint on this disk (never downloaded)")
+    q.add_argument("--uncertain-depth", default="refuse", choices=["refuse", "accept"],
+                   help="where the depth read from the capture's blur is too uncertain for the correction to beat "
+                        "the uncorrected capture (its confidence; docs/depth.md): refuse (default: one line "
+                        "asking for --depth, nothing written) or accept (run, with a note)")
     q.add_argument("--save-intermediates", default=None, metavar="DIR",
                    help="also write corrected.exr and depth.exr there")
     q.add_argument("--side-by-side", default=None, metavar="PNG", help="also write capture | corrected | depth | result")

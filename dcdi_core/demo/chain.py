@@ -124,6 +124,8 @@ class ChainResult:
     notes: list = field(default_factory=list)
     picture: Path | None = None
     correction: dict = field(default_factory=dict)   # which method corrected, and why (pipeline.choose_correction)
+    refused: str | None = None   # why `dcdi dof` refuses this capture's estimated depth (app.depth.DofDepthRule)
+    corrected_share: float | None = None   # the share of the frame the rule kept the correction on
 
 
 def simulate_capture(scene: Scene, nets: Networks, seed: int) -> Capture:
@@ -174,6 +176,7 @@ def run_chain(scene: Scene, nets: Networks, settings: ChainSettings, out: Path, 
     ``dcdi_<scene key>.png`` to ``out``: capture | corrected | estimated
     depth | true depth | the pipeline's depth of field | the ideal."""
     from ..app import BokehRequest, CorrectRequest, DofRequest, dof
+    from ..models.dacn.evaluate import image_scores
     from ..render.request import RenderRequest
 
     seconds = {}
@@ -192,25 +195,34 @@ def run_chain(scene: Scene, nets: Networks, settings: ChainSettings, out: Path, 
         # the correction by the engine's rule (dcdi correct --method auto): the deconvolution with the
         # camera's own PSFs unless a shipped network is recorded better
         fix = CorrectRequest(image, depth_m, nets.camera if corrected else None, render=camera if corrected else None)
-        return dof(DofRequest(fix, target, estimator))
+        # the demo measures the chain whatever the depth's confidence; what `dcdi dof` would do is recorded
+        return dof(DofRequest(fix, target, estimator, uncertain_depth="accept"))
 
     # the depth is the estimated one, as a user without an RGB-D camera has: from the capture's own blur
-    from ..app.depth import blur_estimator
-    r = chain(cap.image, estimator=blur_estimator(nets.camera, render=camera))
+    from ..app.depth import DofDepthRule, blur_estimator
+    estimator = blur_estimator(nets.camera, render=camera)
+    r = chain(cap.image, estimator=estimator)
+    refused = DofDepthRule().verdict(r.corrected_share) if r.corrected_share is not None else None
     seconds.update(r.seconds)
     log(f"  {scene.key}: depth {r.seconds.get('depth', 0):.1f} s, correction {r.seconds.get('correction', 0):.1f} s, "
         f"{nets.target.id} depth of field {r.seconds.get('psfs and bokeh', 0):.1f} s ({r.bokeh.source.message})")
     t0 = time.perf_counter()
     uncorrected = chain(cap.image, r.depth_m, corrected=False).image
+    whole = chain(cap.image, r.depth_m).image          # the correction everywhere (the estimate given as a map)
     ideal = chain(cap.truth, cap.depth_m, corrected=False).image
     # with the true depth (an RGB-D camera's): the correction and the bokeh both use it
     known = chain(cap.image, cap.depth_m)
     known_uncorrected = chain(cap.image, cap.depth_m, corrected=False).image
     seconds["references"] = time.perf_counter() - t0
     scores = chain_scores(cap, r.corrected, r.depth_m, r.image, uncorrected, ideal)
+    scores["whole_dof_psnr"] = image_scores(whole, np.clip(ideal, 0.0, 1.0), cap.depth_m)["psnr"]
     scores.update(true_depth_scores(cap, known.corrected, known.image, known_uncorrected, ideal))
-    result = ChainResult(scene.key, scene.title, cap, r.corrected, r.depth_m, r.image, uncorrected, ideal,
-                         r.bokeh.source.message, scores, seconds, list(r.notes), correction=r.correction_dict())
+    # the correction's own result (the bokeh got it where the rule kept it: r.corrected_share)
+    corrected = r.correction.image if r.correction is not None else r.corrected
+    scores["corrected_psnr"] = chain_scores(cap, corrected, r.depth_m, r.image, uncorrected, ideal)["corrected_psnr"]
+    result = ChainResult(scene.key, scene.title, cap, corrected, r.depth_m, r.image, uncorrected, ideal,
+                         r.bokeh.source.message, scores, seconds, list(r.notes), correction=r.correction_dict(),
+                         refused=refused, corrected_share=r.corrected_share)
     result.picture = write_strip(result, out)
     log(f"  {scene.key}: PSNR capture {scores['capture_psnr']:.2f} dB -> corrected {scores['corrected_psnr']:.2f} dB; "
         f"depth of field: pipeline {scores['dof_psnr']:.2f} dB, uncorrected {scores['dof_uncorrected_psnr']:.2f} dB "

@@ -40,7 +40,8 @@ def run(out, *, factory_sample=None, factory_error: str | None = None, settings:
           f"on {len(scenes)} scene(s)", flush=True)
     results = [run_chain(scene, nets, settings, out, log=lambda s: print(s, flush=True)) for scene in scenes]
     write_text(out / "dcdi_scores.json", json.dumps(
-        {r.key: {"title": r.title, **r.scores, "seconds": r.seconds} for r in results}, indent=1) + "\n")
+        {r.key: {"title": r.title, **r.scores, "corrected_share": r.corrected_share, "dof_refuses": r.refused,
+                 "seconds": r.seconds} for r in results}, indent=1) + "\n")
     lines = ["# dcdi demo", ""] + dcdi_section(results, nets, settings, None if factory_sample is not None
                                                  else (factory_error or NOT_RENDERED))
     lines += ["", *simulation_section(scenes, results, nets, settings, out)]
@@ -78,17 +79,21 @@ def dcdi_section(results, nets: Networks, settings: ChainSettings, factory_missi
              "its depth read from the capture's own blur (`dcdi depth estimate`: the camera lens's PSFs at "
              "every depth, docs/depth.md), "
              f"then the {tgt} lens's depth of field focused at {settings.focus_m:g} m rendered on the corrected "
-             "image with the estimated depth (`dcdi_core.app.dof`). The *ideal* is the same bokeh of the "
+             "image with the estimated depth (`dcdi_core.app.dof`). With a depth read from the blur, the "
+             "correction is kept only where the depth's posterior expects it to bring the bokeh nearer the "
+             "ideal (elsewhere the capture as it is: a depth too uncertain near the target's focus would blur a "
+             "sharp image by the wrong amount; docs/depth.md). The *ideal* is the same bokeh of the "
              "true sharp frame with the true depth; the truth of the capture is the sharp frame on the same "
              "sensor (distorted alike).", ""]
     estimated = ["| scene | capture vs truth, dB | corrected vs truth, dB | "
-                 f"{tgt} DoF of the uncorrected capture vs ideal, dB | pipeline's {tgt} DoF vs ideal, dB | "
-                 "estimated depth AbsRel / delta<1.25 |",
-                 "|---|---|---|---|---|---|"]
+                 f"{tgt} DoF of the uncorrected capture vs ideal, dB | the correction everywhere, dB | "
+                 f"pipeline's {tgt} DoF vs ideal, dB (share corrected) | estimated depth AbsRel / delta<1.25 |",
+                 "|---|---|---|---|---|---|---|"]
     for r in results:
         s = r.scores
+        share = "" if r.corrected_share is None else f" ({r.corrected_share:.0%})"
         estimated.append(f"| {r.key} | {_db(s['capture_psnr'])} | {_db(s['corrected_psnr'])} | "
-                         f"{_db(s['dof_uncorrected_psnr'])} | {_db(s['dof_psnr'])} | "
+                         f"{_db(s['dof_uncorrected_psnr'])} | {_db(s['whole_dof_psnr'])} | {_db(s['dof_psnr'])}{share} | "
                          f"{s['depth_abs_rel']:.3f} / {s['depth_delta1']:.3f} |")
     estimated += ["", "PSNR over the imaged pixels; the depth over those whose true depth is below "
                   f"{DEPTH_SCORED_BELOW_M:g} m. The uncorrected capture's depth of field uses the same estimated "
@@ -101,7 +106,11 @@ def dcdi_section(results, nets: Networks, settings: ChainSettings, factory_missi
         if "true_depth_dof_psnr" in s:
             known.append(f"| {r.key} | {_db(s['true_depth_corrected_psnr'])} | "
                          f"{_db(s['true_depth_dof_uncorrected_psnr'])} | {_db(s['true_depth_dof_psnr'])} |")
-    worse = [r.key for r in results if r.scores["dof_psnr"] <= r.scores["dof_uncorrected_psnr"]]
+    worse = [r.key for r in results if r.scores["dof_psnr"] <= r.scores["dof_uncorrected_psnr"] or r.refused]
+    refused = [f"{r.key}: {r.refused}" for r in results if r.refused]
+    if refused:
+        lines += [f"`dcdi dof` refuses these captures' estimated depth and asks for a depth map ({'; '.join(refused)}); "
+                  "the figures below are what `--uncertain-depth accept` gives.", ""]
     if worse:
         # the estimate costs more than the correction gains: say so, and lead with the chain that works
         lines += [f"**DCDI needs a depth map here.** With the depth read from the capture's own blur, the "

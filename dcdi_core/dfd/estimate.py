@@ -39,8 +39,13 @@ class DepthFromBlurOptions:
     aggregate: each tile's evidence joined with its neighbours' within
     this many tiles (0: none), weighted by how alike their mean colours
     are (``aggregate_colour``: the log-RGB distance's scale).
-    temperature: the evidence's scale in the confidence (the windows'
-    frequencies are not independent: > 1 widens the posterior).
+    temperature: the evidence's scale in the posterior the estimate and
+    the fill use (the windows' frequencies are not independent: > 1 widens
+    the posterior). confidence_temperature: the same for the confidence and
+    the posterior handed on (``TilePosterior``): wider, so that a tile of
+    confidence c lies within the tolerance of the truth about a share c of
+    the time (calibrated on natural-statistics, dead-leaves and plane
+    frames; docs/depth.md).
     tolerance: the confidence is the posterior's mass within this relative
     depth error of the estimate. fill_radius: the guided filter's
     radius (px; None: the tile), fill_eps its edge threshold (the guide's
@@ -55,12 +60,16 @@ class DepthFromBlurOptions:
     hypothesis_step: int = 2
     kernel_share: int = 2
     sharpness_px: tuple = (0.0, 0.7, 1.4)
+    texture_slopes: tuple = (2.0,)
     aggregate: int = 1
     aggregate_colour: float = 0.2
     temperature: float = 30.0
+    confidence_temperature: float = 60.0
     tolerance: float = 0.15
     fill_radius: int | None = None
     fill_eps: float = 0.1
+    fill: str = "guided"
+    fill_colour: float = 0.15
 
     def __post_init__(self):
         def integer(name, lo, hi):
@@ -86,16 +95,52 @@ class DepthFromBlurOptions:
         number("colour_residual", 0.0, 10.0, lo_open=False)
         number("model_error", 0.0, 1.0, lo_open=False)
         number("temperature", 0.0, 1e6)
+        number("confidence_temperature", 0.0, 1e6)
         number("tolerance", 0.0, 1.0)
         number("fill_eps", 0.0, 1e3)
+        number("fill_colour", 0.0, 10.0)
+        if self.fill not in ("guided", "bilateral"):
+            raise InputRangeError("fill", self.fill, "'guided' or 'bilateral'")
         if self.fill_radius is not None:
             integer("fill_radius", 1, 1024)
         sharp = np.asarray(self.sharpness_px, dtype=float)
         if sharp.ndim != 1 or sharp.size == 0 or not (np.isfinite(sharp).all() and (sharp >= 0).all()):
             raise InputRangeError("sharpness_px", self.sharpness_px, "one or more numbers >= 0 (px)")
+        slopes = np.asarray(self.texture_slopes, dtype=float)
+        if slopes.ndim != 1 or slopes.size == 0 or not (np.isfinite(slopes).all() and (slopes >= 0.5).all()
+                                                         and (slopes <= 4).all()):
+            raise InputRangeError("texture_slopes", self.texture_slopes, "one or more numbers 0.5 to 4")
         steps = np.asarray(self.amplitude_steps, dtype=float)
         if steps.ndim != 1 or steps.size == 0 or not (np.isfinite(steps).all() and (steps > 0).all()):
             raise InputRangeError("amplitude_steps", self.amplitude_steps, "one or more numbers > 0")
+
+
+@dataclass
+class TilePosterior:
+    """What the evidence says of each tile, for a decision downstream
+    (``app.depth.DofDepthRule``): ``depths_m`` (n,) the hypotheses (the
+    library's far limit for infinity), ``posterior`` (n, nph, npw) their
+    probabilities, ``estimate_m`` (nph, npw) the tile's estimate (refined
+    where a refinement ran), ``camera_blur_px`` (n, nph, npw) the camera
+    lens's blur diameter at each hypothesis there (``blur_diameter_px``),
+    ``tile_px`` the tile's side."""
+
+    depths_m: np.ndarray
+    posterior: np.ndarray
+    estimate_m: np.ndarray
+    camera_blur_px: np.ndarray
+    tile_px: int
+
+
+def blur_diameter_px(kernels: np.ndarray) -> np.ndarray:
+    """The diameter (px) of the uniform disc as concentrated as the green
+    channel of kernels (..., 3, k, k): sqrt(4 / (pi sum g^2)) for g summing
+    to 1 (a disc of diameter D has sum g^2 = 4 / (pi D^2); a point, 1.13
+    px). Unlike the RMS radius, a sharp core in a faint halo (these
+    singlets' spherical aberration) counts as sharp, as it does for texture."""
+    g = np.maximum(kernels[..., 1, :, :].astype(np.float64), 0.0)
+    g = g / np.maximum(g.sum((-1, -2), keepdims=True), 1e-12)
+    return np.sqrt(4.0 / (np.pi * np.maximum((g * g).sum((-1, -2)), 1e-12)))
 
 
 @dataclass
@@ -113,6 +158,7 @@ class DepthEstimate:
     tile_confidence: np.ndarray
     info: dict = field(default_factory=dict)
     tile_features: np.ndarray | None = None
+    posterior: TilePosterior | None = None
 
 
 # what `tile_features` stacks, in order: a learned refinement reads them by position
@@ -248,7 +294,8 @@ def estimate_depth(capture, library, geometry, options: DepthFromBlurOptions | N
     s, size = options.tile, options.window
     blocks = evidence.bins(size, options.max_frequency)
     index = evidence.block_index(size, blocks[0])
-    spectra = evidence.WindowSpectra(img, s, size, blocks, noise, options.sharpness_px)
+    spectra = evidence.WindowSpectra(img, s, size, blocks, noise, options.sharpness_px,
+                                     slopes=options.texture_slopes)
     (nph, npw), clipped = spectra.tiles, spectra.clipped
     t_spectra = time.perf_counter() - t0
 
@@ -259,6 +306,7 @@ def estimate_depth(capture, library, geometry, options: DepthFromBlurOptions | N
     depths = grid.depths_m[idx]
     library.ensure(bins=idx)
     t_kernels = [0.0]
+    camera_blur = np.zeros((len(depths), nph, npw))
 
     def transfer(i):
         t = time.perf_counter()
@@ -266,12 +314,17 @@ def estimate_depth(capture, library, geometry, options: DepthFromBlurOptions | N
         m = s * options.kernel_share
         pm = psf_map(library, geometry, np.full((h, w), depths[i]), m, clamp_field=True)
         K = evidence.otfs(pm.kernels, size, index)                          # (kph, kpw, 3, B)
+        blur = blur_diameter_px(pm.kernels)
+        camera_blur[i] = np.repeat(np.repeat(blur, options.kernel_share, 0), options.kernel_share, 1)[:nph, :npw]
         K = np.repeat(np.repeat(K, options.kernel_share, 0), options.kernel_share, 1)[:nph, :npw]
         K = K.reshape((-1,) + K.shape[2:])
         t_kernels[0] += time.perf_counter() - t
         return K
 
     nll = _hypothesis_nll(spectra, transfer, len(depths), options, progress)
+    for i in np.nonzero(~camera_blur.any(axis=(1, 2)))[0]:
+        # a hypothesis no window needed (between two that were): its blur between theirs
+        camera_blur[i] = 0.5 * (camera_blur[max(i - 1, 0)] + camera_blur[min(i + 1, len(depths) - 1)])
     if options.aggregate > 0:
         nll = aggregate(nll.reshape(len(depths), nph, npw), spectra.mean.reshape(nph, npw, 3), options.aggregate,
                         options.aggregate_colour).reshape(len(depths), -1)
@@ -284,12 +337,25 @@ def estimate_depth(capture, library, geometry, options: DepthFromBlurOptions | N
         if hasattr(refine, "check"):
             refine.check(len(features), s, len(depths))
         est = np.clip(np.exp(np.asarray(refine(features, depths), np.float64).reshape(-1)), grid.near_m, grid.far_m)
-    tile_d, tile_c = (1.0 / est).reshape(nph, npw), conf.reshape(nph, npw)
+    tile_d, fill_weight = (1.0 / est).reshape(nph, npw), conf.reshape(nph, npw)
+    # the calibrated posterior and confidence, of the estimate as it stands (refined or not)
+    hyp = np.minimum(depths, grid.far_m)
+    post_c = post ** (options.temperature / options.confidence_temperature)
+    post_c /= post_c.sum(0)
+    conf_c = (post_c * (np.abs(hyp[:, None] - est) <= options.tolerance * est)).sum(0)
+    conf_c = np.where(~np.isfinite(nll).all(0) | clipped, 0.0, conf_c)
+    tile_c = conf_c.reshape(nph, npw)
+    # the posterior's expected relative error of the estimate: what a user of the depth risks
+    expected = (post_c * np.abs(hyp[:, None] - est) / est).sum(0)
     t_evidence = time.perf_counter() - t0 - t_spectra
 
-    filled = fill.spread(tile_d, tile_c)
-    r = options.fill_radius or s
-    pixel_d = fill.guided(fill.luminance_guide(img), fill.upsample(filled, s, (h, w)), r, options.fill_eps)
+    filled = fill.spread(tile_d, fill_weight)
+    if options.fill == "bilateral":
+        colours = fill.tile_colours(img, s, (nph, npw))
+        pixel_d = fill.joint_bilateral(filled, fill_weight, colours, img, s, 2, options.fill_colour)
+    else:
+        r = options.fill_radius or s
+        pixel_d = fill.guided(fill.luminance_guide(img), fill.upsample(filled, s, (h, w)), r, options.fill_eps)
     pixel_c = np.clip(fill.upsample(tile_c, s, (h, w)), 0.0, 1.0)
     near, far = grid.near_m, grid.far_m
     pixel_d = np.clip(np.nan_to_num(pixel_d, nan=1.0 / far), 1.0 / far, 1.0 / near)
@@ -298,5 +364,8 @@ def estimate_depth(capture, library, geometry, options: DepthFromBlurOptions | N
                "fill": time.perf_counter() - t0 - t_spectra - t_evidence}
     info = {"hypotheses_m": [float(x) for x in depths], "tiles": [nph, npw], "tile_px": s, "window_px": size,
             "noise": {"gain": noise.gain, "floor": noise.floor}, "seconds": seconds,
-            "confident_share": float((tile_c >= 0.5).mean())}
-    return DepthEstimate(depth, pixel_c.astype(np.float32), tile_d, tile_c, info, features)
+            "confident_share": float((tile_c >= 0.5).mean()), "expected_abs_rel": float(expected.mean()),
+            "mean_confidence": float(tile_c.mean())}
+    posterior = TilePosterior(hyp, post_c.reshape(len(depths), nph, npw),
+                              est.reshape(nph, npw), camera_blur, s)
+    return DepthEstimate(depth, pixel_c.astype(np.float32), tile_d, tile_c, info, features, posterior)

@@ -73,12 +73,13 @@ def bins(size: int, max_frequency: float):
     return np.array(members), np.array(count, np.float32), np.array(f2)
 
 
-def prior_shape(f2: np.ndarray, size: int, sharpness_px: float) -> np.ndarray:
+def prior_shape(f2: np.ndarray, size: int, sharpness_px: float, slope: float = 2.0) -> np.ndarray:
     """The sharp texture's power spectrum's shape summed over each block
-    (B,): 1 / (|f|^2 + f0^2), f0 = 1 / size, times a Gaussian blur of
-    ``sharpness_px`` (the sharp image's own softness: a render's pixel
-    filter, a sensor's pixel), averaged over the block's members."""
-    g = np.exp(-(2 * np.pi * sharpness_px) ** 2 * f2) / (f2 + size ** -2.0)
+    (B,): 1 / (|f|^2 + f0^2) ** (slope / 2), f0 = 1 / size, times a
+    Gaussian blur of ``sharpness_px`` (the sharp image's own softness: a
+    render's pixel filter, a sensor's pixel), averaged over the block's
+    members."""
+    g = np.exp(-(2 * np.pi * sharpness_px) ** 2 * f2) / (f2 + size ** -2.0) ** (slope / 2.0)
     return np.nanmean(g, axis=1).astype(np.float32)
 
 
@@ -119,13 +120,16 @@ class WindowSpectra:
     value ``a0`` (n,), the blocks' ``count`` and prior ``shape`` (B,)."""
 
     def __init__(self, capture: np.ndarray, stride: int, size: int, blocks, noise_model,
-                 sharpness_px=(0.0,), colour_floor: float = 0.05):
+                 sharpness_px=(0.0,), colour_floor: float = 0.05, slopes=(2.0,)):
         """Of the windows of ``capture`` (H, W, 3) centred on its stride x
         stride tiles (:func:`windows`), a band of tile rows at a time on the
         pool."""
         from ..parallel import thread_pool
         members, self.count, f2 = blocks
-        self.shapes = [prior_shape(f2, size, sp) for sp in sharpness_px]
+        shapes = [prior_shape(f2, size, sp, a) for a in slopes for sp in sharpness_px]
+        low = shapes[0] >= np.sort(shapes[0])[-min(8, len(shapes[0]))]  # the lowest frequencies: K ~ 1
+        # every shape scaled to the first's power at the lowest frequencies: one amplitude estimate serves all
+        self.shapes = [g * (shapes[0][low].mean() / g[low].mean()) for g in shapes]
         self.shape = self.shapes[0]
         h, w = capture.shape[:2]
         nph = -(-h // stride)
@@ -153,7 +157,6 @@ class WindowSpectra:
         self.noise = np.maximum(noise_model.variance(mean) * size * size, 1e-12).astype(np.float32)
         a = np.maximum(mean, colour_floor * mean.max(-1, keepdims=True))
         self.a = (a / np.maximum(a.mean(-1, keepdims=True), 1e-12)).astype(np.float32)
-        low = self.shape >= np.sort(self.shape)[-min(8, len(self.shape))]  # the lowest frequencies: K ~ 1
         excess = (self.power[:, :, low].mean(1) / self.count[low] - self.noise.mean(1)[:, None]) / self.shape[low]
         self.a0 = np.maximum(excess.mean(-1), 1e-12).astype(np.float32)       # (n,)
         self.mean = mean

@@ -79,3 +79,47 @@ def luminance_guide(capture: np.ndarray) -> np.ndarray:
     g = np.log(np.maximum(lum, 0.0) + 1e-3)
     s = g.std()
     return (g - g.mean()) / (s if s > 0 else 1.0)
+
+
+def tile_colours(capture: np.ndarray, stride: int, shape_tiles: tuple[int, int]) -> np.ndarray:
+    """Each tile's median log colour (nph, npw, 3) over its stride x stride
+    pixels (edge tiles padded by reflection): the colour of the surface
+    covering most of it, not a mix of both sides of an edge."""
+    nph, npw = shape_tiles
+    h, w = capture.shape[:2]
+    logc = np.log(np.maximum(np.asarray(capture, np.float32), 0.0) + 1e-3)
+    pad = np.pad(logc, ((0, nph * stride - h), (0, npw * stride - w), (0, 0)), mode="symmetric")
+    blocks = pad.reshape(nph, stride, npw, stride, 3).transpose(0, 2, 4, 1, 3).reshape(nph, npw, 3, -1)
+    return np.median(blocks, axis=-1)
+
+
+def joint_bilateral(value: np.ndarray, weight: np.ndarray, tile_colour: np.ndarray, capture: np.ndarray,
+                    stride: int, radius: int = 1, sigma_colour: float = 0.15, floor: float = 0.05) -> np.ndarray:
+    """Per pixel, the mean of the tiles' ``value`` (nph, npw) within
+    ``radius`` tiles of it, each weighted by a tent on its distance from the
+    pixel (tile units), by how alike its colour (``tile_colour``, log RGB)
+    is to the pixel's in ``capture`` (Gaussian of scale ``sigma_colour``)
+    and by its ``weight`` (plus ``floor``): joint bilateral upsampling
+    (Kopf et al. 2007), so that a depth edge follows the image's colour
+    edge inside a tile instead of a blend across it. (H, W) float64."""
+    h, w = capture.shape[:2]
+    nph, npw = value.shape
+    logc = np.log(np.maximum(np.asarray(capture, np.float32), 0.0) + 1e-3)
+    ty = (np.arange(h) + 0.5) / stride - 0.5                  # pixel centres in tile coordinates
+    tx = (np.arange(w) + 0.5) / stride - 0.5
+    iy, ix = np.floor(ty).astype(int), np.floor(tx).astype(int)
+    num = np.zeros((h, w))
+    den = np.zeros((h, w))
+    wt = np.clip(weight, 0.0, 1.0) + floor
+    for dy in range(-radius + 1, radius + 1):
+        ry = np.clip(iy + dy, 0, nph - 1)
+        sy = np.maximum(0.0, 1.0 - np.abs(ty - (iy + dy)) / radius)
+        for dx in range(-radius + 1, radius + 1):
+            rx = np.clip(ix + dx, 0, npw - 1)
+            sx = np.maximum(0.0, 1.0 - np.abs(tx - (ix + dx)) / radius)
+            c = tile_colour[ry][:, rx]                                      # (h, w, 3)
+            d2 = ((logc - c) ** 2).sum(-1)
+            k = np.exp(-d2 / (2 * sigma_colour ** 2)) * (sy[:, None] * sx[None, :]) * wt[ry][:, rx] + 1e-12
+            num += k * value[ry][:, rx]
+            den += k
+    return num / den
