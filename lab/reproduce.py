@@ -117,6 +117,14 @@ def seeds_of(step: dict, seed: int) -> list[int]:
     return [seed] + [s for s in step.get("extra_seeds", []) if s != seed]
 
 
+def _study_export(export, weights, out: Path) -> tuple:
+    """A study's --export: true, the config's shipped name; a file name, OUT/weights/<name> (an
+    experiment's weights, shipped nowhere); absent, none."""
+    if isinstance(export, str):
+        return ("--export", str(out / "weights" / export))
+    return ("--export", weights) if export else ()
+
+
 def steps(cfg: dict, out: Path, seed: int | None = None, python: str = sys.executable) -> list[Step]:
     """The config's steps, in order, as command lines (run from the repository's root)."""
     seed = cfg["seed"] if seed is None else seed
@@ -146,7 +154,7 @@ def steps(cfg: dict, out: Path, seed: int | None = None, python: str = sys.execu
         elif kind == "dfd-refine-study":
             argv = (*lab, "dfd-refine-study", "--lens", t["lens"], "--train", *map(o, t["train"]), "--val",
                     *map(o, t["val"]), "--test", *map(o, t["test"]), "--seeds", *map(str, seeds), *opts,
-                    "--out", o(t["folder"])) + (("--export", weights) if t.get("export") else ())
+                    "--out", o(t["folder"])) + _study_export(t.get("export"), weights, out)
         elif kind == "depth":
             argv = (*dcdi, "depth", "train", "--data", o(t["data"]), *opts, "--seed", str(seed), "-o", o(t["folder"]))
         else:                                           # olf: trains and exports in one command

@@ -46,6 +46,10 @@ class DepthFromBlurOptions:
     confidence c lies within the tolerance of the truth about a share c of
     the time (calibrated on natural-statistics, dead-leaves and plane
     frames; docs/depth.md).
+    refine_within: a learned refinement may move a tile's depth only
+    within these quantiles of its posterior (what its blur allows; None:
+    anywhere): trained on the factory's scenes, it moved photograph-like
+    frames' depths far from their evidence (docs/depth.md).
     tolerance: the confidence is the posterior's mass within this relative
     depth error of the estimate. fill_radius: the guided filter's
     radius (px; None: the tile), fill_eps its edge threshold (the guide's
@@ -65,6 +69,7 @@ class DepthFromBlurOptions:
     aggregate_colour: float = 0.2
     temperature: float = 30.0
     confidence_temperature: float = 60.0
+    refine_within: tuple | None = (0.1, 0.9)
     tolerance: float = 0.15
     fill_radius: int | None = None
     fill_eps: float = 0.1
@@ -96,6 +101,10 @@ class DepthFromBlurOptions:
         number("model_error", 0.0, 1.0, lo_open=False)
         number("temperature", 0.0, 1e6)
         number("confidence_temperature", 0.0, 1e6)
+        if self.refine_within is not None:
+            q = np.asarray(self.refine_within, dtype=float)
+            if q.shape != (2,) or not (np.isfinite(q).all() and 0.0 <= q[0] < q[1] <= 1.0):
+                raise InputRangeError("refine_within", self.refine_within, "None, or two quantiles 0 <= low < high <= 1")
         number("tolerance", 0.0, 1.0)
         number("fill_eps", 0.0, 1e3)
         number("fill_colour", 0.0, 10.0)
@@ -138,9 +147,10 @@ def blur_diameter_px(kernels: np.ndarray) -> np.ndarray:
     to 1 (a disc of diameter D has sum g^2 = 4 / (pi D^2); a point, 1.13
     px). Unlike the RMS radius, a sharp core in a faint halo (these
     singlets' spherical aberration) counts as sharp, as it does for texture."""
-    g = np.maximum(kernels[..., 1, :, :].astype(np.float64), 0.0)
-    g = g / np.maximum(g.sum((-1, -2), keepdims=True), 1e-12)
-    return np.sqrt(4.0 / (np.pi * np.maximum((g * g).sum((-1, -2)), 1e-12)))
+    g = np.maximum(kernels[..., 1, :, :], 0.0)
+    total = g.sum((-1, -2), dtype=np.float64)
+    squares = np.einsum("...ij,...ij->...", g, g, dtype=np.float64)
+    return np.sqrt(4.0 / np.pi * np.maximum(total, 1e-12) ** 2 / np.maximum(squares, 1e-24))
 
 
 @dataclass
@@ -213,6 +223,15 @@ def _posterior(nll: np.ndarray, depths_m: np.ndarray, temperature: float, tolera
     est = z[np.minimum(k, len(z) - 1)]
     conf = (p * (np.abs(depths_m[:, None] - est) <= tolerance * est)).sum(0)
     return est, conf, p
+
+
+def _quantiles(post: np.ndarray, depths_m: np.ndarray, q: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """The (low, high) quantiles ``q`` (n,) of the posterior (hypotheses, n) over ``depths_m`` (hypotheses,)."""
+    order = np.argsort(depths_m)
+    z, cum = depths_m[order], np.cumsum(post[order], 0)
+    lo = z[np.minimum((cum < q[0]).sum(0), len(z) - 1)]
+    hi = z[np.minimum((cum < q[1]).sum(0), len(z) - 1)]
+    return lo, hi
 
 
 def aggregate(nll: np.ndarray, colour: np.ndarray, radius: int, sigma: float) -> np.ndarray:
@@ -337,6 +356,10 @@ def estimate_depth(capture, library, geometry, options: DepthFromBlurOptions | N
         if hasattr(refine, "check"):
             refine.check(len(features), s, len(depths))
         est = np.clip(np.exp(np.asarray(refine(features, depths), np.float64).reshape(-1)), grid.near_m, grid.far_m)
+        if options.refine_within is not None:
+            # the refinement moves a tile only within what its blur allows: the posterior's credible interval
+            lo, hi = _quantiles(post, np.minimum(depths, grid.far_m), options.refine_within)
+            est = np.clip(est, lo, hi)
     tile_d, fill_weight = (1.0 / est).reshape(nph, npw), conf.reshape(nph, npw)
     # the calibrated posterior and confidence, of the estimate as it stands (refined or not)
     hyp = np.minimum(depths, grid.far_m)

@@ -179,3 +179,25 @@ def test_bench_depth_quick_prints_the_whole_process_and_its_stages(capsys):
     line = next(ln for ln in out.splitlines() if ln.strip().startswith("dcdi depth estimate"))
     assert " s (" in line and "s CPU" in line and "goal" not in line          # no goal at the quick size
     assert "in process:" in out and "evidence" in out
+
+
+def test_a_refinement_is_held_to_what_each_tiles_blur_allows(camera):
+    """A refinement that says 10 m everywhere, on a plane at 0.8 m: held
+    (the default), the sure tiles stay near 0.8 m; free
+    (refine_within=None), they go to 10 m."""
+    from dataclasses import replace
+
+    from dcdi_core.dfd import DepthFromBlurOptions
+    img, _, _ = leaves_rgbd(5, H, W)
+    cap = capture_of(camera, img, np.full((H, W), 0.8, np.float32))
+
+    def far(features, depths):
+        return np.full(features.shape[1:], np.log(10.0))
+    held = estimate_depth(cap, camera[2], camera[1], noise=NoiseModel.sensor(), refine=far)
+    free = estimate_depth(cap, camera[2], camera[1], replace(DepthFromBlurOptions(), refine_within=None),
+                          noise=NoiseModel.sensor(), refine=far)
+    sure = held.tile_confidence >= 0.5
+    assert sure.any() and np.median(1.0 / held.tile_diopters[sure]) < 1.2
+    assert np.allclose(1.0 / free.tile_diopters, 10.0)
+    with pytest.raises(InputRangeError, match="refine_within"):
+        DepthFromBlurOptions(refine_within=(0.9, 0.1))
