@@ -169,6 +169,38 @@ class WindowSpectra:
             setattr(part, name, getattr(self, name)[sel])
         return part
 
+    def terms(self, K: np.ndarray, rho: float, eta: float) -> tuple:
+        """What the likelihood needs of transfer functions ``K`` (n, 3, B)
+        whatever the texture's amplitude and spectrum, all real: ``v2`` =
+        |a_c K_c|^2, ``weight`` = rho v2 + eta a_c^2 (the share of the
+        texture's power each channel's variance gains), ``signal`` = v2 x
+        the channel's power, and ``pairs`` = Re(conj(v_a) v_b S_ab) for
+        the pairs 01, 02, 12 (n, 3, B)."""
+        v = self.a[..., None] * K                                            # (n, 3, B)
+        v2 = v.real ** 2 + v.imag ** 2
+        weight = rho * v2 + eta * (self.a ** 2)[..., None]
+        pairs = np.stack([(np.conj(v[:, a]) * v[:, b] * self.cross[:, i]).real
+                          for i, (a, b) in enumerate(((0, 1), (0, 2), (1, 2)))], 1)
+        return v2, weight, v2 * self.power, pairs
+
+    def nll_of_terms(self, terms: tuple, amplitude: np.ndarray, shape) -> np.ndarray:
+        """The NLL (n,) from :meth:`terms` and the texture's amplitudes (n,)
+        and prior shape (B,). The covariance C = D + P v v^H, D = noise + P
+        weight (diagonal): by Sherman-Morrison, y^H C^-1 y = sum |y_c|^2 / D_c
+        - P |sum conj(v_c) y_c / D_c|^2 / (1 + P q), q = sum |v_c|^2 / D_c,
+        and log det C = sum log D_c + log(1 + P q)."""
+        v2, weight, signal, pairs = terms
+        P = amplitude[:, None] * shape                                       # (n, B)
+        D = self.noise[..., None] + P[:, None, :] * weight
+        inv = 1.0 / D
+        q = (v2 * inv).sum(1)
+        form = (signal * inv * inv).sum(1) + 2.0 * (pairs[:, 0] * inv[:, 0] * inv[:, 1]
+                                                    + pairs[:, 1] * inv[:, 0] * inv[:, 2]
+                                                    + pairs[:, 2] * inv[:, 1] * inv[:, 2])
+        quad = (self.power * inv).sum(1) - P * form / (1.0 + P * q)
+        logdet = np.log(D).sum(1) + np.log1p(P * q)
+        return (quad + self.count * logdet).sum(-1, dtype=np.float64)
+
     def nll(self, K: np.ndarray, amplitude: np.ndarray, rho: float, eta: float, shape=None) -> np.ndarray:
         """Negative log-likelihood (n,) of each window under transfer
         functions ``K`` (n, 3, B) and texture amplitudes ``amplitude`` (n,);
@@ -178,21 +210,11 @@ class WindowSpectra:
         true one has not is refused outright, and the evidence jumps from one
         depth bin to the next). ``shape``: the prior's (B,), default the
         first of ``shapes``."""
-        P = amplitude[:, None] * (self.shape if shape is None else shape)                                 # (n, B)
-        v = self.a[..., None] * K                                            # (n, 3, B)
-        v2 = v.real ** 2 + v.imag ** 2
-        D = (self.noise[..., None] + rho * P[:, None, :] * v2
-             + eta * P[:, None, :] * (self.a ** 2)[..., None])
-        u = v / D
-        q = (v2 / D).sum(1)
-        form = ((u.real ** 2 + u.imag ** 2) * self.power).sum(1)
-        for i, (a, b) in enumerate(((0, 1), (0, 2), (1, 2))):
-            form += 2.0 * (np.conj(u[:, a]) * u[:, b] * self.cross[:, i]).real
-        quad = (self.power / D).sum(1) - P * form / (1.0 + P * q)
-        logdet = np.log(D).sum(1) + np.log1p(P * q)
-        return (quad + self.count * logdet).sum(-1, dtype=np.float64)
+        return self.nll_of_terms(self.terms(K, rho, eta), amplitude, self.shape if shape is None else shape)
 
     def profile_nll(self, K: np.ndarray, rho: float, eta: float, steps: np.ndarray) -> np.ndarray:
         """The NLL (n,) minimised over the texture amplitude ``a0 * steps``
-        and the prior's shapes (the sharp image's softness)."""
-        return np.min([self.nll(K, self.a0 * s, rho, eta, shape) for s in steps for shape in self.shapes], axis=0)
+        and the prior's shapes (the sharp image's softness); the terms that
+        depend on neither are made once."""
+        terms = self.terms(K, rho, eta)
+        return np.min([self.nll_of_terms(terms, self.a0 * s, shape) for s in steps for shape in self.shapes], axis=0)
