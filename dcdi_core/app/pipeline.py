@@ -103,7 +103,7 @@ def _correction_weight(request: DofRequest, shape):
     from .depth import DofDepthRule, target_blur
     from .render import bokeh_plan
     b = request.bokeh
-    plan = bokeh_plan(b, shape)
+    _, plan, _ = bokeh_plan(b, shape)
     keep = b.keep
     blur_of = target_blur(b.lens, plan.geometry.pixel_pitch_mm, None if keep is not None else b.focus_m, keep)
     rule = DofDepthRule()

@@ -203,11 +203,13 @@ def _focus_note(depth, keep) -> str | None:
 
 
 def bokeh_plan(request: BokehRequest, shape):
-    """The render plan (``render.request.RenderPlan``) a bokeh of ``shape``
-    (rows, cols) runs on, with what the image's record says."""
-    render, _ = recorded_defaults(request.render, request.lens, request.recorded, tuple(shape), request.image_name,
-                                  focus=False, lens_bound=False)
-    return (render or RenderRequest(request.lens)).plan(*shape, image=request.image_name)
+    """(the render request, its plan (``render.request.RenderPlan``), notes)
+    a bokeh of ``shape`` (rows, cols) runs on, with what the image's record
+    says."""
+    render, notes = recorded_defaults(request.render, request.lens, request.recorded, tuple(shape),
+                                      request.image_name, focus=False, lens_bound=False)
+    render = render or RenderRequest(request.lens)
+    return render, render.plan(*shape, image=request.image_name), notes
 
 
 def bokeh(request: BokehRequest, control: Control | None = None, *, cache: SourceCache | None = None) -> BokehResult:
@@ -221,11 +223,8 @@ def bokeh(request: BokehRequest, control: Control | None = None, *, cache: Sourc
     control = control or Control()
     img = _array("image", request.image, 3)
     depth = _array("depth_m", request.depth_m, 2)
-    render, notes = recorded_defaults(request.render, request.lens, request.recorded, img.shape[:2],
-                                      request.image_name, focus=False, lens_bound=False)
-    render = render or RenderRequest(request.lens)
     t0 = time.perf_counter()
-    plan = render.plan(*img.shape[:2], image=request.image_name)
+    render, plan, notes = bokeh_plan(request, img.shape[:2])
     # nearby focus distances share PSFs where the request allows it (``psf.sampling``)
     focus_m = snap_focus(request.lens, request.focus_m, plan.geometry.pixel_pitch_mm, request.psf.focus_tolerance_px)
     options = BokehOptions(keep=request.keep, focus_m=focus_m, geometry=plan.geometry,
