@@ -379,7 +379,10 @@ def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], 
     with ``PREVIEW_TRACE`` (info's ``psf_quality`` 'preview'). Returns
     (image, info: the bokeh's, the PSF source and its message, and
     ``focus_note`` where nothing in view lies in the kept range)."""
-    psf = app.PSFRequest(preview=preview, field_step_px=FIELD_STEP_PX, focus_tolerance_px=FOCUS_TOLERANCE_PX)
+    # the PSF work planned by the job's error budget (``psf.budget``); FIELD_STEP_PX and the preview's
+    # lighter trace where a lens has no error table
+    psf = app.PSFRequest(preview=preview, field_step_px=FIELD_STEP_PX, focus_tolerance_px=FOCUS_TOLERANCE_PX,
+                         max_error_db=app.DEFAULT_BUDGET_DB["preview" if preview else "render"])
     request = app.BokehRequest(image, depth, lens, keep=tuple(keep), focus_m=float(focus_m) if refocus else None,
                                render=RenderRequest(lens, patch=patch), psf=psf, image_name="the render")
     r = app.bokeh(request, _control(progress, cancelled), cache=SESSION.sources)
@@ -452,7 +455,8 @@ def run_simulation(image, depth, lens, *, noise: bool = False, seed: int = 0, fo
     defaults of its correction)."""
     psf = replace(compute.PSFSettings(), focus_distance_m=None if focus_m is None else float(focus_m))
     render = RenderRequest(lens, psf=psf, noise=bool(noise), seed=int(seed) if noise else None)
-    r = app.simulate(app.SimulateRequest(image, depth, lens, render, image_name="the render"),
+    r = app.simulate(app.SimulateRequest(image, depth, lens, render, image_name="the render",
+                                         psf=app.PSFRequest(max_error_db=app.DEFAULT_BUDGET_DB["render"])),
                      _control(progress, cancelled), cache=SESSION.sources)
     info = dict(r.info, lens=lens.id, pixel_pitch_mm=float(r.geometry.pixel_pitch_mm), record=r.record,
                 **_source_info(r.source))

@@ -7,7 +7,8 @@
                                         dacn-study, dfd-refine-study, olf-sweep, depth-from-blur,
                                         bench-defocus, bokeh-variants, capture-records,
                                         resample-accuracy, focus-stack, raymap, aperture, catalogue-table,
-                                        contact-sheet, large-bokeh, cli-reference, reproduce
+                                        contact-sheet, large-bokeh, quality-tables, cli-reference,
+                                        reproduce
 
 `python -m lab COMMAND --help` says more; lab/README.md lists which figure or
 table of docs/ each one makes. The lab uses the engine (``dcdi_core``); the
@@ -54,6 +55,8 @@ MODULES = {
                                 "f-number, beside a PSF basis (docs/psf.md)"),
     "aperture": ("aperture_report", "the iris on the PSFs: defocus blur against the f-number, the blades' "
                                     "polygons (docs/psf.md)"),
+    "quality-tables": ("quality_tables", "the error tables the planner plans by: each knob of the PSF work "
+                                         "against the converged render, per lens and pitch (docs/performance.md)"),
     "cli-reference": ("cli_reference", "the `dcdi` command's reference page, docs/cli.md, from its parser"),
     "reproduce": ("reproduce", "a shipped network from scratch, from its config in lab/configs/"),
 }

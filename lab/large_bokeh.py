@@ -4,9 +4,9 @@ An 85 mm f/1.4 (the catalogue's Nikkor, wide open) at 1920 x 1080 spanning
 its full-frame sensor, focused at 1.5 m on an elliptical subject, the rest
 a textured background at 10 m with twenty small lights (40 x brighter) in
 it: the background's blur is about 190 px across. ``app.bokeh`` as `dcdi
-bokeh --focus 1.5` runs it (the occlusion-aware layers, fields 16 image
-pixels apart as in the add-on), PSFs from the lens's ray map (as the add-on's
-Apply takes them; ``psf.raymap``).
+bokeh --focus 1.5` runs it (the occlusion-aware layers, the PSF work planned
+for the CLI's default error budget, ``psf.budget``), PSFs from the lens's
+ray map (as the add-on's Apply takes them; ``psf.raymap``).
 Prints the wall and CPU seconds (PSFs, bokeh), the process's peak RSS, the
 kernel size and what it clips. The goal: <= 4 s whole and <= 3 GB on 2
 cores, kernels up to 400 px.
@@ -70,7 +70,7 @@ def main(argv=None) -> int:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             r = app.bokeh(app.BokehRequest(img, depth, lens, focus_m=FOCUS_M,
-                                           psf=app.PSFRequest(field_step_px=16.0)))
+                                           psf=app.PSFRequest(max_error_db=app.DEFAULT_BUDGET_DB["render"])))
         wall, cpu = time.perf_counter() - t, time.process_time() - c
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"{LENS} at {args.size[0]} x {args.size[1]}, focus {FOCUS_M} m, background {BACKGROUND_M} m: "
@@ -81,6 +81,10 @@ def main(argv=None) -> int:
     f = r.info.get("large_blur_factor")
     print(f"  layers {r.info.get('layers')}, of which {r.info.get('large_blur_layers', 0)} blurred at 1/{f} of the "
           "resolution (PSFs at that pitch, from the same source)" if f else "  every layer at full resolution")
+    if r.info.get("coarse_blur_layers"):
+        print(f"  {r.info['coarse_blur_layers']} more layer(s) blurred at a coarser resolution by the error budget")
+    if r.info.get("quality"):
+        print(f"  plan: {r.info['quality']['plan']}")
     print(f"  goal: <= 4 s ({'met' if wall <= 4 else 'not met'}), <= 3 GB ({'met' if peak <= 3072 else 'not met'})")
     if args.compare:
         compare(img, depth, lens)

@@ -14,10 +14,12 @@ own words (``DcdiError.in_words``).
     correct(CorrectRequest) -> CorrectResult        a lens's blur undone
     dof(DofRequest) -> DofResult                    capture -> another lens's depth of field
     open_source(lens, geometry, PSFRequest)         the PSFs of a job, always a library
+    DEFAULT_BUDGET_DB                               each job's default error budget (dB; psf.budget)
 
 Units: depths in metres, lengths on the sensor in mm, positions in pixels.
 """
 from ..control import Cancelled, Control
+from ..psf.budget import DEFAULT_DB as DEFAULT_BUDGET_DB
 from ..psf.sources import PREVIEW_TRACE, PSFRequest, PSFSourceResult, open_source
 from .correction import CorrectRequest, CorrectResult, correct, prepare
 from .frame import CaptureFrame, capture_frame
@@ -26,6 +28,7 @@ from .render import BokehRequest, BokehResult, SimulateRequest, SimulateResult, 
 from .sources import SourceCache
 
 __all__ = ["Cancelled", "Control", "PSFRequest", "PSFSourceResult", "SourceCache", "open_source", "PREVIEW_TRACE",
+           "DEFAULT_BUDGET_DB",
            "SimulateRequest", "SimulateResult", "simulate", "BokehRequest", "BokehResult", "bokeh",
            "CorrectRequest", "CorrectResult", "correct", "prepare", "CaptureFrame", "capture_frame",
            "DofRequest", "DofResult", "dof"]

@@ -42,6 +42,41 @@ def _source(lens, geometry, psf: PSFRequest, cache: SourceCache | None, fit_dept
     return open_source(lens, geometry, psf, fit_depth_m=fit_depth_m, control=control, chosen=chosen)
 
 
+# the knobs' values in a request: the settings' rays and wavelengths, the request's field step
+def _knob(psf: PSFRequest, name: str):
+    return psf.field_step_px if name == "field_step_px" else getattr(psf.settings, name)
+
+
+def budgeted(lens, geometry, psf: PSFRequest, cache: SourceCache | None = None, coarse_blur="planned"):
+    """(the request with the PSF work its error budget needs, the plan or
+    None): where ``psf.max_error_db`` is set and the source that serves it
+    makes PSFs (a ray map or a trace), the rays, wavelengths and field step
+    the planner (``psf.budget``) chooses for this lens at ``geometry``'s
+    pitch, the knobs in ``psf.fixed`` kept; a stored source (basis, OLF)
+    serves as it is (None). ``coarse_blur``: the bokeh's coarse layers as
+    the job gives them (a value or None), or 'planned'."""
+    if psf.max_error_db is None:
+        return psf, None
+    from ..psf.budget import plan as plan_budget
+    from ..psf.sources import choose
+    src = cache.chosen(lens, geometry, psf) if cache is not None else choose(lens, geometry, psf)
+    if src.kind not in ("raymap", "trace"):
+        return psf, None
+    fixed = {k: _knob(psf, k) for k in psf.fixed if k != "coarse_blur"}
+    if coarse_blur != "planned":
+        fixed["coarse_blur"] = coarse_blur
+    q = plan_budget(lens, geometry.pixel_pitch_mm, psf.max_error_db, fixed)
+    if not q.planned:
+        return psf, q
+    step = psf.field_step_px if "field_step_px" in psf.fixed else q.field_step_px
+    # the plan replaces the preview's fixed lighter trace (``psf.sources.PREVIEW_TRACE``)
+    return replace(psf, settings=q.apply(psf.settings), field_step_px=step, preview=False), q
+
+
+def _quality_info(q) -> dict:
+    return {} if q is None else {"quality": q.as_dict()}
+
+
 # ------------------------------------------------------------------ simulate
 @dataclass(frozen=True)
 class SimulateRequest:
@@ -105,7 +140,11 @@ def simulate(request: SimulateRequest, control: Control | None = None, *,
         lens, perturbation = perturb_lens(lens, seed=render.perturb_seed, fraction=render.perturb_fraction)
     t0 = time.perf_counter()
     plan = render.plan(*img.shape[:2], image=request.image_name)
-    psf = _psf_request(request.psf, render, plan.settings)
+    psf, quality = budgeted(lens, plan.geometry, _psf_request(request.psf, render, plan.settings), cache,
+                            coarse_blur=None)
+    if quality is not None:
+        control.say(f"PSFs planned for {quality.budget_db:g} dB: {quality.why}")
+        plan = replace(plan, settings=quality.apply(plan.settings))
     # the kernel grows to hold the PSFs this depth map needs (a basis's or an
     # OLF's kernels hold their energy over the whole depth range)
     src = _source(lens, plan.geometry, psf, cache, depth if render.fixed_depth_m is None else None, control)
@@ -132,8 +171,8 @@ def simulate(request: SimulateRequest, control: Control | None = None, *,
     record = simulated_record(lens, plan.geometry, focus_distance_m=plan.settings.focus_distance_m,
                               psf_source=src.kind, noise=render.noise_settings, seed=render.seed,
                               distortion=request.distortion, extra=extra)
-    return SimulateResult(r.image, r.sharp, r.depth, plan.geometry, lens, src, {**r.info, **counts}, perturbation,
-                          record, seconds, notes)
+    return SimulateResult(r.image, r.sharp, r.depth, plan.geometry, lens, src,
+                          {**r.info, **counts, **_quality_info(quality)}, perturbation, record, seconds, notes)
 
 
 # ------------------------------------------------------------------ bokeh
@@ -152,7 +191,9 @@ class BokehRequest:
     the multi-resolution blur (``render.bokeh.BokehOptions``);
     ``exact_layers``: every depth layer as the equal-width split makes it,
     at the image's patches with the tent (no merging, no wider patches:
-    ``BokehOptions``' interp_eps and seam_tol None). ``psf``:
+    ``BokehOptions``' interp_eps and seam_tol None). ``coarse_blur``: the
+    coarse layers' rule (``BokehOptions``; None: planned by the PSF
+    request's error budget where it has one, else none). ``psf``:
     which PSFs (:class:`PSFRequest`; ``preview``: a lighter trace).
     ``recorded``: what the image file remembers
     (``io.capture_record.CaptureRecord``; ``records.recorded_defaults``)."""
@@ -168,6 +209,7 @@ class BokehRequest:
     multires: float | None = None
     max_level: int | None = None
     exact_layers: bool = False
+    coarse_blur: float | None = None
     psf: PSFRequest = field(default_factory=PSFRequest)
     recorded: object = None
     image_name: str = "the image"
@@ -231,9 +273,17 @@ def bokeh(request: BokehRequest, control: Control | None = None, *, cache: Sourc
                            source_geometry=plan.source_geometry, distortion=request.distortion,
                            interpolation=render.interpolation, patch=render.patch, occlusion=request.occlusion,
                            settings=plan.settings, response=request.psf.response, fit_kernel=render.fit_kernel,
-                           multires=request.multires, max_level=request.max_level,
+                           multires=request.multires, max_level=request.max_level, coarse_blur=request.coarse_blur,
                            **(dict(interp_eps=None, seam_tol=None) if request.exact_layers else {}))
     psf = _psf_request(request.psf, render, plan.settings).focused(options.focus_distance_m)
+    layered = request.occlusion and request.multires is None
+    psf, quality = budgeted(request.lens, plan.geometry, psf, cache,
+                            coarse_blur="planned" if layered and request.coarse_blur is None else request.coarse_blur)
+    if quality is not None:
+        control.say(f"PSFs planned for {quality.budget_db:g} dB: {quality.why}")
+        # the large blur's and the coarse layers' PSFs are made with the same planned settings
+        options = replace(options, settings=quality.apply(options.settings),
+                          coarse_blur=quality.coarse_blur if quality.planned else options.coarse_blur)
     keep = options.keep
     blurred = depth[(depth > 0) & ~((depth >= keep[0]) & (depth <= keep[1]))] if keep is not None else depth[depth > 0]
     src = _source(request.lens, plan.geometry, psf, cache, blurred if blurred.size else None, control)
@@ -257,5 +307,5 @@ def bokeh(request: BokehRequest, control: Control | None = None, *, cache: Sourc
     notes += depth_notes(counts, f"the depth map of {request.image_name}", "left sharp")
     if focus_m != request.focus_m:
         counts["focus_used_m"] = float(focus_m)          # rounded within the request's focus tolerance
-    return BokehResult(r.image.astype(np.float32), r.sharp, r.depth, plan.geometry, src, {**r.info, **counts},
-                       notes + ([note] if note else []), seconds)
+    return BokehResult(r.image.astype(np.float32), r.sharp, r.depth, plan.geometry, src,
+                       {**r.info, **counts, **_quality_info(quality)}, notes + ([note] if note else []), seconds)

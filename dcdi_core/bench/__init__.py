@@ -5,6 +5,8 @@ process and prints the ratio, so that figures from different machines compare.
 One module per group: ``trace`` (the tracer, beside Optiland 0.6.3 with
 ``optiland_spot.py``, and the PSF library), ``render`` (simulation and
 bokeh), ``sampling`` (PSFs sampled for the image: error and time),
+``quality`` (each knob of the PSF work against the converged render, and the
+error budget's plans),
 ``correction`` (the deconvolution and the DACN), ``processes`` (whole
 commands: times, peak memory, the depth estimate); ``timing`` holds
 their helpers. Each is imported when its benchmark runs.
@@ -26,6 +28,10 @@ def run(what: str, args) -> int:
     if what == "correction":
         from .correction import bench_correction
         return bench_correction(quick)
+    if what == "quality":
+        from .quality import bench_quality
+        sizes = getattr(args, "size", None)
+        return bench_quality(getattr(args, "lens", None), quick, tuple(map(tuple, sizes)) if sizes else None)
     if what == "sampling":
         from .sampling import bench_sampling
         return bench_sampling(quick)

@@ -32,8 +32,13 @@ def _goal_jobs(d: str, inputs) -> dict:
     """{row: (command, goal s)} of the rows the speed goals are set on; ``inputs``: ``_cli_inputs``'s."""
     py, numpy_only, io, mos = inputs
     keep = ["--keep", "1.0", "2.0"]
+    planar = [*io[:-2], "--lens", "zeiss-planar-50mm-f1-4"]
     return {"dcdi simulate --lens mos-s1": (py + ["simulate", *mos, "-o", f"{d}/sim.exr"], GOALS["simulate"]),
             "dcdi bokeh --keep 1.0 2.0": (py + ["bokeh", *io, *keep, "-o", f"{d}/b.exr"], GOALS["bokeh"]),
+            "dcdi bokeh --focus 1.5 (6P, refocused: traced)": (py + ["bokeh", *io, "--focus", "1.5", "-o",
+                                                                     f"{d}/f.exr"], GOALS["bokeh"]),
+            "dcdi bokeh --focus 1.5 --lens zeiss-planar-50mm-f1-4 (wide open)": (
+                py + ["bokeh", *planar, "--focus", "1.5", "-o", f"{d}/p.exr"], GOALS["bokeh"]),
             "  the same, numpy only": (numpy_only + ["bokeh", *io, *keep, "-o", f"{d}/b.exr"],
                                        GOALS["bokeh, numpy only"])}
 

@@ -19,10 +19,16 @@ def add_commands(sub) -> None:
     q = sub.add_parser("bench", help="benchmarks (times, not tests)",
                        description="Benchmarks of the engine; the dataset factory's is `python build.py bench "
                                    "factory` (it starts the Blender layer, which the engine never does).")
-    q.add_argument("what", choices=["trace", "psflib", "render", "sampling", "dacn", "correction", "cli", "memory", "depth"],
-                   help="what to benchmark (sampling: a focus change's PSFs sampled for the image, error against time; cli: the simulate and bokeh commands' whole processes; memory: "
+    q.add_argument("what", choices=["trace", "psflib", "render", "sampling", "quality", "dacn", "correction", "cli", "memory",
+                                    "depth"],
+                   help="what to benchmark (sampling: a focus change's PSFs sampled for the image, error against time; "
+                        "quality LENS: each knob of the PSF work (rays, wavelengths, field step) against the converged "
+                        "render, and the planner's choice for each error budget, rendered; cli: the simulate and bokeh commands' whole processes; memory: "
                         "their peak memory per pixel, against the estimate that refuses images too large; depth: "
                         "dcdi depth estimate's whole process beside its goal)")
+    q.add_argument("lens", nargs="?", default=None, help="quality: the lens (id or .toml path)")
+    q.add_argument("--size", type=positive_int, nargs=2, action="append", default=None, metavar=("H", "W"),
+                   help="quality: an image size measured (repeat the option; default 270 x 480 and 540 x 960)")
     q.add_argument("--rays", type=positive_int, default=1 << 20, help="rays per trace (default 2^20)")
     q.add_argument("--repeat", type=positive_int, default=3, help="timed repetitions (best is kept)")
     q.add_argument("--quick", action="store_true", help="psflib, render, sampling, dacn, correction, depth: smaller (for tests)")

@@ -54,6 +54,21 @@ def pixels(text: str) -> float:
     return v
 
 
+def quality_value(text: str):
+    """An error budget: a PSNR in dB (``psf.budget.BUDGET_RANGE_DB``), or 'full' (no plan: None)."""
+    from ..psf.budget import BUDGET_RANGE_DB
+    if text.strip().lower() == "full":
+        return None
+    lo, hi = BUDGET_RANGE_DB
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if not (math.isfinite(v) and lo <= v <= hi):
+        raise argparse.ArgumentTypeError(f"must be a PSNR in dB from {lo:g} to {hi:g}, or 'full', got {text!r}")
+    return v
+
+
 def positive_int(text: str) -> int:
     v = int(text)
     if v < 1:
@@ -124,6 +139,7 @@ WORDS = {
     "field": "--field", "angle_deg": "--angle", "deposit_sigma_px": "--deposit-sigma", "pupil_samples": "--rays",
     "n_wavelengths": "--wavelengths", "n_fields": "--fields", "n_depths": "--depths", "near_m": "--near",
     "far_m": "--far", "field_step_px": "--field-step", "focus_tolerance_px": "--focus-tolerance",
+    "max_error_db": "--quality",
 }
 
 
@@ -138,10 +154,15 @@ def job_control(label: str, args):
 
 
 def psf_request(args, resp=None):
-    """The ``app.PSFRequest`` of --psf-source, --olf, --basis and the sensor response."""
+    """The ``app.PSFRequest`` of --psf-source, --olf, --basis, the sensor
+    response and the error budget (--quality; --rays, --wavelengths and
+    --field-step, where given, are kept as given)."""
     from ..app import PSFRequest
+    given = {"pupil_samples": "rays", "n_wavelengths": "wavelengths", "field_step_px": "field_step"}
     return PSFRequest(source=getattr(args, "psf_source", None), olf_file=getattr(args, "olf", None),
-                      basis_file=getattr(args, "basis", None), response=resp)
+                      basis_file=getattr(args, "basis", None), response=resp,
+                      max_error_db=getattr(args, "quality", None),
+                      fixed=tuple(k for k, opt in given.items() if getattr(args, opt, None) is not None))
 
 
 def error_words(args) -> dict:
@@ -280,6 +301,19 @@ def add_psf_options(q, *, sensor_focus: bool = True, render: bool = False) -> No
                        help="move the sensor to focus depth D metres (default: as prescribed)")
     q.add_argument("--response", default=None, metavar="CSV",
                    help="sensor spectral response CSV (wavelength_nm,r,g,b); default: shipped curves")
+
+
+def add_quality_option(q) -> None:
+    """--quality: the render's error budget (``psf.budget``)."""
+    from ..psf.budget import DEFAULT_DB
+    q.add_argument("--quality", type=quality_value, default=DEFAULT_DB["render"], metavar="DB",
+                   help="the error budget: the result at least DB dB PSNR from the render with converged PSFs "
+                        f"(default {DEFAULT_DB['render']:g}; the add-on's preview takes "
+                        f"{DEFAULT_DB['preview']:g}); the rays, wavelengths and field step of a ray map or a "
+                        "trace, and which depth layers of a bokeh are blurred at a coarser resolution, are "
+                        "planned from the lens's measured error table (`dcdi bench quality LENS`), those given "
+                        "by --rays, --wavelengths and --field-step kept; 'full': no plan, the full-quality "
+                        "defaults")
 
 
 def add_psf_source_options(q) -> None:

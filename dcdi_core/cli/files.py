@@ -75,7 +75,7 @@ SPECS = {
     ("depth", "export"): Spec(reads=("run",), writes=("output",)),
     ("dataset", "stats"): Spec(reads=("dirs", "lens"), into=("out",)),
     ("dataset", "textures"): Spec(into=("out",)),
-    ("bench",): Spec(reads=("optiland",)),
+    ("bench",): Spec(reads=("optiland", "lens")),
     ("demo",): Spec(into=("out",)),
 }
 
@@ -91,6 +91,7 @@ NOT_PATHS = frozenset("""
     no_deconvolved shard crop schedule warmup loss ema_decay crop_choice validate_every input rdicab d2cb racm
     depth_encoding condition channels groups blocks train_scenes name pictures_count lpips widths quick
     frames what repeat field_step focus_tolerance focus_slices f_number blades blade_rotation degree count uncertain_depth
+    quality
 """.split())
 
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 import contextlib
 from dataclasses import replace
 
-from .common import (UNITS, add_aperture_options, add_psf_options, add_psf_source_options, check_cache, check_olf_file,
+from .common import (UNITS, add_aperture_options, add_psf_options, add_psf_source_options, add_quality_option, check_cache, check_olf_file,
                      check_output, depth_value, dump, focus_value, in_cli_words, job_control, load_lens_with_aperture,
                      pixels, positive_int, psf_request,
                      psf_settings, response, say)
@@ -46,6 +46,7 @@ def add_rgbd_options(q, *, sensor_focus: bool, depth_required: bool = True,
     add_aperture_options(q)
     add_psf_options(q, sensor_focus=sensor_focus, render=True)
     add_psf_source_options(q)
+    add_quality_option(q)
 
 
 def add_focus_options(q, focus_help: str) -> None:

@@ -187,6 +187,9 @@ class RayMap:
         self.wavelengths_nm = self.recipe.wavelengths_nm
         self.clip_surfaces = list(meta["clip_surfaces"])
         self.clear_mm = np.asarray(meta["clear_mm"], np.float64)
+        # the arrays at the depths asked for lately: every library of a job (the image's, a large blur's,
+        # the coarse layers', a kernel grown to fit) asks for the same bins' depths
+        self._depths: dict = {}
 
     @property
     def lens_id(self) -> str:
@@ -242,6 +245,15 @@ class RayMap:
         (:data:`GRID_NODES`-point Lagrange)."""
         g = self.diopters
         x = min(max(diopters, 0.0), g[0])
+        if x in self._depths:
+            return self._depths[x]
+        if len(self._depths) >= 64:
+            self._depths.clear()
+        self._depths[x] = out = self._interpolated(x)
+        return out
+
+    def _interpolated(self, x: float) -> dict:
+        g = self.diopters
         pos = np.array([(g[0] - x) / (g[0] - g[-1]) * (len(g) - 1)])
         idx, w = grid_weights(pos, len(g))
         idx, w = idx[0], w[0]

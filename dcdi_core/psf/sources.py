@@ -472,7 +472,12 @@ class PSFRequest:
     pixels apart (``sampling.field_grid``; None: the source's own grid).
     ``focus_tolerance_px``: the focus may be rounded (``sampling.snap_focus``)
     by at most this many pixels of blur diameter, so that nearby focus
-    distances share PSFs (None: the focus as asked; a job applies it)."""
+    distances share PSFs (None: the focus as asked; a job applies it).
+    ``max_error_db``: the job's error budget (``psf.budget``: dB PSNR against
+    the render with converged PSFs; None: the settings as given). A job
+    whose source is a ray map or a trace plans its rays, wavelengths and
+    field step by it, keeping the knobs named in ``fixed`` (``budget.KNOBS``)
+    as the request gives them; a stored source (basis, OLF) serves as it is."""
 
     source: str | None = None
     olf_file: str | None = None
@@ -484,8 +489,16 @@ class PSFRequest:
     preview: bool = False
     field_step_px: float | None = None
     focus_tolerance_px: float | None = None
+    max_error_db: float | None = None
+    fixed: tuple = ()
 
     def __post_init__(self):
+        from .budget import KNOBS, check_budget
+        object.__setattr__(self, "max_error_db", check_budget(self.max_error_db))
+        unknown = [k for k in self.fixed if k not in KNOBS]
+        if unknown:
+            raise InputRangeError("fixed", unknown[0], f"some of {', '.join(KNOBS)}")
+        object.__setattr__(self, "fixed", tuple(self.fixed))
         for name in ("field_step_px", "focus_tolerance_px"):
             v = getattr(self, name)
             if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):

@@ -100,6 +100,14 @@ class BokehOptions:
     kernel holds it) with PSFs traced at f times the pitch, and brought back
     by Keys' cubic (``multires.coarse_blur``); False: clipped, with the
     library's warning. The occlusion-aware renderer only, without ``multires``.
+
+    coarse_blur: a depth layer whose every kernel holds half its energy
+    beyond a radius of coarse_blur x f px (``multires.radius_table``) is
+    blurred at 1/f of the resolution (f = 2, 4 or 8, the largest that
+    holds) with PSFs made at f times the pitch, as a large blur is (a
+    wide blur keeps nothing of the detail the coarse grid drops); None:
+    every layer the kernel holds at full resolution. The error budget
+    (``psf.budget``) sets it. Occlusion-aware, without ``multires``.
     """
 
     keep: tuple[float, float] | None = None
@@ -123,6 +131,7 @@ class BokehOptions:
     interp_eps: float | None = 0.002
     seam_tol: float | None = 0.25
     large_blur: bool = True
+    coarse_blur: float | None = None
 
     def __post_init__(self):
         from .distortion import check_interpolation
@@ -148,6 +157,10 @@ class BokehOptions:
             if value is not None and not (isinstance(value, (int, float, np.floating)) and not isinstance(value, bool)
                                           and (lo < value if low_open else lo <= value) and value <= hi):
                 raise InputRangeError(name, value, f"a fraction in {'(' if low_open else '['}{lo:g}, {hi:g}], or None")
+        c = self.coarse_blur
+        if c is not None and (isinstance(c, bool) or not isinstance(c, (int, float, np.integer, np.floating))
+                              or not math.isfinite(c) or not c >= 1.0):
+            raise InputRangeError("coarse_blur", c, "a radius in pixels >= 1 (finite), or None")
         if self.multires is not None and self.convolution == "lowrank":
             # the multi-resolution blur convolves its groups by windows ('fast' equals them to rounding)
             raise InputRangeError("multires with convolution", self.convolution,
@@ -392,14 +405,19 @@ def _layered_bokeh(sc: _BokehScene, options: BokehOptions, cancelled, layer_prog
     large = _large_blur(sc, options, cancelled, progress)
     if large is not None:
         info["large_blur_factor"] = large.f
+    coarse = {} if large is None else {large.f: large}       # f -> the PSFs at f times the pitch
+    radii = _coarse_radii(sc, options)
     for n_done, (mask, is_sharp) in enumerate(order):
         if layer_progress is not None:
             layer_progress(n_done, len(order))
         if cancelled is not None and not is_sharp and cancelled():
             raise Cancelled("bokeh cancelled")
         ys, xs = patch_box(mask, options.patch, sc.grow if not is_sharp else 0)
-        choice = None
-        if not is_sharp and options.interp_eps is not None and options.multires is None:
+        choice, f, clipped = None, 1, False
+        if not is_sharp:
+            clipped = large is not None and _clipped(sc.library, sc.depth[mask])
+            f = max(large.f if clipped else 1, _coarse_factor(sc, options, mask, radii))
+        if not is_sharp and f == 1 and options.interp_eps is not None and options.multires is None:
             choice = _layer_patch(sc, options, mask)
             info.setdefault("layer_patches", []).append(choice.info())
             if choice.m != options.patch:
@@ -409,12 +427,14 @@ def _layered_bokeh(sc: _BokehScene, options: BokehOptions, cancelled, layer_prog
             col[ys, xs] = np.where(a, sc.img[ys, xs], col[ys, xs])
             acc[ys, xs] = np.where(a, np.float32(1.0), acc[ys, xs])
             continue
-        if large is not None and _clipped(sc.library, sc.depth[mask]):
-            ys, xs = slice(0, mask.shape[0]), slice(0, mask.shape[1])
-            blurred, levels = _blur_layer_coarse(sc, mask, large), None
+        if f > 1:
+            if f not in coarse:
+                coarse[f] = _coarse_psfs(sc, f, cancelled, progress)
+            blurred, ys, xs = _blur_layer_coarse(sc, mask, coarse[f])
+            levels = None
             _clamp_overshoot(blurred, sc.img[mask].max(axis=0))
-            info.setdefault("large_blur_layers", 0)
-            info["large_blur_layers"] += 1
+            key = "large_blur_layers" if clipped else "coarse_blur_layers"
+            info[key] = info.get(key, 0) + 1
         else:
             blurred, levels = _blur_layer(sc, options, mask, ys, xs, table, choice)
         if levels is not None:
@@ -472,6 +492,43 @@ def _large_blur(sc: _BokehScene, options: BokehOptions, cancelled=None, progress
     if need <= lib.kernel_size or not _clipped(lib, sc.depth[blurred]):
         return None
     f = 2 ** min(LARGE_BLUR_MAX_LEVEL, math.ceil(math.log2(need / lib.kernel_size)))
+    return _coarse_psfs(sc, f, cancelled, progress)
+
+
+def _coarse_radii(sc: _BokehScene, options: BokehOptions) -> np.ndarray | None:
+    """The half-energy radius (px) of each of the library's kernels of the
+    blurred depths (``multires.radius_table``), where ``options.coarse_blur``
+    asks for coarse layers; else None."""
+    blurred = sc.valid & ~sc.kept
+    if options.coarse_blur is None or options.multires is not None or sc.lens is None or not blurred.any() \
+            or not isinstance(sc.library, PSFLibrary):
+        return None
+    sc.library.ensure(bins=sc.library.bins_needed(sc.depth[blurred], clamp_near=True))
+    return mr.radius_table(sc.library)
+
+
+def _coarse_factor(sc: _BokehScene, options: BokehOptions, mask: np.ndarray, radii) -> int:
+    """1, or the f (2, 4, 8) at which the layer ``mask`` is blurred: the
+    largest with every kernel of its depth bins (all fields) holding half its
+    energy beyond ``options.coarse_blur`` x f px."""
+    if radii is None:
+        return 1
+    bins = sc.library.bins_needed(sc.depth[mask & sc.valid], clamp_near=True)
+    if not len(bins):
+        return 1
+    r = float(radii[bins].min())
+    s = int(mr.level_for(r, options.coarse_blur, LARGE_BLUR_MAX_LEVEL))
+    return 2 ** s
+
+
+def _coarse_psfs(sc: _BokehScene, f: int, cancelled=None, progress=None) -> _LargeBlur:
+    """The PSFs of the blurred depths at f times the pitch, from the library's
+    own source (a ray map's from the same ray map, else traced), with its
+    settings; ``progress(done, total)`` called and ``cancelled()`` asked
+    after each bin."""
+    lib = sc.library
+    blurred = sc.valid & ~sc.kept
+    from ..psf import sources
     h, w = sc.depth.shape
     gc = mr.coarse_geometry(sc.geometry, f, -(-h // f), -(-w // f))
     settings = replace(lib.settings, pixel_pitch_mm=None, kernel_size=PSFSettings().kernel_size)
@@ -489,25 +546,31 @@ def _large_blur(sc: _BokehScene, options: BokehOptions, cancelled=None, progress
     return _LargeBlur(f, coarse, gc)
 
 
-def _blur_layer_coarse(sc: _BokehScene, mask: np.ndarray, large: _LargeBlur) -> np.ndarray:
+def _blur_layer_coarse(sc: _BokehScene, mask: np.ndarray, large: _LargeBlur):
     """The layer ``mask``'s premultiplied colour and coverage blurred at 1/f
-    of the resolution with the coarse PSFs, on the whole frame (float32 (H,
-    W, 6), as ``_blur_layer``'s): the blocks without layer pixels take the
-    layer's mean depth, so its blur reaches as far as its kernels do."""
-    af = mask[..., None].astype(np.float32)
-    layer = np.concatenate([sc.img * af, af], axis=-1)
+    of the resolution with the coarse PSFs, on the layer's box grown by their
+    reach and aligned to the coarse patches (float32 (h, w, 6), as
+    ``_blur_layer``'s, and the box's rows and columns): the blocks without
+    layer pixels take the layer's mean depth, so its blur reaches as far as
+    its kernels do."""
+    f, lib = large.f, large.library
+    grid = COARSE_PATCH * f
+    ys, xs = patch_box(mask, grid, grid * math.ceil((lib.kernel_size // 2 + COARSE_PATCH) / COARSE_PATCH))
+    sub = mask[ys, xs]
+    af = sub[..., None].astype(np.float32)
+    layer = np.concatenate([sc.img[ys, xs] * af, af], axis=-1)
     inv = sc.inv[mask]
     mean = float(inv.mean()) if inv.size else 0.0
-    fill = np.where(mask, sc.depth, (1.0 / mean) if mean > 0 else np.inf)
-    f, lib = large.f, large.library
+    fill = np.where(sub, sc.depth[ys, xs], (1.0 / mean) if mean > 0 else np.inf)
     # coarse_blur area-resamples kernels from the geometry's pitch to f times it: here the library is
     # already at f times the pitch, so it is given the coarse grid's geometry and f = 1 for the kernels
-    h, w = mask.shape
+    h, w = sub.shape
+    gc = mr.coarse_geometry(sc.geometry.crop(ys, xs), f, -(-h // f), -(-w // f))
     img = mr.block_mean(mr.pad_to(layer, f), f)
-    dc = mr.coarse_depth(mr.pad_to(fill, f), mr.pad_to(np.ones_like(mask), f), lib.grid.far_m, f)
-    pm = psf_map(lib, large.geometry, dc, COARSE_PATCH, clamp_field=True)
+    dc = mr.coarse_depth(mr.pad_to(fill, f), mr.pad_to(np.ones_like(sub), f), lib.grid.far_m, f)
+    pm = psf_map(lib, gc, dc, COARSE_PATCH, clamp_field=True)
     out = patch_convolve(img, pm.kernels, COARSE_PATCH, ConvolveOptions(), identity=pm.identity, pairs=LAYER_PAIRS)
-    return mr.upsample(out, f, h, w, "cubic", averages=True)
+    return mr.upsample(out, f, h, w, "cubic", averages=True), ys, xs
 
 
 COARSE_PATCH = 16           # px of the coarse grid: a large blur's patches (as the fine path's 16)

@@ -222,3 +222,32 @@ def test_the_aperture_stops_bokeh_simulate_and_correct_down(scene, capsys):
     code = main(["bokeh", *io, "--lens", "6p", "--focus", "1.2", "-o", str(d / "x.exr"), "--f-number", "1.2"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code != 0 and len(err) == 1 and "f/1.64" in err[0] and not (d / "x.exr").exists()
+
+
+def test_bokeh_reports_its_error_budget_and_plan(scene, capsys):
+    d, img = scene
+    args = ["bokeh", "--image", str(d / "aif.exr"), "--depth", str(d / "depth.exr"), "--lens",
+            "zeiss-sonnar-50mm-f1-5", "--focus", "2", "--kernel", "15"]
+    assert main([*args, "-o", str(d / "q.exr"), "--quality", "30", "--rays", "20"]) == 0
+    q = json.loads(capsys.readouterr().out)["quality"]
+    # planned from the lens's error table: the rays given kept, the rest chosen, the error beside the seconds
+    assert q["budget_db"] == 30 and q["pupil_samples"] == 20 and q["n_wavelengths"] < 31
+    assert "error table" in q["plan"]
+    assert main([*args, "-o", str(d / "full.exr"), "--quality", "full", *FAST[:4]]) == 0
+    assert "quality" not in json.loads(capsys.readouterr().out)
+
+
+@pytest.mark.parametrize("bad", ["5", "nan", "high", "81"])
+def test_a_budget_out_of_range_is_refused_before_any_work(scene, capsys, bad):
+    d, img = scene
+    with pytest.raises(SystemExit) as e:
+        main(["bokeh", "--image", str(d / "aif.exr"), "--depth", str(d / "depth.exr"), "--lens", "6p",
+              "--focus", "2", "-o", str(d / "x.exr"), "--quality", bad])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert "--quality" in err and "dB" in err and not (d / "x.exr").exists()
+
+
+def test_bench_quality_needs_a_lens(capsys):
+    assert main(["bench", "quality"]) == 2
+    assert "dcdi bench quality LENS" in capsys.readouterr().err

@@ -1,0 +1,132 @@
+"""The error budget (psf.budget): the planner's choice from a lens's error
+table, its refusals, and the job's result against the converged render."""
+import json
+import math
+
+import numpy as np
+import pytest
+
+from dcdi_core import app
+from dcdi_core.errors import InputRangeError
+from dcdi_core.optics.aperture import Aperture, stopped_down
+from dcdi_core.optics.lens import lens_fingerprint, load_lens
+from dcdi_core.psf import budget
+from dcdi_core.psf.sources import PSFRequest
+from dcdi_core.render.geometry import ImageGeometry
+
+PITCH = 0.08            # mm: the fake table's one measured pitch
+
+
+def _table(lens, knobs=None):
+    stop = lens.surfaces[lens.stop_index].semi_diameter_mm
+    knobs = knobs or {"pupil_samples": [[16, 1e-4, 1], [32, 1e-6, 2], [64, 1e-8, 4]],
+                      "n_wavelengths": [[3, 1e-4, 1], [9, 1e-6, 2]],
+                      "field_step_px": [[16, 1e-6, 1], [64, 1e-4, 1]]}
+    return {"format": budget.FORMAT, "version": budget.FORMAT_VERSION, "lens_id": lens.id,
+            "lens_fingerprint": lens_fingerprint(lens), "stop_semi_diameter_mm": stop, "scene": "test",
+            "source": "raymap", "reference": budget.REFERENCE,
+            "sizes": [{"rows": 270, "cols": 480, "pixel_pitch_mm": PITCH, "reference_s": 1.0, "knobs": knobs}]}
+
+
+@pytest.fixture
+def sonnar():
+    return load_lens("zeiss-sonnar-50mm-f1-5")
+
+
+@pytest.fixture
+def folder(tmp_path, sonnar):
+    (tmp_path / f"{sonnar.id}.json").write_text(json.dumps(_table(sonnar)))
+    return tmp_path
+
+
+def _sum_db(*mse):
+    return -10 * math.log10(sum(mse))
+
+
+def test_the_plan_is_the_cheapest_within_the_budget_and_its_margin(sonnar, folder):
+    # 30 dB + 3 dB margin allows 5.0e-4: the coarsest of every knob (3e-4 summed) fits
+    p = budget.plan(sonnar, PITCH, 30.0, folder=folder)
+    assert p.planned and (p.pupil_samples, p.n_wavelengths, p.field_step_px) == (16, 3, 64)
+    assert p.expected_db == pytest.approx(_sum_db(1e-4, 1e-4, 1e-4))
+    # 40 dB + 3 allows 5.0e-5: each knob at its 1e-6 level
+    p = budget.plan(sonnar, PITCH, 40.0, folder=folder)
+    assert (p.pupil_samples, p.n_wavelengths, p.field_step_px) == (32, 9, 16)
+    assert p.expected_db >= 40.0 + budget.MARGIN_DB
+    # 62 dB + 3 allows 3.2e-7: the wavelengths and fields must be the reference's, the rays 64
+    p = budget.plan(sonnar, PITCH, 62.0, folder=folder)
+    assert (p.pupil_samples, p.n_wavelengths, p.field_step_px) == (64, 31, None)
+
+
+def test_a_tighter_budget_never_costs_less(sonnar, folder):
+    costs = [budget.plan(sonnar, PITCH, b, folder=folder).cost for b in (25, 30, 35, 40, 45, 50, 60, 70)]
+    assert costs == sorted(costs)
+
+
+def test_knobs_the_user_fixed_are_kept_and_their_error_counted(sonnar, folder):
+    p = budget.plan(sonnar, PITCH, 40.0, {"pupil_samples": 16}, folder=folder)
+    # 16 rays alone cost 1e-4 > 5e-5: nothing meets 40 dB; the plan says so and claims nothing
+    assert not p.planned and "cannot keep" in p.why and p.pupil_samples == 16
+    # an unmeasured value of a fixed knob: planned, no error claimed
+    p = budget.plan(sonnar, PITCH, 30.0, {"n_wavelengths": 7}, folder=folder)
+    assert p.planned and p.n_wavelengths == 7 and p.expected_db is None
+
+
+def test_no_plan_without_a_table_or_at_a_finer_pitch_or_for_another_prescription(sonnar, folder, tmp_path):
+    empty = tmp_path / "none"
+    empty.mkdir()
+    p = budget.plan(sonnar, PITCH, 30.0, folder=empty)
+    assert not p.planned and "no error table" in p.why and p.expected_db is None
+    # finer than measured: the errors grow with the pitches' ratio squared, up to MAX_EXTRAPOLATION
+    near = budget.plan(sonnar, PITCH, 40.0, folder=folder)
+    fine = budget.plan(sonnar, PITCH / 2, 40.0, folder=folder)
+    assert fine.planned and fine.expected_db == pytest.approx(near.expected_db - 10 * math.log10(4.0))
+    p = budget.plan(sonnar, PITCH / (budget.MAX_EXTRAPOLATION * 1.01), 30.0, folder=folder)
+    assert not p.planned and "finer" in p.why
+    assert budget.plan(sonnar, PITCH * 3, 30.0, folder=folder).planned     # coarser: the table is conservative
+    other = load_lens("zeiss-planar-50mm-f1-4")
+    (folder / f"{other.id}.json").write_text(json.dumps({**_table(sonnar), "lens_id": other.id}))
+    assert "differs" in budget.plan(other, PITCH, 30.0, folder=folder).why
+
+
+def test_a_stopped_down_lens_shares_the_wide_open_table(sonnar, folder):
+    lens = stopped_down(sonnar, Aperture(f_number=4.0, blades=6))
+    assert budget.plan(lens, PITCH, 30.0, folder=folder).planned
+
+
+def test_a_damaged_table_is_no_table(sonnar, folder):
+    (folder / f"{sonnar.id}.json").write_text("{not json")
+    assert not budget.plan(sonnar, PITCH, 30.0, folder=folder).planned
+
+
+@pytest.mark.parametrize("bad", [10.0, 100.0, math.nan, math.inf, True, "30"])
+def test_a_budget_outside_its_range_is_refused_by_name(bad):
+    with pytest.raises(InputRangeError, match="max_error_db"):
+        PSFRequest(max_error_db=bad)
+    with pytest.raises(InputRangeError, match="fixed"):
+        PSFRequest(max_error_db=30.0, fixed=("rays",))
+
+
+# ---------------------------------------------------------------- the job at its budget, per lens family
+def _psnr(a, b):
+    return -10 * math.log10(float(np.mean((np.asarray(a, np.float64) - b) ** 2)))
+
+
+@pytest.mark.parametrize("lens_id, source, focus", [
+    ("zeiss-sonnar-50mm-f1-5", "raymap", 1.2),      # a catalogue lens from its ray map, another focus than measured
+    ("6p", "trace", 3.0),                            # the paper's phone lens refocused: traced
+])
+def test_a_planned_bokeh_is_within_its_budget_of_the_converged_render(lens_id, source, focus, tmp_path, monkeypatch):
+    from dcdi_core.bench.quality import render
+    from dcdi_core.render.synthetic import synthetic_rgbd
+    monkeypatch.setenv("DCDI_CACHE_DIR", str(tmp_path))
+    lens = load_lens(lens_id)
+    img, depth = synthetic_rgbd(90, 160, seed=3)
+    ref = render(lens, img, depth, {}, source, focus)[0]
+    for b in (30.0, 40.0):
+        r = app.bokeh(app.BokehRequest(img, depth, lens, focus_m=focus, psf=PSFRequest(source=source, max_error_db=b),
+                                       image_name="the test scene"))
+        q = r.info["quality"]
+        assert q["budget_db"] == b and q["expected_db"] >= b + budget.MARGIN_DB
+        assert _psnr(r.image, ref) >= b, (lens_id, b, q)
+    # the plan costs less PSF work than the full-quality defaults
+    assert q["relative_cost"] < budget._cost(64, 31, 64)
