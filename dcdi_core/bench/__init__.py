@@ -31,7 +31,8 @@ def run(what: str, args) -> int:
     if what == "quality":
         from .quality import bench_quality
         sizes = getattr(args, "size", None)
-        return bench_quality(getattr(args, "lens", None), quick, tuple(map(tuple, sizes)) if sizes else None)
+        return bench_quality(getattr(args, "lens", None), quick, tuple(map(tuple, sizes)) if sizes else None,
+                             getattr(args, "measure", False))
     if what == "sampling":
         from .sampling import bench_sampling
         return bench_sampling(quick)

@@ -11,7 +11,11 @@ this process with its own PSF cache; PSNR (peak 1) against the reference.
 Times are wall seconds of the whole job with the process's CPU seconds
 beside them.
 
-    dcdi bench quality zeiss-sonnar-50mm-f1-5 [--size 270 480] [--quick]
+    dcdi bench quality zeiss-sonnar-50mm-f1-5 [--size 270 480] [--measure] [--quick]
+
+The knob table printed is the lens's shipped one (``psf/data/quality``,
+written by ``python -m lab quality-tables``); ``--measure`` measures it
+again here.
 """
 from __future__ import annotations
 
@@ -156,36 +160,62 @@ def check_plans(lens, rows: int, cols: int, budgets=BUDGETS_DB, focus_m: float =
             p = plan(lens, pitch, b, folder=folder)
             im, wall, cpu, _ = render(lens, img, depth, {"pupil_samples": p.pupil_samples,
                                                          "n_wavelengths": p.n_wavelengths,
-                                                         "field_step_px": p.field_step_px}, source, focus_m)
+                                                         "field_step_px": p.field_step_px,
+                                                         "coarse_blur": p.coarse_blur}, source, focus_m)
             got = psnr(mse(im, ref))
             exp = "-" if p.expected_db is None else f"{p.expected_db:.1f}"
+            coarse = "" if p.coarse_blur is None else f", coarse layers {p.coarse_blur:g}"
             say(f"| {lens.id} | {cols} x {rows} | focus {focus_m:g} m | {b:g} dB: {p.pupil_samples} rays, "
-                f"{p.n_wavelengths} wavelengths, fields {p.field_step_px or 'full'} | {exp} | {got:.1f} | {wall:.2f} |")
+                f"{p.n_wavelengths} wavelengths, field step {p.field_step_px or 'full'}{coarse} | {exp} | {got:.1f} "
+                f"| {wall:.2f} |")
             out.append({"budget_db": b, "plan": p, "psnr_db": got, "wall_s": wall, "full_wall_s": full_wall})
     return out
 
 
-def bench_quality(lens_id: str | None, quick: bool = False, sizes=None) -> int:
+def print_row(lens_id: str, row: dict) -> None:
+    """A measured size's rows of the knob table (``measure``'s, or a shipped table's)."""
+    size = f"{row['cols']} x {row['rows']}"
+    print(f"| {lens_id} | {size} | reference (96 rays, 31 wavelengths, full grid) | - | converged | "
+          f"{row['reference_s']:.2f} |")
+    for name, levels in row["knobs"].items():
+        for v, e, s in levels:
+            db = "no layer coarsened" if e is None else f"{psnr(e):.1f}"
+            what = f"{s:.2f} (blur; {row['blur_s']:.2f} at full resolution)" if name == "coarse_blur" else f"{s:.2f}"
+            print(f"| {lens_id} | {size} | {name} | {v} | {db} | {what} |")
+
+
+def bench_quality(lens_id: str | None, quick: bool = False, sizes=None, measure_again: bool = False) -> int:
+    """Print the lens's knob table (its shipped one; measured here with
+    ``measure_again``, ``quick`` or where none ships) and render the planner's
+    choice for each budget against the converged render."""
     from ..errors import InputRangeError
     from ..optics.lens import load_lens
+    from ..psf.budget import load_table
     if not lens_id:
         raise InputRangeError("lens", None, "a lens id or .toml path: dcdi bench quality LENS")
     lens = load_lens(lens_id)
-    sizes = sizes or (((45, 80),) if quick else SIZES)
-    levels = QUICK_LEVELS if quick else LEVELS
+    table = None if (quick or measure_again) else load_table(lens.id)
+    if sizes is None:
+        sizes = ((45, 80),) if quick else tuple((r["rows"], r["cols"]) for r in table["sizes"]) if table else SIZES
     print(f"dcdi bench quality {lens.id}: each knob alone against the converged render (96 x 96 rays, 31 "
-          f"wavelengths, the full field grid) on {SCENE}; PSNR dB; wall s / CPU s of the whole job")
-    print("| lens | image | knob | value | PSNR dB | wall / CPU s | kernel px |")
-    print("|---|---|---|---|---|---|---|")
-    for r, c in sizes:
-        measure(lens, r, c, levels)
+          f"wavelengths, the full field grid) on {SCENE}; PSNR dB; wall s of the whole job (the coarse rule: of "
+          "the blur, with the cheapest PSFs on both sides)"
+          + (f"; from its shipped table ({table['source']})" if table else "; measured now"))
+    print("| lens | image | knob | value | PSNR dB | wall s |")
+    print("|---|---|---|---|---|---|")
+    if table:
+        for row in table["sizes"]:
+            print_row(lens.id, row)
+    else:
+        for r, c in sizes:
+            print_row(lens.id, measure(lens, r, c, QUICK_LEVELS if quick else LEVELS, say=lambda _: None))
     print()
-    print(f"The planner's choice for each budget ({lens.id}'s shipped error table), rendered; "
-          "PSNR against the converged render, wall s")
+    print(f"The planner's choice for each budget ({lens.id}'s shipped error table), rendered now beside the "
+          "converged render and the full-quality defaults; wall s of the whole job")
     print("| lens | image | scene | budget: plan | expected dB | measured dB | wall s |")
     print("|---|---|---|---|---|---|---|")
     for r, c in sizes:
-        for focus in ((FOCUS_M,) if quick else (FOCUS_M, 1.2, 5.0)):
+        for focus in ((FOCUS_M,) if quick else (FOCUS_M, 1.2)):
             check_plans(lens, r, c, (30.0,) if quick else BUDGETS_DB, focus)
     return 0
 

@@ -28,7 +28,9 @@ def add_commands(sub) -> None:
                         "dcdi depth estimate's whole process beside its goal)")
     q.add_argument("lens", nargs="?", default=None, help="quality: the lens (id or .toml path)")
     q.add_argument("--size", type=positive_int, nargs=2, action="append", default=None, metavar=("H", "W"),
-                   help="quality: an image size measured (repeat the option; default 270 x 480 and 540 x 960)")
+                   help="quality: an image size (repeat the option; default: the sizes of the lens's table)")
+    q.add_argument("--measure", action="store_true",
+                   help="quality: measure the knob table again instead of printing the lens's shipped one")
     q.add_argument("--rays", type=positive_int, default=1 << 20, help="rays per trace (default 2^20)")
     q.add_argument("--repeat", type=positive_int, default=3, help="timed repetitions (best is kept)")
     q.add_argument("--quick", action="store_true", help="psflib, render, sampling, dacn, correction, depth: smaller (for tests)")

@@ -91,7 +91,7 @@ NOT_PATHS = frozenset("""
     no_deconvolved shard crop schedule warmup loss ema_decay crop_choice validate_every input rdicab d2cb racm
     depth_encoding condition channels groups blocks train_scenes name pictures_count lpips widths quick
     frames what repeat field_step focus_tolerance focus_slices f_number blades blade_rotation degree count uncertain_depth
-    quality
+    quality measure
 """.split())
 
 

@@ -152,3 +152,46 @@ def test_a_ray_maps_large_blur_takes_its_coarse_psfs_from_the_map(monkeypatch):
                 BokehOptions(focus_m=1.2, keep=(1.1, 1.3), geometry=geom), library=lib)
     assert out.info["large_blur_factor"] >= 2
     assert np.abs(out.image - 0.5).max() < 2e-3
+
+
+def test_coarse_layers_blur_a_wide_blur_at_reduced_resolution_close_to_the_full_one(monkeypatch, tmp_path):
+    """BokehOptions.coarse_blur (the error budget's coarse layers): the far
+    background, whose every kernel holds half its energy well beyond the
+    rule's radius, is blurred at 1/f of the resolution with PSFs made at f
+    times the pitch; the result stays close to every layer at full
+    resolution (lights' discs included), the sharp subject is untouched, a
+    constant image stays constant, and a rule no layer reaches changes
+    nothing."""
+    from dcdi_core.psf.raymap import RayMapLibrary, open_raymap, shipped_raymap
+    monkeypatch.setenv("DCDI_CACHE_DIR", str(tmp_path))
+    lens = load_lens("zeiss-sonnar-50mm-f1-5")
+    geom = ImageGeometry.from_pixel_pitch(lens, 96, 128, 0.03, center_px=(47.5, 63.5))
+    rng = np.random.default_rng(1)
+    img = (0.1 + 0.3 * rng.random((96, 128, 3))).astype(np.float32)
+    for y, x in ((15, 20), (20, 100), (80, 30)):
+        img[y - 1:y + 2, x - 1:x + 2] = 5.0
+    depth = np.full((96, 128), 10.0, np.float32)
+    depth[30:66, 40:80] = 0.9
+    lib = RayMapLibrary(open_raymap(shipped_raymap(lens.id)), lens,
+                        PSFSettings(pupil_samples=16, n_wavelengths=3, kernel_size=61, pixel_pitch_mm=0.03,
+                                    focus_distance_m=0.9), LibraryGrid(n_fields=8))
+
+    def run(image=img, **kw):
+        return bokeh(image, depth, lens, BokehOptions(focus_m=0.9, keep=(0.85, 0.95), geometry=geom, **kw),
+                     library=lib)
+    full = run().image
+    coarse = run(coarse_blur=2.0)
+    assert coarse.info.get("coarse_blur_layers", 0) >= 1
+    psnr = -10 * np.log10(np.mean((coarse.image / 5.0 - full / 5.0) ** 2))
+    assert 35 < psnr < 200, psnr
+    assert np.abs(coarse.image - img)[34:62, 44:76].max() < 1e-5          # the subject, in focus, as it was
+    flat = run(np.full_like(img, 0.5), coarse_blur=2.0).image
+    assert np.abs(flat - 0.5).max() < 2e-3
+    never = run(coarse_blur=1000.0)
+    assert "coarse_blur_layers" not in never.info and np.array_equal(never.image, full)
+
+
+@pytest.mark.parametrize("bad", [0.5, 0, -2.0, float("nan"), float("inf"), True, "4"])
+def test_a_coarse_rule_that_means_nothing_is_refused(bad):
+    with pytest.raises(Exception, match="coarse_blur"):
+        BokehOptions(focus_m=2.0, coarse_blur=bad)
