@@ -368,7 +368,8 @@ def _source_info(source) -> dict:
 
 
 def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], patch: int = 16,
-              refocus: bool = True, progress=None, cancelled=None, preview: bool = False):
+              refocus: bool = True, progress=None, cancelled=None, preview: bool = False,
+              max_error_db: float | None = None):
     """The lens's depth of field on an all-in-focus (H, W, 3) float32 linear
     image with depth (H, W) metres: ``dcdi_core.app.bokeh`` (`dcdi bokeh
     --focus F --keep NEAR FAR`), the lens focused at ``focus_m`` (or, with
@@ -376,13 +377,17 @@ def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], 
     exactly sharp. ``progress(stage, fraction)`` is called while PSFs are
     built and layers convolved; ``cancelled()`` returning True stops the job
     with :class:`Cancelled`. ``preview``: PSFs that must be traced are traced
-    with ``PREVIEW_TRACE`` (info's ``psf_quality`` 'preview'). Returns
+    with ``PREVIEW_TRACE`` (info's ``psf_quality`` 'preview') where the
+    lens has no error table. ``max_error_db``: the error budget (dB; None:
+    the preview's or the render's default, ``app.DEFAULT_BUDGET_DB``),
+    the plan in info's ``quality``. Returns
     (image, info: the bokeh's, the PSF source and its message, and
     ``focus_note`` where nothing in view lies in the kept range)."""
     # the PSF work planned by the job's error budget (``psf.budget``); FIELD_STEP_PX and the preview's
     # lighter trace where a lens has no error table
     psf = app.PSFRequest(preview=preview, field_step_px=FIELD_STEP_PX, focus_tolerance_px=FOCUS_TOLERANCE_PX,
-                         max_error_db=app.DEFAULT_BUDGET_DB["preview" if preview else "render"])
+                         max_error_db=app.DEFAULT_BUDGET_DB["preview" if preview else "render"]
+                         if max_error_db is None else float(max_error_db))
     request = app.BokehRequest(image, depth, lens, keep=tuple(keep), focus_m=float(focus_m) if refocus else None,
                                render=RenderRequest(lens, patch=patch), psf=psf, image_name="the render")
     r = app.bokeh(request, _control(progress, cancelled), cache=SESSION.sources)

@@ -90,6 +90,12 @@ class DCDI_LensBokehSettings(bpy.types.PropertyGroup):
     preview_size: IntProperty(update=_settings_changed, name="Preview Size", description="Long side of the preview in pixels (the render's "
                               "aspect is kept). PSFs are built at this pixel pitch: larger takes longer the first "
                               "time", default=320, min=16, soft_max=1920, max=8192, subtype="PIXEL")
+    preview_quality: FloatProperty(update=_settings_changed, name="Preview Quality",
+                                   description="How close the preview's lens stage stays to the render with "
+                                               "converged PSFs, in dB PSNR: the PSF work (rays, wavelengths, "
+                                               "fields) and the coarse layers are planned from the lens's measured "
+                                               "error table. Higher is closer and slower; Apply and F12 take 40",
+                                   default=30.0, min=20.0, max=80.0, soft_max=60.0, precision=0)
     samples: IntProperty(update=_settings_changed, name="Samples", description="Cycles samples per pixel of the all-in-focus render "
                          "(denoised)", default=16, min=1, soft_max=256, max=16384)
     lens_in_renders: BoolProperty(name="Lens in Renders", default=False,

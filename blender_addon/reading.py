@@ -44,6 +44,7 @@ class SceneReading:
     preview_size: int
     samples: int
     aperture_note: str = ""          # why the camera's F-Stop was not used as it stands ('': it was, or not asked)
+    preview_quality: float = 30.0    # the preview's error budget (dB; psf.budget)
 
     def preview_shape(self) -> tuple[int, int]:
         """(height, width) of the preview: the render's aspect, its long side the Preview Size."""
@@ -70,7 +71,7 @@ def read_scene(scene, *, focus: bool = True, depsgraph=None, lens_path: str | No
     r = scene.render
     return SceneReading(cam, lens, lens_path, ep, metres_per_unit(scene), focus_m, keep, bool(s.refocus),
                         (r.resolution_x, r.resolution_y, r.pixel_aspect_x, r.pixel_aspect_y), s.preview_size,
-                        s.samples, note)
+                        s.samples, note, float(s.preview_quality))
 
 
 # ------------------------------------------------------------------ the parts
@@ -188,7 +189,8 @@ def inputs_key(scene) -> str:
 
     s = scene.dcdi_lens_bokeh
     parts = [s.lens, s.focus_mode, round(s.focus_distance, 9), placed(s.focus_object), s.refocus,
-             round(s.keep_front, 9), round(s.keep_behind, 9), s.preview_size, s.samples, s.sensor_noise,
+             round(s.keep_front, 9), round(s.keep_behind, 9), s.preview_size, round(s.preview_quality, 6), s.samples,
+             s.sensor_noise,
              s.correction_method, s.correction_model]
     cam = scene.camera
     parts.append(placed(cam))

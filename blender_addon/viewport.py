@@ -259,13 +259,14 @@ class Preview:
                           "source": sharp["source"] if fresh else None, "steps": sharp["steps"] if fresh else {},
                           "t0": time.perf_counter()}
         rgb, depth, refocus = sharp["rgb"], sharp["depth"], bool(a["scene"].dcdi_lens_bokeh.refocus)
+        quality = a["quality"]
 
         def run():
             _lower_thread_priority()
             try:
                 out, info = logic.run_bokeh(rgb, depth, lens, focus_m=focus, keep=keep,
                                             refocus=refocus, cancelled=lambda: self.generation != gen,
-                                            preview=True)
+                                            preview=True, max_error_db=quality)
                 job["out"], job["info"] = out, info
             except logic.Cancelled:
                 job["cancelled"] = True
@@ -342,7 +343,9 @@ def inputs(context) -> dict:
                  d.sensor_width, d.sensor_height, d.sensor_fit, d.shift_x, d.shift_y, d.clip_start, d.clip_end)
     return {"scene": scene, "camera": cam, "lens": lens, "path": path, "entrance_pupil_mm": ep, "h": h, "w": w,
             "mpu": mpu, "focus": r.focus_m, "keep": r.keep, "sharp_key": sharp_key,
-            "request": (lens.id, path, r.focus_m, r.keep, r.refocus, round(ep, 9), mpu, lens.iris)}
+            "quality": r.preview_quality,
+            "request": (lens.id, path, r.focus_m, r.keep, r.refocus, round(ep, 9), mpu, lens.iris,
+                        round(r.preview_quality, 6))}
 
 
 def wanted(context) -> tuple:

@@ -35,7 +35,7 @@ QUICK_LEVELS = {"pupil_samples": (16, 32), "n_wavelengths": (5,), "field_step_px
 COARSE_LEVELS = (16.0, 8.0, 4.0, 2.0)
 CHEAP = {"pupil_samples": 16, "n_wavelengths": 3, "field_step_px": 64}
 SIZES = ((270, 480), (540, 960))
-BUDGETS_DB = (30.0, 35.0, 40.0, 45.0)
+BUDGETS_DB = (30.0, 40.0, 50.0, 55.0)
 
 
 def planned_source(lens) -> str:

@@ -584,14 +584,14 @@ def open_source(lens, geometry, request: PSFRequest, *, fit_depth_m=None, contro
 
 
 def ensure_bins(library, depth_m, control: Control | None = None) -> None:
-    """Compute now every depth bin from the nearest to the farthest valid
-    depth of ``depth_m`` (metres), so that progress and cancel work while
-    PSFs are built (a patch's mean inverse depth can fall in a bin no pixel
-    touches, hence the whole span)."""
+    """Compute now the depth bins the valid depths of ``depth_m`` (metres)
+    interpolate from, so that progress and cancel work while PSFs are built.
+    Only the bins the frame holds: a bin between two of them that no pixel
+    touches (a subject and the far background) is made only if a patch's
+    mean inverse depth falls in it, when the renderer asks for it."""
     d = np.asarray(depth_m, np.float64)
     d = d[d > 0]                    # NaN, 0 and negative depths are left sharp
     if d.size == 0:
         return
-    need = library.bins_needed(d, clamp_near=True)
     control = control or Control()
-    library.ensure(bins=np.arange(need.min(), need.max() + 1), progress=control.counter("PSFs"))
+    library.ensure(bins=library.bins_needed(d, clamp_near=True), progress=control.counter("PSFs"))

@@ -226,6 +226,31 @@ def test_a_focus_on_empty_space_blurs_everything():
     assert _detail(sharp[16:-16, 16:-16]) > 0.9 * _detail(img[16:-16, 16:-16])
 
 
+def test_the_preview_and_apply_plan_their_psfs_by_their_error_budgets():
+    """A catalogue lens's PSFs are planned (logic.run_bokeh: the preview 30 dB
+    unless the panel's Preview Quality says otherwise, Apply 40); the panel's
+    default is the engine's."""
+    import ast
+    from dcdi_core import app
+    from dcdi_core.optics.lens import load_lens
+    img = np.random.default_rng(0).random((60, 90, 3)).astype(np.float32)
+    depth = np.linspace(0.8, 8.0, 90, dtype=np.float32)[None].repeat(60, 0)
+    lens = load_lens("zeiss-sonnar-50mm-f1-5")
+    budgets = {}
+    for kw in (dict(preview=True), dict(preview=False), dict(preview=True, max_error_db=70.0)):
+        _, info = logic.run_bokeh(img, depth, lens, focus_m=2.0, keep=(1.9, 2.1), **kw)
+        q = info["quality"]
+        assert q["expected_db"] >= q["budget_db"] and "error table" in q["plan"]
+        budgets[q["budget_db"]] = q["relative_cost"]
+    assert set(budgets) == {app.DEFAULT_BUDGET_DB["preview"], app.DEFAULT_BUDGET_DB["render"], 70.0}
+    assert budgets[70.0] > budgets[app.DEFAULT_BUDGET_DB["preview"]]       # a tighter budget costs more work
+    props = ast.parse((Path(logic.__file__).parent / "props.py").read_text())
+    default = next(k.value.value for n in ast.walk(props) if isinstance(n, ast.AnnAssign)
+                   and getattr(n.target, "id", "") == "preview_quality" for k in n.annotation.keywords
+                   if k.arg == "default")
+    assert default == app.DEFAULT_BUDGET_DB["preview"]
+
+
 # ------------------------------------------------------------------ headless Blender (pip bpy)
 @pytest.fixture(scope="module")
 def headless(addon_zip, tmp_path_factory):
