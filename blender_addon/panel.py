@@ -273,7 +273,7 @@ def draw_lens_bokeh(layout, context, in_viewport: bool = True):
 
     col = layout.column(align=True)
     col.prop(s, "preview_size")
-    col.prop(s, "preview_quality", text="Preview Quality (dB)")
+    col.prop(s, "preview_quality", text="Quality (dB)")
     col.prop(s, "samples")
     r = scene.render
     try:
