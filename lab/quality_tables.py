@@ -26,7 +26,7 @@ def main(argv=None) -> int:
                    help="image sizes measured (default 270 x 480 and 540 x 960; repeat the option)")
     p.add_argument("--force", action="store_true", help="measure again a lens whose table exists")
     p.add_argument("--augment", action="store_true",
-                   help="add to existing tables the knobs they lack (the coarse layers' rule), measured alone")
+                   help="add to existing tables the knobs they lack (the blur's: coarse layers, kernel crop), measured alone")
     args = p.parse_args(argv)
     sizes = [tuple(s) for s in args.size] if args.size else list(quality.SIZES)
     QUALITY_DIR.mkdir(parents=True, exist_ok=True)
@@ -48,18 +48,21 @@ def main(argv=None) -> int:
 
 
 def _augment(lens, path) -> None:
-    """Measure the knobs ``path``'s table lacks at each of its sizes, and write it again whole."""
+    """Measure the blur knobs ``path``'s table lacks at each of its sizes, and write it again whole."""
     from dcdi_core.atomic import atomic_path
     from dcdi_core.bench import quality
     from dcdi_core.render.synthetic import synthetic_rgbd
     table = json.loads(path.read_text(encoding="utf-8"))
     changed = False
     for row in table["sizes"]:
-        if "coarse_blur" in row["knobs"]:
+        missing = [k for k in quality.BLUR_LEVELS if k not in row["knobs"]]
+        if not missing:
             continue
         img, depth = synthetic_rgbd(row["rows"], row["cols"])
-        row["knobs"]["coarse_blur"], blur_s = quality.measure_coarse(
-            lens, img, depth, table["source"], lambda s: print(s, flush=True), f"{row['cols']} x {row['rows']}")
+        # every blur knob again, so that their seconds share one baseline
+        knobs, blur_s = quality.measure_blur(lens, img, depth, table["source"], lambda s: print(s, flush=True),
+                                             f"{row['cols']} x {row['rows']}")
+        row["knobs"].update(knobs)
         row["blur_s"] = round(blur_s, 3)
         changed = True
     if changed:

@@ -47,14 +47,15 @@ def _knob(psf: PSFRequest, name: str):
     return psf.field_step_px if name == "field_step_px" else getattr(psf.settings, name)
 
 
-def budgeted(lens, geometry, psf: PSFRequest, cache: SourceCache | None = None, coarse_blur="planned"):
+def budgeted(lens, geometry, psf: PSFRequest, cache: SourceCache | None = None, fixed: dict | None = None):
     """(the request with the PSF work its error budget needs, the plan or
     None): where ``psf.max_error_db`` is set and the source that serves it
     makes PSFs (a ray map or a trace), the rays, wavelengths and field step
     the planner (``psf.budget``) chooses for this lens at ``geometry``'s
     pitch, the knobs in ``psf.fixed`` kept; a stored source (basis, OLF)
-    serves as it is (None). ``coarse_blur``: the bokeh's coarse layers as
-    the job gives them (a value or None), or 'planned'."""
+    serves as it is (None). ``fixed``: the render's own knobs the job
+    gives (``budget.KNOBS``: the bokeh's coarse rule and kernel crop; a
+    simulation fixes both, having neither)."""
     if psf.max_error_db is None:
         return psf, None
     from ..psf.budget import plan as plan_budget
@@ -62,10 +63,8 @@ def budgeted(lens, geometry, psf: PSFRequest, cache: SourceCache | None = None, 
     src = cache.chosen(lens, geometry, psf) if cache is not None else choose(lens, geometry, psf)
     if src.kind not in ("raymap", "trace"):
         return psf, None
-    fixed = {k: _knob(psf, k) for k in psf.fixed if k != "coarse_blur"}
-    if coarse_blur != "planned":
-        fixed["coarse_blur"] = coarse_blur
-    q = plan_budget(lens, geometry.pixel_pitch_mm, psf.max_error_db, fixed)
+    given = {k: _knob(psf, k) for k in psf.fixed if k in ("pupil_samples", "n_wavelengths", "field_step_px")}
+    q = plan_budget(lens, geometry.pixel_pitch_mm, psf.max_error_db, {**given, **(fixed or {})})
     if not q.planned:
         return psf, q
     step = psf.field_step_px if "field_step_px" in psf.fixed else q.field_step_px
@@ -140,8 +139,9 @@ def simulate(request: SimulateRequest, control: Control | None = None, *,
         lens, perturbation = perturb_lens(lens, seed=render.perturb_seed, fraction=render.perturb_fraction)
     t0 = time.perf_counter()
     plan = render.plan(*img.shape[:2], image=request.image_name)
+    from ..render.convolve import ConvolveOptions
     psf, quality = budgeted(lens, plan.geometry, _psf_request(request.psf, render, plan.settings), cache,
-                            coarse_blur=None)
+                            {"coarse_blur": None, "support_eps": ConvolveOptions().support_eps})
     if quality is not None:
         control.say(f"PSFs planned for {quality.budget_db:g} dB: {quality.why}")
         plan = replace(plan, settings=quality.apply(plan.settings))
@@ -193,7 +193,9 @@ class BokehRequest:
     at the image's patches with the tent (no merging, no wider patches:
     ``BokehOptions``' interp_eps and seam_tol None). ``coarse_blur``: the
     coarse layers' rule (``BokehOptions``; None: planned by the PSF
-    request's error budget where it has one, else none). ``psf``:
+    request's error budget where it has one, else none). ``support_eps``:
+    the energy a kernel's crop may leave out (``BokehOptions``; None:
+    planned by the budget, else ``BokehOptions``' default). ``psf``:
     which PSFs (:class:`PSFRequest`; ``preview``: a lighter trace).
     ``recorded``: what the image file remembers
     (``io.capture_record.CaptureRecord``; ``records.recorded_defaults``)."""
@@ -210,6 +212,7 @@ class BokehRequest:
     max_level: int | None = None
     exact_layers: bool = False
     coarse_blur: float | None = None
+    support_eps: float | None = None
     psf: PSFRequest = field(default_factory=PSFRequest)
     recorded: object = None
     image_name: str = "the image"
@@ -274,16 +277,20 @@ def bokeh(request: BokehRequest, control: Control | None = None, *, cache: Sourc
                            interpolation=render.interpolation, patch=render.patch, occlusion=request.occlusion,
                            settings=plan.settings, response=request.psf.response, fit_kernel=render.fit_kernel,
                            multires=request.multires, max_level=request.max_level, coarse_blur=request.coarse_blur,
+                           **({} if request.support_eps is None else {"support_eps": request.support_eps}),
                            **(dict(interp_eps=None, seam_tol=None) if request.exact_layers else {}))
     psf = _psf_request(request.psf, render, plan.settings).focused(options.focus_distance_m)
     layered = request.occlusion and request.multires is None
-    psf, quality = budgeted(request.lens, plan.geometry, psf, cache,
-                            coarse_blur="planned" if layered and request.coarse_blur is None else request.coarse_blur)
+    fixed = {"coarse_blur": request.coarse_blur} if request.coarse_blur is not None or not layered else {}
+    if request.support_eps is not None:
+        fixed["support_eps"] = request.support_eps
+    psf, quality = budgeted(request.lens, plan.geometry, psf, cache, fixed)
     if quality is not None:
         control.say(f"PSFs planned for {quality.budget_db:g} dB: {quality.why}")
         # the large blur's and the coarse layers' PSFs are made with the same planned settings
-        options = replace(options, settings=quality.apply(options.settings),
-                          coarse_blur=quality.coarse_blur if quality.planned else options.coarse_blur)
+        if quality.planned:
+            options = replace(options, settings=quality.apply(options.settings), coarse_blur=quality.coarse_blur,
+                              support_eps=quality.support_eps)
     keep = options.keep
     blurred = depth[(depth > 0) & ~((depth >= keep[0]) & (depth <= keep[1]))] if keep is not None else depth[depth > 0]
     src = _source(request.lens, plan.geometry, psf, cache, blurred if blurred.size else None, control)

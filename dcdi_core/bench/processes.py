@@ -35,10 +35,14 @@ def _goal_jobs(d: str, inputs) -> dict:
     planar = [*io[:-2], "--lens", "zeiss-planar-50mm-f1-4"]
     return {"dcdi simulate --lens mos-s1": (py + ["simulate", *mos, "-o", f"{d}/sim.exr"], GOALS["simulate"]),
             "dcdi bokeh --keep 1.0 2.0": (py + ["bokeh", *io, *keep, "-o", f"{d}/b.exr"], GOALS["bokeh"]),
-            "dcdi bokeh --focus 1.5 (6P, refocused: traced)": (py + ["bokeh", *io, "--focus", "1.5", "-o",
+            "dcdi bokeh --focus 1.5 (6P refocused: its OLF)": (py + ["bokeh", *io, "--focus", "1.5", "-o",
                                                                      f"{d}/f.exr"], GOALS["bokeh"]),
+            "  the same, --quality full (no plan)": (py + ["bokeh", *io, "--focus", "1.5", "--quality", "full",
+                                                          "-o", f"{d}/f.exr"], None),
             "dcdi bokeh --focus 1.5 --lens zeiss-planar-50mm-f1-4 (wide open)": (
                 py + ["bokeh", *planar, "--focus", "1.5", "-o", f"{d}/p.exr"], GOALS["bokeh"]),
+            "  the same, --quality full (no plan) ": (py + ["bokeh", *planar, "--focus", "1.5", "--quality", "full",
+                                                          "-o", f"{d}/p.exr"], None),
             "  the same, numpy only": (numpy_only + ["bokeh", *io, *keep, "-o", f"{d}/b.exr"],
                                        GOALS["bokeh, numpy only"])}
 

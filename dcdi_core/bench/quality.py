@@ -30,9 +30,10 @@ FOCUS_M = 2.0
 SCENE = "the built-in synthetic scene (render.synthetic, seed 0), wide open, focus 2 m"
 LEVELS = {"pupil_samples": (16, 24, 32, 48, 64), "n_wavelengths": (3, 5, 9, 15), "field_step_px": (8, 16, 32, 64)}
 QUICK_LEVELS = {"pupil_samples": (16, 32), "n_wavelengths": (5,), "field_step_px": (32,)}
-# the coarse layers' rule (BokehOptions.coarse_blur, px): its error and the blur's seconds are measured
-# with the cheapest PSF work (the knobs' errors are independent), against every layer at full resolution
-COARSE_LEVELS = (16.0, 8.0, 4.0, 2.0)
+# the blur's knobs: the coarse layers' rule (BokehOptions.coarse_blur, px) and the kernels' crop
+# (support_eps): their error and the blur's seconds are measured with the cheapest PSF work (the knobs'
+# errors are independent), against every layer at full resolution with the reference's crop
+BLUR_LEVELS = {"coarse_blur": (16.0, 8.0, 4.0, 2.0), "support_eps": (3e-3, 1e-2, 3e-2)}
 CHEAP = {"pupil_samples": 16, "n_wavelengths": 3, "field_step_px": 64}
 SIZES = ((270, 480), (540, 960))
 BUDGETS_DB = (30.0, 40.0, 50.0, 55.0)
@@ -54,7 +55,7 @@ def render(lens, img, depth, knobs: dict, source: str, focus_m: float = FOCUS_M,
     k = {**REFERENCE, **knobs}
     settings = PSFSettings(pupil_samples=int(k["pupil_samples"]), n_wavelengths=int(k["n_wavelengths"]))
     req = app.BokehRequest(img, depth, lens, focus_m=focus_m, render=RenderRequest(lens, psf=settings),
-                           coarse_blur=k.get("coarse_blur"),
+                           coarse_blur=k.get("coarse_blur"), support_eps=k.get("support_eps"),
                            psf=app.PSFRequest(source=source, field_step_px=k["field_step_px"]),
                            image_name="the quality scene")
     with tempfile.TemporaryDirectory() as d:
@@ -103,28 +104,32 @@ def measure(lens, rows: int, cols: int, levels=None, say=print) -> dict:
                 e = mse(im, ref)
                 knobs[name].append([v, e, round(wall, 3)])
                 say(f"| {lens.id} | {cols} x {rows} | {name} | {v} | {psnr(e):.1f} | {wall:.2f} / {cpu:.2f} | {k} |")
-        knobs["coarse_blur"], blur_s = measure_coarse(lens, img, depth, source, say, f"{cols} x {rows}")
+        blur_knobs, blur_s = measure_blur(lens, img, depth, source, say, f"{cols} x {rows}")
+        knobs.update(blur_knobs)
     pitch = ImageGeometry.full_sensor(lens, rows, cols).pixel_pitch_mm
     return {"rows": rows, "cols": cols, "pixel_pitch_mm": pitch, "reference_s": round(ref_wall, 3),
             "blur_s": round(blur_s, 3), "knobs": knobs}
 
 
-def measure_coarse(lens, img, depth, source: str, say=print, size: str = "") -> tuple[list, float]:
-    """([[coarse_blur px, squared error (None where no layer was coarsened:
-    unmeasured), the blur's wall s]], the blur's wall s at full resolution),
-    with the cheapest PSF work (:data:`CHEAP`) on both sides."""
+def measure_blur(lens, img, depth, source: str, say=print, size: str = "", knobs=None) -> tuple[dict, float]:
+    """({blur knob: [[value, squared error (None where the level changed
+    nothing: unmeasured), the blur's wall s]]}, the blur's wall s with the
+    reference's knobs), with the cheapest PSF work (:data:`CHEAP`) on both
+    sides. ``knobs``: which of :data:`BLUR_LEVELS` (default all)."""
     sec: dict = {}
     base = render(lens, img, depth, CHEAP, source, seconds=sec)[0]
     full_s = sec["bokeh"]
-    out = []
-    for c in COARSE_LEVELS:
-        sec = {}
-        im, wall, cpu, k = render(lens, img, depth, {**CHEAP, "coarse_blur": c}, source, seconds=sec)
-        e = mse(im, base)
-        # a rule that coarsened no layer here says nothing of its error where it does: not offered (None)
-        out.append([c, e if e > 0 else None, round(sec["bokeh"], 3)])
-        say(f"| {lens.id} | {size} | coarse_blur | {c:g} | {psnr(e):.1f} | {sec['bokeh']:.2f} (blur; "
-            f"{full_s:.2f} at full resolution) | {k} |")
+    out = {}
+    for name in knobs or BLUR_LEVELS:
+        out[name] = []
+        for v in BLUR_LEVELS[name]:
+            sec = {}
+            im, wall, cpu, k = render(lens, img, depth, {**CHEAP, name: v}, source, seconds=sec)
+            e = mse(im, base)
+            # a level that changed nothing here says nothing of its error where it does: not offered (None)
+            out[name].append([v, e if e > 0 else None, round(sec["bokeh"], 3)])
+            say(f"| {lens.id} | {size} | {name} | {v:g} | {'no effect' if e == 0 else f'{psnr(e):.1f}'} | "
+                f"{sec['bokeh']:.2f} (blur; {full_s:.2f} with the reference's) | {k} |")
     return out, full_s
 
 
@@ -161,10 +166,12 @@ def check_plans(lens, rows: int, cols: int, budgets=BUDGETS_DB, focus_m: float =
             im, wall, cpu, _ = render(lens, img, depth, {"pupil_samples": p.pupil_samples,
                                                          "n_wavelengths": p.n_wavelengths,
                                                          "field_step_px": p.field_step_px,
-                                                         "coarse_blur": p.coarse_blur}, source, focus_m)
+                                                         "coarse_blur": p.coarse_blur,
+                                                         "support_eps": p.support_eps}, source, focus_m)
             got = psnr(mse(im, ref))
             exp = "-" if p.expected_db is None else f"{p.expected_db:.1f}"
-            coarse = "" if p.coarse_blur is None else f", coarse layers {p.coarse_blur:g}"
+            coarse = ("" if p.coarse_blur is None else f", coarse layers {p.coarse_blur:g}") + \
+                ("" if p.support_eps == 1e-3 else f", kernel crop {p.support_eps:g}")
             say(f"| {lens.id} | {cols} x {rows} | focus {focus_m:g} m | {b:g} dB: {p.pupil_samples} rays, "
                 f"{p.n_wavelengths} wavelengths, field step {p.field_step_px or 'full'}{coarse} | {exp} | {got:.1f} "
                 f"| {wall:.2f} |")
@@ -179,8 +186,8 @@ def print_row(lens_id: str, row: dict) -> None:
           f"{row['reference_s']:.2f} |")
     for name, levels in row["knobs"].items():
         for v, e, s in levels:
-            db = "no layer coarsened" if e is None else f"{psnr(e):.1f}"
-            what = f"{s:.2f} (blur; {row['blur_s']:.2f} at full resolution)" if name == "coarse_blur" else f"{s:.2f}"
+            db = "no effect" if e is None else f"{psnr(e):.1f}"
+            what = f"{s:.2f} (blur; {row['blur_s']:.2f} with the reference's)" if name in BLUR_LEVELS else f"{s:.2f}"
             print(f"| {lens_id} | {size} | {name} | {v} | {db} | {what} |")
 
 
@@ -220,4 +227,4 @@ def bench_quality(lens_id: str | None, quick: bool = False, sizes=None, measure_
     return 0
 
 
-__all__ = ["bench_quality", "measure", "table", "check_plans", "render", "LEVELS", "SIZES", "BUDGETS_DB"]
+__all__ = ["bench_quality", "measure", "measure_blur", "table", "check_plans", "render", "LEVELS", "BLUR_LEVELS", "SIZES", "BUDGETS_DB"]

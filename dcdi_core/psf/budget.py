@@ -15,12 +15,15 @@ blur's:
 - ``coarse_blur``: a depth layer whose kernels hold half their energy
   beyond coarse_blur x f px is blurred at 1/f of the resolution
   (``render.bokeh.BokehOptions``; None: every layer the kernel holds at
-  full resolution). A bokeh's knob only.
+  full resolution). A bokeh's knob only;
+- ``support_eps``: the energy each kernel's crop may leave out (the FFT
+  windows' size; a fast lens's faint halo is wide). A bokeh's knob only.
 
 The time a plan is expected to take is the table's: the reference's PSF
-seconds x the PSF work's fraction, plus the blur's seconds measured at that
-coarse rule (the pixels' ratio squared at another pitch); the planner picks
-the fastest plan within the budget.
+seconds x the PSF work's fraction, plus the blur's seconds, measured with
+the cheapest PSFs at each blur knob's level (the blur knobs' savings taken
+as independent; the pixels' ratio squared at another pitch); the planner
+picks the fastest plan within the budget.
 
 What each knob alone costs in error was measured per lens and per pixel
 pitch (``dcdi bench quality LENS``; the tables ship in
@@ -56,11 +59,14 @@ from ..io.npzfile import FileCache
 QUALITY_DIR = Path(__file__).resolve().parent / "data" / "quality"
 FORMAT = "dcdi-quality-table"
 FORMAT_VERSION = 1
-KNOBS = ("pupil_samples", "n_wavelengths", "field_step_px", "coarse_blur")
+KNOBS = ("pupil_samples", "n_wavelengths", "field_step_px", "coarse_blur", "support_eps")
+# the blur's knobs: their seconds are the blur's, measured with the cheapest PSFs
+BLUR_KNOBS = ("coarse_blur", "support_eps")
 # the converged render every error is measured against
-REFERENCE = {"pupil_samples": 96, "n_wavelengths": 31, "field_step_px": None, "coarse_blur": None}
+REFERENCE = {"pupil_samples": 96, "n_wavelengths": 31, "field_step_px": None, "coarse_blur": None,
+             "support_eps": 1e-3}
 # what a job without a plan uses (the engine's full-quality defaults)
-FULL = {"pupil_samples": 64, "n_wavelengths": 31, "field_step_px": None, "coarse_blur": None}
+FULL = {"pupil_samples": 64, "n_wavelengths": 31, "field_step_px": None, "coarse_blur": None, "support_eps": 1e-3}
 # the planned error is kept this far inside the budget: the table's scene is not the user's
 MARGIN_DB = 3.0
 # each job's default budget (dB): the viewport preview, everything else
@@ -98,6 +104,7 @@ class QualityPlan:
     n_wavelengths: int
     field_step_px: float | None
     coarse_blur: float | None
+    support_eps: float
     expected_db: float | None
     budget_db: float
     cost: float
@@ -117,7 +124,7 @@ class QualityPlan:
             return {"budget_db": self.budget_db, "expected_db": None, "plan": self.why}
         return {"budget_db": self.budget_db, "expected_db": self.expected_db, "pupil_samples": self.pupil_samples,
                 "n_wavelengths": self.n_wavelengths, "field_step_px": self.field_step_px,
-                "coarse_blur": self.coarse_blur, "relative_cost": round(self.cost, 4),
+                "coarse_blur": self.coarse_blur, "support_eps": self.support_eps, "relative_cost": round(self.cost, 4),
                 "expected_s": None if math.isnan(self.seconds) else round(self.seconds, 3), "plan": self.why}
 
 
@@ -193,8 +200,8 @@ def full_plan(budget_db: float, why: str, fixed: dict | None = None) -> QualityP
     """No plan: the request's own settings (the full-quality defaults unless
     the user set them); no error is claimed."""
     k = {**FULL, **(fixed or {})}
-    return QualityPlan(int(k["pupil_samples"]), int(k["n_wavelengths"]), k["field_step_px"], k["coarse_blur"], None,
-                       budget_db, math.nan, why, planned=False)
+    return QualityPlan(int(k["pupil_samples"]), int(k["n_wavelengths"]), k["field_step_px"], k["coarse_blur"],
+                       float(k["support_eps"]), None, budget_db, math.nan, why, planned=False)
 
 
 def plan(lens, pixel_pitch_mm: float, budget_db: float, fixed: dict | None = None, *,
@@ -219,44 +226,52 @@ def plan(lens, pixel_pitch_mm: float, budget_db: float, fixed: dict | None = Non
                                  f"than the {finest * 1000:.4g} um {lens.id}'s error table was measured at: "
                                  "full quality", fixed)
     # each knob's choices: (value, squared error, blur seconds or None) from its measured levels and the
-    # reference (no error); a knob the table lacks (an older table's coarse rule) has the reference only
+    # reference (no error); a knob the table lacks (an older table's blur knobs) has the reference only
     blur_full = float(row.get("blur_s", math.nan))
     choices = {}
     for k in KNOBS:
         measured = row["knobs"].get(k, [])
+        blur = k in BLUR_KNOBS
         # a level measured without effect (None: a coarse rule that coarsened nothing) is not offered
-        levels = [(v, mse * scale, (t if k == "coarse_blur" else None)) for v, mse, t in measured if mse is not None]
-        levels.append((REFERENCE[k], 0.0, blur_full if k == "coarse_blur" else None))
+        levels = [(v, mse * scale, (t if blur else None)) for v, mse, t in measured if mse is not None]
+        levels.append((REFERENCE[k], 0.0, blur_full if blur else None))
         if k in fixed:
             hit = [(m, t) for v, m, t in levels if v == fixed[k]]
-            levels = [(fixed[k], *(hit[0] if hit else (math.nan, blur_full if k == "coarse_blur" else None)))]
+            levels = [(fixed[k], *(hit[0] if hit else (math.nan, blur_full if blur else None)))]
         choices[k] = levels
     allowed = 10.0 ** (-(budget + MARGIN_DB) / 10.0)
     sd = lens.sensor.semi_diagonal_mm
-    # the seconds a plan takes: the reference's PSFs x the work's fraction, plus the blur at its rule
-    psf_s = max(float(row["reference_s"]) - (blur_full if math.isfinite(blur_full) else 0.0), 0.0)
+    # the seconds a plan takes: the reference's PSFs x the work's fraction, plus the blur at its knobs
+    # (each blur knob's saving against the full blur, taken as independent)
+    full_ok = math.isfinite(blur_full) and blur_full > 0
+    psf_s = max(float(row["reference_s"]) - (blur_full if full_ok else 0.0), 0.0)
     pixels = (row["pixel_pitch_mm"] / pixel_pitch_mm) ** 2
     best = None
     for combo in itertools.product(*(choices[k] for k in KNOBS)):
-        (r, er, _), (w, ew, _), (f, ef, _), (c, ec, blur) = combo
-        mse = er + ew + ef + ec
+        (r, er, _), (w, ew, _), (f, ef, _), (c, ec, tc), (e, ee, te) = combo
+        mse = er + ew + ef + ec + ee
         if not mse <= allowed and not math.isnan(mse):
             continue
         cost = _cost(int(r), int(w), _n_fields(f, sd, pixel_pitch_mm))
-        seconds = psf_s * cost + (blur * pixels if blur is not None and math.isfinite(blur) else 0.0)
+        blur = blur_full
+        if full_ok:
+            blur = blur_full * (tc / blur_full if tc and math.isfinite(tc) else 1.0) \
+                * (te / blur_full if te and math.isfinite(te) else 1.0)
+        seconds = psf_s * cost + (blur * pixels if full_ok else 0.0)
         key = (seconds, cost)
         if best is None or key < best[0]:
-            best = (key, int(r), int(w), f, c, mse)
+            best = (key, int(r), int(w), f, c, e, mse)
     if best is None:          # even the reference's knobs: the fixed ones alone miss the budget
         return full_plan(budget, f"the knobs given cannot keep {lens.id} within {budget:g} dB "
                                  "(their own error is larger)", fixed)
-    (seconds, cost), r, w, f, c, mse = best
+    (seconds, cost), r, w, f, c, e, mse = best
     expected = None if math.isnan(mse) else min(_db(mse), 99.0)
     size = f"{row['cols']} x {row['rows']}" + ("" if scale == 1.0 else f", its errors x {scale:.3g} at this finer pitch")
-    return QualityPlan(r, w, f, c, expected, budget, cost,
+    return QualityPlan(r, w, f, c, float(e), expected, budget, cost,
                        f"{r} x {r} rays, {w} wavelengths, fields "
                        + ("from the source's grid" if f is None else f"{f:g} px apart")
                        + ("" if c is None else f", layers blurring {c:g} x f px and more at 1/f")
+                       + ("" if e == REFERENCE["support_eps"] else f", kernels cropped to all but {e:g} of their energy")
                        + (f": about {expected:.0f} dB from the converged render" if expected is not None else "")
                        + f" ({lens.id}'s error table at {row['pixel_pitch_mm'] * 1000:.4g} um, {size}; "
                          f"{cost:.3g} of the reference's PSF work)", seconds=seconds)

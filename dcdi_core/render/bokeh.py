@@ -108,6 +108,11 @@ class BokehOptions:
     wide blur keeps nothing of the detail the coarse grid drops); None:
     every layer the kernel holds at full resolution. The error budget
     (``psf.budget``) sets it. Occlusion-aware, without ``multires``.
+
+    support_eps: each patch's kernel is cropped to the disc that holds all
+    but this fraction of every channel's energy, rescaled to its sum (the
+    FFT windows' size: ``ConvolveOptions.support_eps``), in [0, 0.2]; the
+    error budget may raise it (a fast lens's faint halo is wide).
     """
 
     keep: tuple[float, float] | None = None
@@ -132,6 +137,7 @@ class BokehOptions:
     seam_tol: float | None = 0.25
     large_blur: bool = True
     coarse_blur: float | None = None
+    support_eps: float = 1e-3
 
     def __post_init__(self):
         from .distortion import check_interpolation
@@ -157,6 +163,9 @@ class BokehOptions:
             if value is not None and not (isinstance(value, (int, float, np.floating)) and not isinstance(value, bool)
                                           and (lo < value if low_open else lo <= value) and value <= hi):
                 raise InputRangeError(name, value, f"a fraction in {'(' if low_open else '['}{lo:g}, {hi:g}], or None")
+        e = self.support_eps
+        if isinstance(e, bool) or not isinstance(e, (int, float, np.floating)) or not 0.0 <= e <= 0.2:
+            raise InputRangeError("support_eps", e, "a fraction of a kernel's energy in [0, 0.2]")
         c = self.coarse_blur
         if c is not None and (isinstance(c, bool) or not isinstance(c, (int, float, np.integer, np.floating))
                               or not math.isfinite(c) or not c >= 1.0):
@@ -196,7 +205,8 @@ class BokehOptions:
 
     def convolve_options(self) -> ConvolveOptions:
         """The patch-wise convolution's options (``patch_convolve``)."""
-        return ConvolveOptions(method=self.convolution, rank_eps=self.rank_eps, fft_backend=self.fft_backend)
+        return ConvolveOptions(method=self.convolution, rank_eps=self.rank_eps, fft_backend=self.fft_backend,
+                               support_eps=self.support_eps)
 
     def multires_options(self) -> mr.MultiresOptions:
         """The multi-resolution blur's options (``multires.grouped_blur``)."""
@@ -297,7 +307,8 @@ def _plain_bokeh(sc: _BokehScene, options: BokehOptions, cancelled) -> RenderRes
         out, mi = mr.plain_blur(sc.img, sc.depth, sc.library, sc.geometry, options.multires_options(),
                                 keep_range_m=options.keep)
         return sc.result(out, dict(sc.info, **mi))
-    pm = psf_map(sc.library, sc.geometry, sc.depth, options.patch, keep_range_m=options.keep)
+    pm = psf_map(sc.library, sc.geometry, sc.depth, options.patch, keep_range_m=options.keep,
+                 support_eps=options.support_eps)
     out = patch_convolve(sc.img, pm.kernels, options.patch, options.convolve_options(), identity=pm.identity)
     return sc.result(out, dict(sc.info, **pm.info), pm)
 
@@ -430,7 +441,7 @@ def _layered_bokeh(sc: _BokehScene, options: BokehOptions, cancelled, layer_prog
         if f > 1:
             if f not in coarse:
                 coarse[f] = _coarse_psfs(sc, f, cancelled, progress)
-            blurred, ys, xs = _blur_layer_coarse(sc, mask, coarse[f])
+            blurred, ys, xs = _blur_layer_coarse(sc, mask, coarse[f], options.support_eps)
             levels = None
             _clamp_overshoot(blurred, sc.img[mask].max(axis=0))
             key = "large_blur_layers" if clipped else "coarse_blur_layers"
@@ -546,7 +557,7 @@ def _coarse_psfs(sc: _BokehScene, f: int, cancelled=None, progress=None) -> _Lar
     return _LargeBlur(f, coarse, gc)
 
 
-def _blur_layer_coarse(sc: _BokehScene, mask: np.ndarray, large: _LargeBlur):
+def _blur_layer_coarse(sc: _BokehScene, mask: np.ndarray, large: _LargeBlur, support_eps: float = 1e-3):
     """The layer ``mask``'s premultiplied colour and coverage blurred at 1/f
     of the resolution with the coarse PSFs, on the layer's box grown by their
     reach and aligned to the coarse patches (float32 (h, w, 6), as
@@ -568,8 +579,9 @@ def _blur_layer_coarse(sc: _BokehScene, mask: np.ndarray, large: _LargeBlur):
     gc = mr.coarse_geometry(sc.geometry.crop(ys, xs), f, -(-h // f), -(-w // f))
     img = mr.block_mean(mr.pad_to(layer, f), f)
     dc = mr.coarse_depth(mr.pad_to(fill, f), mr.pad_to(np.ones_like(sub), f), lib.grid.far_m, f)
-    pm = psf_map(lib, gc, dc, COARSE_PATCH, clamp_field=True)
-    out = patch_convolve(img, pm.kernels, COARSE_PATCH, ConvolveOptions(), identity=pm.identity, pairs=LAYER_PAIRS)
+    pm = psf_map(lib, gc, dc, COARSE_PATCH, clamp_field=True, support_eps=support_eps)
+    out = patch_convolve(img, pm.kernels, COARSE_PATCH, ConvolveOptions(support_eps=support_eps),
+                         identity=pm.identity, pairs=LAYER_PAIRS)
     return mr.upsample(out, f, h, w, "cubic", averages=True), ys, xs
 
 
@@ -609,7 +621,7 @@ def _blur_layer(sc: _BokehScene, options: BokehOptions, mask, ys: slice, xs: sli
         # kernel: it gets none (NaN depth: the identity, copying zeros)
         reach = sc.library.kernel_size // 2 + conv.blend_px(m)
         d_layer[~_within_reach(mask[ys, xs], m, reach)] = np.nan
-        pm = psf_map(sc.library, sub, d_layer, m, crop=True)
+        pm = psf_map(sc.library, sub, d_layer, m, crop=True, support_eps=options.support_eps)
         blurred = patch_convolve(layer, pm.kernels, m, conv, identity=pm.identity, pairs=LAYER_PAIRS)
         return blurred, None
     every = np.ones(d_layer.shape, bool)                # every pixel has the layer's depth now

@@ -57,6 +57,28 @@ def test_the_plan_is_the_cheapest_within_the_budget_and_its_margin(sonnar, folde
     assert (p.pupil_samples, p.n_wavelengths, p.field_step_px) == (64, 31, None)
 
 
+def test_the_blur_knobs_are_taken_where_they_save_time_within_the_budget(sonnar, tmp_path):
+    """The plan's time: the reference's PSF seconds x the PSF work's
+    fraction, plus the blur's seconds at the blur knobs' levels. A coarse
+    rule that saves half the blur is taken where its error fits; one
+    measured without effect (None) is never offered."""
+    knobs = {**_table(sonnar)["sizes"][0]["knobs"],
+             "coarse_blur": [[16.0, None, 1.0], [4.0, 1e-6, 0.5], [2.0, 1e-4, 0.25]],
+             "support_eps": [[0.01, 1e-6, 0.8]]}
+    t = _table(sonnar, knobs)
+    t["sizes"][0].update(reference_s=3.0, blur_s=1.0)
+    (tmp_path / f"{sonnar.id}.json").write_text(json.dumps(t))
+    p = budget.plan(sonnar, PITCH, 30.0, folder=tmp_path)
+    assert (p.coarse_blur, p.support_eps) == (2.0, 0.01)
+    assert p.seconds == pytest.approx(2.0 * p.cost + 0.25 * 0.8)
+    p = budget.plan(sonnar, PITCH, 40.0, folder=tmp_path)      # 1e-4 no longer fits: the next rule
+    assert p.coarse_blur == 4.0
+    assert all(budget.plan(sonnar, PITCH, b, folder=tmp_path).coarse_blur != 16.0 for b in (25, 30, 40, 50, 60))
+    # a simulation fixes them (it has neither): the reference's levels, their error none
+    p = budget.plan(sonnar, PITCH, 30.0, {"coarse_blur": None, "support_eps": 1e-3}, folder=tmp_path)
+    assert (p.coarse_blur, p.support_eps) == (None, 1e-3)
+
+
 def test_a_tighter_budget_never_costs_less(sonnar, folder):
     costs = [budget.plan(sonnar, PITCH, b, folder=folder).cost for b in (25, 30, 35, 40, 45, 50, 60, 70)]
     assert costs == sorted(costs)
