@@ -394,6 +394,10 @@ def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], 
     info = dict(r.info, focus_m=float(focus_m), keep_m=[float(keep[0]), float(keep[1])], refocus=bool(refocus),
                 pixel_pitch_mm=float(r.geometry.pixel_pitch_mm), focus_note="; ".join(_note(n) for n in r.notes),
                 **_source_info(r.source))
+    q = r.info.get("quality")
+    if q and q.get("expected_db") is not None:      # the error budget's plan (psf.budget), in the panel's words
+        info["psf_source_message"] += (f"; PSFs planned for {q['budget_db']:g} dB: about {q['expected_db']:.0f} dB "
+                                       "from converged ones")
     if "focus_used_m" in r.info:            # the PSFs of a nearby focus serve this one (FOCUS_TOLERANCE_PX)
         info["psf_source_message"] += (f"; its PSFs at {r.info['focus_used_m']:.3g} m serve the focus at "
                                        f"{float(focus_m):.3g} m (blurs within {FOCUS_TOLERANCE_PX:g} px)")

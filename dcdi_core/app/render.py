@@ -72,6 +72,12 @@ def budgeted(lens, geometry, psf: PSFRequest, cache: SourceCache | None = None, 
     return replace(psf, settings=q.apply(psf.settings), field_step_px=step, preview=False), q
 
 
+def _mark_planned(src: PSFSourceResult, q) -> None:
+    """A source whose PSFs the budget planned says so (``quality`` 'planned')."""
+    if q is not None and q.planned:
+        src.quality = "planned"
+
+
 def _quality_info(q) -> dict:
     return {} if q is None else {"quality": q.as_dict()}
 
@@ -148,6 +154,7 @@ def simulate(request: SimulateRequest, control: Control | None = None, *,
     # the kernel grows to hold the PSFs this depth map needs (a basis's or an
     # OLF's kernels hold their energy over the whole depth range)
     src = _source(lens, plan.geometry, psf, cache, depth if render.fixed_depth_m is None else None, control)
+    _mark_planned(src, quality)
     options = SimulateOptions(geometry=plan.geometry, source_geometry=plan.source_geometry, settings=plan.settings,
                               response=psf.response, patch=render.patch, distortion=request.distortion,
                               interpolation=render.interpolation, accelerator=request.accelerator)
@@ -294,6 +301,7 @@ def bokeh(request: BokehRequest, control: Control | None = None, *, cache: Sourc
     keep = options.keep
     blurred = depth[(depth > 0) & ~((depth >= keep[0]) & (depth <= keep[1]))] if keep is not None else depth[depth > 0]
     src = _source(request.lens, plan.geometry, psf, cache, blurred if blurred.size else None, control)
+    _mark_planned(src, quality)
     ensure_bins(src.library, blurred, control)
     t1 = time.perf_counter()
     control.report("depth layers", 0, 1)

@@ -522,8 +522,9 @@ class PSFRequest:
 class PSFSourceResult:
     """The PSFs serving a job: ``kind`` ('basis', 'raymap', 'olf' or
     'trace'), why (``message``, one line), ``library`` (always set), the
-    files and the ``quality`` ('full', or 'preview' for a preview's lighter
-    trace or ray map)."""
+    files and the ``quality`` ('full'; 'preview' for a preview's lighter
+    trace or ray map; 'planned' where the job's error budget chose the PSF
+    work, ``psf.budget``)."""
 
     kind: str
     message: str

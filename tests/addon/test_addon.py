@@ -241,6 +241,7 @@ def test_the_preview_and_apply_plan_their_psfs_by_their_error_budgets():
         _, info = logic.run_bokeh(img, depth, lens, focus_m=2.0, keep=(1.9, 2.1), **kw)
         q = info["quality"]
         assert q["expected_db"] >= q["budget_db"] and "error table" in q["plan"]
+        assert f"PSFs planned for {q['budget_db']:g} dB" in info["psf_source_message"]
         budgets[q["budget_db"]] = q["relative_cost"]
     assert set(budgets) == {app.DEFAULT_BUDGET_DB["preview"], app.DEFAULT_BUDGET_DB["render"], 70.0}
     assert budgets[70.0] > budgets[app.DEFAULT_BUDGET_DB["preview"]]       # a tighter budget costs more work
@@ -1074,12 +1075,15 @@ def test_the_bokehs_psf_source_message_speaks_the_panels_words():
 
 
 def test_the_preview_traces_what_no_shipped_source_holds_at_its_own_quality(tmp_path, monkeypatch):
-    """The viewport preview's traced PSFs (logic.PREVIEW_TRACE) are a proxy
-    of the full trace; where a shipped source serves, the preview is the
-    full result, bit for bit."""
+    """For a lens without an error table, the viewport preview's traced PSFs
+    (logic.PREVIEW_TRACE) are a proxy of the full trace; with one, both are
+    planned by their budgets; where a shipped source serves, the preview is
+    the full result, bit for bit."""
     from dcdi_core.optics.lens import load_lens
-    from dcdi_core.psf import sources
+    from dcdi_core.psf import budget, sources
     monkeypatch.setenv("DCDI_CACHE_DIR", str(tmp_path / "cache"))
+    with_table = budget.load_table
+    monkeypatch.setattr(budget, "load_table", lambda lens_id, folder=None: None)
     # refocused MOS-S2 without its focus stack: what no shipped source holds
     shipped = sources.shipped_store
     monkeypatch.setattr(sources, "shipped_store", lambda lens_id, focus_stack=False:
@@ -1096,6 +1100,10 @@ def test_the_preview_traces_what_no_shipped_source_holds_at_its_own_quality(tmp_
     assert (info_full["psf_quality"], info_prev["psf_quality"]) == ("full", "preview")
     mse = float(np.mean((prev.astype(np.float64) - full) ** 2))
     assert 0 < mse and 10 * np.log10(1 / mse) >= 45.0              # a proxy, not the same PSFs
+    monkeypatch.setattr(budget, "load_table", with_table)
+    logic.clear_psf_sources()
+    _, info_planned = logic.run_bokeh(img, depth, lens, focus_m=2.0, keep=(2.0, 2.0), preview=True)
+    assert info_planned["psf_source"] == "trace" and info_planned["psf_quality"] == "planned"
     held, info_held = logic.run_bokeh(img, depth, lens, focus_m=2.0, keep=(2.0, 2.0), refocus=False, preview=True)
     same, _ = logic.run_bokeh(img, depth, lens, focus_m=2.0, keep=(2.0, 2.0), refocus=False)
     assert info_held["psf_source"] == "basis" and info_held["psf_quality"] == "full"
