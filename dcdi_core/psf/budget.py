@@ -133,12 +133,33 @@ def table_path(lens_id: str, folder: Path | None = None) -> Path:
     return (folder or QUALITY_DIR) / f"{check_name(lens_id, 'lens id', error=InputRangeError)}.json"
 
 
+def _number(v, lo: float = 0.0, *, lo_open: bool = False) -> bool:
+    return (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+            and (v > lo if lo_open else v >= lo))
+
+
 def _read(path) -> dict:
+    """A table file, every field the planner reads checked (ValueError: not a table to plan by)."""
     from ..io.jsontext import loads
-    text = Path(path).read_text(encoding="utf-8")
-    t = loads(text, path)
+    if Path(path).stat().st_size > 1_000_000:
+        raise ValueError(f"{path}: larger than any error table")
+    t = loads(Path(path).read_text(encoding="utf-8"), path)
     if not isinstance(t, dict) or t.get("format") != FORMAT or t.get("version") != FORMAT_VERSION:
         raise ValueError(f"{path}: not a {FORMAT} version {FORMAT_VERSION} file")
+    ok = (isinstance(t.get("lens_fingerprint"), str) and _number(t.get("stop_semi_diameter_mm"), lo_open=True)
+          and isinstance(t.get("sizes"), list) and t["sizes"])
+    for row in t.get("sizes") or []:
+        ok = ok and isinstance(row, dict) and all(_number(row.get(k), lo_open=True) for k in ("rows", "cols",
+                                                                                            "pixel_pitch_mm"))
+        ok = ok and _number(row.get("reference_s")) and _number(row.get("blur_s", 0.0))
+        knobs = row.get("knobs") if isinstance(row, dict) else None
+        ok = ok and isinstance(knobs, dict) and all(k in KNOBS for k in knobs)
+        for levels in (knobs or {}).values() if ok else ():
+            ok = ok and isinstance(levels, list) and all(
+                isinstance(x, list) and len(x) == 3 and (_number(x[0], lo_open=True))
+                and (x[1] is None or _number(x[1])) and _number(x[2]) for x in levels)
+    if not ok:
+        raise ValueError(f"{path}: a field is missing or out of range")
     return t
 
 

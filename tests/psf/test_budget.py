@@ -115,9 +115,23 @@ def test_a_stopped_down_lens_shares_the_wide_open_table(sonnar, folder):
     assert budget.plan(lens, PITCH, 30.0, folder=folder).planned
 
 
-def test_a_damaged_table_is_no_table(sonnar, folder):
-    (folder / f"{sonnar.id}.json").write_text("{not json")
-    assert not budget.plan(sonnar, PITCH, 30.0, folder=folder).planned
+@pytest.mark.parametrize("damage", [
+    lambda t: "{not json",
+    lambda t: json.dumps({**t, "sizes": []}),
+    lambda t: json.dumps({**t, "version": 99}),
+    lambda t: json.dumps({**t, "sizes": [{**t["sizes"][0], "pixel_pitch_mm": -1}]}),
+    lambda t: json.dumps({**t, "sizes": [{**t["sizes"][0], "reference_s": float("nan")}]}).replace("NaN", "NaN"),
+    lambda t: json.dumps({**t, "sizes": [{**t["sizes"][0], "knobs": {"pupil_samples": [[16, -1e-4, 1]]}}]}),
+    lambda t: json.dumps({**t, "sizes": [{**t["sizes"][0], "knobs": {"rays": [[16, 1e-4, 1]]}}]}),
+    lambda t: json.dumps({**t, "sizes": [{**t["sizes"][0], "knobs": {"pupil_samples": [[16, 1e-4]]}}]}),
+    lambda t: json.dumps({k: v for k, v in t.items() if k != "lens_fingerprint"}),
+])
+def test_a_damaged_table_is_no_table(sonnar, folder, damage):
+    """A table file that cannot be read, or with any field the planner reads
+    missing or out of range, is no table: full quality, never a traceback."""
+    (folder / f"{sonnar.id}.json").write_text(damage(_table(sonnar)))
+    p = budget.plan(sonnar, PITCH, 30.0, folder=folder)
+    assert not p.planned and "no error table" in p.why
 
 
 @pytest.mark.parametrize("bad", [10.0, 100.0, math.nan, math.inf, True, "30"])
