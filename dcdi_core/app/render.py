@@ -9,6 +9,7 @@ in mm, image positions in pixels (row, col).
 """
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field, replace
 
@@ -47,7 +48,33 @@ def _knob(psf: PSFRequest, name: str):
     return psf.field_step_px if name == "field_step_px" else getattr(psf.settings, name)
 
 
-def budgeted(lens, geometry, psf: PSFRequest, cache: SourceCache | None = None, fixed: dict | None = None):
+def widest_blur_px(lens, pixel_pitch_mm: float, focus_m, depth_m) -> float | None:
+    """The widest thin-lens defocus blur (diameter, px) among the valid
+    depths of ``depth_m`` (metres; None: none) with the lens focused at
+    ``focus_m`` (metres; None: as prescribed, taken as infinity)."""
+    if depth_m is None:
+        return None
+    d = np.asarray(depth_m, np.float64)
+    d = d[d > 0]
+    if d.size == 0:
+        return None
+    from ..psf.library import LibraryGrid
+    from ..psf.sampling import blur_px_per_diopter
+    grid = LibraryGrid()
+    near = max(float(d.min()), grid.near_m)
+    far = float(d.max())
+    inv = [1.0 / near, 0.0 if far >= grid.far_m else 1.0 / far]
+    f = 0.0 if focus_m is None or not math.isfinite(float(focus_m)) else 1.0 / float(focus_m)
+    try:
+        per = blur_px_per_diopter(lens, pixel_pitch_mm)
+    except (ValueError, ZeroDivisionError, ArithmeticError):
+        return None
+    px = per * max(abs(x - f) for x in inv)
+    return px if math.isfinite(px) else None
+
+
+def budgeted(lens, geometry, psf: PSFRequest, cache: SourceCache | None = None, fixed: dict | None = None,
+             depth_m=None):
     """(the request with the PSF work its error budget needs, the plan or
     None): where ``psf.max_error_db`` is set and the source that serves it
     makes PSFs (a ray map or a trace), the rays, wavelengths and field step
@@ -55,7 +82,8 @@ def budgeted(lens, geometry, psf: PSFRequest, cache: SourceCache | None = None, 
     pitch, the knobs in ``psf.fixed`` kept; a stored source (basis, OLF)
     serves as it is (None). ``fixed``: the render's own knobs the job
     gives (``budget.KNOBS``: the bokeh's coarse rule and kernel crop; a
-    simulation fixes both, having neither)."""
+    simulation fixes both, having neither). ``depth_m``: the depths the
+    job blurs, whose widest blur sets the fewest rays (``budget.min_rays``)."""
     if psf.max_error_db is None:
         return psf, None
     from ..psf.budget import plan as plan_budget
@@ -64,7 +92,8 @@ def budgeted(lens, geometry, psf: PSFRequest, cache: SourceCache | None = None, 
     if src.kind not in ("raymap", "trace"):
         return psf, None
     given = {k: _knob(psf, k) for k in psf.fixed if k in ("pupil_samples", "n_wavelengths", "field_step_px")}
-    q = plan_budget(lens, geometry.pixel_pitch_mm, psf.max_error_db, {**given, **(fixed or {})})
+    blur = widest_blur_px(lens, geometry.pixel_pitch_mm, psf.focus_m, depth_m)
+    q = plan_budget(lens, geometry.pixel_pitch_mm, psf.max_error_db, {**given, **(fixed or {})}, blur_px=blur)
     if not q.planned:
         return psf, q
     step = psf.field_step_px if "field_step_px" in psf.fixed else q.field_step_px
@@ -147,7 +176,8 @@ def simulate(request: SimulateRequest, control: Control | None = None, *,
     plan = render.plan(*img.shape[:2], image=request.image_name)
     from ..render.convolve import ConvolveOptions
     psf, quality = budgeted(lens, plan.geometry, _psf_request(request.psf, render, plan.settings), cache,
-                            {"coarse_blur": None, "support_eps": ConvolveOptions().support_eps})
+                            {"coarse_blur": None, "support_eps": ConvolveOptions().support_eps},
+                            depth if render.fixed_depth_m is None else np.array([render.fixed_depth_m]))
     if quality is not None:
         control.say(f"PSFs planned for {quality.budget_db:g} dB: {quality.why}")
         plan = replace(plan, settings=quality.apply(plan.settings))
@@ -291,15 +321,15 @@ def bokeh(request: BokehRequest, control: Control | None = None, *, cache: Sourc
     fixed = {"coarse_blur": request.coarse_blur} if request.coarse_blur is not None or not layered else {}
     if request.support_eps is not None:
         fixed["support_eps"] = request.support_eps
-    psf, quality = budgeted(request.lens, plan.geometry, psf, cache, fixed)
+    keep = options.keep
+    blurred = depth[(depth > 0) & ~((depth >= keep[0]) & (depth <= keep[1]))] if keep is not None else depth[depth > 0]
+    psf, quality = budgeted(request.lens, plan.geometry, psf, cache, fixed, blurred)
     if quality is not None:
         control.say(f"PSFs planned for {quality.budget_db:g} dB: {quality.why}")
         # the large blur's and the coarse layers' PSFs are made with the same planned settings
         if quality.planned:
             options = replace(options, settings=quality.apply(options.settings), coarse_blur=quality.coarse_blur,
                               support_eps=quality.support_eps)
-    keep = options.keep
-    blurred = depth[(depth > 0) & ~((depth >= keep[0]) & (depth <= keep[1]))] if keep is not None else depth[depth > 0]
     src = _source(request.lens, plan.geometry, psf, cache, blurred if blurred.size else None, control)
     _mark_planned(src, quality)
     ensure_bins(src.library, blurred, control)

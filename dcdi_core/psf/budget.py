@@ -73,6 +73,12 @@ MARGIN_DB = 3.0
 DEFAULT_DB = {"preview": 30.0, "render": 40.0}
 # a budget outside this range is refused: below it a picture is garbage, above it nothing is planned
 BUDGET_RANGE_DB = (20.0, 80.0)
+# rays at most this many pixels apart where they land in the frame's widest blur: a bright light's
+# disc drawn by fewer shows the pupil grid (a 40-px disc of 16 x 16 rays at 40 x the background,
+# 43 dB on the frame, is visibly a grid of dots), which a frame's PSNR does not weigh
+RAY_SPACING_PX = 1.0
+# ... for blurs up to the widest kernel drawn at one pitch (a wider layer is drawn coarser)
+WIDEST_DRAWN_PX = 129
 # a table's pitch serves a job's within this relative rounding
 PITCH_RTOL = 0.02
 # beyond the finest measured pitch: squared error x (measured pitch / job's pitch) ** this
@@ -225,13 +231,24 @@ def full_plan(budget_db: float, why: str, fixed: dict | None = None) -> QualityP
                        float(k["support_eps"]), None, budget_db, math.nan, why, planned=False)
 
 
+def min_rays(blur_px: float | None) -> int:
+    """The fewest pupil rays (N of N x N) that land at most :data:`RAY_SPACING_PX`
+    apart across a blur of ``blur_px`` pixels (its diameter; at most
+    :data:`WIDEST_DRAWN_PX`); 1 without a blur."""
+    if blur_px is None or not blur_px > 0:
+        return 1
+    return int(math.ceil(min(float(blur_px), WIDEST_DRAWN_PX) / RAY_SPACING_PX))
+
+
 def plan(lens, pixel_pitch_mm: float, budget_db: float, fixed: dict | None = None, *,
-         folder: Path | None = None) -> QualityPlan:
+         folder: Path | None = None, blur_px: float | None = None) -> QualityPlan:
     """The cheapest knobs whose expected error keeps the render of ``lens``
     at ``pixel_pitch_mm`` (mm) within ``budget_db`` (dB against the
     converged render), :data:`MARGIN_DB` inside it. ``fixed``: knobs the
     user set (kept as they are; their measured error counts, or, unmeasured,
-    none is claimed)."""
+    none is claimed). ``blur_px``: the frame's widest defocus blur (its
+    diameter, px): the rays are at least :func:`min_rays` of it (or the
+    reference's), whatever the error table allows."""
     budget = check_budget(budget_db)
     fixed = {k: v for k, v in (fixed or {}).items() if k in KNOBS}
     table = load_table(lens.id, folder)
@@ -256,6 +273,9 @@ def plan(lens, pixel_pitch_mm: float, budget_db: float, fixed: dict | None = Non
         # a level measured without effect (None: a coarse rule that coarsened nothing) is not offered
         levels = [(v, mse * scale, (t if blur else None)) for v, mse, t in measured if mse is not None]
         levels.append((REFERENCE[k], 0.0, blur_full if blur else None))
+        if k == "pupil_samples" and k not in fixed:
+            floor = min(min_rays(blur_px), REFERENCE[k])
+            levels = [x for x in levels if x[0] >= floor]
         if k in fixed:
             hit = [(m, t) for v, m, t in levels if v == fixed[k]]
             levels = [(fixed[k], *(hit[0] if hit else (math.nan, blur_full if blur else None)))]
@@ -288,8 +308,10 @@ def plan(lens, pixel_pitch_mm: float, budget_db: float, fixed: dict | None = Non
     (seconds, cost), r, w, f, c, e, mse = best
     expected = None if math.isnan(mse) else min(_db(mse), 99.0)
     size = f"{row['cols']} x {row['rows']}" + ("" if scale == 1.0 else f", its errors x {scale:.3g} at this finer pitch")
+    floor = "" if "pupil_samples" in fixed or min_rays(blur_px) <= 16 else \
+        f" (at least {min(min_rays(blur_px), REFERENCE['pupil_samples'])}: the widest blur {blur_px:.0f} px)"
     return QualityPlan(r, w, f, c, float(e), expected, budget, cost,
-                       f"{r} x {r} rays, {w} wavelengths, fields "
+                       f"{r} x {r} rays{floor}, {w} wavelengths, fields "
                        + ("from the source's grid" if f is None else f"{f:g} px apart")
                        + ("" if c is None else f", layers blurring {c:g} x f px and more at 1/f")
                        + ("" if e == REFERENCE["support_eps"] else f", kernels cropped to all but {e:g} of their energy")
@@ -298,5 +320,5 @@ def plan(lens, pixel_pitch_mm: float, budget_db: float, fixed: dict | None = Non
                          f"{cost:.3g} of the reference's PSF work)", seconds=seconds)
 
 
-__all__ = ["QualityPlan", "plan", "full_plan", "check_budget", "load_table", "table_path", "KNOBS", "REFERENCE",
+__all__ = ["QualityPlan", "plan", "min_rays", "RAY_SPACING_PX", "full_plan", "check_budget", "load_table", "table_path", "KNOBS", "REFERENCE",
            "FULL", "DEFAULT_DB", "MARGIN_DB", "BUDGET_RANGE_DB", "QUALITY_DIR"]

@@ -79,6 +79,21 @@ def test_the_blur_knobs_are_taken_where_they_save_time_within_the_budget(sonnar,
     assert (p.coarse_blur, p.support_eps) == (None, 1e-3)
 
 
+def test_a_wide_blur_gets_rays_at_most_a_pixel_apart_whatever_the_table_allows(sonnar, folder):
+    """A bright light's disc drawn by too few rays shows the pupil grid,
+    which a frame's PSNR does not weigh: the rays are at least the widest
+    blur's diameter in pixels (budget.RAY_SPACING_PX), up to the reference's."""
+    assert budget.min_rays(None) == 1 and budget.min_rays(0.0) == 1
+    assert budget.min_rays(40.0) == 40 and budget.min_rays(1e9) == budget.WIDEST_DRAWN_PX
+    small = budget.plan(sonnar, PITCH, 30.0, folder=folder, blur_px=10.0)
+    assert small.pupil_samples == 16
+    wide = budget.plan(sonnar, PITCH, 30.0, folder=folder, blur_px=40.0)
+    assert wide.pupil_samples == 64 and "widest blur 40 px" in wide.why
+    assert budget.plan(sonnar, PITCH, 30.0, folder=folder, blur_px=500.0).pupil_samples == 96
+    # the user's own ray count is kept
+    assert budget.plan(sonnar, PITCH, 30.0, {"pupil_samples": 16}, folder=folder, blur_px=500.0).pupil_samples == 16
+
+
 def test_a_tighter_budget_never_costs_less(sonnar, folder):
     costs = [budget.plan(sonnar, PITCH, b, folder=folder).cost for b in (25, 30, 35, 40, 45, 50, 60, 70)]
     assert costs == sorted(costs)
