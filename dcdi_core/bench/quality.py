@@ -161,8 +161,10 @@ def check_plans(lens, rows: int, cols: int, budgets=BUDGETS_DB, focus_m: float =
         full, full_wall, _, _ = render(lens, img, depth, {"pupil_samples": 64}, source, focus_m)
         say(f"| {lens.id} | {cols} x {rows} | focus {focus_m:g} m | full quality (64 rays, 31 wavelengths, full grid) "
             f"| - | {psnr(mse(full, ref)):.1f} | {full_wall:.2f} |")
+        from ..app.render import widest_blur_px
+        blur = widest_blur_px(lens, pitch, focus_m, depth)       # the job's floor of rays, as app.bokeh plans
         for b in budgets:
-            p = plan(lens, pitch, b, folder=folder)
+            p = plan(lens, pitch, b, folder=folder, blur_px=blur)
             im, wall, cpu, _ = render(lens, img, depth, {"pupil_samples": p.pupil_samples,
                                                          "n_wavelengths": p.n_wavelengths,
                                                          "field_step_px": p.field_step_px,
