@@ -97,7 +97,7 @@ def compare(img, depth, lens) -> None:
     in this process (PSFs from the cache filled above where the same)."""
     from dcdi_core.psf.compute import PSFSettings
     from dcdi_core.render.bokeh import BokehOptions, bokeh
-    from dcdi_core.psf.sources import MAX_FITTED_KERNEL
+    from dcdi_core.psf.library import MAX_FITTED_KERNEL
     rows = {}
     for name, opts in (("reference: 201-px kernels, full resolution",
                         dict(settings=PSFSettings(kernel_size=201), fit_kernel=False, large_blur=False)),

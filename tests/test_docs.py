@@ -176,3 +176,17 @@ def test_the_issue_check_can_fail():
     assert ISSUE_NUMBER.search("measured (issue 15, the simulation half)")
     assert ISSUE_NUMBER.search("see Issue #12")
     assert not ISSUE_NUMBER.search("an issue a user can act on, 15 times")
+
+
+def test_the_source_rule_is_stated_from_the_code():
+    """docs/psf.md quotes the rule as ``psf.rule`` words it, and no page or
+    help restates an older order (the stores without the ray map)."""
+    sys.path.insert(0, str(ROOT))
+    from dcdi_core.psf.rule import RULE_ORDER, rule_text
+    text = rule_text()
+    page = " ".join((ROOT / "docs" / "psf.md").read_text(encoding="utf-8").split())
+    assert "> " + text[0].upper() + text[1:] + "." in page
+    assert list(RULE_ORDER) == ["basis", "raymap", "olf"]
+    stale = re.compile(r"basis[^.]{0,60}else the OLF, else (the PSFs are )?trac", re.IGNORECASE)
+    for p in user_pages():
+        assert not stale.search(" ".join(p.read_text(encoding="utf-8").split())), p

@@ -21,7 +21,7 @@ from dcdi_core.optics.lens import load_lens
 from dcdi_core.psf.compute import KernelTooSmallWarning, PSFSettings, psf
 from dcdi_core.psf.library import CacheWarning, LibraryGrid, PSFLibrary
 from dcdi_core.render.request import RenderRequest
-from dcdi_core.psf.sources import MAX_FITTED_KERNEL
+from dcdi_core.psf.library import MAX_FITTED_KERNEL
 from dcdi_core.render.synthetic import synthetic_rgbd
 
 # a library small enough to trace in a fraction of a second, whose 5 px kernels clip mos-s1's defocus

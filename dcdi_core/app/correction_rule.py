@@ -125,8 +125,8 @@ class Deconvolution:
 
     lens: the lens that took the capture. options: ``correct.DeconvOptions``
     (None: its defaults). geometry: the capture on that lens's sensor (None:
-    it spans the sensor's diagonal). psf_source ('basis', 'olf', 'trace' or
-    None: the basis, else the OLF where it covers the request, else traced),
+    it spans the sensor's diagonal). psf_source ('basis', 'raymap', 'olf',
+    'trace' or None: the source rule, ``psf.rule``),
     olf_file, basis_file, kernel_size (an explicit kernel, px) and response
     (the sensor's spectral response) as ``app.sources.PSFRequest``;
     settings: the PSF settings (their pitch is the geometry's; None: the

@@ -21,9 +21,8 @@ Measures (``dataset.statistics``, so that a recipe's author measures alike):
    of the paper's 1280 x 1920 sensor at 12.2 um, at a seeded random
    position (one per frame, the same for every lens), so that the frames
    cover every field between them; it is simulated by
-   ``render.simulate.LensSimulator`` with the PSFs ``open_source`` picks
-   (the shipped basis or Omni-Lens-Field where it covers the pitch, every
-   bin built at once, else traced), without sensor noise: the measure is the blur's
+   ``render.simulate.LensSimulator`` with the PSFs the source rule picks
+   (``psf.rule``; every bin built at once but a trace's), without sensor noise: the measure is the blur's
    (and the distortion's resampling), not the sensor's. PSNR (data range
    1) of the capture against its aligned sharp target (the simulator's
    ``sharp``), both linear and clipped to [0, 1], over a grid of
@@ -293,9 +292,9 @@ class LensBlur:
         self.psf_source = None
 
     def library(self, geometry: ImageGeometry):
-        """(library, message) of ``geometry``'s pitch: the shipped basis or
-        OLF where it covers the pitch (every bin built now: cheap), else
-        traced as the frames need them."""
+        """(library, message) of ``geometry``'s pitch by the source rule
+        (``psf.rule``): every bin built now (cheap) but a trace's, made as
+        the frames need them."""
         key = round(geometry.pixel_pitch_mm, 9)
         if key not in self.libraries:
             from . import PSFRequest, open_source

@@ -345,7 +345,7 @@ def bokeh(request: BokehRequest, control: Control | None = None, *, cache: Sourc
     if r.info.get("large_blur_factor"):
         f = r.info["large_blur_factor"]
         notes.append(f"{r.info['large_blur_layers']} depth layer(s) blurred beyond the {src.library.kernel_size}-px "
-                     f"kernel were rendered at 1/{f} of the resolution with PSFs traced at {f} x the pixel pitch "
+                     f"kernel were rendered at 1/{f} of the resolution with PSFs made at {f} x the pixel pitch by the same source "
                      "(their blur whole, not clipped)")
     seconds = {"psfs": t1 - t0, "bokeh": time.perf_counter() - t1}
     counts = depth_counts(depth, src.library.grid.near_m)

@@ -13,6 +13,8 @@ import math
 import sys
 import time
 
+from ..psf.rule import rule_text
+
 UNITS = ("units: lens lengths in mm; depth D in metres from the lens's first vertex "
          "('inf' for infinity); wavelengths in nm; angles in degrees; field F is the "
          "normalised image height (1 = sensor semi-diagonal).")
@@ -321,9 +323,7 @@ def add_psf_source_options(q) -> None:
                    help="where the PSFs come from: the lens's PSF basis (a compressed traced library, "
                         "prescribed focus), its ray map (the catalogue's lenses: any focus, f-number, "
                         "blades and pixel pitch), the Omni-Lens-Field (each an error if it cannot serve the "
-                        "request) or ray tracing; default: the basis where it covers the lens (its "
-                        "prescription) and the request (pixel pitch, focus, PSF settings), else the ray "
-                        "map, else the OLF where it covers it, else tracing; a line on standard error "
+                        f"request) or ray tracing; default: {rule_text()}; a line on standard error "
                         "says which and why")
     q.add_argument("--basis", default=None, metavar="FILE.npz",
                    help="the PSF basis file to serve PSFs from (default: the lens's shipped one in "

@@ -10,6 +10,7 @@ from .common import (UNITS, add_aperture_options, add_device_option, add_psf_opt
                      check_output, depth_value, dump, in_cli_words, job_control, load_lens_with_aperture, positive_int,
                      psf_request, response,
                      say)
+from ..psf.rule import rule_text
 from .render import add_focus_options, add_rgbd_options, check_image_fits, quiet_input_warnings, render_inputs
 
 
@@ -332,7 +333,7 @@ def correct_parser(subparsers, name: str, *, network_only: bool = False, **kw):
     what = ("Correct a capture with a trained DACN (by default the shipped one of --lens): overlapping tiles "
             "cross-faded, memory bounded by one tile. " if network_only else
             "Undo a lens's blur: the deconvolution with the lens's own PSFs (any lens; depth- and field-aware, "
-            "PSFs from the Omni-Lens-Field where it covers the request, else traced), or a trained DACN (tiled), "
+            f"PSFs from {rule_text()}), or a trained DACN (tiled), "
             "as --method chooses. Prints what it did as JSON. ")
     t = subparsers.add_parser(name, **kw, description=what + UNITS)
     t.add_argument("--image", required=True, help="the capture (EXR linear, or PNG/JPEG sRGB)")
@@ -371,9 +372,8 @@ def add_commands(sub) -> None:
     q = sub.add_parser("dof", help="DCDI end to end: a minimalist-lens capture -> another lens's depth of field",
                        description="Depth (given, or estimated from the capture), correction of the camera lens's "
                                    "aberrations (the deconvolution with its PSFs, or its trained DACN, as --method "
-                                   "chooses), then the target lens's occlusion-aware bokeh with PSFs from the "
-                                   "Omni-Lens-Field where it covers the request, else traced. Prints what it did as "
-                                   "JSON. " + UNITS)
+                                   "chooses), then the target lens's occlusion-aware bokeh with PSFs from "
+                                   f"{rule_text()}. Prints what it did as JSON. " + UNITS)
     add_rgbd_options(q, sensor_focus=False, depth_required=False,
                      image_help="the capture (EXR linear, or PNG/JPEG sRGB)")
     q.add_argument("--camera", required=True,

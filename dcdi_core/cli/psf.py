@@ -16,8 +16,8 @@ from .lens import add_field_options, no_ray_error
 
 def choose_psf_source(args, lens, *, pixel_pitch_mm, settings, focus_m, extra_reason=None):
     """The PSF source of a psf / simulate / bokeh request (``--psf-source``,
-    ``--olf``, ``--basis``): the basis, else the OLF, where it covers the
-    request, else tracing; says which and why on standard error (one line).
+    ``--olf``, ``--basis``): the source rule (``psf.rule``); says which
+    and why on standard error (one line).
     ``extra_reason``: why neither can serve this request whatever they hold
     (then traced)."""
     from ..errors import ModelError
@@ -25,7 +25,7 @@ def choose_psf_source(args, lens, *, pixel_pitch_mm, settings, focus_m, extra_re
     if extra_reason is not None and args.psf_source != "trace":
         if args.psf_source in ("olf", "basis", "raymap"):
             raise ModelError(f"--psf-source {args.psf_source}: it cannot serve this request: {extra_reason}")
-        src = PSFSource("trace", f"PSFs traced: {extra_reason}")
+        src = PSFSource("trace", f"PSFs traced: {extra_reason}", lens=lens)
     else:
         src = psf_source(lens, source=args.psf_source, olf_file=args.olf, basis_file=getattr(args, "basis", None),
                          pixel_pitch_mm=pixel_pitch_mm,

@@ -48,7 +48,7 @@ from ..render.geometry import ImageGeometry
 from ..render.psfmap import PSFMap, psf_map
 from ..psf.library import valid_depth_mask
 from ..render.base import check_patch
-from ..psf.sources import open_library
+from ..psf.sources import lens_library
 from .noise import NoiseModel, estimate_noise
 from .wiener import WindowLayout, deconvolve_all, layout_for
 
@@ -151,13 +151,13 @@ def deconvolve(capture, depth_m, lens, options: DeconvOptions = DeconvOptions(),
     unknown; those pixels take their patch's depth, and a patch with none is
     left as it is). geometry: where the capture lies on the sensor (default:
     it spans the sensor's diagonal). library: the lens's PSFs at the
-    capture's pixel pitch (the OLF's or a traced one); without one it is
-    opened with ``settings``. ``progress(done, total)`` as windows finish."""
+    capture's pixel pitch (any source's); without one,
+    ``psf.sources.lens_library``'s with ``settings``. ``progress(done, total)`` as windows finish."""
     t0 = time.perf_counter()
     geometry = geometry or ImageGeometry.full_sensor(lens, *np.shape(capture)[:2])
     y, d = _check(capture, depth_m, geometry)
     if library is None:
-        library = open_library(lens, geometry, settings, fit_depth_m=d)
+        library = lens_library(lens, geometry, settings, fit_depth_m=d)
     m = options.patch
     base = psf_map(library, geometry, d, m, fixed_depth_m=options.one_depth_m, clamp_field=True)
     t_map = time.perf_counter() - t0

@@ -4,8 +4,7 @@ correction and depth -> another lens's depth of field, each beside its truth.
 1. capture: the scene through the camera lens (``render.simulate.
    LensSimulator``: depth-aware PSFs, its distortion), with the sensor noise
    and clipping of the correction network's training pairs (as its file
-   records them), from the shipped PSF basis (or Omni-Lens-Field) where it
-   covers the lens at this pixel pitch, else traced. Its truth: the sharp frame and
+   records them), with the PSFs the source rule picks (``psf.rule``). Its truth: the sharp frame and
    the depth on the same sensor (distorted alike, NaN where nothing is
    imaged), what the network was trained to recover;
 2. correction and depth: ``app.dof`` with the engine's rule (the

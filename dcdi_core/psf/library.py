@@ -44,6 +44,7 @@ from ..optics.errors import OpticsError
 from ..optics.lens import Lens, lens_fingerprint
 from .compute import (KernelTooSmallWarning, PSFSettings, clip_message, compute_sources, focused_lens, pixel_pitch_mm,
                       spectral_samples)
+from .pitch import SAME_GIVEN_RTOL
 from .spectral import SpectralResponse, default_response
 from ..io.jsontext import loads
 
@@ -312,6 +313,20 @@ class PSFLibrary:
         hi = (1 - u) * p[i1, j0] + u * p[i1, j1]
         return (1 - t) * lo + t * hi
 
+    def at_geometry(self, geometry, settings: PSFSettings | None = None, *, fit_depth_m=None,
+                    progress=None) -> "PSFLibrary":
+        """This lens's PSFs for an image at ``geometry`` (``render.geometry.
+        ImageGeometry``: its pixel pitch, mm), made anew by the source of this
+        library's kind: traced here, since a stored source (a basis, an OLF)
+        holds no kernel wider or finer than its own; a ray map's library from
+        its ray map. ``settings``: the PSF settings (default: this library's;
+        the pitch is the geometry's); the grid and the spectral response are
+        this library's. ``fit_depth_m`` and ``progress`` as
+        ``psf.sources.open_library``'s."""
+        s = replace(settings or self.settings, pixel_pitch_mm=None)
+        return open_library(self.lens, geometry, s, self.grid, response=self.response, fit_depth_m=fit_depth_m,
+                            progress=progress)
+
     # -------------------------------------------------------------- storage
     def save(self, path: str | os.PathLike) -> None:
         """Write the library (all arrays, metadata and a checksum) atomically."""
@@ -416,3 +431,54 @@ def _checksum(arrays: dict) -> str:
 def valid_depth_mask(depth: np.ndarray) -> np.ndarray:
     """True where a depth value is usable: > 0 (inf included), not NaN."""
     return depth > 0
+
+
+MAX_FITTED_KERNEL = 129      # px: beyond this a patch-wise FFT blur costs more than it is worth here
+
+
+def open_library(lens, geometry, settings: PSFSettings | None = None,
+                 grid: LibraryGrid | None = None, *, response=None, cache: bool = True, fit_depth_m=None,
+                 progress=None) -> PSFLibrary:
+    """The lens's PSF library sampled at the image's pixel pitch.
+
+    settings.pixel_pitch_mm, if set, must be the geometry's (the PSFs of an
+    image are sampled at its own pitch). response: the sensor's spectral
+    response (default: the shipped one).
+    fit_depth_m: a depth map (metres) whose depth bins are computed now; if
+    their PSFs spill out of the settings' kernel (less than 99 % of the rays
+    inside, as a fast lens's defocus blur at full resolution does), the
+    library is reopened with the odd kernel size that holds them, at most
+    MAX_FITTED_KERNEL px (beyond that the usual KernelTooSmallWarning says
+    how much is clipped). Without it the kernel size is the settings'.
+    progress(done, total): called as PSF bins are computed."""
+    s = settings or PSFSettings()
+    if s.pixel_pitch_mm is not None and not math.isclose(s.pixel_pitch_mm, geometry.pixel_pitch_mm, rel_tol=SAME_GIVEN_RTOL):
+        raise InputRangeError("pixel pitch", s.pixel_pitch_mm,
+                              f"{geometry.pixel_pitch_mm:.6g} mm, the image's own pixel pitch (give one, not two)")
+    s = replace(s, pixel_pitch_mm=geometry.pixel_pitch_mm)
+    return _fitted(lambda st: PSFLibrary.open(lens, st, grid, response, cache=cache), s, fit_depth_m, progress)
+
+
+def _fitted(make, settings: PSFSettings, fit_depth_m, progress):
+    """``make(settings)``'s library; with a depth map ``fit_depth_m``, its bins
+    computed now and, where their PSFs spill out of the kernel (less than
+    99 % of the rays inside), made again with the odd kernel that holds them,
+    at most MAX_FITTED_KERNEL px."""
+    library = make(settings)
+    library.progress = progress
+    if fit_depth_m is None:
+        return library
+    d = np.asarray(fit_depth_m, dtype=np.float64)
+    d = d[valid_depth_mask(d)]
+    if d.size == 0:
+        return library
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", KernelTooSmallWarning)       # answered below by a larger kernel
+        library.ensure(d, clamp_near=True, progress=progress)
+    need = int(library.kernel_size_needed[library.computed].max())
+    if need <= library.kernel_size or library.kernel_size >= MAX_FITTED_KERNEL:
+        return library
+    library = make(replace(settings, kernel_size=min(need | 1, MAX_FITTED_KERNEL)))
+    library.progress = progress
+    library.ensure(d, clamp_near=True)
+    return library

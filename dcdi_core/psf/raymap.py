@@ -47,7 +47,7 @@ from ..optics.lens import Lens, lens_fingerprint
 from ..optics.paraxial import image_distance_mm
 from ..optics.trace import trace
 from .compute import PSFSettings, _illumination_geometry, pixel_pitch_mm, rays_to_kernels, spectral_samples
-from .library import LibraryGrid, PSFLibrary
+from .library import LibraryGrid, PSFLibrary, _fitted
 
 FORMAT = "dcdi-ray-map"
 FORMAT_VERSION = 1
@@ -633,6 +633,19 @@ class RayMapLibrary(PSFLibrary):
             at = d == depth
             out[at] = self._deposit(float(depth), np.minimum(f[at], 1.0))["psf"]
         return out
+
+    def at_geometry(self, geometry, settings: PSFSettings | None = None, *, fit_depth_m=None,
+                    progress=None) -> "RayMapLibrary":
+        """``PSFLibrary.at_geometry``'s PSFs deposited from this library's ray
+        map (never traced): at ``geometry``'s pitch, with ``settings``
+        (default: this library's), its kernel grown to hold ``fit_depth_m``'s blur.
+        At this library's own settings it is this library, with the bins it
+        has made (a source kept between jobs makes them once)."""
+        s = replace(settings or self.settings, pixel_pitch_mm=geometry.pixel_pitch_mm)
+
+        def make(st):
+            return self if st == self.settings else RayMapLibrary(self.raymap, self.lens, st, self.grid, self.response)
+        return _fitted(make, s, fit_depth_m, progress)
 
     def save(self, path) -> None:        # the ray map is the store
         raise OpticsError("a ray-map library is not saved; it is computed from its ray map file")

@@ -8,15 +8,15 @@
 ray tracing, at the same grid, so the renderer needs no change and never
 imports ``models`` (docs/design.md: the caller hands it a PSF source).
 
-:func:`psf_source` decides which source serves a request: the lens's PSF
-basis (``psf.basis``: a compressed traced library, the most exact per
-megabyte, at the prescribed focus) where it covers it, else the OLF where it
-covers it (the lens's optical fingerprint is the learned one; the PSF
-settings, spectral response and focus are those it learned; the pixel pitch
-is the learned one or coarser; the grid lies within its ranges), else
-tracing; either way it says which and why in one line. The CLI (``dcdi psf /
-simulate / bokeh``) and the Blender add-on (Apply Lens Bokeh) both choose
-through it.
+:func:`psf_source` decides which source serves a request by the source
+rule (``psf.rule``: the stores in ``RULE_ORDER``, else tracing); either way
+it says which and why in one line. The OLF covers a request where the lens's
+optical fingerprint is the learned one, the PSF settings, spectral response
+and focus are those it learned, the pixel pitch is the learned one or
+coarser and the grid lies within its ranges. The chosen :class:`PSFSource`
+opens its PSFs at a job's geometry (:meth:`PSFSource.at`); a library makes
+its own at another pitch (``PSFLibrary.at_geometry``: a ray map's from its
+ray map). The CLI and the Blender add-on both choose through it.
 
 At a pixel pitch coarser than the learned one, the network's kernels (pixel
 histograms at the learned pitch) are area-resampled exactly
@@ -40,12 +40,13 @@ from ..io.npzfile import FileCache
 from ..optics.errors import OpticsError
 from .basis import BasisLibrary, open_store, shipped_store
 from .compute import KernelTooSmallWarning, PSFSettings
-from .library import LibraryGrid, PSFLibrary, valid_depth_mask
+from .library import MAX_FITTED_KERNEL, LibraryGrid, PSFLibrary, _fitted, open_library, valid_depth_mask  # noqa: F401 (served from here)
 from .sampling import field_grid
 from .pitch import SAME_GIVEN_RTOL, area_resample, check_downsampling, resampled_size, same_pitch
 from ..shipped import NETWORKS, WEIGHTS_DIR
 from .olf import OmniLensField
 from .raymap import RayMap, RayMapLibrary, open_raymap, shipped_raymap
+from .rule import RULE_ORDER, rule_text
 
 SHIPPED = WEIGHTS_DIR / "olf-radial.npz"
 SOURCES = ("basis", "raymap", "olf", "trace")
@@ -147,6 +148,34 @@ class PSFSource:
     olf_file: str | None = None
     basis_file: str | None = None
     raymap_file: str | None = None
+    lens: object = None
+
+    def at(self, geometry, request: "PSFRequest", *, fit_depth_m=None,
+           control: Control | None = None) -> "PSFSourceResult":
+        """This source's PSFs for an image at ``geometry`` (``render.geometry.
+        ImageGeometry``) as ``request`` asks (its settings as the error budget
+        planned them, ``app.render.budgeted``): a basis's or an OLF's library
+        as stored; a ray map's deposited, or a traced library (cached on
+        disk), each kernel grown to hold the blur of ``fit_depth_m`` (a depth
+        map, metres; with ``request.fit_kernel``). ``control`` reports the
+        PSFs made (stage 'PSFs') and stops them when cancelled."""
+        control = control or Control()
+        control.say(self.message)
+        if self.kind in ("basis", "olf"):
+            return PSFSourceResult(self.kind, self.message, self.library, self.olf_file, self.basis_file)
+        settings, quality = request.settings or PSFSettings(), "full"
+        if request.preview:
+            settings, quality = replace(settings, **PREVIEW_TRACE), "preview"
+        if request.kernel_size is not None:
+            settings = replace(settings, kernel_size=request.kernel_size)
+        fit = fit_depth_m if request.fit_kernel and request.kernel_size is None else None
+        progress = control.counter("PSFs")
+        if self.kind == "raymap":      # the same settings as a trace would take, its kernel grown alike
+            library = self.library.at_geometry(geometry, settings, fit_depth_m=fit, progress=progress)
+            return PSFSourceResult("raymap", self.message, library, quality=quality, raymap_file=self.raymap_file)
+        library = open_library(self.lens, geometry, settings, _request_grid(self.lens, geometry, request),
+                               response=request.response, fit_depth_m=fit, progress=progress)
+        return PSFSourceResult("trace", self.message, library, self.olf_file, self.basis_file, quality)
 
 
 def _settings_differences(learned: dict, settings: PSFSettings | None, *, rays_at_least: bool = False,
@@ -191,8 +220,8 @@ def psf_source(lens, *, source: str | None = None, olf_file=None, pixel_pitch_mm
                response=None) -> PSFSource:
     """The PSF source for ``lens`` and a request: ``source`` 'basis' (the
     lens's compressed library), 'olf' (the OLF), each an error saying why if
-    it cannot serve, 'trace', or None: the basis where it covers the request,
-    else the OLF, else tracing (an ``olf_file`` given without a
+    it cannot serve, 'trace', or None: the source rule (``psf.rule.
+    rule_text``; an ``olf_file`` given without a
     ``basis_file`` goes first). ``olf_file`` / ``basis_file``: the files
     (default: the shipped ones). The request: the image's pixel pitch (None:
     the lens's sensor), the PSF settings asked for, an explicit kernel size,
@@ -203,6 +232,14 @@ def psf_source(lens, *, source: str | None = None, olf_file=None, pixel_pitch_mm
     the grid an OLF serves on when ``grid`` is None (a basis keeps its own).
     ``response``: the custom spectral response itself, which a ray map
     serves (the others refuse any)."""
+    src = _psf_source(lens, source, olf_file, pixel_pitch_mm, settings, kernel_size, focus_m, custom_response, grid,
+                      basis_file, labels, olf_grid, response)
+    src.lens = lens
+    return src
+
+
+def _psf_source(lens, source, olf_file, pixel_pitch_mm, settings, kernel_size, focus_m, custom_response, grid,
+                basis_file, labels, olf_grid, response) -> PSFSource:
     lab = {**PSF_SOURCE_LABELS, **(labels or {})}
     if source not in (None,) + SOURCES:
         raise InputRangeError("psf source", source,
@@ -211,7 +248,7 @@ def psf_source(lens, *, source: str | None = None, olf_file=None, pixel_pitch_mm
         return PSFSource("trace", "PSFs traced" + (f" ({lab['psf_source']} trace)" if lab["psf_source"] else ""))
     reasons: list[str] = []
     # an OLF file given without a basis file is the source asked for: it goes first
-    order = ("olf", "basis", "raymap") if olf_file and not basis_file else ("basis", "raymap", "olf")
+    order = ("olf",) + tuple(k for k in RULE_ORDER if k != "olf") if olf_file and not basis_file else RULE_ORDER
     for kind in order:
         if source not in (None, kind):
             continue
@@ -390,64 +427,23 @@ def _why_not(olf: OmniLensField, lens, pitch, settings, kernel_size, focus_m, cu
 __all__ = ["BasisLibrary", "OLFLibrary", "PSFSource", "psf_source", "shipped_olf_files", "SHIPPED", "WEIGHTS_DIR", "SOURCES"]
 
 
-MAX_FITTED_KERNEL = 129      # px: beyond this a patch-wise FFT blur costs more than it is worth here
-
-
-
-def open_library(lens, geometry, settings: PSFSettings | None = None,
-                 grid: LibraryGrid | None = None, *, response=None, cache: bool = True, fit_depth_m=None,
-                 progress=None) -> PSFLibrary:
-    """The lens's PSF library sampled at the image's pixel pitch.
-
-    settings.pixel_pitch_mm, if set, must be the geometry's (the PSFs of an
-    image are sampled at its own pitch). response: the sensor's spectral
-    response (default: the shipped one).
-    fit_depth_m: a depth map (metres) whose depth bins are computed now; if
-    their PSFs spill out of the settings' kernel (less than 99 % of the rays
-    inside, as a fast lens's defocus blur at full resolution does), the
-    library is reopened with the odd kernel size that holds them, at most
-    MAX_FITTED_KERNEL px (beyond that the usual KernelTooSmallWarning says
-    how much is clipped). Without it the kernel size is the settings'.
-    progress(done, total): called as PSF bins are computed."""
+def lens_library(lens, geometry, settings: PSFSettings | None = None, grid: LibraryGrid | None = None, *,
+                 response=None, cache: bool = True, fit_depth_m=None, progress=None) -> PSFLibrary:
+    """The lens's own PSFs at the image's pixel pitch for a renderer that is
+    given none (``render.simulate``, ``render.bokeh``, ``correct.
+    deconvolution``): no stored approximation of them (a basis, an OLF),
+    the source a job would choose otherwise: deposited from the lens's ray
+    map where one ships and serves these settings, else traced
+    (``open_library``: the arguments are its)."""
     s = settings or PSFSettings()
     if s.pixel_pitch_mm is not None and not math.isclose(s.pixel_pitch_mm, geometry.pixel_pitch_mm, rel_tol=SAME_GIVEN_RTOL):
         raise InputRangeError("pixel pitch", s.pixel_pitch_mm,
                               f"{geometry.pixel_pitch_mm:.6g} mm, the image's own pixel pitch (give one, not two)")
-    s = replace(s, pixel_pitch_mm=geometry.pixel_pitch_mm)
-    return _fitted(lambda st: PSFLibrary.open(lens, st, grid, response, cache=cache), s, fit_depth_m, progress)
-
-
-def open_raymap_library(rm: RayMap, lens, geometry, settings: PSFSettings | None, grid: LibraryGrid | None = None,
-                        response=None, fit_depth_m=None, progress=None) -> RayMapLibrary:
-    """``open_library``'s library served by the lens's ray map (never traced):
-    at the image's pitch, its kernel grown alike to hold ``fit_depth_m``'s blur."""
-    s = replace(settings or PSFSettings(), pixel_pitch_mm=geometry.pixel_pitch_mm)
-    return _fitted(lambda st: RayMapLibrary(rm, lens, st, grid, response), s, fit_depth_m, progress)
-
-
-def _fitted(make, settings: PSFSettings, fit_depth_m, progress):
-    """``make(settings)``'s library; with a depth map ``fit_depth_m``, its bins
-    computed now and, where their PSFs spill out of the kernel (less than
-    99 % of the rays inside), made again with the odd kernel that holds them,
-    at most MAX_FITTED_KERNEL px."""
-    library = make(settings)
-    library.progress = progress
-    if fit_depth_m is None:
-        return library
-    d = np.asarray(fit_depth_m, dtype=np.float64)
-    d = d[valid_depth_mask(d)]
-    if d.size == 0:
-        return library
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", KernelTooSmallWarning)       # answered below by a larger kernel
-        library.ensure(d, clamp_near=True, progress=progress)
-    need = int(library.kernel_size_needed[library.computed].max())
-    if need <= library.kernel_size or library.kernel_size >= MAX_FITTED_KERNEL:
-        return library
-    library = make(replace(settings, kernel_size=min(need | 1, MAX_FITTED_KERNEL)))
-    library.progress = progress
-    library.ensure(d, clamp_near=True)
-    return library
+    src, _ = _try_raymap(lens, geometry.pixel_pitch_mm, s, None, False, response, grid)
+    if src is not None:
+        return src.library.at_geometry(geometry, s, fit_depth_m=fit_depth_m, progress=progress)
+    return open_library(lens, geometry, s, grid, response=response, cache=cache, fit_depth_m=fit_depth_m,
+                        progress=progress)
 
 
 # Traced PSFs for a preview (the add-on's viewport) where no shipped basis or
@@ -460,8 +456,8 @@ PREVIEW_TRACE = {"pupil_samples": 24, "n_wavelengths": 9}
 class PSFRequest:
     """Which PSFs a job asks for.
 
-    ``source``: 'basis', 'olf', 'trace' or None (the basis where it covers
-    the request, else the OLF, else traced). ``olf_file`` / ``basis_file``:
+    ``source``: 'basis', 'raymap', 'olf', 'trace' or None (the source rule,
+    ``psf.rule``). ``olf_file`` / ``basis_file``:
     files instead of the shipped ones. ``settings``: the PSF settings (their
     ``focus_distance_m`` the focus, metres, None: as prescribed; their pitch
     is the image's). ``kernel_size``: an explicit kernel (px; None: the
@@ -556,32 +552,11 @@ def _request_grid(lens, geometry, request: PSFRequest) -> LibraryGrid | None:
 
 def open_source(lens, geometry, request: PSFRequest, *, fit_depth_m=None, control: Control | None = None,
                 chosen=None) -> PSFSourceResult:
-    """The PSFs of ``lens`` for an image at ``geometry`` (``render.geometry.
-    ImageGeometry``) as ``request`` asks: the basis or OLF library where one
-    serves it, else a traced library (cached on disk) whose kernel grows to
-    hold the blur of ``fit_depth_m`` (a depth map, metres; with
-    ``request.fit_kernel``). ``control`` reports the PSFs traced (stage
-    'PSFs') and stops the trace when cancelled. ``chosen``: the source
-    already chosen for this request (``psf_source``'s), not chosen again."""
-    control = control or Control()
+    """The PSFs of ``lens`` for an image at ``geometry`` as ``request`` asks
+    (``PSFSource.at``); ``chosen``: the source already chosen for this
+    request (``psf_source``'s), not chosen again."""
     src = chosen if chosen is not None else choose(lens, geometry, request)
-    control.say(src.message)
-    if src.library is not None and src.kind != "raymap":
-        return PSFSourceResult(src.kind, src.message, src.library, src.olf_file, src.basis_file)
-    settings, quality = request.settings or PSFSettings(), "full"
-    if request.preview:
-        settings, quality = replace(settings, **PREVIEW_TRACE), "preview"
-    fit = fit_depth_m if request.fit_kernel and request.kernel_size is None else None
-    if src.kind == "raymap":          # the same settings as a trace would take, its kernel grown alike
-        lib = src.library
-        if request.kernel_size is not None:
-            settings = replace(settings, kernel_size=request.kernel_size)
-        library = open_raymap_library(lib.raymap, lens, geometry, settings, lib.grid, lib.response, fit,
-                                      control.counter("PSFs"))
-        return PSFSourceResult("raymap", src.message, library, quality=quality, raymap_file=src.raymap_file)
-    library = open_library(lens, geometry, settings, _request_grid(lens, geometry, request), response=request.response,
-                           fit_depth_m=fit_depth_m if request.fit_kernel else None, progress=control.counter("PSFs"))
-    return PSFSourceResult("trace", src.message, library, src.olf_file, src.basis_file, quality)
+    return src.at(geometry, request, fit_depth_m=fit_depth_m, control=control)
 
 
 def ensure_bins(library, depth_m, control: Control | None = None) -> None:

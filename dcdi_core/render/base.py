@@ -88,7 +88,7 @@ def check_library_pitch(library: PSFLibrary, geometry: ImageGeometry) -> None:
     """A given library must be sampled at the image's pixel pitch (mm)."""
     if not math.isclose(library.pixel_pitch_mm, geometry.pixel_pitch_mm, rel_tol=SAME_GIVEN_RTOL):
         raise InputRangeError("library pixel pitch", library.pixel_pitch_mm,
-                              f"{geometry.pixel_pitch_mm:.6g} mm, the image's (open it with open_library)")
+                              f"{geometry.pixel_pitch_mm:.6g} mm, the image's (open it at that pitch: psf.sources.lens_library)")
 
 
 def sensor_mapping(distortion):

@@ -24,7 +24,6 @@ from ..errors import InputRangeError
 from ..psf.compute import PSFSettings
 from ..parallel import thread_pool, workers
 from ..psf.library import PSFLibrary
-from ..psf.raymap import RayMapLibrary
 from . import layer_patch
 from . import multires as mr
 from .convolve import METHODS, ConvolveOptions, box_reach, patch_box, patch_convolve
@@ -34,7 +33,7 @@ from .inputs import check_rgbd
 from .psfmap import PSFMap, psf_map
 from ..psf.library import valid_depth_mask
 from .base import DEFAULT_INTERPOLATION, Cancelled, RenderResult, check_flag, check_image, check_library_pitch, check_patch, check_within_sensor, on_sensor
-from ..psf.sources import open_library
+from ..psf.sources import lens_library
 
 PRESCRIBED = "prescribed"     # BokehOptions(focus_m=PRESCRIBED): the sensor where the prescription puts it
 LAYER_PAIRS = ((0, 0), (1, 1), (2, 2), (3, 0), (3, 1), (3, 2))   # a layer's colour, and its coverage per colour PSF
@@ -94,10 +93,10 @@ class BokehOptions:
     1]; None: never. Neither applies with ``multires``.
 
     large_blur: where the traced library's kernel, grown to its cap
-    (``psf.sources.MAX_FITTED_KERNEL`` px), clips a layer's blur (more than 1 %
+    (``psf.library.MAX_FITTED_KERNEL`` px), clips a layer's blur (more than 1 %
     of a channel's energy outside), that layer is
     blurred at 1/f of the resolution (f = 2, 4 or 8: the smallest whose
-    kernel holds it) with PSFs traced at f times the pitch, and brought back
+    kernel holds it) with PSFs made at f times the pitch by the library's source, and brought back
     by Keys' cubic (``multires.coarse_blur``); False: clipped, with the
     library's warning. The occlusion-aware renderer only, without ``multires``.
 
@@ -283,7 +282,7 @@ def _bokeh_scene(image, depth, lens, options: BokehOptions, library: PSFLibrary 
         img, d, _ = on_sensor(img, d, lens, geometry, source_geometry=source, distortion=table,
                               interpolation=options.interpolation)
     if library is None:
-        library = open_library(lens, geometry, options.library_settings(), response=options.response,
+        library = lens_library(lens, geometry, options.library_settings(), response=options.response,
                                fit_depth_m=d if options.fit_kernel else None, progress=progress)
     check_library_pitch(library, geometry)
     valid = valid_depth_mask(d)
@@ -465,7 +464,7 @@ LARGE_BLUR_MAX_LEVEL = 3        # a large blur at 1/8 of the resolution at most:
 @dataclass(frozen=True)
 class _LargeBlur:
     """What blurs the layers the image-pitch kernel clips: ``f`` (the
-    resolution's divisor), the PSFs traced at f times the pitch and the
+    resolution's divisor), the PSFs made at f times the pitch and the
     coarse grid's geometry."""
 
     f: int
@@ -493,10 +492,10 @@ def _large_blur(sc: _BokehScene, options: BokehOptions, cancelled=None, progress
     ``progress(done, total)`` called, and ``cancelled()`` asked, after each."""
     lib = sc.library
     blurred = sc.valid & ~sc.kept
-    from ..psf import sources
+    from ..psf import library as psf_library
     # a kernel below the cap was chosen (a given library, an explicit size): it is the caller's, clipped or not
     if (not options.large_blur or options.multires is not None or sc.lens is None or not isinstance(lib, PSFLibrary)
-            or lib.kernel_size < sources.MAX_FITTED_KERNEL or not blurred.any()):
+            or lib.kernel_size < psf_library.MAX_FITTED_KERNEL or not blurred.any()):
         return None
     lib.ensure(bins=lib.bins_needed(sc.depth[blurred], clamp_near=True))
     need = int(lib.kernel_size_needed[lib.computed].max())
@@ -534,12 +533,12 @@ def _coarse_factor(sc: _BokehScene, options: BokehOptions, mask: np.ndarray, rad
 
 def _coarse_psfs(sc: _BokehScene, f: int, cancelled=None, progress=None) -> _LargeBlur:
     """The PSFs of the blurred depths at f times the pitch, from the library's
-    own source (a ray map's from the same ray map, else traced), with its
+    own source (``PSFLibrary.at_geometry``: a ray map's from the same ray
+    map, else traced), with its
     settings; ``progress(done, total)`` called and ``cancelled()`` asked
     after each bin."""
     lib = sc.library
     blurred = sc.valid & ~sc.kept
-    from ..psf import sources
     h, w = sc.depth.shape
     gc = mr.coarse_geometry(sc.geometry, f, -(-h // f), -(-w // f))
     settings = replace(lib.settings, pixel_pitch_mm=None, kernel_size=PSFSettings().kernel_size)
@@ -548,12 +547,8 @@ def _coarse_psfs(sc: _BokehScene, f: int, cancelled=None, progress=None) -> _Lar
             raise Cancelled("bokeh cancelled")
         if progress is not None:
             progress(done, total)
-    if isinstance(lib, RayMapLibrary):        # the coarse PSFs from the same ray map: never traced
-        coarse = sources.open_raymap_library(lib.raymap, lib.lens, gc, settings, lib.grid, lib.response,
-                                             sc.depth[blurred], bins_done)
-    else:
-        coarse = open_library(sc.lens, gc, settings, lib.grid, response=lib.response, fit_depth_m=sc.depth[blurred],
-                              progress=bins_done)
+    # the same source's PSFs at the coarse pitch: a ray map's from it, never traced
+    coarse = lib.at_geometry(gc, settings, fit_depth_m=sc.depth[blurred], progress=bins_done)
     return _LargeBlur(f, coarse, gc)
 
 

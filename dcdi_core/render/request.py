@@ -30,7 +30,7 @@ from .distortion import check_interpolation
 from .geometry import ImageGeometry
 from .noise import check_noise
 from .base import DEFAULT_INTERPOLATION, check_patch, check_within_sensor
-from ..psf.sources import MAX_FITTED_KERNEL
+from ..psf.library import MAX_FITTED_KERNEL
 
 def check_library_memory(settings: PSFSettings, grid: LibraryGrid | None = None, *, map_kernels: int = 0) -> None:
     """Refuse, before any work, a PSF library of ``grid`` (default: the
@@ -61,7 +61,7 @@ class RenderRequest:
     pitch), ``focus_distance_m`` moves the sensor (a simulation; a bokeh's
     focus is its own argument), ``wavelength_nm`` asks for one wavelength in
     all three channels. ``fit_kernel``: the kernel grows to hold the depth
-    map's blur, up to ``psf.sources.MAX_FITTED_KERNEL`` px (else
+    map's blur, up to ``psf.library.MAX_FITTED_KERNEL`` px (else
     ``psf.kernel_size`` is kept).
 
     ``image_pixel_pitch_mm``: one image pixel on the sensor (mm; default: the
@@ -149,7 +149,7 @@ class RenderRequest:
     @property
     def largest_kernel(self) -> int:
         """The largest kernel (px) the run may use: the fitted kernel's limit
-        (``psf.sources.MAX_FITTED_KERNEL``) or, without fitting, the
+        (``psf.library.MAX_FITTED_KERNEL``) or, without fitting, the
         settings' own."""
         k = self.psf.kernel_size
         return max(k, MAX_FITTED_KERNEL) if self.fit_kernel else k

@@ -22,7 +22,7 @@ import numpy as np
 from ..errors import InputRangeError
 from ..psf.compute import PSFSettings
 from ..psf.library import LibraryGrid, PSFLibrary
-from ..psf.sources import open_library
+from ..psf.sources import lens_library
 from .base import (DEFAULT_INTERPOLATION, RenderResult, sensor_mapping, check_flag, check_image, check_library_pitch,
                    check_patch, check_within_sensor, on_sensor)
 from .convolve import ConvolveOptions, patch_convolve
@@ -70,8 +70,9 @@ class SimulateOptions:
     ``distortion.INTERPOLATIONS``).
 
     settings, grid, response, cache: the PSF library opened when none is
-    given (``open_library``: settings' pixel pitch, if set, must be the
-    geometry's; response None: the shipped sensor response; cache: read and
+    given (``psf.sources.lens_library``: the lens's ray map where one ships,
+    else traced; settings' pixel pitch, if set, must be the geometry's;
+    response None: the shipped sensor response; cache: read and
     write the library's cache on disk).
 
     baseline_depth_m: metres (> 0, or inf): also form the depth-unaware
@@ -158,7 +159,7 @@ class LensSimulator:
     library: the PSFs at the frame's pixel pitch (default: opened from the
     options' settings, grid, response and cache). fit_depth_m: a depth map
     (metres) whose blur the opened library's kernel grows to hold
-    (``open_library``). progress(done, total): called as PSF bins are
+    (``lens_library``). progress(done, total): called as PSF bins are
     computed.
     """
 
@@ -187,7 +188,7 @@ class LensSimulator:
         self.source_geometry = options.source_geometry or geometry
         self.table = radial_distortion(lens) if options.distortion else None
         if library is None:
-            library = open_library(lens, geometry, options.settings, options.grid, response=options.response,
+            library = lens_library(lens, geometry, options.settings, options.grid, response=options.response,
                                    cache=options.cache, fit_depth_m=fit_depth_m, progress=progress)
         check_library_pitch(library, geometry)
         self.library = library

@@ -131,3 +131,44 @@ def test_interpolation_weights_are_exact_at_nodes_and_sum_to_one():
     assert w[1, list(idx[1]).index(2)] == pytest.approx(1.0)
     a = R._wavelength_weights(np.array([400.0, 437.5, 550.0, 700.0]), np.linspace(400, 700, 5))
     assert np.allclose(a.sum(1), 1.0) and a[2, 2] == pytest.approx(1.0)
+
+
+def test_a_source_opens_its_psfs_at_a_jobs_geometry_from_one_ray_map(monkeypatch):
+    """``PSFSource.at`` and ``PSFLibrary.at_geometry`` make a ray map's PSFs
+    at another pitch from the same map (never traced), and a renderer given
+    no library takes the ray map where one ships (``lens_library``)."""
+    from dcdi_core.psf.raymap import RayMapLibrary
+    from dcdi_core.psf.sources import PSFRequest, lens_library
+    from dcdi_core.render.geometry import ImageGeometry
+
+    def no_trace(*a, **k):
+        raise AssertionError("traced")
+    monkeypatch.setattr("dcdi_core.psf.library.compute_sources", no_trace)
+    lens = load_lens(LENS)
+    geom = ImageGeometry.full_sensor(lens, 60, 90)
+    req = PSFRequest(settings=PSFSettings(focus_distance_m=2.0, pupil_samples=16, n_wavelengths=5))
+    src = psf_source(lens, settings=req.settings, pixel_pitch_mm=geom.pixel_pitch_mm)
+    lib = src.at(geom, req).library
+    assert isinstance(lib, RayMapLibrary) and lib.raymap is src.library.raymap
+    assert lib is src.library and src.at(geom, req).library is lib      # one library, its bins made once
+    other = src.at(geom, replace(req, settings=replace(req.settings, pupil_samples=12))).library
+    assert other is not lib and other.settings.pupil_samples == 12
+    coarse_geom = ImageGeometry.full_sensor(lens, 30, 45)
+    coarse = lib.at_geometry(coarse_geom)
+    assert isinstance(coarse, RayMapLibrary) and coarse.raymap is lib.raymap
+    assert coarse.pixel_pitch_mm == pytest.approx(2 * lib.pixel_pitch_mm, rel=1e-3)
+    assert coarse.settings.pupil_samples == 16 and coarse.settings.focus_distance_m == 2.0
+    coarse.ensure(bins=[0])
+    assert np.allclose(coarse.psf[0].sum(axis=(-1, -2)), 1.0, atol=1e-5)
+    own = lens_library(lens, geom, req.settings)
+    assert isinstance(own, RayMapLibrary)
+
+
+def test_a_renderer_given_no_library_traces_a_lens_without_a_ray_map():
+    from dcdi_core.psf.raymap import RayMapLibrary
+    from dcdi_core.psf.sources import lens_library
+    from dcdi_core.render.geometry import ImageGeometry
+    lens = load_lens("mos-s1")
+    lib = lens_library(lens, ImageGeometry.full_sensor(lens, 60, 90), PSFSettings(pupil_samples=8, n_wavelengths=3),
+                       cache=False)
+    assert type(lib).__name__ == "PSFLibrary" and not isinstance(lib, RayMapLibrary)

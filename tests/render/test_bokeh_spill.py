@@ -89,7 +89,7 @@ def test_a_blur_the_kernel_clips_is_rendered_at_reduced_resolution(monkeypatch, 
     a reference whose 121-px kernels hold it than with the clipped kernel
     (which shrinks each disc to the kernel), the sharp subject is kept as it
     is, and a constant image stays constant."""
-    import dcdi_core.psf.sources as sources
+    import dcdi_core.psf.library as psf_library
     monkeypatch.setenv("DCDI_CACHE_DIR", str(tmp_path))
     lens = load_lens("6p")
     geom = ImageGeometry.from_pixel_pitch(lens, 96, 128, 0.0122, center_px=(47.5, 63.5))
@@ -105,7 +105,7 @@ def test_a_blur_the_kernel_clips_is_rendered_at_reduced_resolution(monkeypatch, 
     def run(image=img, **kw):
         return bokeh(image, depth, lens, BokehOptions(focus_m=1.2, keep=(1.1, 1.3), geometry=geom, **kw))
     ref = run(fit_kernel=False, large_blur=False, settings=replace(fast, kernel_size=121)).image
-    monkeypatch.setattr(sources, "MAX_FITTED_KERNEL", 15)
+    monkeypatch.setattr(psf_library, "MAX_FITTED_KERNEL", 15)
     clipped = run(settings=replace(fast, kernel_size=15), large_blur=False).image
     large = run(settings=replace(fast, kernel_size=15))
     assert large.info["large_blur_factor"] in (4, 8) and large.info["large_blur_layers"] >= 1
@@ -134,14 +134,14 @@ def test_a_ray_maps_large_blur_takes_its_coarse_psfs_from_the_map(monkeypatch):
     """A library served by a ray map (a catalogue lens) blurs a layer its
     kernel clips at reduced resolution with coarse PSFs from the same map:
     nothing is traced, and a constant image stays constant."""
-    import dcdi_core.psf.sources as sources
+    import dcdi_core.psf.library as psf_library
     from dcdi_core.psf.raymap import RayMapLibrary, open_raymap, shipped_raymap
     lens = load_lens("zeiss-jena-tessar-50mm-f2-8")
     geom = ImageGeometry.from_pixel_pitch(lens, 64, 96, 0.02, center_px=(31.5, 47.5))
     lib = RayMapLibrary(open_raymap(shipped_raymap(lens.id)), lens,
                         PSFSettings(kernel_size=15, pupil_samples=24, n_wavelengths=3, pixel_pitch_mm=0.02,
                                     focus_distance_m=1.2))
-    monkeypatch.setattr(sources, "MAX_FITTED_KERNEL", 15)
+    monkeypatch.setattr(psf_library, "MAX_FITTED_KERNEL", 15)
 
     def no_trace(*a, **k):
         raise AssertionError("traced")
