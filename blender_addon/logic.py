@@ -392,6 +392,7 @@ def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], 
                                render=RenderRequest(lens, patch=patch), psf=psf, image_name="the render")
     r = app.bokeh(request, _control(progress, cancelled), cache=SESSION.sources)
     info = dict(r.info, focus_m=float(focus_m), keep_m=[float(keep[0]), float(keep[1])], refocus=bool(refocus),
+                seconds=dict(r.seconds),
                 pixel_pitch_mm=float(r.geometry.pixel_pitch_mm), focus_note="; ".join(_note(n) for n in r.notes),
                 **_source_info(r.source))
     q = r.info.get("quality")

@@ -58,7 +58,8 @@ DEBOUNCE_S = 0.25         # a refresh waits until changes have stopped this long
 POLL_S = 0.05             # the timer's period while a job runs
 FOCUS_PLANE_S = 2.0       # the focus plane stays drawn this long after a focus change
 WATCH_S = 0.2             # the watcher's period: what changed without a handler is seen this late
-LENS_NICE = 10            # the lens stage's thread's CPU priority (Linux): Blender's drawing goes first
+LENS_NICE = 2             # the lens stage's thread's CPU priority (Linux): Blender's drawing goes a little first
+                          # (as the render worker's, ``render_worker.NICE``: more starves it beside other work)
 RENDER_LIMIT_S = 300.0    # the longest a render by the worker may take before it is given up (then the main thread's)
 # data-block types whose change needs a new sharp render (a lens or focus change
 # does not; the camera's data that shapes the render is in ``inputs``' sharp_key,
@@ -78,6 +79,10 @@ class Preview:
         self.generation = 0            # bumped by every change: older jobs are cancelled, their results dropped
         self.changed_at: float | None = None
         self.scene_changed = True
+        # the render worker's scene copy: written again after a change of the scene's data; objects only
+        # moved since it was written go to it as placements (``render_worker``)
+        self.data_changed = True
+        self.moved: set[str] = set()
         self.sharp: dict | None = None       # key, rgb, depth, version of the last sharp render
         self.served: tuple | None = None     # the (sharp render, request) of the shown result
         self.asked: tuple | None = None      # what the last refresh was started for (see ``wanted``)
@@ -201,10 +206,14 @@ class Preview:
             worker.warm_table = None
         try:
             bake = None if view_transform.has_table(scene) else view_transform.settings_key(scene)
-            pending = worker.request(context, scene, cam, h, w, samples, context.view_layer.name, bake_key=bake)
+            pending = worker.request(context, scene, cam, h, w, samples, context.view_layer.name, bake_key=bake,
+                                     moved=None if self.data_changed else set(self.moved))
         except (RuntimeError, OSError) as e:
             print(f"Lens Bokeh preview: {e}; rendering in this Blender")
             return False
+        if pending["wrote"]:
+            self.data_changed = False
+            self.moved.clear()
         pending.update(key=sharp_key, generation=self.generation, cold=self.sharp is None)
         self.rendering = pending
         return True
@@ -214,6 +223,11 @@ class Preview:
         changed meanwhile, start the lens stage on it. Returns what
         :meth:`tick` returns when it started something, else None."""
         r, self.rendering = self.rendering, None
+        if r["done"].is_set() and "stale" in r:     # the copy lacks a moved object: write it whole, ask again
+            self.data_changed = self.scene_changed = True
+            if self.changed_at is None:
+                self.changed_at = time.perf_counter() - DEBOUNCE_S
+            return None
         if not r["done"].is_set() or "error" in r:
             why = r.get("error") or f"no answer in {RENDER_LIMIT_S:.0f} s"
             print(f"Lens Bokeh preview: the render worker failed ({why}); rendering in this Blender")
@@ -227,7 +241,7 @@ class Preview:
             from . import view_transform
             view_transform.keep(r["table"])
         self._keep_sharp(r["key"], r["rgb"], r["z"], r["seconds"], "worker", cold=r["cold"],
-                         main_s=r["write_s"], steps=dict(r.get("steps", {}), write_s=r["write_s"],
+                         main_s=r["write_s"], steps=dict(r.get("steps", {}), write_s=r["write_s"], wrote=r["wrote"],
                                                          started_s=self.worker_renders.ready_s,
                                                          baked=r.get("bake_key") is not None))
         if r["generation"] != self.generation or self.changed_at is not None:
@@ -483,10 +497,31 @@ def on_depsgraph_update(scene, depsgraph):
     p = preview()
     if not p.enabled:
         return
-    if any(_changes_the_render(u) for u in depsgraph.updates):
-        p.changed(scene_changed=True)
-    else:
+    changes = [u for u in depsgraph.updates if _changes_the_render(u)]
+    if not changes:
         p.check()                                   # the lens settings, the focus, the camera, the size
+        return
+    for u in changes:
+        if _only_moved(u):
+            p.moved.add(u.id.name)
+        else:
+            p.data_changed = True
+    p.changed(scene_changed=True)
+
+
+def _only_moved(update) -> bool:
+    """Whether an update that changes the render only moved an object (its
+    placement goes to the render worker's copy; anything else writes the
+    copy again)."""
+    return type(update.id).__name__ == "Object" and update.is_updated_transform and not update.is_updated_geometry
+
+
+def on_undo(scene, *args):
+    """Undo and redo replace the scene's data: the render worker's copy is written again."""
+    p = preview()
+    if p.enabled:
+        p.data_changed = True
+        p.changed(scene_changed=True)
 
 
 def on_frame_change(scene, depsgraph=None):
@@ -496,6 +531,7 @@ def on_frame_change(scene, depsgraph=None):
     if not p.enabled:
         return
     if _scene_animated():
+        p.data_changed = True                       # the copy is written at the new frame
         p.changed(scene_changed=True)
     else:
         p.check()
@@ -527,7 +563,8 @@ def _changes_the_render(update) -> bool:
 
 
 # (handler list, function) pairs the preview adds while it is on
-_APP_HANDLERS = (("depsgraph_update_post", on_depsgraph_update), ("frame_change_post", on_frame_change))
+_APP_HANDLERS = (("depsgraph_update_post", on_depsgraph_update), ("frame_change_post", on_frame_change),
+                 ("undo_post", on_undo), ("redo_post", on_undo))
 
 
 def set_enabled(enabled: bool, context=None) -> None:
@@ -542,7 +579,7 @@ def set_enabled(enabled: bool, context=None) -> None:
         _redraw(context)
         return
     p.enabled = True
-    p.scene_changed = True
+    p.scene_changed = p.data_changed = True
     p.worker_failed = ""
     if not bpy.app.background:
         p.worker_renders.start()                    # ready in a second or two; the first render waits for it

@@ -86,7 +86,8 @@ def measure_preview(bpy, viewport, scene, out: dict, lenses=()) -> None:
         P.changed(scene_changed=False)
         P.changed_at -= viewport.DEBOUNCE_S          # the debounce is added in the table, not slept
         r = _timed(settle)
-        return dict(r, lens_s=P.result["lens_s"], rendered=P.renders > renders, error=P.error)
+        return dict(r, lens_s=P.result["lens_s"], rendered=P.renders > renders, error=P.error,
+                    psf_s=P.result["info"].get("seconds", {}).get("psfs"))
 
     status = bpy.context.window_manager.dcdi_lens_bokeh_status
     r = _timed(lambda: (setattr(status, "viewport_preview", True), settle()))
@@ -171,13 +172,14 @@ def goals_table(out: dict, debounce_s: float) -> list[str]:
     if any(r["rendered"] for r in out["preview_lens_change"]) or any(v["lens_change"]["rendered"]
                                                                        for v in per.values()):
         rows.append("| (a lens change rendered the scene again) | | no render | no |")
-    rows += ["", "| lens | preview: lens change s | preview: focus change s (debounce included) | Apply, cold s | "
-                 "F12 lens stage s |", "|---|---|---|---|---|"]
+    rows += ["", "| lens | preview: lens change s | preview: focus change s (debounce included) | of which PSFs s | "
+                 "Apply, cold s | F12 lens stage s |", "|---|---|---|---|---|---|"]
     f12 = out.get("f12_per_lens", {})
     for lens_id in sorted(set(per) | set(out["apply"]) | set(f12)):
         p = per.get(lens_id)
         cells = [f"{p['lens_change']['wall_s']:.2f}" if p else "-",
                  f"{debounce_s + p['focus_new']['wall_s']:.2f}" if p else "-",
+                 f"{p['focus_new']['psf_s']:.2f}" if p and p["focus_new"].get("psf_s") is not None else "-",
                  f"{out['apply'][lens_id]['wall_s']:.2f}" if lens_id in out["apply"] else "-",
                  f"{f12[lens_id]['lens_s']:.2f}" if lens_id in f12 else "-"]
         rows.append(f"| {lens_id} | " + " | ".join(cells) + " |")

@@ -114,3 +114,27 @@ def test_apply_uses_the_preview_render_while_it_is_the_scene_s(lens_changes):
     assert r["apply_kept"]["render_calls"] == 0, r["apply_kept"]
     assert r["apply_moved"]["render_calls"] == 1, r["apply_moved"]
     assert np.isfinite(np.load(d / "apply.npy")).all()
+
+
+@pytest.fixture(scope="module")
+def placed(addon_zip, tmp_path_factory):  # noqa: F811
+    pytest.importorskip("bpy")
+    return run_headless("addon_headless_placements.py", addon_zip, tmp_path_factory.mktemp("placements"))
+
+
+def test_moved_objects_reach_the_workers_copy_as_placements(placed):
+    """A copy written before a move, with the placements applied, is the copy
+    written after it: every object (a child and a constrained one
+    follow their moved parent and target), the camera's data, the render."""
+    assert placed["missing"] is None and placed["names"] and placed["camera_data"]
+    assert placed["camera_lens"] == 42.0
+    assert placed["world_moved"] > 0.05                 # the move is seen: the test can fail
+    assert placed["world_error"] <= 1e-6
+    assert placed["z_error"] <= 1e-5
+    d = placed["dir"]
+    after, moved, before = (np.load(d / f"rgb_{n}.npy") for n in ("after", "moved", "before"))
+    assert np.abs(after - moved).max() <= 1e-5 and np.abs(after - before).max() > 1e-2
+
+
+def test_a_copy_without_a_moved_object_names_it(placed):
+    assert placed["ghost"] == "ghost"

@@ -132,6 +132,18 @@ def test_the_add_on_holds_the_main_thread_briefly(preview_run):
             assert c["source"] == "worker" and c["main_render"] is False and c["main_s"] <= 0.1, c
 
 
+def test_a_move_reaches_the_worker_as_placements(preview_run):
+    """The toggle's render writes the scene's copy for the render worker; an
+    object moved, or the camera's framing (the preview size), sends
+    placements to that copy instead of writing it again (a production
+    scene's copy takes seconds to write: docs/addon.md)."""
+    _, res = preview_run
+    toggle, moved = _steps(res, [("python", "toggle"), ("python", "object moved")])
+    assert toggle["rendered"] and toggle["render_steps"]["wrote"] is True, toggle
+    assert moved["rendered"] and moved["render_steps"]["wrote"] is False, moved
+    assert moved["shown"] and moved["error"] == "", moved
+
+
 def test_the_preview_renders_itself_when_the_worker_fails(preview_run):
     _, res = preview_run
     by = {c["change"]: c for c in res["changes"] if c["via"] == "python"}

@@ -63,8 +63,7 @@ TIMED = ("_tick", "_watch", "draw_preview", "draw_focus_plane", "on_depsgraph_up
          "settings_changed", "_texture")
 for _name in TIMED[:-1]:
     setattr(viewport, _name, CALLS.wrap(getattr(viewport, _name), _name))
-viewport._APP_HANDLERS = (("depsgraph_update_post", viewport.on_depsgraph_update),
-                          ("frame_change_post", viewport.on_frame_change))
+viewport._APP_HANDLERS = tuple((_hook, getattr(viewport, _fn.__name__)) for _hook, _fn in viewport._APP_HANDLERS)
 DRAWS: list = []             # when a 3D view drew the preview's texture
 STARTS: list = []            # (time, change) of each change
 ACTED: list = [None]         # when a change through the UI sent its input (after finding its widget)
