@@ -244,9 +244,12 @@ def on_render_post(scene, *_):
     run.frames.append({"frame": frame, "focus_m": req.focus_m, "focus_used_m": info.get("focus_used_m", req.focus_m),
                        "keep_m": list(req.keep), "effect": req.effect,
                        "seconds": seconds, "psf_source": info.get("psf_source"),
-                       "focus_note": info.get("focus_note", "")})
+                       "focus_note": info.get("focus_note", ""), "clipped": info.get("clipped")})
     SESSION.last_render = {"frames": run.frames, "error": run.error, "last_image": out, "last_passes": (rgb, z)}
-    _status(f"Lens in Renders: frame {frame}, focus {req.focus_m:.2f} m, lens {seconds:.1f} s")
+    # a kernel left clipping the blur (no large blur answered it) is said in the render line, not only the console
+    clipped = f"; blur clipped: {info['clipped'].split(': ', 1)[-1]}" if info.get("clipped") else ""
+    camera_m = req.focus_m + req.entrance_pupil_mm / 1000.0        # from the camera, as the panel's Distance
+    _status(f"Lens in Renders: frame {frame}, focus {camera_m:.2f} m, lens {seconds:.1f} s{clipped}")
     if bpy.app.background:
         bpy_render.put_image(RESULT_IMAGE, out)
     else:                                    # images are made on the main thread

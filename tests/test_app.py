@@ -209,3 +209,33 @@ def test_the_readmes_capture_example_works_as_written(tmp_path, capsys, monkeypa
     if "mos-s2" in network("dacn").shipped_keys() and "mos-s2" in network("dacn").beats_deconvolution:
         assert fixed["correction"]["method"] == "dacn", fixed["correction"]
     assert np.isfinite(read_image(tmp_path / "SHARP.exr")).all()
+
+
+@pytest.mark.parametrize("occlusion", [True, False])
+def test_a_clipping_kernel_is_warned_only_where_the_job_leaves_it_clipped(monkeypatch, occlusion):
+    """A bokeh whose kernel (capped at 15 px here) clips the far layer's
+    blur: the occlusion-aware job answers it with the large blur and says
+    nothing of clipping; the plain blur leaves it clipped, and warns once
+    and says so in ``info['clipped']`` (what the add-on's render line shows)."""
+    import warnings
+    import dcdi_core.psf.library as psf_library
+    from dcdi_core import app
+    from dcdi_core.psf.compute import KernelTooSmallWarning, PSFSettings
+    from dcdi_core.render.request import RenderRequest
+    monkeypatch.setattr(psf_library, "MAX_FITTED_KERNEL", 15)
+    lens = load_lens("zeiss-jena-tessar-50mm-f2-8")
+    img = np.full((48, 72, 3), 0.05, np.float32)
+    img[10:13, 10:13] = 20.0
+    depth = np.full((48, 72), 10.0, np.float32)
+    depth[20:30, 30:45] = 1.2
+    settings = PSFSettings(pupil_samples=16, n_wavelengths=3, kernel_size=15)
+    req = app.BokehRequest(img, depth, lens, keep=(1.1, 1.3), focus_m=1.2, occlusion=occlusion, image_name="x",
+                           render=RenderRequest(lens, image_pixel_pitch_mm=0.02, patch=8, psf=settings))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        r = app.bokeh(req)
+    told = [str(w.message) for w in caught if issubclass(w.category, KernelTooSmallWarning)]
+    if occlusion:
+        assert r.info.get("large_blur_factor") and not told and "clipped" not in r.info
+    else:
+        assert len(told) == 1 and r.info["clipped"] == told[0] and "15 x 15 kernel clips" in told[0]

@@ -12,13 +12,15 @@ import os
 from collections import OrderedDict
 from dataclasses import replace
 
+from ..optics.lens import lens_fingerprint
 from ..psf.sources import PSFRequest, choose
 
 
 class SourceCache:
-    """The PSF sources of the last ``size`` requests (lens file and its
-    modification time, pixel pitch, PSF request), for a front end that runs
-    many jobs on one lens (the add-on's preview, an animation)."""
+    """The PSF sources of the last ``size`` requests (the lens: its file, the
+    file's modification time and its optical fingerprint, which tells a
+    stop or its blades' turn apart; pixel pitch, PSF request), for a front
+    end that runs many jobs on one lens (the add-on's preview, an animation)."""
 
     def __init__(self, size: int = 6):
         self.size = size
@@ -28,7 +30,7 @@ class SourceCache:
         path = str(getattr(lens, "path", "") or "")
         mtime = os.stat(path).st_mtime_ns if path and os.path.exists(path) else None
         response = None if request.response is None else id(request.response)
-        return (lens.id, path, mtime, round(float(geometry.pixel_pitch_mm), 12),
+        return (lens.id, path, mtime, lens_fingerprint(lens), round(float(geometry.pixel_pitch_mm), 12),
                 replace(request, response=None), response)
 
     def chosen(self, lens, geometry, request: PSFRequest):

@@ -60,8 +60,11 @@ class Aperture:
         return self.f_number is None and self.blades == 0
 
     def describe(self, f_number: float) -> str:
-        """'f/8, 6 blades' (the stop as made)."""
-        return f"f/{f_number:.3g}" + (f", {self.blades} blades" if self.blades else "")
+        """'f/8, 6 blades' (the stop as made), 'f/8, 6 blades turned 15 deg'
+        where the blades are turned (the name, and every key made of it,
+        tells two turns apart)."""
+        turned = f" turned {self.rotation_deg:.4g} deg" if self.blades and self.rotation_deg else ""
+        return f"f/{f_number:.3g}" + (f", {self.blades} blades{turned}" if self.blades else "")
 
 
 def wide_open_f_number(lens) -> float:

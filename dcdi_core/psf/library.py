@@ -42,7 +42,7 @@ from ..optics.aiming import sources
 from ..errors import InputRangeError, OutputError, field, output_error
 from ..optics.errors import OpticsError
 from ..optics.lens import Lens, lens_fingerprint
-from .compute import (KernelTooSmallWarning, PSFSettings, clip_message, compute_sources, focused_lens, pixel_pitch_mm,
+from .compute import (CLIP_WARNING, KernelTooSmallWarning, PSFSettings, clip_message, compute_sources, focused_lens, pixel_pitch_mm,
                       spectral_samples)
 from .pitch import SAME_GIVEN_RTOL
 from .spectral import SpectralResponse, default_response
@@ -151,6 +151,8 @@ class PSFLibrary:
         self._told: set[str] = set()        # what this library has warned outside a job
         # progress(done, total) of the bins computed by ensure() calls that pass none of their own
         self.progress = None
+        # a job that answers the clipping itself (a bokeh's large blur) holds the warning until it knows
+        self.quiet_clipping = False
         self.cache_path = None
         if cache_dir is not None:
             self.cache_path = Path(cache_dir) / f"{meta['lens_id']}-{self.key[:20]}.npz"
@@ -265,11 +267,15 @@ class PSFLibrary:
         if bins is not None:
             b = np.asarray(bins, int).ravel()
             self.served[b[self.computed[b]]] = True
-        held = self.served & self.computed
-        text = clip_message(self.energy_outside[held], self.kernel_size_needed[held], self.kernel_size,
-                            f"PSF library of {self.meta['lens_id']}")
-        if text:
+        text = self.clip_text()
+        if text and not self.quiet_clipping:
             self._tell(text, KernelTooSmallWarning)
+
+    def clip_text(self) -> str | None:
+        """The clipping warning's text for the bins served so far, or None."""
+        held = self.served & self.computed
+        return clip_message(self.energy_outside[held], self.kernel_size_needed[held], self.kernel_size,
+                            f"PSF library of {self.meta['lens_id']}")
 
     def _tell(self, text: str, category) -> None:
         """Warn ``text`` once per job: in a `dcdi` command's job
@@ -472,13 +478,28 @@ def _fitted(make, settings: PSFSettings, fit_depth_m, progress):
     d = d[valid_depth_mask(d)]
     if d.size == 0:
         return library
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", KernelTooSmallWarning)       # answered below by a larger kernel
-        library.ensure(d, clamp_near=True, progress=progress)
+    _ensure_quietly(library, d, progress)              # a clipping kernel is answered below by a larger one
     need = int(library.kernel_size_needed[library.computed].max())
     if need <= library.kernel_size or library.kernel_size >= MAX_FITTED_KERNEL:
         return library
     library = make(replace(settings, kernel_size=min(need | 1, MAX_FITTED_KERNEL)))
     library.progress = progress
-    library.ensure(d, clamp_near=True)
+    _ensure_quietly(library, d, None)                  # what still clips is warned when the bins are served
+    computed = library.computed
+    if library.kernel_size < MAX_FITTED_KERNEL and library.energy_outside[computed].max() > CLIP_WARNING:
+        # 99 % of the rays inside can leave more than CLIP_WARNING of a channel's light out (a fast lens's
+        # halo, its wavelengths weighed unequally: the Sonnar's 95 px left 1.4 %): one step a sixth wider
+        library = make(replace(settings, kernel_size=min(int(library.kernel_size * 7 / 6) | 1, MAX_FITTED_KERNEL)))
+        library.progress = progress
+        _ensure_quietly(library, d, None)
     return library
+
+
+def _ensure_quietly(library: PSFLibrary, depth_m, progress) -> None:
+    """``library.ensure(depth_m)`` with its clipping warning held (``quiet_clipping``):
+    the renderer that serves the bins warns, or answers it (a bokeh's large blur)."""
+    quiet, library.quiet_clipping = library.quiet_clipping, True
+    try:
+        library.ensure(depth_m, clamp_near=True, progress=progress)
+    finally:
+        library.quiet_clipping = quiet

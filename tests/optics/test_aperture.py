@@ -171,3 +171,19 @@ def test_cli_psf_takes_the_aperture_and_refuses_a_wider_one(capsys):
     assert len(lines) == 1 and "f/1.64" in lines[0] and "6p.toml" in lines[0]
     code, _, err = run_cli(capsys, "psf", "6p", "--depth", "0.7", "--field", "0", "--blades", "2")
     assert code != 0 and "blades" in err
+
+
+def test_a_turned_iris_is_another_lens_to_every_cache():
+    """The blades' turn is in the lens's name (a preview's key is made of
+    it) and in the source cache's key: a turn gives a new source."""
+    from dcdi_core import app
+    from dcdi_core.render.geometry import ImageGeometry
+    lens = load_lens("zeiss-jena-tessar-50mm-f2-8")
+    a, b = (stopped_down(lens, Aperture(8.0, 6, r)) for r in (0.0, 15.0))
+    assert a.iris == "f/8, 6 blades" and b.iris == "f/8, 6 blades turned 15 deg"
+    cache = app.SourceCache()
+    geom = ImageGeometry.full_sensor(lens, 60, 90)
+    req = app.PSFRequest(settings=PSFSettings(pupil_samples=8, n_wavelengths=3))
+    first, turned = cache.chosen(a, geom, req), cache.chosen(b, geom, req)
+    assert turned is not first and cache.chosen(a, geom, req) is first
+    assert turned.library.lens.surfaces[turned.library.lens.stop_index].blade_rotation_deg == 15.0
