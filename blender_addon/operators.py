@@ -436,13 +436,14 @@ class DCDI_OT_import_zemax(bpy.types.Operator):
 def focus_on_point(scene, point) -> float:
     """Set the panel's focus to the depth of the world ``point`` (scene
     units) along the active camera's view axis: Distance mode, the distance
-    from the lens's first vertex. Returns the focus in metres."""
+    from the camera (as Blender's depth of field measures it). Returns the
+    focus in metres from the lens's first vertex."""
     s = scene.dcdi_lens_bokeh
     r = reading.read_scene(scene, focus=False)
     focus = reading.point_depth_m(scene, r.camera, point, r.entrance_pupil_mm)
     logic.keep_range(focus, 0.0, 0.0)              # in front of the lens, or a message saying it is not
     s.focus_mode = "DISTANCE"
-    s.focus_distance = focus / r.metres_per_unit
+    s.focus_distance = -(r.camera.matrix_world.inverted() @ point).z     # camera space looks down -Z
     return focus
 
 
@@ -463,7 +464,8 @@ class DCDI_OT_focus_pick(bpy.types.Operator):
         except _user_errors() as e:
             self.report({"ERROR"}, logic.message(e))
             return {"CANCELLED"}
-        self.report({"INFO"}, f"Lens Bokeh: focus {focus:.3f} m")
+        distance = context.scene.dcdi_lens_bokeh.focus_distance
+        self.report({"INFO"}, f"Lens Bokeh: focus {distance:.3f} (from the camera)")
         return {"FINISHED"}
 
     def invoke(self, context, event):

@@ -201,14 +201,19 @@ def _aperture(layout, context, settings) -> None:
 
 
 def _sharp_range(scene, s) -> str:
-    """The depths kept sharp, as the operator will compute them (metres from
-    the front of the lens), or why they cannot be computed yet."""
+    """The depths kept sharp, as the operator will compute them, in metres
+    from the camera as the Distance is (the engine's are from the front of
+    the lens, the entrance pupil's depth nearer), or why they cannot be
+    computed yet."""
     try:
         r = reading.read_scene(scene)
     except (logic.BokehInputError, dcdi_errors.DcdiError, ValueError, OSError) as e:
         return logic.message(e)
+    pupil = r.entrance_pupil_mm / 1000.0
     (near, far), focus = r.keep, r.focus_m
-    return f"Sharp from {near:.2f} m to {far:.2f} m (focus {focus:.2f} m)"
+    if far - near < 1e-6:                          # nothing kept: the lens's own depth of field
+        return f"Focus {focus + pupil:.2f} m, with the lens's own depth of field"
+    return f"Kept sharp from {near + pupil:.2f} m to {far + pupil:.2f} m (focus {focus + pupil:.2f} m)"
 
 
 def status_lines(context) -> list[tuple[str, str]]:

@@ -65,9 +65,9 @@ class DCDI_LensBokehSettings(bpy.types.PropertyGroup):
                              "Distance (animated with the camera)")],
         default="DISTANCE")
     focus_distance: FloatProperty(update=_settings_changed, name="Focus Distance",
-                                  description="Distance to focus at, measured from the front of the lens (its "
-                                              "first surface, on the axis), in scene units (metres at unit "
-                                              "scale 1)", default=2.0, min=0.01, soft_max=50.0,
+                                  description="Distance to focus at, measured from the camera along its view "
+                                              "axis as Blender's own Depth of Field measures it, in scene units "
+                                              "(metres at unit scale 1)", default=2.0, min=0.01, soft_max=50.0,
                                   subtype="DISTANCE", unit="LENGTH")
     focus_object: PointerProperty(update=_settings_changed, name="Focus Object", type=bpy.types.Object,
                                   description="Focus on this object's origin")
@@ -83,10 +83,14 @@ class DCDI_LensBokehSettings(bpy.types.PropertyGroup):
                                                   "F-Stop wider than the lens's own leaves it wide open. Off: the "
                                                   "lens wide open, its round stop as prescribed, served by the "
                                                   "bundled PSF stores")
-    keep_front: FloatProperty(update=_settings_changed, name="In Front", description="Depth kept sharp in front of the focus, scene units",
-                              default=0.3, min=0.0, soft_max=10.0, subtype="DISTANCE", unit="LENGTH")
-    keep_behind: FloatProperty(update=_settings_changed, name="Behind", description="Depth kept sharp behind the focus, scene units",
-                               default=0.5, min=0.0, soft_max=100.0, subtype="DISTANCE", unit="LENGTH")
+    keep_front: FloatProperty(update=_settings_changed, name="In Front",
+                              description="Depth kept perfectly sharp in front of the focus, scene units. 0 (the "
+                                          "default): none, the lens's own depth of field, as a photograph has it",
+                              default=0.0, min=0.0, soft_max=10.0, subtype="DISTANCE", unit="LENGTH")
+    keep_behind: FloatProperty(update=_settings_changed, name="Behind",
+                               description="Depth kept perfectly sharp behind the focus, scene units. 0 (the "
+                                           "default): none, the lens's own depth of field",
+                               default=0.0, min=0.0, soft_max=100.0, subtype="DISTANCE", unit="LENGTH")
     preview_size: IntProperty(update=_settings_changed, name="Preview Size", description="Long side of the preview in pixels (the render's "
                               "aspect is kept). PSFs are built at this pixel pitch: larger takes longer the first "
                               "time", default=320, min=16, soft_max=1920, max=8192, subtype="PIXEL")

@@ -139,15 +139,17 @@ def chosen_lens(settings):
 def focus_metres(scene, cam, settings, entrance_pupil_mm: float, depsgraph=None) -> float:
     """Focus distance in metres from the lens's first vertex: the panel's
     distance, its focus object's origin, or the camera's own depth-of-field
-    focus (its focus object, else its focus distance). ``depsgraph``: read
-    the values it evaluated (a frame of an animation render), else the
+    focus (its focus object, else its focus distance). The panel's distance
+    and the camera's are measured as Blender's depth of field measures them:
+    from the camera (the entrance pupil) along its view axis. ``depsgraph``:
+    read the values it evaluated (a frame of an animation render), else the
     scene as it stands."""
     if depsgraph is not None:
         settings = scene.evaluated_get(depsgraph).dcdi_lens_bokeh
         cam = cam.evaluated_get(depsgraph)
     mpu = metres_per_unit(scene)
-    if settings.focus_mode == "DISTANCE":
-        return settings.focus_distance * mpu
+    if settings.focus_mode == "DISTANCE":        # from the camera, as the camera's own distance below
+        return dcdi_camera.planar_depth_m(-settings.focus_distance, entrance_pupil_mm, mpu)
     if settings.focus_mode == "CAMERA":
         dof = cam.data.dof
         obj = dof.focus_object

@@ -43,6 +43,7 @@ import os
 import sys
 import threading
 import time
+from collections import OrderedDict
 
 import bpy
 import numpy as np
@@ -57,6 +58,15 @@ from .session import SESSION
 DEBOUNCE_S = 0.25         # a refresh waits until changes have stopped this long
 POLL_S = 0.05             # the timer's period while a job runs
 FOCUS_PLANE_S = 2.0       # the focus plane stays drawn this long after a focus change
+# the panel's settings that do not change the preview (the others all do: tests/addon/test_viewport_preview.py),
+# and Blender's camera Depth of Field settings the lens's own replace
+NOT_IN_PREVIEW = {"lens_in_renders": "what F12 does", "render_effect": "what F12 applies",
+                  "sensor_noise": "Simulate Minimalist Lens's", "correction_method": "Correct Simulation's",
+                  "correction_model": "Correct Simulation's"}
+CAMERA_DOF_NOT_IN_PREVIEW = {"use_dof": "the lens's depth of field replaces Blender's",
+                             "aperture_ratio": "an anamorphic bokeh's squeeze: the lens's own stop is round or "
+                                               "bladed"}
+RECENT_RESULTS = 8        # results kept to come back at once (480 x 270: 1.6 MB each)
 WATCH_S = 0.2             # the watcher's period: what changed without a handler is seen this late
 LENS_NICE = 2             # the lens stage's thread's CPU priority (Linux): Blender's drawing goes a little first
                           # (as the render worker's, ``render_worker.NICE``: more starves it beside other work)
@@ -83,6 +93,9 @@ class Preview:
         # moved since it was written go to it as placements (``render_worker``)
         self.data_changed = True
         self.moved: set[str] = set()
+        # the last results by what they show (the sharp render's version, the request): a focus, lens or
+        # setting seen before on the same render comes back without a lens stage
+        self.recent: OrderedDict = OrderedDict()
         self.sharp: dict | None = None       # key, rgb, depth, version of the last sharp render
         self.served: tuple | None = None     # the (sharp render, request) of the shown result
         self.asked: tuple | None = None      # what the last refresh was started for (see ``wanted``)
@@ -125,6 +138,7 @@ class Preview:
         self.generation += 1
         self.changed_at = None
         self.result = self.texture = self.sharp = self.served = self.asked = None
+        self.recent.clear()
         self.error = ""
         self.rendering = None
         self.worker_renders.stop()
@@ -266,6 +280,9 @@ class Preview:
         served = (sharp["version"], a["request"])
         if self.served == served and self.result is not None:
             return                                   # nothing the preview shows has changed
+        if served in self.recent:                    # shown before on this render: from memory
+            self._recall(served)
+            return
         fresh, sharp["fresh"] = sharp["fresh"], False    # the render is counted by the first refresh using it
         gen = self.generation
         job = self.job = {"generation": gen, "key": served, "render_s": sharp["render_s"] if fresh else 0.0,
@@ -291,6 +308,19 @@ class Preview:
         self.worker = threading.Thread(target=run, name="dcdi-viewport-preview", daemon=True)
         self.worker.start()
 
+    def _recall(self, served) -> None:
+        """Show a result kept in ``recent`` again (no lens stage; logged with ``recalled``)."""
+        self.recent.move_to_end(served)
+        kept = self.recent[served]
+        self.error = ""
+        self.result = {"image": kept["image"], "info": kept["info"], "generation": self.generation,
+                       "render_s": 0.0, "lens_s": 0.0}
+        self.served = served
+        self.log.append({"render_s": 0.0, "lens_s": 0.0, "cold": False, "source": None, "main_s": 0.0,
+                         "render_steps": {}, "recalled": True})
+        self.texture = _texture(kept["image"])
+        _redraw(bpy.context)
+
     def _collect(self) -> None:
         job, self.worker = self.job, None
         if job is None or job["generation"] != self.generation or job.get("cancelled"):
@@ -302,6 +332,9 @@ class Preview:
         self.result = {"image": job["out"], "info": job["info"], "generation": job["generation"],
                        "render_s": job["render_s"], "lens_s": job["lens_s"]}
         self.served = job["key"]
+        self.recent[job["key"]] = {"image": job["out"], "info": job["info"]}
+        while len(self.recent) > RECENT_RESULTS:
+            self.recent.popitem(last=False)
         self.log.append({"render_s": job["render_s"], "lens_s": job["lens_s"], "cold": job["cold"],
                          "source": job["source"], "main_s": job["main_s"], "render_steps": job["steps"]})
         self.texture = _texture(job["out"])
@@ -379,8 +412,13 @@ def _switched(before, now) -> bool:
     out: the refresh starts at once)."""
     if before is None or before[0] == "error" or now[0] == "error" or before[0] != now[0]:
         return False
-    (lens0, path0, focus0, keep0, refocus0, *rest0), (lens1, path1, focus1, keep1, refocus1, *rest1) = before[1], now[1]
-    return (focus0, keep0) == (focus1, keep1) and (lens0, path0, refocus0, rest0) != (lens1, path1, refocus1, rest1)
+    (lens0, path0, focus0, keep0, refocus0, ep0, *rest0), (lens1, path1, focus1, keep1, refocus1, ep1, *rest1) = \
+        before[1], now[1]
+
+    def from_camera(focus, keep, ep_mm):   # the focus and kept range as the artist set them: from the camera
+        return [round(v + ep_mm / 1000.0, 9) for v in (focus, *keep)]
+    return from_camera(focus0, keep0, ep0) == from_camera(focus1, keep1, ep1) and \
+        (lens0, path0, refocus0, rest0) != (lens1, path1, refocus1, rest1)
 
 
 def _tick():
@@ -423,7 +461,10 @@ def _texture(image: np.ndarray):
         print(f"Lens Bokeh preview: the scene's view transform could not be baked ({e}); showing sRGB")
         rgba[..., :3] = dcdi_images.linear_to_srgb(np.clip(np.nan_to_num(image), 0.0, 1.0))
     buf = gpu.types.Buffer("FLOAT", h * w * 4, rgba[::-1].ravel())
-    return gpu.types.GPUTexture((w, h), format="RGBA16F", data=buf)
+    tex = gpu.types.GPUTexture((w, h), format="RGBA16F", data=buf)
+    if hasattr(tex, "filter_mode"):         # drawn over a larger frame: interpolated, not in blocks
+        tex.filter_mode(True)
+    return tex
 
 
 def _redraw(context) -> None:

@@ -272,16 +272,36 @@ class BokehResult:
     seconds: dict
 
 
-def _focus_note(depth, keep) -> str | None:
-    """A kept range where nothing in view lies: everything is out of focus."""
+# a depth blurred less than this (thin-lens blur diameter, px) is in focus: within the lens's depth of field
+IN_FOCUS_PX = 2.0
+
+
+def _focus_note(depth, keep, lens=None, pixel_pitch_mm=None, focus_m=None) -> str | None:
+    """What the user is told where nothing in view is in focus: nothing lies
+    in the kept range, nor within the lens's depth of field about the focus
+    (a thin-lens blur under ``IN_FOCUS_PX``; with a lens and pitch given):
+    the sharpest depth in view and its blur. None where something is sharp."""
     if keep is None:
         return None
     if int(((depth >= keep[0]) & (depth <= keep[1])).sum()):
         return None
-    finite = depth[np.isfinite(depth) & (depth > 0)]
+    valid = depth[depth > 0]
+    finite = valid[np.isfinite(valid)]
     seen = f"{finite.min():.2f}-{finite.max():.2f} m" if finite.size else "only background (infinity)"
-    return (f"nothing in view lies in the kept range {keep[0]:.2f}-{keep[1]:.2f} m (depths in view: {seen}): "
-            "everything is out of focus")
+    where = f"the kept range {keep[0]:.2f}-{keep[1]:.2f} m" if keep[1] > keep[0] else f"the focus {keep[0]:.2f} m"
+    sharpest = None
+    if lens is not None and pixel_pitch_mm is not None and valid.size:
+        inv = np.unique(np.where(np.isfinite(valid), 1.0 / valid, 0.0))
+        f = 0.0 if focus_m is None or not math.isfinite(float(focus_m)) else 1.0 / float(focus_m)
+        i = int(np.argmin(np.abs(inv - f)))
+        blur = widest_blur_px(lens, pixel_pitch_mm, focus_m, np.array([1.0 / inv[i] if inv[i] > 0 else np.inf]))
+        if blur is not None and blur < IN_FOCUS_PX:
+            return None                      # something lies within the lens's depth of field
+        if blur is not None:
+            d = "infinity" if inv[i] == 0 else f"{1.0 / inv[i]:.2f} m"
+            sharpest = f"the sharpest, at {d}, is blurred {blur:.0f} px"
+    return (f"nothing in view is in focus: nothing lies at {where} (depths in view: {seen}"
+            + (f"; {sharpest}" if sharpest else "") + "): everything is out of focus")
 
 
 def bokeh_plan(request: BokehRequest, shape):
@@ -298,7 +318,8 @@ def bokeh(request: BokehRequest, control: Control | None = None, *, cache: Sourc
     """Run a :class:`BokehRequest`. The PSF bins the scene blurs are built
     first (progress 'PSFs', cancel between bins), then the layers (progress
     'depth layers', cancel between them). The kernel grows to hold the blur
-    of the depths that get blurred (the kept ones are exactly sharp)."""
+    of the frame's depth bins (the kept ones too: the layers' patches at a
+    sharp subject's edge take their kernels from its bins)."""
     from ..render.bokeh import BokehOptions
     from ..render.bokeh import bokeh as render_bokeh
     from ..render.base import Cancelled as RenderCancelled
@@ -330,18 +351,32 @@ def bokeh(request: BokehRequest, control: Control | None = None, *, cache: Sourc
         if quality.planned:
             options = replace(options, settings=quality.apply(options.settings), coarse_blur=quality.coarse_blur,
                               support_eps=quality.support_eps)
-    src = _source(request.lens, plan.geometry, psf, cache, blurred if blurred.size else None, control)
+    # the kernel holds the blur of every bin the layers may take, the kept depths' too: a patch at a sharp
+    # subject's edge interpolates from their bins (a fast lens's halo near focus: the Summicron's needs 49 px)
+    valid = depth[depth > 0]
+    src = _source(request.lens, plan.geometry, psf, cache, valid if blurred.size else None, control)
     _mark_planned(src, quality)
-    ensure_bins(src.library, blurred, control)
-    t1 = time.perf_counter()
-    control.report("depth layers", 0, 1)
+    lib = src.library
+    # a kernel that clips is the large blur's to answer (render.bokeh): warned only where it did not
+    quiet = getattr(lib, "quiet_clipping", None)
+    if quiet is not None:
+        lib.quiet_clipping = True
     try:
+        ensure_bins(lib, blurred, control)
+        t1 = time.perf_counter()
+        control.report("depth layers", 0, 1)
         # progress: the PSFs a large blur traces at a coarser pitch (render.bokeh's large_blur), if any
-        r = render_bokeh(img, depth, request.lens, options, library=src.library, cancelled=control.cancelled,
+        r = render_bokeh(img, depth, request.lens, options, library=lib, cancelled=control.cancelled,
                          progress=control.counter("PSFs"), layer_progress=control.counter("depth layers"))
     except RenderCancelled:
         raise Cancelled("cancelled") from None
-    note = _focus_note(depth, keep)
+    finally:
+        if quiet is not None:
+            lib.quiet_clipping = quiet
+    clipped = None if quiet is None or r.info.get("large_blur_factor") else lib.clip_text()
+    if clipped:
+        lib.warn_if_clipped()
+    note = _focus_note(depth, keep, request.lens, plan.geometry.pixel_pitch_mm, options.focus_distance_m)
     if r.info.get("large_blur_factor"):
         f = r.info["large_blur_factor"]
         notes.append(f"{r.info['large_blur_layers']} depth layer(s) blurred beyond the {src.library.kernel_size}-px "
@@ -352,5 +387,7 @@ def bokeh(request: BokehRequest, control: Control | None = None, *, cache: Sourc
     notes += depth_notes(counts, f"the depth map of {request.image_name}", "left sharp")
     if focus_m != request.focus_m:
         counts["focus_used_m"] = float(focus_m)          # rounded within the request's focus tolerance
+    extra = {"clipped": clipped} if clipped else {}
     return BokehResult(r.image.astype(np.float32), r.sharp, r.depth, plan.geometry, src,
-                       {**r.info, **counts, **_quality_info(quality)}, notes + ([note] if note else []), seconds)
+                       {**r.info, **counts, **_quality_info(quality), **extra}, notes + ([note] if note else []),
+                       seconds)

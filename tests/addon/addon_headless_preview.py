@@ -68,6 +68,15 @@ bpy.context.view_layer.update()
 settle()
 res["idle_refreshes"] = len(P.log)
 
+# back to the first focus on the same render: from memory, no lens stage
+s.focus_distance = 1.0
+bpy.context.view_layer.update()
+settle()
+res["recalled"] = dict(snap("recalled"), log=P.log[-1].get("recalled", False))
+s.focus_distance = 2.5
+bpy.context.view_layer.update()
+settle()
+
 # a scene change (the cube moves): a new sharp render
 cube.location.x += 0.2
 bpy.context.view_layer.update()

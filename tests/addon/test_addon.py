@@ -212,18 +212,28 @@ def _detail(img):
 def test_a_focus_on_empty_space_blurs_everything():
     # a camera may focus where nothing lies: no error, everything out of focus, and a note saying so
     from dcdi_core.optics.lens import load_lens
+    # (a full-frame lens: a small sensor's 320 px hold 5 m within the depth of field of a 1.5 m focus)
     rng = np.random.default_rng(0)
     img = rng.random((240, 320, 3)).astype(np.float32)
-    lens = load_lens("mos-s1")
+    lens = load_lens("zeiss-sonnar-50mm-f1-5")
     out, info = logic.run_bokeh(img, np.full((240, 320), 5.0, np.float32), lens, focus_m=1.5, keep=(1.0, 2.0))
     assert info["kept_pixels"] == 0 and np.isfinite(out).all()
-    assert "nothing in view lies in the kept range 1.00-2.00 m" in info["focus_note"]
+    assert "nothing in view is in focus: nothing lies at the kept range 1.00-2.00 m" in info["focus_note"]
+    assert "the sharpest, at 5.00 m, is blurred" in info["focus_note"]
     assert "everything is out of focus" in info["focus_note"]
     assert _detail(out[16:-16, 16:-16]) < 0.5 * _detail(img[16:-16, 16:-16])       # measured: 0.12
     # in focus, the note is empty and the image stays sharp
     sharp, info2 = logic.run_bokeh(img, np.full((240, 320), 1.5, np.float32), lens, focus_m=1.5, keep=(1.0, 2.0))
     assert info2["focus_note"] == "" and info2["kept_pixels"] == 240 * 320
     assert _detail(sharp[16:-16, 16:-16]) > 0.9 * _detail(img[16:-16, 16:-16])
+    # kept sharp 0 / 0 (the lens alone): a subject within the lens's depth of field is in focus, no note;
+    # one far from any focus is told, with its blur
+    depth = np.full((240, 320), 5.0, np.float32)
+    depth[100:140, 140:180] = 1.52
+    _, near = logic.run_bokeh(img, depth, lens, focus_m=1.5, keep=(1.5, 1.5))
+    assert near["kept_pixels"] == 0 and near["focus_note"] == "", near["focus_note"]
+    _, far = logic.run_bokeh(img, np.full((240, 320), 5.0, np.float32), lens, focus_m=1.5, keep=(1.5, 1.5))
+    assert "nothing lies at the focus 1.50 m" in far["focus_note"] and "blurred" in far["focus_note"]
 
 
 def test_the_preview_and_apply_plan_their_psfs_by_their_error_budgets():
@@ -1292,7 +1302,7 @@ def test_the_status_describes_the_settings_as_they_are(panel_drawn):
 
 def test_the_focus_tooltip_speaks_an_artists_words(panel_drawn):
     tip = panel_drawn["focus_tooltip"]
-    assert "vertex" not in tip and "front of the lens" in tip, tip
+    assert "vertex" not in tip and "from the camera" in tip and "Depth of Field" in tip, tip
 
 
 def test_a_cameras_aperture_is_never_refused():
@@ -1302,7 +1312,7 @@ def test_a_cameras_aperture_is_never_refused():
     f/128."""
     lens = logic.load_lens_cached(dict((e.id, e.path) for e in logic.lens_catalogue())["mos-s1"])
     stopped, note = logic.camera_aperture(lens, 8.0, 6, math.radians(15.0))
-    assert stopped.iris == "f/8, 6 blades" and note == ""
+    assert stopped.iris == "f/8, 6 blades turned 15 deg" and note == ""
     stop = stopped.surfaces[stopped.stop_index]
     assert stop.blades == 6 and stop.blade_rotation_deg == pytest.approx(15.0)
     assert logic.camera_aperture(lens, 2.8, 0, 0.0) == (lens, "F-Stop 2.8 is wider than this lens's widest, "

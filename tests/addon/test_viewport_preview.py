@@ -17,6 +17,13 @@ def preview(addon_zip, tmp_path_factory):  # noqa: F811
     return run_headless("addon_headless_preview.py", addon_zip, tmp_path_factory.mktemp("preview"))
 
 
+def _pupil_m(preview) -> float:
+    """The 6P's entrance pupil behind its first vertex, metres: the panel's
+    Distance 1.0 (from the camera, as Blender measures) is the lens's focus
+    1.0 - this from its front."""
+    return 1.0 - preview["first"]["focus_m"]
+
+
 def test_the_first_result_is_the_lens_on_a_preview_render(preview):
     from blender_addon import logic
     first = preview["first"]
@@ -25,27 +32,34 @@ def test_the_first_result_is_the_lens_on_a_preview_render(preview):
     rgb, depth = np.load(preview["dir"] / "sharp_rgb.npy"), np.load(preview["dir"] / "sharp_depth.npy")
     assert img.shape == rgb.shape == (120, 160, 3)             # Preview Size 160 of a 640 x 480 render
     lens = logic.load_lens_cached(str(ROOT / "lenses" / "6p.toml"))
-    want, _ = logic.run_bokeh(rgb, depth, lens, focus_m=1.0, keep=tuple(first["keep_m"]))
+    want, _ = logic.run_bokeh(rgb, depth, lens, focus_m=first["focus_m"], keep=tuple(first["keep_m"]))
     assert np.abs(img - want).max() <= 1e-6 * max(1.0, float(want.max()))
     assert np.abs(img - rgb).mean() > 1e-3                     # blurred, not the render
 
 
 def test_a_focus_change_reruns_the_lens_stage_only(preview):
     f = preview["focus"]
-    assert preview["focus_pending"] and f["render_s"] == 0.0 and f["focus_m"] == 2.5 and f["refreshes"] == 2
+    assert preview["focus_pending"] and f["render_s"] == 0.0 and f["focus_m"] == pytest.approx(2.5 - _pupil_m(preview)) and f["refreshes"] == 2
     assert not np.array_equal(np.load(preview["dir"] / "focus.npy"), np.load(preview["dir"] / "first.npy"))
     assert preview["idle_refreshes"] == 2                      # an update that changes nothing: no refresh
 
 
+def test_a_focus_seen_before_comes_back_from_memory(preview):
+    """Back to the first focus on the same render: the result kept, no lens stage."""
+    r = preview["recalled"]
+    assert r["log"] is True and r["lens_s"] == 0.0 and r["focus_m"] == preview["first"]["focus_m"]
+    assert np.array_equal(np.load(preview["dir"] / "recalled.npy"), np.load(preview["dir"] / "first.npy"))
+
+
 def test_a_scene_change_renders_again(preview):
     sc = preview["scene"]
-    assert preview["scene_pending"] and sc["render_s"] > 0 and sc["refreshes"] == 3
+    assert preview["scene_pending"] and sc["render_s"] > 0 and sc["refreshes"] == 5
 
 
 def test_a_newer_change_drops_the_running_job(preview):
     c = preview["cancel"]
-    assert c["generation"] > c["started_generation"] and c["focus_m"] == 6.0
-    assert c["refreshes"] == 4                                # the dropped job's result was never shown
+    assert c["generation"] > c["started_generation"] and c["focus_m"] == pytest.approx(6.0 - _pupil_m(preview))
+    assert c["refreshes"] == 6                                # the dropped job's result was never shown
 
 
 def test_the_toggle_off_removes_the_handler_and_the_result(preview):
@@ -53,12 +67,9 @@ def test_the_toggle_off_removes_the_handler_and_the_result(preview):
 
 
 def test_focus_on_a_clicked_point_and_on_the_active_object(preview):
-    from dcdi_core.optics.lens import load_lens
-    from dcdi_core.optics.paraxial import first_order
-    ep = first_order(load_lens("6p")).entrance_pupil_position_mm
-    # the camera looks down -Z from the origin: a point 3 m away is 3 m minus the pupil's depth from the lens
+    # the camera looks down -Z from the origin: a point 3 m away is the Distance 3 m, as Blender measures it
     assert preview["pick"] == ["FINISHED"] and preview["pick_focus"]["mode"] == "DISTANCE"
-    assert preview["pick_focus"]["distance"] == pytest.approx(3.0 - ep / 1000.0, abs=1e-6)
+    assert preview["pick_focus"]["distance"] == pytest.approx(3.0, abs=1e-6)
     assert "behind the camera" in preview["pick_behind"]
     assert preview["active"] == ["FINISHED"] and preview["active_focus"] == {"mode": "OBJECT", "object": "Cube"}
 
@@ -138,3 +149,37 @@ def test_moved_objects_reach_the_workers_copy_as_placements(placed):
 
 def test_a_copy_without_a_moved_object_names_it(placed):
     assert placed["ghost"] == "ghost"
+
+
+@pytest.fixture(scope="module")
+def settings_run(addon_zip, tmp_path_factory):  # noqa: F811
+    pytest.importorskip("bpy")
+    return run_headless("addon_headless_settings.py", addon_zip, tmp_path_factory.mktemp("settings"))
+
+
+def test_the_focus_distance_is_measured_as_blenders_camera_measures_it(settings_run):
+    """The panel's Distance 2.0, the camera's own Depth of Field distance 2.0
+    and an object 2.0 in front of the camera focus alike: 2.0 from the
+    camera (the entrance pupil), the lens's front that much nearer."""
+    a = settings_run["agree"]
+    assert a["pupil_mm"] > 10.0                               # the Tessar's: the test can tell the two apart
+    for mode in ("distance", "camera", "object"):
+        assert a[mode] == pytest.approx(2.0 - a["pupil_mm"] / 1000.0, abs=1e-9), (mode, a)
+
+
+def test_every_setting_that_changes_the_picture_refreshes_the_preview(settings_run):
+    """Each property of the panel and of the camera's Depth of Field changes
+    what the preview shows (its keys, ``viewport.wanted``), except those
+    ``viewport`` documents as not in the preview; a property added to the
+    panel without a decision fails here. Blade Rotation included."""
+    r = settings_run
+    tried = set(r["panel"])
+    assert tried == set(r["panel_properties"]), set(r["panel_properties"]) ^ tried
+    for name, moved in r["panel"].items():
+        assert moved == (name not in r["not_in_preview"]), name
+    for name, moved in r["camera"].items():
+        assert moved == (name not in r["camera_not_in_preview"]), name
+    assert r["camera"]["aperture_rotation"]
+    shaping = {"focus_distance", "focus_object", "aperture_fstop", "aperture_blades", "aperture_rotation",
+               "use_dof", "aperture_ratio"}
+    assert shaping <= set(r["camera_properties"])

@@ -282,7 +282,7 @@ def test_tooltips_speak_plainly(panel_run):
     _, res = panel_run
     tips = res["tooltips"]
     assert [k for k, t in tips.items() if "vertex" in t.lower()] == []
-    assert "front of the lens" in tips["DCDI_LensBokehSettings.focus_distance"]
+    assert "from the camera" in tips["DCDI_LensBokehSettings.focus_distance"]
 
 
 def test_the_panel_is_captured(panel_run):

@@ -134,6 +134,7 @@ def capture(name: str) -> dict:
 def shown() -> dict:
     r = P.result
     return {"focus_m": r["info"]["focus_m"], "keep_m": r["info"]["keep_m"], "refocus": r["info"]["refocus"],
+            "pupil_mm": P.last_pupil_mm,
             "shape": list(r["image"].shape), "psf_source": r["info"].get("psf_source")}
 
 
@@ -270,6 +271,7 @@ def steps():
     RESULT["frame_10_focus"] = s.focus_distance
 
     yield from ui_changes()
+    yield from blade_rotation()
     yield from worker_fails()
     status.viewport_preview = False
     yield 0.2
@@ -289,6 +291,18 @@ def timeline():
                  if b - a > 0.1],
         "calls": [(round(a - t0, 3), round(d, 3), n, round(o, 3)) for a, d, n, o in CALLS.calls if d > 0.01],
         "draws": [round(d - t0, 3) for d in DRAWS], "starts": [(round(a - t0, 3), n) for a, n in STARTS]}))
+
+
+def blade_rotation():
+    """A catalogue lens stopped down to the camera's F-Stop with six blades,
+    then the blades turned: each refreshes the preview."""
+    def stopped_down():
+        s.lens = "zeiss-jena-tessar-50mm-f2-8"
+        cam.data.dof.aperture_fstop, cam.data.dof.aperture_blades = 8.0, 6
+        s.use_camera_aperture = True
+        yield 0.0
+    yield from change("camera aperture, 6 blades", "python", stopped_down)
+    yield from change("blade rotation", "python", python_set(cam.data.dof, "aperture_rotation", 0.5))
 
 
 def worker_fails():
