@@ -81,8 +81,40 @@ def lens_catalogue(extra_dirs=()) -> list[LensEntry]:
     bundled ``lenses/``) and in ``extra_dirs`` (the add-on's imported lenses);
     the first file of an id wins. A file whose name cannot be read is still
     listed (its error shows when it is chosen)."""
-    return [LensEntry(lens_id, _lens_name(Path(path)), path, lens_number(lens_id))
-            for lens_id, path in _lens_files(extra_dirs)]
+    entries = [LensEntry(lens_id, _lens_name(Path(path)), path, lens_number(lens_id))
+               for lens_id, path in _lens_files(extra_dirs)]
+    return sorted(entries, key=lambda e: _lens_order(Path(e.path)))
+
+
+MAKER_LIMIT = 40          # characters: a longer ``maker`` is not a maker's name (ignored)
+
+
+def _lens_order(p: Path) -> tuple:
+    """Where a lens stands in the list: the lenses of a maker first, by maker
+    and focal length (the file's stated one); then the designs and research
+    lenses (no maker: the paper's, textbook examples, imported files), by
+    focal length; then by name."""
+    maker, focal = _lens_facts(p)
+    return (0 if maker else 1, maker.lower(), focal, _lens_name(p).lower())
+
+
+def _lens_facts(p: Path) -> tuple[str, float]:
+    """(the file's ``maker``, or ''; its stated focal length in mm, or inf), read once per modification."""
+    facts = SESSION.lens_names
+    key = ("facts", str(p), p.stat().st_mtime_ns)
+    if key not in facts:
+        try:
+            with open(p, "rb") as f:
+                d = tomllib.load(f)
+        except (OSError, tomllib.TOMLDecodeError):
+            d = {}
+        maker = d.get("maker")
+        maker = maker.strip() if isinstance(maker, str) and len(maker.strip()) <= MAKER_LIMIT else ""
+        stated = d.get("stated") if isinstance(d.get("stated"), dict) else {}
+        focal = stated.get("effective_focal_length_mm")
+        ok = isinstance(focal, (int, float)) and not isinstance(focal, bool) and math.isfinite(focal) and focal > 0
+        facts[key] = (maker, float(focal) if ok else math.inf)
+    return facts[key]
 
 
 def lens_file(lens_id: str, extra_dirs=()) -> str | None:
@@ -121,7 +153,9 @@ def _lens_name(p: Path, limit: int = 28) -> str:
     system" -> "MOS-S1"), then a remark in brackets to its first part
     ("(H-K9L singlet, stop in front)" -> "(H-K9L singlet)"), then the
     remark. Never cut mid-word; the whole name is the list's tooltip. The
-    file's id where it has no name."""
+    file's id where it has no name. A file that names its ``maker`` is
+    listed under the maker's name first ("Zeiss Sonnar 50mm f/1.5"), as the
+    maker sells it, unless its name starts with it."""
     names = SESSION.lens_names
     key = (str(p), p.stat().st_mtime_ns)
     if key not in names:
@@ -133,6 +167,9 @@ def _lens_name(p: Path, limit: int = 28) -> str:
         if name is None:
             names[key] = f"{p.stem} (unreadable file)"
             return names[key]
+        maker = _lens_facts(p)[0]
+        if maker and name and not name.lower().startswith(maker.lower()):
+            name = f"{maker} {name}"            # as the maker sells it
 
         def tidy(text):
             return re.sub(r"\s+", " ", text).replace("( ", "(").replace(" )", ")").strip(" ,;:-")

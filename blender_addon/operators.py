@@ -4,11 +4,12 @@ Match Camera to Lens, Import Zemax File.
 Apply Lens Bokeh renders the active camera all-in-focus with depth (Cycles,
 preview resolution, in a temporary scene copy), then applies the lens's
 depth-aware bokeh with dcdi_core and shows the image "Lens Bokeh" (linear
-float) in the Image Editor. In the UI (invoke) the render runs first (about a
-second at the default preview size); the PSF build and the convolution run on
-a worker thread while a modal timer shows progress, Esc cancels. In
-background mode, and when called from a script with execute(), it all runs
-synchronously.
+float) in the Image Editor. In the UI (invoke) the render runs first, in the
+preview's render worker (a second Blender, ``render_worker``) where it runs,
+else on the main thread (about a second at the default preview size); the
+PSF build and the convolution run on a worker thread while a modal timer
+shows progress, Esc cancels. In background mode, and when called from a
+script with execute(), it all runs synchronously.
 
 Simulate Minimalist Lens renders the same way and shows the render as the
 chosen lens (as prescribed) would have taken it ("Lens Simulation",
@@ -33,6 +34,7 @@ from . import bpy_render, logic, reading, viewport
 from .session import SESSION
 
 AIF_IMAGE = "Lens Bokeh AiF"
+RENDER_WAIT_S = 60.0         # the longest a job waits for the render worker before rendering on the main thread
 DEPTH_IMAGE = "Lens Bokeh Depth"
 
 
@@ -41,32 +43,73 @@ def _user_errors():
     return (logic.BokehInputError, dcdi_errors.DcdiError, ValueError, OSError, RuntimeError)
 
 
-def render_inputs(context, scene_reading: "reading.SceneReading"):
+# how the last job's sharp render came ("kept": the preview's; "worker": the preview's render worker, a
+# second Blender; "main": this Blender's main thread), with its seconds: for the status and the UI tests
+LAST_RENDER: dict = {}
+
+
+def render_inputs(context, scene_reading: "reading.SceneReading", rendered=None):
     """The active camera rendered all-in-focus at the preview size: (rgb,
-    depth in metres from the lens's first vertex, seconds). The viewport
+    depth in metres from the lens's first vertex, seconds, how). The viewport
     preview's render where it is the scene's now (``viewport.kept_render``):
-    no render then, nothing on the main thread."""
+    no render then, nothing on the main thread; ``rendered``: (rgb, planar
+    Z, seconds) the render worker made for this job (:func:`ask_render`);
+    else rendered here, on the main thread."""
     r = scene_reading
     h, w = r.preview_shape()
     t0 = time.perf_counter()
     kept = viewport.kept_render(context)
-    rgb, z = kept if kept is not None else bpy_render.render_aif_depth(context.scene, r.camera, h, w, r.samples,
-                                                                       context.view_layer.name)
+    if kept is not None:
+        (rgb, z), how = kept, "kept"
+    elif rendered is not None:
+        rgb, z, seconds = rendered
+        how = "worker"
+    else:
+        rgb, z = bpy_render.render_aif_depth(context.scene, r.camera, h, w, r.samples, context.view_layer.name)
+        how = "main"
     depth = dcdi_camera.depth_from_planar_z(z, r.entrance_pupil_mm, r.metres_per_unit)
-    return rgb, depth, time.perf_counter() - t0, kept is not None
+    seconds = rendered[2] if how == "worker" else time.perf_counter() - t0
+    LAST_RENDER.clear()
+    LAST_RENDER.update(how=how, seconds=seconds)
+    return rgb, depth, seconds, how
+
+
+def ask_render(context):
+    """Ask the preview's render worker (a second Blender, ``render_worker``)
+    for this job's sharp render, so that the main thread does not hold
+    Blender for it: the request (``done``, then ``rgb``, ``z`` or
+    ``error``), 'busy' while the worker renders for the preview, or None
+    where it cannot (background, no worker running, the preview's render
+    is current: none is needed)."""
+    if bpy.app.background or viewport.kept_render(context) is not None:
+        return None
+    worker = viewport.preview().worker_renders
+    if not (worker.alive() and worker.ready.is_set()):
+        return None
+    if worker.busy():
+        return "busy"
+    r = reading.read_scene(context.scene)
+    h, w = r.preview_shape()
+    try:
+        return worker.request(context, context.scene, r.camera, h, w, r.samples, context.view_layer.name)
+    except (RuntimeError, OSError):
+        return None
 
 
 def _render_words(job) -> str:
     """How a job's sharp render came: 'render 1.2 s', or the preview's kept."""
-    return "the preview's render" if job.get("render_kept") else f"render {job['render_s']:.1f} s"
+    how = job.get("render_how")
+    if how == "kept":
+        return "the preview's render"
+    return f"render {job['render_s']:.1f} s" + (" in a second Blender" if how == "worker" else "")
 
 
-def prepare(context):
-    """Check the settings, render AiF + depth; returns the bokeh job's inputs."""
+def prepare(context, rendered=None):
+    """Check the settings, render AiF + depth (``render_inputs``); returns the bokeh job's inputs."""
     r = reading.read_scene(context.scene)
-    rgb, depth, seconds, kept = render_inputs(context, r)
+    rgb, depth, seconds, how = render_inputs(context, r, rendered)
     return {"rgb": rgb, "depth": depth, "lens": r.lens, "focus_m": r.focus_m, "keep": r.keep,
-            "refocus": r.refocus, "render_s": seconds, "render_kept": kept}
+            "refocus": r.refocus, "render_s": seconds, "render_how": how}
 
 
 def bokeh_of(job, **kw):
@@ -128,6 +171,7 @@ class _JobOperator:
 
     job_label = "Lens job"
     first_message = "rendering all-in-focus..."
+    renders = False                  # its prepare renders the camera (the render worker can, off the main thread)
 
     @classmethod
     def poll(cls, context):
@@ -164,6 +208,8 @@ class _JobOperator:
         # drawn before the first timer event prepares the job (its render, where one is needed, holds the
         # main thread: with Preview in Viewport on and current, none is; see render_inputs)
         self._worker = None
+        self._asked = None                   # the render worker's request for this job's render, while it runs
+        self._asked_at = time.perf_counter()
         st.running = True
         wm = context.window_manager
         self._timer = wm.event_timer_add(0.1, window=context.window)
@@ -175,12 +221,28 @@ class _JobOperator:
         return {"RUNNING_MODAL"}
 
     def _start(self, context):
-        """The first timer event: check and render (``prepare``), then the
-        heavy part on its thread. Returns None, or the modal's answer where
-        the job could not start."""
+        """A timer event before the job runs: its sharp render asked of the
+        render worker (a second Blender: the main thread is not held) and
+        waited for; then check and render (``prepare``, with that render, or
+        on the main thread where the worker cannot), then the heavy part on
+        its thread. Returns None, or the modal's answer where the job could
+        not start."""
         st = context.window_manager.dcdi_lens_bokeh_status
+        rendered = None
         try:
-            job = self.prepare(context)
+            if self.renders:
+                if self._asked is None or self._asked == "busy":
+                    waited = time.perf_counter() - self._asked_at
+                    self._asked = ask_render(context) if waited < RENDER_WAIT_S else None
+                    if self._asked is not None:
+                        return None                 # asked (or the preview's render first): the next events wait
+                elif not self._asked["done"].is_set():
+                    if time.perf_counter() - self._asked["t0"] < RENDER_WAIT_S:
+                        return None
+                    self._asked = None              # no answer: rendered here
+                elif "rgb" in self._asked:
+                    rendered = (self._asked["rgb"], self._asked["z"], self._asked["seconds"])
+            job = self.prepare(context, rendered) if self.renders else self.prepare(context)
         except _user_errors() as e:
             self._end(context)
             st.message = ""
@@ -218,8 +280,12 @@ class _JobOperator:
             return {"CANCELLED"}
         if event.type != "TIMER":
             return {"PASS_THROUGH"}
-        if w is None:                        # the first timer event: the click's status is drawn by now
-            return self._start(context) or {"RUNNING_MODAL"}
+        if w is None:                        # before the job runs: the click's status is drawn by now
+            answer = self._start(context)
+            if answer is None and self._worker is None:
+                st.message = f"rendering all-in-focus in a second Blender, {time.perf_counter() - self._asked_at:.0f} s"
+                _redraw(context)
+            return answer or {"RUNNING_MODAL"}
         if w.thread.is_alive():
             pct = 100.0 * w.fraction
             st.progress = pct
@@ -251,8 +317,10 @@ class DCDI_OT_apply_lens_bokeh(_JobOperator, bpy.types.Operator):
                                description=f"Also keep the all-in-focus render ({AIF_IMAGE!r}) and the depth in "
                                            f"metres ({DEPTH_IMAGE!r}) as images")
 
-    def prepare(self, context):
-        return prepare(context)
+    renders = True
+
+    def prepare(self, context, rendered=None):
+        return prepare(context, rendered)
 
     def compute(self, job, **kw):
         return bokeh_of(job, **kw)
@@ -270,12 +338,12 @@ CORRECTED_IMAGE = "Lens Corrected"
 # session's (SESSION.simulation: in memory only, dropped at unregister)
 
 
-def prepare_simulation(context):
-    """Check the settings and render AiF + depth for Simulate."""
+def prepare_simulation(context, rendered=None):
+    """Check the settings and render AiF + depth for Simulate (``render_inputs``)."""
     r = reading.read_scene(context.scene, focus=False)
-    rgb, depth, seconds, kept = render_inputs(context, r)
+    rgb, depth, seconds, how = render_inputs(context, r, rendered)
     return {"rgb": rgb, "depth": depth, "lens": r.lens, "noise": bool(context.scene.dcdi_lens_bokeh.sensor_noise),
-            "render_s": seconds, "render_kept": kept}
+            "render_s": seconds, "render_how": how}
 
 
 class DCDI_OT_simulate_lens(_JobOperator, bpy.types.Operator):
@@ -286,8 +354,10 @@ class DCDI_OT_simulate_lens(_JobOperator, bpy.types.Operator):
     bl_options = {"REGISTER"}
     job_label = "Lens Simulation"
 
-    def prepare(self, context):
-        return prepare_simulation(context)
+    renders = True
+
+    def prepare(self, context, rendered=None):
+        return prepare_simulation(context, rendered)
 
     def compute(self, job, **kw):
         return logic.run_simulation(job["rgb"], job["depth"], job["lens"], noise=job["noise"], **kw)

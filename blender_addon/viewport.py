@@ -189,7 +189,8 @@ class Preview:
             self.error = logic.message(e)
             _redraw(context)
             return None
-        return POLL_S if self.worker is not None or self.rendering is not None else None
+        busy = self.worker is not None or self.rendering is not None or self.changed_at is not None
+        return POLL_S if busy else None
 
     def _start(self, context) -> None:
         a = inputs(context)
@@ -199,6 +200,10 @@ class Preview:
             self.focus_changed_at = time.perf_counter()
         self.last_focus, self.last_pupil_mm = focus, a["entrance_pupil_mm"]
         if self.scene_changed or self.sharp is None or self.sharp["key"] != sharp_key:
+            if self.rendering is None and self.worker_renders.busy():
+                # the worker renders for a job (Apply, Simulate): this refresh waits for it, not the main thread
+                self.changed_at = time.perf_counter() - DEBOUNCE_S + POLL_S
+                return
             if self._ask_worker(context, scene, cam, a["h"], a["w"], s.samples, sharp_key):
                 self.scene_changed = False           # what changes from now on needs another render
                 return                               # the lens stage starts when the render is collected

@@ -26,7 +26,7 @@ from .surfaces import Surface
 
 D_LINE_NM = 587.5618
 
-_TOP_KEYS = {"schema_version", "id", "name", "source", "notes", "wavelength_nm",
+_TOP_KEYS = {"schema_version", "id", "name", "maker", "source", "notes", "wavelength_nm",
              "sensor", "stated", "surface"}
 _SENSOR_KEYS = {"semi_diagonal_mm", "resolution_px", "pixel_pitch_mm"}
 _STATED_KEYS = {"effective_focal_length_mm", "f_number", "field_of_view_deg",

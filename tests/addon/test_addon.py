@@ -1212,6 +1212,33 @@ def test_the_lens_list_names_lenses_whole_without_stated_figures():
         assert name != lens_id and "F/" not in name and len(name) <= 28, names
 
 
+def test_the_lens_list_is_sorted_by_maker_and_focal_length():
+    """The makers' lenses first, by maker and focal length, named as the
+    maker sells them; then the designs and research lenses (no maker)."""
+    entries = logic.lens_catalogue()
+    order = [logic._lens_order(__import__("pathlib").Path(e.path)) for e in entries]
+    assert order == sorted(order)
+    makers = [logic._lens_facts(__import__("pathlib").Path(e.path))[0] for e in entries]
+    first_research = makers.index("")
+    assert all(makers[:first_research]) and not any(makers[first_research:]), makers
+    names = {e.id: e.name for e in entries}
+    assert names["zeiss-sonnar-50mm-f1-5"] == "Zeiss Sonnar 50mm f/1.5"
+    assert names["nikkor-85mm-f1-4"] == "Nikon Nikkor 85mm f/1.4" and names["canon-fd-100mm-f2"] == "Canon FD 100mm f/2"
+    nikon = [e.id for e in entries if e.id.startswith(("nikkor", "nikon"))]
+    assert nikon == ["nikkor-24mm-f2", "nikon-retrofocus-28mm-f2-8", "nikkor-35mm-f2", "nikkor-85mm-f1-4",
+                     "nikkor-180mm-f2-8-ed"]
+    assert {"6p", "mos-s1", "mos-s2", "double-gauss"} <= {e.id for e in entries[first_research:]}
+
+
+def test_a_hostile_maker_is_no_maker(tmp_path):
+    from blender_addon import logic as lg
+    for i, maker in enumerate(("x" * 500, "[1, 2]", "{a = 1}")):
+        p = tmp_path / f"m{i}" / "x.toml"
+        p.parent.mkdir()
+        p.write_text(f'name = "Lens"\nmaker = {maker if maker[0] in "[{" else repr(maker)}\n')
+        assert lg._lens_facts(p) == ("", float("inf")) and lg._lens_name(p) == "Lens"
+
+
 def test_the_lens_name_is_shortened_by_whole_parts_only(tmp_path):
     from blender_addon import logic as lg
     cases = {"": "x", "A very long imported Zemax lens title with many words":

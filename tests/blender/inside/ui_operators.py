@@ -16,7 +16,8 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import ARGS, MODULE, OUT, RESULT, build_scene, diff, install, run_steps, snapshot, wait_until  # noqa
+from common import (ARGS, MODULE, OUT, RESULT, Heartbeat, build_scene, diff, install, run_steps, snapshot,  # noqa
+                    wait_until)
 
 import bpy  # noqa: E402
 import numpy as np  # noqa: E402
@@ -112,7 +113,33 @@ def steps():
         RESULT.setdefault("corrections", {})[method] = status.correction
     RESULT["new_images"] = sorted(i.name for i in bpy.data.images if i.name not in images0)
     s.lens, s.focus_distance, s.correction_method, s.refocus = "6p", 1.0, "AUTO", True
+    yield from apply_in_the_worker()
     RESULT["settings_diff"] = diff(before, state())
+
+
+def apply_in_the_worker():
+    """Apply at 640 px with the render worker running (as the panel starts
+    it): its render is made in the second Blender and the main thread keeps
+    answering (a heartbeat every 20 ms); then the same Apply without it,
+    rendered on the main thread, for comparison."""
+    viewport = importlib.import_module(f"{MODULE}.viewport")
+    operators = importlib.import_module(f"{MODULE}.operators")
+    worker = viewport.preview().worker_renders
+    heart = Heartbeat()
+    heart.start()
+    s.preview_size = 640
+    for how in ("worker", "main"):
+        if how == "worker":
+            worker.start()
+            yield from wait_until(lambda: worker.ready.is_set(), 60, 0.05)
+        else:
+            worker.stop()
+            yield 0.5
+        t = time.perf_counter()
+        yield from run_job(f"apply, render by the {how}", "apply_lens_bokeh")
+        RESULT.setdefault("apply_render", {})[how] = {"render": dict(operators.LAST_RENDER),
+                                                      "heartbeat": heart.longest(t)}
+    s.preview_size = 240
 
 
 run_steps(steps())
