@@ -283,8 +283,10 @@ class _JobOperator:
         if w is None:                        # before the job runs: the click's status is drawn by now
             answer = self._start(context)
             if answer is None and self._worker is None:
-                st.message = f"rendering all-in-focus in a second Blender, {time.perf_counter() - self._asked_at:.0f} s"
-                _redraw(context)
+                text = f"rendering all-in-focus in a second Blender, {time.perf_counter() - self._asked_at:.0f} s"
+                if text != st.message:           # redrawn once a second: the drawing's CPU goes to the render
+                    st.message = text
+                    _redraw(context)
             return answer or {"RUNNING_MODAL"}
         if w.thread.is_alive():
             pct = 100.0 * w.fraction

@@ -127,7 +127,7 @@ def apply_in_the_worker():
     worker = viewport.preview().worker_renders
     heart = Heartbeat()
     heart.start()
-    s.preview_size = 640
+    s.preview_size, s.samples = 640, 64              # a render that holds the main thread for seconds
     for how in ("worker", "main"):
         if how == "worker":
             worker.start()
@@ -139,7 +139,7 @@ def apply_in_the_worker():
         yield from run_job(f"apply, render by the {how}", "apply_lens_bokeh")
         RESULT.setdefault("apply_render", {})[how] = {"render": dict(operators.LAST_RENDER),
                                                       "heartbeat": heart.longest(t)}
-    s.preview_size = 240
+    s.preview_size, s.samples = 240, 4
 
 
 run_steps(steps())
