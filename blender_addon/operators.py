@@ -48,17 +48,18 @@ def _user_errors():
 LAST_RENDER: dict = {}
 
 
-def render_inputs(context, scene_reading: "reading.SceneReading", rendered=None):
+def render_inputs(context, scene_reading: "reading.SceneReading", rendered=None, render_size: bool = False):
     """The active camera rendered all-in-focus at the preview size: (rgb,
     depth in metres from the lens's first vertex, seconds, how). The viewport
     preview's render where it is the scene's now (``viewport.kept_render``):
     no render then, nothing on the main thread; ``rendered``: (rgb, planar
     Z, seconds) the render worker made for this job (:func:`ask_render`);
-    else rendered here, on the main thread."""
+    else rendered here, on the main thread. ``render_size``: at the scene's
+    render resolution (Apply at Render Size), not the preview's."""
     r = scene_reading
-    h, w = r.preview_shape()
+    h, w = r.job_shape(render_size)
     t0 = time.perf_counter()
-    kept = viewport.kept_render(context)
+    kept = None if render_size else viewport.kept_render(context)
     if kept is not None:
         (rgb, z), how = kept, "kept"
     elif rendered is not None:
@@ -74,14 +75,14 @@ def render_inputs(context, scene_reading: "reading.SceneReading", rendered=None)
     return rgb, depth, seconds, how
 
 
-def ask_render(context):
+def ask_render(context, render_size: bool = False):
     """Ask the preview's render worker (a second Blender, ``render_worker``)
     for this job's sharp render, so that the main thread does not hold
     Blender for it: the request (``done``, then ``rgb``, ``z`` or
     ``error``), 'busy' while the worker renders for the preview, or None
     where it cannot (background, no worker running, the preview's render
     is current: none is needed)."""
-    if bpy.app.background or viewport.kept_render(context) is not None:
+    if bpy.app.background or (not render_size and viewport.kept_render(context) is not None):
         return None
     worker = viewport.preview().worker_renders
     if not (worker.alive() and worker.ready.is_set()):
@@ -89,7 +90,7 @@ def ask_render(context):
     if worker.busy():
         return "busy"
     r = reading.read_scene(context.scene)
-    h, w = r.preview_shape()
+    h, w = r.job_shape(render_size)
     try:
         return worker.request(context, context.scene, r.camera, h, w, r.samples, context.view_layer.name)
     except (RuntimeError, OSError):
@@ -105,9 +106,10 @@ def _render_words(job) -> str:
 
 
 def prepare(context, rendered=None):
-    """Check the settings, render AiF + depth (``render_inputs``); returns the bokeh job's inputs."""
+    """Check the settings, render AiF + depth (``render_inputs``: at the
+    render's size where Apply at Render Size asks); returns the bokeh job's inputs."""
     r = reading.read_scene(context.scene)
-    rgb, depth, seconds, how = render_inputs(context, r, rendered)
+    rgb, depth, seconds, how = render_inputs(context, r, rendered, context.scene.dcdi_lens_bokeh.apply_render_size)
     return {"rgb": rgb, "depth": depth, "lens": r.lens, "focus_m": r.focus_m, "keep": r.keep,
             "refocus": r.refocus, "render_s": seconds, "render_how": how}
 
@@ -173,6 +175,10 @@ class _JobOperator:
     first_message = "rendering all-in-focus..."
     renders = False                  # its prepare renders the camera (the render worker can, off the main thread)
 
+    def renders_at_render_size(self, context) -> bool:
+        """Whether its render is at the scene's render resolution (else the preview's)."""
+        return False
+
     @classmethod
     def poll(cls, context):
         st = getattr(context.window_manager, "dcdi_lens_bokeh_status", None)
@@ -233,7 +239,8 @@ class _JobOperator:
             if self.renders:
                 if self._asked is None or self._asked == "busy":
                     waited = time.perf_counter() - self._asked_at
-                    self._asked = ask_render(context) if waited < RENDER_WAIT_S else None
+                    full = self.renders_at_render_size(context)
+                    self._asked = ask_render(context, full) if waited < RENDER_WAIT_S else None
                     if self._asked is not None:
                         return None                 # asked (or the preview's render first): the next events wait
                 elif not self._asked["done"].is_set():
@@ -320,6 +327,9 @@ class DCDI_OT_apply_lens_bokeh(_JobOperator, bpy.types.Operator):
                                            f"metres ({DEPTH_IMAGE!r}) as images")
 
     renders = True
+
+    def renders_at_render_size(self, context) -> bool:
+        return bool(context.scene.dcdi_lens_bokeh.apply_render_size)
 
     def prepare(self, context, rendered=None):
         return prepare(context, rendered)

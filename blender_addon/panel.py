@@ -294,6 +294,8 @@ def draw_lens_bokeh(layout, context, in_viewport: bool = True):
     row = layout.row()
     row.scale_y = 1.5
     row.operator("dcdi.apply_lens_bokeh", icon="RENDER_STILL")
+    # beside the button, an icon toggle (its tooltip says what): Apply at the render's resolution
+    row.prop(s, "apply_render_size", text="", icon="FULLSCREEN_ENTER")
     if st.running:
         # the status bar says "Esc cancels"; the slider keeps to stage and time
         layout.prop(st, "progress", text=(st.message or "working").split(" (")[0], slider=True)

@@ -100,6 +100,11 @@ class DCDI_LensBokehSettings(bpy.types.PropertyGroup):
                                                "fields) and the coarse layers are planned from the lens's measured "
                                                "error table. Higher is closer and slower; Apply and F12 take 40",
                                    default=30.0, min=20.0, max=80.0, soft_max=60.0, precision=0)
+    apply_render_size: BoolProperty(name="Apply at Render Size", default=False,
+                                    description="Apply Lens Bokeh renders at the scene's render resolution (Output > "
+                                                "Format, with its percentage) instead of the Preview Size, the "
+                                                "large blur included; its render runs in the preview's second "
+                                                "Blender where that runs")
     samples: IntProperty(update=_settings_changed, name="Samples", description="Cycles samples per pixel of the all-in-focus render "
                          "(denoised)", default=16, min=1, soft_max=256, max=16384)
     lens_in_renders: BoolProperty(name="Lens in Renders", default=False,

@@ -45,10 +45,19 @@ class SceneReading:
     samples: int
     aperture_note: str = ""          # why the camera's F-Stop was not used as it stands ('': it was, or not asked)
     preview_quality: float = 30.0    # the preview's error budget (dB; psf.budget)
+    render_percentage: int = 100     # the render's resolution percentage (Output > Format)
 
     def preview_shape(self) -> tuple[int, int]:
         """(height, width) of the preview: the render's aspect, its long side the Preview Size."""
         return logic.preview_shape(*self.render_size, self.preview_size)
+
+    def job_shape(self, render_size: bool) -> tuple[int, int]:
+        """(height, width) of a job's render: the preview's, or (``render_size``)
+        the scene's render resolution at its percentage."""
+        if not render_size:
+            return self.preview_shape()
+        x, y = self.render_size[:2]
+        return logic.preview_shape(*self.render_size, max(1, round(max(x, y) * self.render_percentage / 100.0)))
 
 
 def read_scene(scene, *, focus: bool = True, depsgraph=None, lens_path: str | None = None) -> SceneReading:
@@ -71,7 +80,7 @@ def read_scene(scene, *, focus: bool = True, depsgraph=None, lens_path: str | No
     r = scene.render
     return SceneReading(cam, lens, lens_path, ep, metres_per_unit(scene), focus_m, keep, bool(s.refocus),
                         (r.resolution_x, r.resolution_y, r.pixel_aspect_x, r.pixel_aspect_y), s.preview_size,
-                        s.samples, note, float(s.preview_quality))
+                        s.samples, note, float(s.preview_quality), int(r.resolution_percentage))
 
 
 # ------------------------------------------------------------------ the parts
@@ -193,7 +202,7 @@ def inputs_key(scene) -> str:
     parts = [s.lens, s.focus_mode, round(s.focus_distance, 9), placed(s.focus_object), s.refocus,
              round(s.keep_front, 9), round(s.keep_behind, 9), s.preview_size, round(s.preview_quality, 6), s.samples,
              s.sensor_noise,
-             s.correction_method, s.correction_model]
+             s.correction_method, s.correction_model, s.apply_render_size, scene.render.resolution_percentage]
     cam = scene.camera
     parts.append(placed(cam))
     if cam is not None and cam.type == "CAMERA":

@@ -62,7 +62,7 @@ FOCUS_PLANE_S = 2.0       # the focus plane stays drawn this long after a focus 
 # and Blender's camera Depth of Field settings the lens's own replace
 NOT_IN_PREVIEW = {"lens_in_renders": "what F12 does", "render_effect": "what F12 applies",
                   "sensor_noise": "Simulate Minimalist Lens's", "correction_method": "Correct Simulation's",
-                  "correction_model": "Correct Simulation's"}
+                  "correction_model": "Correct Simulation's", "apply_render_size": "Apply's size"}
 CAMERA_DOF_NOT_IN_PREVIEW = {"use_dof": "the lens's depth of field replaces Blender's",
                              "aperture_ratio": "an anamorphic bokeh's squeeze: the lens's own stop is round or "
                                                "bladed"}

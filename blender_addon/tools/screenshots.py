@@ -12,9 +12,13 @@ progress, modal timer), and saves two screenshots: ``addon-running.png``
 (progress readout while the PSFs are built), ``addon-result.png`` (the
 "Lens Bokeh" image in an Image Editor), ``addon-preview.png`` (Preview in
 Viewport over the camera view) and ``addon-focus-plane.png`` (the focus
-plane after a focus change), each a capture of the X screen (ImageMagick's
+plane after a focus change), ``addon-preview-320.png`` and
+``addon-preview-640.png`` (the preview through the Sonnar 50/1.5 wide
+open at those sizes), each a capture of the X screen (ImageMagick's
 ``import -window root``: Blender's own screenshot is black under software
-OpenGL); then it runs once more synchronously
+OpenGL); ``addon-f12-balls.png``, a crop of an F12 render through the
+Mamiya 150 mm with Lens in Renders (the lights' balls, saved through the
+scene's view transform); then it runs once more synchronously
 (warm cache) and starts a run at another focus distance (a cold library) and
 presses Esc during it (Blender's event simulation), printing the panel's
 state afterwards. The PSF cache is a fresh temporary folder, so the first run
@@ -116,6 +120,22 @@ def build_scene():
         ob.name = f"Sphere {dist:g} m"
         ob.data.materials.append(_material(bpy, ob.name, colours[i], checker=8.0))
         ob.color = colours[i]                                 # the solid viewport's object colour
+    # a string of small bright lights 9-12 m away: the balls a long lens's F12 shows
+    glow = bpy.data.materials.new("bulb")
+    glow.use_nodes = True
+    nt = glow.node_tree
+    emit = nt.nodes.new("ShaderNodeEmission")
+    emit.inputs["Color"].default_value = (1.0, 0.78, 0.45, 1.0)
+    emit.inputs["Strength"].default_value = 60.0
+    nt.links.new(emit.outputs["Emission"], nt.nodes["Material Output"].inputs["Surface"])
+    for k in range(18):
+        dist = 9.0 + 3.0 * (k % 6) / 5.0
+        bpy.ops.mesh.primitive_uv_sphere_add(radius=0.025, location=(-2.2 + 0.26 * k, dist, 1.1 + 0.25 * ((k % 3) - 1)),
+                                             segments=12, ring_count=6)
+        ob = bpy.context.object
+        ob.name = f"Bulb {k}"
+        ob.data.materials.append(glow)
+        ob.color = (1.0, 0.8, 0.4, 1.0)
     sun = bpy.data.objects.new("Sun", bpy.data.lights.new("Sun", "SUN"))
     sun.data.energy = 3.0
     sun.rotation_euler = (math.radians(40), 0.0, math.radians(30))
@@ -141,6 +161,7 @@ def _install(bpy, zip_path):
 
 def shoot():
     import bpy
+    import numpy as np
     a = _args()
     if a["numpy_path"]:
         sys.path.insert(0, a["numpy_path"])
@@ -330,7 +351,51 @@ def shoot():
             viewport = sys.modules[module + ".viewport"]
             if len(viewport.preview().log) <= state["n"]:
                 return 0.1
-            st.viewport_preview = False
+            # the preview through a fast catalogue lens at two sizes: what its bokeh looks like there
+            cols["image"].type = "IMAGE_EDITOR"
+            s.lens, s.focus_mode, s.focus_object = "zeiss-sonnar-50mm-f1-5", "OBJECT", bpy.data.objects["Sphere 2 m"]
+            s.keep_front = s.keep_behind = 0.0
+            state["phase"], state["sizes"], state["n"] = "sizes", [320, 640], len(viewport.preview().log)
+            return 0.5
+        if state["phase"] == "sizes":
+            viewport = sys.modules[module + ".viewport"]
+            p = viewport.preview()
+            if state.get("size") is None:
+                state["size"] = state["sizes"].pop(0)
+                s.preview_size, state["n"] = state["size"], len(p.log)
+                return 0.3
+            if len(p.log) <= state["n"] or p.worker is not None or p.changed_at is not None:
+                return 0.1
+            shot(f"addon-preview-{state['size']}.png")
+            state["size"] = None
+            if not state["sizes"]:
+                st.viewport_preview = False
+                state["phase"] = "f12"
+            return 1.0
+        if state["phase"] == "f12":
+            # F12 through a long lens (Lens in Renders): a crop of the lights' balls, as the render shows them
+            s.lens, s.focus_object = "mamiya-sekor-sf-150mm-f4", bpy.data.objects["Sphere 3.5 m"]
+            s.lens_in_renders = True
+            scene.render.use_lock_interface = True
+            scene.render.resolution_x, scene.render.resolution_y = 1920, 1080
+            t = time.perf_counter()
+            bpy.ops.render.render()
+            print(f"screenshots: F12 with Lens in Renders took {time.perf_counter() - t:.1f} s: "
+                  f"{ctx.window_manager.dcdi_lens_bokeh_status.render_message!r}", flush=True)
+            src = bpy.data.images.get("Lens Render")
+            if src is not None:
+                w, h = src.size
+                px = np.empty(w * h * 4, np.float32)
+                src.pixels.foreach_get(px)
+                px = px.reshape(h, w, 4)
+                y0, x0 = int(0.52 * h), int(0.15 * w)          # the lights' row (rows bottom up), its left part
+                crop = np.ascontiguousarray(px[y0:y0 + 360, x0:x0 + 640])
+                img = bpy.data.images.new("F12 crop", crop.shape[1], crop.shape[0], float_buffer=True)
+                img.pixels.foreach_set(crop.ravel())
+                img.save_render(str(Path(a["out"]) / "addon-f12-balls.png"), scene=scene)
+                print("screenshots: saved addon-f12-balls.png", flush=True)
+            s.lens_in_renders = False
+            s.lens = "6p"
             state["phase"] = "warm"
             return 1.0
         if state["phase"] == "warm":

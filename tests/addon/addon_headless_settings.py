@@ -74,6 +74,7 @@ PANEL = {
     "sensor_noise": (mode("DISTANCE"), assign(s, "sensor_noise", True)),
     "correction_method": (mode("DISTANCE"), assign(s, "correction_method", "DECONVOLUTION")),
     "correction_model": (mode("DISTANCE"), assign(s, "correction_model", "/nowhere/model.npz")),
+    "apply_render_size": (mode("DISTANCE"), assign(s, "apply_render_size", True)),
 }
 CAMERA = {
     "focus_distance": (mode("CAMERA"), assign(dof, "focus_distance", 4.4)),
@@ -111,4 +112,11 @@ res = {"panel": {k: changed(*v) for k, v in PANEL.items()},
        "camera_properties": sorted(p.identifier for p in dof.bl_rna.properties if p.identifier != "rna_type"),
        "not_in_preview": sorted(viewport.NOT_IN_PREVIEW), "camera_not_in_preview": sorted(viewport.CAMERA_DOF_NOT_IN_PREVIEW)}
 res["agree"] = agreeing()
+# Apply at Render Size: the result at the render's resolution and percentage, not the Preview Size
+s.focus_mode, s.lens, s.use_camera_aperture = "DISTANCE", "zeiss-jena-tessar-50mm-f2-8", False
+s.preview_size, s.samples, s.apply_render_size = 64, 2, True
+scene.render.resolution_percentage = 50
+res["apply_render_size"] = sorted(bpy.ops.dcdi.apply_lens_bokeh())
+res["apply_image"] = list(bpy.data.images["Lens Bokeh"].size)
+res["render_size"] = [scene.render.resolution_x, scene.render.resolution_y]
 (OUT / "result.json").write_text(json.dumps(res))

@@ -157,6 +157,14 @@ def settings_run(addon_zip, tmp_path_factory):  # noqa: F811
     return run_headless("addon_headless_settings.py", addon_zip, tmp_path_factory.mktemp("settings"))
 
 
+def test_apply_at_render_size_gives_the_renders_resolution(settings_run):
+    """Apply at Render Size: the result at the scene's resolution times its
+    percentage (640 x 480 at 50 %), not the Preview Size (64)."""
+    r = settings_run
+    assert r["apply_render_size"] == ["FINISHED"]
+    assert r["apply_image"] == [r["render_size"][0] // 2, r["render_size"][1] // 2], r
+
+
 def test_the_focus_distance_is_measured_as_blenders_camera_measures_it(settings_run):
     """The panel's Distance 2.0, the camera's own Depth of Field distance 2.0
     and an object 2.0 in front of the camera focus alike: 2.0 from the
