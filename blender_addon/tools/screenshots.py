@@ -366,14 +366,15 @@ def shoot():
                 return 0.3
             if len(p.log) <= state["n"] or p.worker is not None or p.changed_at is not None:
                 return 0.1
-            shot(f"addon-preview-{state['size']}.png")
+            shot(f"addon-preview-{state['size']}.png")       # taken at the next tick: the preview stays on
             state["size"] = None
             if not state["sizes"]:
-                st.viewport_preview = False
                 state["phase"] = "f12"
             return 1.0
         if state["phase"] == "f12":
             # F12 through a long lens (Lens in Renders): a crop of the lights' balls, as the render shows them
+            st.viewport_preview = False
+            scene.cycles.samples = 32
             s.lens, s.focus_object = "mamiya-sekor-sf-150mm-f4", bpy.data.objects["Sphere 3.5 m"]
             s.lens_in_renders = True
             scene.render.use_lock_interface = True
@@ -382,7 +383,12 @@ def shoot():
             bpy.ops.render.render()
             print(f"screenshots: F12 with Lens in Renders took {time.perf_counter() - t:.1f} s: "
                   f"{ctx.window_manager.dcdi_lens_bokeh_status.render_message!r}", flush=True)
-            src = bpy.data.images.get("Lens Render")
+            state["phase"], state["t0"] = "f12-crop", time.perf_counter()
+            return 0.5
+        if state["phase"] == "f12-crop":
+            src = bpy.data.images.get("Lens Render")        # made on the main thread after the render
+            if src is None and time.perf_counter() - state["t0"] < 30.0:
+                return 0.5
             if src is not None:
                 w, h = src.size
                 px = np.empty(w * h * 4, np.float32)
