@@ -8,22 +8,29 @@ How a frame gets the lens, in the handlers' order:
   their former values kept: the Z pass on every view layer, the cameras'
   own depth of field off (the lens adds the blur), the interface locked
   (the handlers read the scene while Blender renders), and a compositor of
-  ours in place of the scene's, which writes Combined and Depth to a
-  32-bit EXR in a temporary folder and passes Combined through unchanged.
+  ours in place of the scene's, which writes Combined and Depth (and every
+  pass the scene's compositor reads) to 32-bit EXRs in a temporary folder
+  and passes Combined through unchanged. Where the scene's compositor
+  changes the frame, a copy of it is handed to a helper Blender
+  (``compositor``), started now.
 - ``frame_change_post`` (animations): the frame's focus from the render's
   own evaluated data, so an animated focus distance, focus object or
   camera is followed frame by frame.
 - ``render_post``: the lens on the passes (``logic.lens_frame``: the
   bokeh, or the whole lens), the PSFs kept for the next frame with the same
-  focus; a still's result goes to the image "Lens Render".
+  focus; then the scene's compositor on the lens's frame (the helper), so
+  that glare, grading or any node of the user's applies to what the lens
+  made; a still's result goes to the image "Lens Render".
 - ``render_write``: the lens's frame written over the file Blender just
   wrote, in the scene's format and colour management.
 - ``render_complete`` / ``render_cancel``: every changed setting restored,
   our compositor and temporary files removed.
 
 Movie outputs are refused (Blender streams those frames as it renders):
-the status line says to render an image sequence. Compositor effects of
-the scene's own node tree are not applied on top of the lens.
+the status line says to render an image sequence. A compositor that cannot
+be kept (Render Layers inside a node group, no Blender to run it in) is
+said in the render line and the console: the frame is then the lens's
+without it.
 """
 from __future__ import annotations
 
@@ -40,7 +47,7 @@ from bpy.app.handlers import persistent
 from dcdi_core import errors as dcdi_errors
 from dcdi_core.io import rawexr
 
-from . import bpy_render, logic, reading
+from . import bpy_render, compositor, logic, reading
 from .session import SESSION
 
 RESULT_IMAGE = bpy_render.RESULT_IMAGE_RENDER
@@ -63,6 +70,10 @@ class _LensRender:
         self.frames: list[dict] = []          # per frame: frame, focus, keep, seconds, PSF source
         self.error: str | None = None
         self.lens = self.lens_path = None
+        self.layer = ""                       # the view layer the lens reads (the active one)
+        self.sources: list[compositor.Source] = []     # the view layers whose passes are written
+        self.compositor: compositor.Compositor | None = None
+        self.compositor_note = ""             # why the scene's compositor is not applied ("": kept, or none)
 
     def set(self, owner, attribute: str, value) -> None:
         """``owner.attribute = value``, the former value kept for restore()."""
@@ -76,6 +87,9 @@ class _LensRender:
             except (ReferenceError, AttributeError, TypeError):
                 pass                          # the owner was deleted during the render
         self.saved.clear()
+        if self.compositor is not None:
+            self.compositor.stop()
+            self.compositor = None
         if self.group is not None:
             try:
                 bpy.data.node_groups.remove(self.group)
@@ -115,29 +129,70 @@ def blocker(scene) -> str | None:
 
 # ------------------------------------------------------------------ set-up and restore
 def _passes_compositor(run: _LensRender, scene) -> None:
-    """A compositor of ours for this render: Render Layers -> File Output
-    (Combined + Depth, 32-bit uncompressed EXR in the run's folder) and
+    """A compositor of ours for this render: for each view layer of
+    ``run.sources``, Render Layers -> File Output (its passes, 32-bit
+    uncompressed EXR in a folder of its own), and the lens's layer's
     Combined -> Group Output (the frame Blender writes, replaced later)."""
     g = bpy.data.node_groups.new(GROUP, "CompositorNodeTree")
     run.group = g
-    rl = g.nodes.new("CompositorNodeRLayers")
-    rl.scene = scene
-    layer = bpy.context.view_layer if bpy.context.view_layer in tuple(scene.view_layers) else None
-    rl.layer = (layer or next((v for v in scene.view_layers if v.use), scene.view_layers[0])).name
-    fo = g.nodes.new("CompositorNodeOutputFile")
-    fo.directory = str(run.passes_dir) + os.sep
-    fo.file_name = "passes"
-    bpy_render.set_multilayer_exr(fo.format)
-    fo.file_output_items.clear()
-    fo.file_output_items.new("RGBA", "Image")
-    fo.file_output_items.new("FLOAT", "Depth")
-    g.links.new(rl.outputs["Image"], fo.inputs["Image"])
-    g.links.new(rl.outputs["Depth"], fo.inputs["Depth"])
+    lens_rl = None
+    for i, src in enumerate(run.sources):
+        rl = g.nodes.new("CompositorNodeRLayers")
+        rl.scene = bpy.data.scenes[src.scene]
+        rl.layer = src.layer
+        fo = g.nodes.new("CompositorNodeOutputFile")
+        fo.directory = str(run.passes_dir / f"layer-{i}") + os.sep
+        fo.file_name = "passes"
+        bpy_render.set_multilayer_exr(fo.format)
+        fo.file_output_items.clear()
+        for name, kind in src.passes.items():
+            fo.file_output_items.new(compositor.ITEM_TYPE[kind], name)
+            g.links.new(rl.outputs[name], fo.inputs[name])
+        if i == 0:
+            lens_rl = rl
     g.interface.new_socket("Image", in_out="OUTPUT", socket_type="NodeSocketColor")
     out = g.nodes.new("NodeGroupOutput")
-    g.links.new(rl.outputs["Image"], out.inputs[0])
+    g.links.new(lens_rl.outputs["Image"], out.inputs[0])
     run.set(scene, "compositing_node_group", g)
     run.set(scene.render, "use_compositing", True)
+
+
+def _sources(run: _LensRender, scene, tree) -> list:
+    """The view layers whose passes this render writes: first the lens's
+    (Combined and Depth), then those the scene's compositor ``tree`` reads
+    (a layer of this scene also gets Combined and Depth: the lens is applied
+    to it too)."""
+    lens_pass = {"Image": "RGBA", "Depth": "VALUE"}
+    first = compositor.Source(scene.name, run.layer, dict(lens_pass))
+    out = [first]
+    for src in compositor.sources(tree, scene) if tree is not None else ():
+        own = src.scene == scene.name
+        if (src.scene, src.layer) == (first.scene, first.layer):
+            first.passes.update(src.passes)
+            continue
+        out.append(compositor.Source(src.scene, src.layer, {**src.passes, **(lens_pass if own else {})}))
+    return out
+
+
+def _keep_compositor(run: _LensRender, scene):
+    """The scene's compositor tree where it is kept for this render (its
+    helper started), else None (``run.compositor_note`` says why, if any)."""
+    tree = compositor.user_tree(scene)
+    if tree is None:
+        return None
+    nested = compositor.nested_render_layers(tree)
+    if nested:
+        run.compositor_note = (f"the scene's compositor is not applied: its node group '{nested}' reads "
+                               "Render Layers (place them in the compositor itself)")
+        return None
+    folder = run.passes_dir / "compositor"
+    folder.mkdir()
+    try:
+        run.compositor = compositor.Compositor.start(scene, tree, folder)
+    except (RuntimeError, OSError, ValueError, KeyError) as e:
+        run.compositor_note = f"the scene's compositor is not applied: {e}"
+        return None
+    return tree
 
 
 def _start(scene) -> _LensRender:
@@ -150,6 +205,10 @@ def _start(scene) -> _LensRender:
         for cam in {o.data for o in scene.objects if o.type == "CAMERA"}:
             run.set(cam.dof, "use_dof", False)
         run.set(scene.render, "use_lock_interface", True)
+        layer = bpy.context.view_layer if bpy.context.view_layer in tuple(scene.view_layers) else None
+        run.layer = (layer or next((v for v in scene.view_layers if v.use), scene.view_layers[0])).name
+        tree = _keep_compositor(run, scene)
+        run.sources = _sources(run, scene, tree)
         _passes_compositor(run, scene)
         run.focus_by_frame[scene.frame_current] = (first.focus_m, first.keep)
     except BaseException:
@@ -172,21 +231,45 @@ def _request(scene, run: _LensRender, frame: int) -> logic.FrameRequest:
                               logic.lens_readout(run.lens_path)["entrance_pupil_mm"], reading.metres_per_unit(scene))
 
 
-def _read_passes(run: _LensRender):
-    """(rgb, z) of the EXR our compositor wrote for this frame (then removed)."""
-    files = sorted(run.passes_dir.glob("*.exr"), key=lambda p: p.stat().st_mtime_ns)
-    if not files:
-        raise RuntimeError("the compositor wrote no passes for this frame (is compositing disabled by "
-                           "the command line, or the render cancelled?)")
-    try:
-        ch = rawexr.read_exr_channels(files[-1])
-    finally:
-        for p in files:
-            p.unlink(missing_ok=True)
-    if "Image.R" not in ch or "Depth.V" not in ch:
-        raise RuntimeError(f"the passes file has no Image and Depth (channels: {sorted(ch)[:8]})")
-    rgb = np.stack([ch[f"Image.{c}"] for c in "RGB"], axis=-1).astype(np.float32)
-    return rgb, ch["Depth.V"].astype(np.float32)
+def _read_passes(run: _LensRender) -> dict:
+    """{(scene, layer): {pass: (H, W, k) array}} of the EXRs our compositor
+    wrote for this frame (then removed)."""
+    out = {}
+    for i, src in enumerate(run.sources):
+        files = sorted((run.passes_dir / f"layer-{i}").glob("*.exr"), key=lambda p: p.stat().st_mtime_ns)
+        if not files:
+            raise RuntimeError(f"the compositor wrote no passes of view layer '{src.layer}' for this frame (is "
+                               "compositing disabled by the command line, or the render cancelled?)")
+        try:
+            passes = compositor.split_passes(rawexr.read_exr_channels(files[-1]))
+        finally:
+            for p in files:
+                p.unlink(missing_ok=True)
+        missing = sorted(set(src.passes) - set(passes))
+        if missing:
+            raise RuntimeError(f"the passes file of view layer '{src.layer}' lacks {', '.join(missing)} "
+                               f"(it has: {', '.join(sorted(passes)[:8])})")
+        out[(src.scene, src.layer)] = passes
+    return out
+
+
+def _lens_passes(run: _LensRender, passes: dict, req) -> tuple:
+    """The lens on the Combined pass of each of the scene's layers in
+    ``passes`` (in place, alpha kept): returns the lens's layer's
+    (rgb, z, lens result, info)."""
+    first = run.sources[0]
+    result = info = None
+    for src in run.sources:
+        if src.scene != first.scene or "Depth" not in src.passes:
+            continue                          # another scene's layer: as rendered
+        layer = passes[(src.scene, src.layer)]
+        rgb = np.ascontiguousarray(layer["Image"][..., :3], np.float32)
+        z = layer["Depth"][..., 0].astype(np.float32)
+        out, _, got = logic.lens_frame(rgb, z, run.lens, req)
+        if src is first:
+            result, info, first_rgb, first_z = out, got, rgb, z
+        layer["Image"] = np.concatenate([out, layer["Image"][..., 3:]], axis=-1)
+    return first_rgb, first_z, result, info
 
 
 # ------------------------------------------------------------------ the handlers
@@ -209,6 +292,8 @@ def on_render_init(scene, *_):
         _status(f"Lens in Renders not applied: {logic.message(e)}")
         print(f"dcdi: Lens in Renders not applied: {logic.message(e)}")
         return
+    if SESSION.render_run.compositor_note:
+        print(f"dcdi: Lens in Renders: {SESSION.render_run.compositor_note}")
     _status("Lens in Renders: rendering...")
 
 
@@ -231,9 +316,11 @@ def on_render_post(scene, *_):
     frame = scene.frame_current
     t0 = time.perf_counter()
     try:
-        rgb, z = _read_passes(run)
+        passes = _read_passes(run)
         req = _request(scene, run, frame)
-        out, _, info = logic.lens_frame(rgb, z, run.lens, req)
+        rgb, z, out, info = _lens_passes(run, passes, req)
+        if run.compositor is not None:
+            out = _composite(run, frame, passes, out)
     except (logic.BokehInputError, dcdi_errors.DcdiError, RuntimeError, ValueError, OSError) as e:
         run.error = f"frame {frame}: {logic.message(e)}"
         print(f"dcdi: Lens in Renders: {run.error}; the frame is left as rendered")
@@ -244,16 +331,32 @@ def on_render_post(scene, *_):
     run.frames.append({"frame": frame, "focus_m": req.focus_m, "focus_used_m": info.get("focus_used_m", req.focus_m),
                        "keep_m": list(req.keep), "effect": req.effect,
                        "seconds": seconds, "psf_source": info.get("psf_source"),
-                       "focus_note": info.get("focus_note", ""), "clipped": info.get("clipped")})
+                       "focus_note": info.get("focus_note", ""), "clipped": info.get("clipped"),
+                       "compositor": "applied" if run.compositor is not None else run.compositor_note or None})
     SESSION.last_render = {"frames": run.frames, "error": run.error, "last_image": out, "last_passes": (rgb, z)}
     # a kernel left clipping the blur (no large blur answered it) is said in the render line, not only the console
     clipped = f"; blur clipped: {info['clipped'].split(': ', 1)[-1]}" if info.get("clipped") else ""
     camera_m = req.focus_m + req.entrance_pupil_mm / 1000.0        # from the camera, as the panel's Distance
-    _status(f"Lens in Renders: frame {frame}, focus {camera_m:.2f} m, lens {seconds:.1f} s{clipped}")
+    comp = "; compositor applied after the lens" if run.compositor is not None else ""
+    note = f"; {run.compositor_note}" if run.compositor_note else ""
+    _status(f"Lens in Renders: frame {frame}, focus {camera_m:.2f} m, lens {seconds:.1f} s{comp}{clipped}{note}")
     if bpy.app.background:
         bpy_render.put_image(RESULT_IMAGE, out)
     else:                                    # images are made on the main thread
         bpy.app.timers.register(lambda out=out: _show(out), first_interval=0.0)
+
+
+def _composite(run: _LensRender, frame: int, passes: dict, lens_out: np.ndarray) -> np.ndarray:
+    """The scene's compositor on the lens's passes: the frame's RGB. Where
+    it fails, the lens's frame without it (said in the render line)."""
+    try:
+        return run.compositor.composite(frame, passes)[..., :3]
+    except (RuntimeError, OSError, ValueError) as e:
+        run.compositor_note = f"the scene's compositor is not applied: {e}"
+        print(f"dcdi: Lens in Renders: frame {frame}: {run.compositor_note}")
+        run.compositor.stop()
+        run.compositor = None
+        return lens_out
 
 
 def _show(out):

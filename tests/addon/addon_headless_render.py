@@ -85,6 +85,41 @@ counts1 = data_counts()
 res["new_data"] = {k: counts1[k] - counts0.get(k, 0) for k in counts1 if counts1[k] != counts0.get(k, 0)}
 res["images"] = sorted(i.name for i in bpy.data.images)
 
+# 1b. the scene's own compositor, kept: Invert on the lens's frame, and a File Output of the Depth pass
+tree = bpy.data.node_groups.new("user compositor", "CompositorNodeTree")
+scene.view_layers[0].use_pass_z = True             # the user's tree reads the Depth pass
+rl = tree.nodes.new("CompositorNodeRLayers")
+rl.scene = scene
+inv = tree.nodes.new("CompositorNodeInvert")
+tree.interface.new_socket("Image", in_out="OUTPUT", socket_type="NodeSocketColor")
+gout = tree.nodes.new("NodeGroupOutput")
+tree.links.new(rl.outputs["Image"], inv.inputs["Color"])
+tree.links.new(inv.outputs[0], gout.inputs[0])
+fo = tree.nodes.new("CompositorNodeOutputFile")
+fo.directory = str(OUT / "user-files") + os.sep
+fo.file_name = "depth"
+fo.file_output_items.clear()
+fo.file_output_items.new("FLOAT", "Depth")
+tree.links.new(rl.outputs["Depth"], fo.inputs["Depth"])
+scene.compositing_node_group = tree
+r.filepath = str(OUT / "still_comp.exr")
+bpy.ops.render.render(write_still=True)
+res["comp"] = {"frames": LAST().get("frames"), "error": LAST().get("error"),
+               "tree_kept": scene.compositing_node_group == tree, "groups": sorted(g.name for g in bpy.data.node_groups),
+               "images": sorted(i.name for i in bpy.data.images),
+               "user_files": sorted(p.name for p in (OUT / "user-files").glob("*"))}
+# a node group reading Render Layers cannot be fed: said, and the lens's frame written without it
+inner = bpy.data.node_groups.new("inner", "CompositorNodeTree")
+inner.nodes.new("CompositorNodeRLayers")
+grp = tree.nodes.new("CompositorNodeGroup")
+grp.node_tree = inner
+r.filepath = str(OUT / "still_nested.exr")
+bpy.ops.render.render(write_still=True)
+res["nested"] = {"frames": LAST().get("frames"), "error": LAST().get("error")}
+scene.compositing_node_group = None
+for g in (tree, inner):
+    bpy.data.node_groups.remove(g)
+
 # 2. an animation whose focus object moves: each frame its own focus
 builds.clear()
 scene.frame_start, scene.frame_end = 1, 3

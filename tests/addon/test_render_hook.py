@@ -53,6 +53,38 @@ def test_a_rendered_still_equals_dcdi_bokeh_of_its_passes(rendered, tmp_path):
     assert np.abs(hook - rgb).mean() > 1e-3
 
 
+def test_the_scenes_compositor_is_applied_to_the_lenss_frame(rendered):
+    """An Invert node in the scene's compositor inverts the frame through
+    the lens (not the plain render), and the user's File Output of the Depth
+    pass writes its file; the scene's tree is the user's again afterwards,
+    and the add-on's copies are gone."""
+    from dcdi_core.io.images import read_image
+    from dcdi_core.io import rawexr
+    comp = rendered["comp"]
+    assert comp["error"] is None and comp["frames"][0]["compositor"] == "applied"
+    lens = read_image(rendered["dir"] / "still.exr")
+    got = rawexr.read_exr_channels(rendered["dir"] / "still_comp.exr")
+    got = np.stack([got[c] for c in "RGB"], axis=-1)
+    inside = (lens >= 0) & (lens <= 1)
+    assert inside.mean() > 0.9
+    assert np.abs(got - (1 - lens))[inside].max() < 1e-4
+    assert comp["tree_kept"] and comp["groups"] == ["user compositor"]
+    assert not [n for n in comp["images"] if n.startswith("dcdi-pass")]
+    assert len(comp["user_files"]) == 1 and comp["user_files"][0].startswith("depth")
+    # the Depth the user's File Output wrote is the render's (no lens on it)
+    (depth_file,) = (rendered["dir"] / "user-files").glob("*")
+    ch = rawexr.read_exr_channels(depth_file)
+    z = np.load(rendered["dir"] / "still_z.npy")
+    written = next(v for k, v in ch.items())
+    assert np.allclose(written, z, rtol=1e-5)
+
+
+def test_a_compositor_that_cannot_be_kept_is_said(rendered):
+    nested = rendered["nested"]
+    assert nested["error"] is None
+    assert "not applied" in nested["frames"][0]["compositor"] and "'inner'" in nested["frames"][0]["compositor"]
+
+
 def test_an_animated_focus_object_is_followed_frame_by_frame(rendered):
     mv = rendered["moving"]
     assert mv["error"] is None and mv["files"] == ["f_0001.exr", "f_0002.exr", "f_0003.exr"]
