@@ -86,8 +86,10 @@ def set_multilayer_exr(image_settings) -> None:
     image_settings.exr_codec = "NONE"
 
 
-def render_aif_depth(scene, camera_obj, height: int, width: int, samples: int, view_layer_name: str | None = None):
-    """Render ``camera_obj`` in ``scene`` all-in-focus at height x width px.
+def render_aif_depth(scene, camera_obj, height: int, width: int, samples: int, view_layer_name: str | None = None,
+                     seed: int = 0):
+    """Render ``camera_obj`` in ``scene`` all-in-focus at height x width px
+    (``seed``: Cycles' noise pattern; renders of other seeds average).
 
     Returns (image (H, W, 3) float32 linear scene-referred RGB, z (H, W)
     float32 planar distance from the camera in scene units; 1e10 for the
@@ -119,7 +121,7 @@ def render_aif_depth(scene, camera_obj, height: int, width: int, samples: int, v
             r.use_single_layer = False
         for vl in tmp_scene.view_layers:
             vl.use_pass_z = True
-        set_cycles_preview(tmp_scene, samples)
+        set_cycles_preview(tmp_scene, samples, seed)
         set_multilayer_exr(r.image_settings)
         r.use_file_extension = False
         r.filepath = str(out)

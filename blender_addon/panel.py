@@ -326,13 +326,21 @@ def _draw_preview(layout, context, status):
         return
     if p.error:
         _wrapped(layout, context, p.error, "ERROR")
-    elif p.worker is not None:
+        return
+    if p.worker is not None or p.result is None:
         layout.label(text="Preview: updating...", icon="TIME")
-    elif p.result is not None:
+    else:
         r = p.result
-        what = f"render {r['render_s']:.1f} s + lens {r['lens_s']:.2f} s" if r["render_s"] else \
+        what = f"render {r['render_s']:.1f} s, lens {r['lens_s']:.2f} s" if r["render_s"] else \
             f"lens {r['lens_s']:.2f} s"
-        _wrapped(layout, context, f"Preview: {what} (camera view)", "INFO")
+        layout.label(text=f"Preview: {what}", icon="INFO")     # one line: the widgets below stay put
+    # the mean of the passes rendered while nothing changed (viewport.ACCUMULATE_PASSES); drawn in every state, so
+    # that the widgets below stay where they are while the artist reaches for them
+    per_pass = context.scene.dcdi_lens_bokeh.samples
+    most = (p.accumulate_passes if p.refines() else 1) * per_pass
+    done = p.served_passes * per_pass
+    layout.label(text=f"Refining: {done} of {most} samples" if done < most else f"Samples: {done}",
+                 icon="TIME" if done < most else "CHECKMARK")
 
 
 def _draw_renders(layout, context, scene, s, status):

@@ -140,7 +140,7 @@ class RenderWorker:
         return self.pending is not None and not self.pending["done"].is_set()
 
     def request(self, context, scene, camera, h: int, w: int, samples: int, view_layer: str,
-                bake_key: tuple | None = None, moved=None) -> dict:
+                bake_key: tuple | None = None, moved=None, seed: int = 0) -> dict:
         """Ask for the scene's render; returns the request: ``done`` (an
         Event), then ``rgb``, ``z``, ``stale`` (the copy lacks that object:
         ask again with ``moved`` None) or ``error``, ``seconds`` (request to
@@ -150,7 +150,8 @@ class RenderWorker:
         the camera's are sent instead of a copy. ``bake_key``: also bake the
         scene's view-transform table there (``view_transform.bake``, 0.3-0.6
         s that the main thread is spared), returned as ``table`` under that
-        key (None where it failed)."""
+        key (None where it failed). ``seed``: Cycles' seed (another pass
+        of the same view, whose mean the preview shows)."""
         if not self.alive():
             raise RuntimeError(self.error or "the preview's render worker is not running")
         if self.busy():
@@ -165,7 +166,7 @@ class RenderWorker:
             write_scene(context, scene, blend)
             self.copy = blend
         req = {"id": n, "blend": str(self.copy), "scene": scene.name, "camera": camera.name, "h": h, "w": w,
-               "samples": samples, "view_layer": view_layer, "rgb": str(self.dir / f"rgb-{n % 2}.npy"),
+               "samples": samples, "seed": seed, "view_layer": view_layer, "rgb": str(self.dir / f"rgb-{n % 2}.npy"),
                "z": str(self.dir / f"z-{n % 2}.npy")}
         if not wrote:
             req["placements"] = placements(scene, camera, moved)
@@ -388,7 +389,7 @@ def serve() -> None:
                     continue
             t1 = time.perf_counter()
             rgb, z = bpy_render.render_aif_depth(scene, bpy.data.objects[req["camera"]], req["h"], req["w"],
-                                                 req["samples"], req["view_layer"])
+                                                 req["samples"], req["view_layer"], seed=req.get("seed", 0))
             t2 = time.perf_counter()
             np.save(req["rgb"], rgb)
             np.save(req["z"], z)

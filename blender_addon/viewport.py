@@ -67,6 +67,10 @@ CAMERA_DOF_NOT_IN_PREVIEW = {"use_dof": "the lens's depth of field replaces Blen
                              "aperture_ratio": "an anamorphic bokeh's squeeze: the lens's own stop is round or "
                                                "bladed"}
 RECENT_RESULTS = 8        # results kept to come back at once (480 x 270: 1.6 MB each)
+# while nothing changes, the worker renders the same view again with other seeds and the preview shows the
+# mean: 16 samples a pass, 8 passes are 128 (a 1-2 px ball's shape is then the lens's, not the noise's)
+ACCUMULATE_PASSES = 8
+ACCUMULATE_IDLE_S = 1.0   # how long a shown result stays untouched before the next pass is asked
 WATCH_S = 0.2             # the watcher's period: what changed without a handler is seen this late
 LENS_NICE = 2             # the lens stage's thread's CPU priority (Linux): Blender's drawing goes a little first
                           # (as the render worker's, ``render_worker.NICE``: more starves it beside other work)
@@ -96,8 +100,12 @@ class Preview:
         # the last results by what they show (the sharp render's version, the request): a focus, lens or
         # setting seen before on the same render comes back without a lens stage
         self.recent: OrderedDict = OrderedDict()
-        self.sharp: dict | None = None       # key, rgb, depth, version of the last sharp render
+        self.sharp: dict | None = None       # key, rgb, depth, version, passes of the last sharp render
         self.served: tuple | None = None     # the (sharp render, request) of the shown result
+        self.served_passes = 0               # how many passes of that render the shown result averaged
+        self.accumulate_passes = ACCUMULATE_PASSES
+        self.accumulated = 0                 # passes added to sharp renders so far (not in ``renders``)
+        self.result_at = 0.0                 # when the shown result was made
         self.asked: tuple | None = None      # what the last refresh was started for (see ``wanted``)
         self.renders = 0                     # sharp renders so far
         self.worker: threading.Thread | None = None
@@ -138,6 +146,7 @@ class Preview:
         self.generation += 1
         self.changed_at = None
         self.result = self.texture = self.sharp = self.served = self.asked = None
+        self.served_passes = 0
         self.recent.clear()
         self.error = ""
         self.rendering = None
@@ -173,7 +182,7 @@ class Preview:
             if started is not None:
                 return started
         if self.changed_at is None:
-            return None
+            return self._refine(context)
         wait = DEBOUNCE_S - (time.perf_counter() - self.changed_at)
         if wait > 0:
             return wait
@@ -259,6 +268,9 @@ class Preview:
         if r.get("table") is not None:              # the display table baked there: none to bake here
             from . import view_transform
             view_transform.keep(r["table"])
+        if r.get("accumulate"):
+            self._add_pass(r)
+            return None
         self._keep_sharp(r["key"], r["rgb"], r["z"], r["seconds"], "worker", cold=r["cold"],
                          main_s=r["write_s"], steps=dict(r.get("steps", {}), write_s=r["write_s"], wrote=r["wrote"],
                                                          started_s=self.worker_renders.ready_s,
@@ -267,9 +279,64 @@ class Preview:
             return None                              # a newer change's refresh is pending: it uses this render
         return self._run(lambda: self._start_lens(inputs(context)), context)
 
+    # -------------------------------------------------------------- accumulation, while nothing changes
+    def refines(self) -> bool:
+        """Whether passes are added to the shown render while nothing changes
+        (the worker renders it: this Blender's own renders would hold its window)."""
+        sharp = self.sharp
+        return sharp is not None and sharp["source"] == "worker" and not bpy.app.background \
+            and not self.worker_failed
+
+    def _refine(self, context) -> float | None:
+        """Idle: the lens stage on passes added since the shown result, or
+        the next pass asked of the worker once the result has stood
+        ``ACCUMULATE_IDLE_S``. Returns the seconds to the next step, None
+        when there is nothing left to refine."""
+        sharp = self.sharp
+        if sharp is None or self.result is None or self.error or self.served is None \
+                or self.served[0] != sharp["version"]:
+            return None
+        if self.served_passes < sharp["passes"]:
+            return self._run(lambda: self._start_lens(inputs(context)), context)
+        worker = self.worker_renders
+        if sharp["passes"] >= self.accumulate_passes or not self.refines() or not worker.alive():
+            return None
+        wait = ACCUMULATE_IDLE_S - (time.perf_counter() - self.result_at)
+        if wait > 0 or worker.busy():
+            return max(wait, POLL_S)
+        try:
+            a = inputs(context)
+        except (logic.BokehInputError, dcdi_errors.DcdiError, RuntimeError, ValueError, OSError):
+            return None                              # the next refresh says why
+        if a["sharp_key"] != sharp["key"] or self.data_changed:
+            return None                              # a change the watcher reports: its refresh renders anew
+        try:
+            pending = worker.request(context, a["scene"], a["camera"], a["h"], a["w"],
+                                     a["scene"].dcdi_lens_bokeh.samples, context.view_layer.name,
+                                     moved=set(self.moved), seed=sharp["passes"])
+        except (RuntimeError, OSError):
+            return None
+        pending.update(key=sharp["key"], generation=self.generation, cold=False, accumulate=True,
+                       version=sharp["version"])
+        self.rendering = pending
+        return POLL_S
+
+    def _add_pass(self, r: dict) -> None:
+        """A pass of the worker's, rendered with another seed: into the kept
+        sharp render's mean (where the render it refines is still kept)."""
+        sharp = self.sharp
+        if sharp is None or sharp["version"] != r["version"] or sharp["key"] != r["key"] \
+                or r["rgb"].shape != sharp["rgb"].shape:
+            return
+        n = sharp["passes"]
+        sharp["rgb"] = (sharp["rgb"] * (n / (n + 1.0)) + r["rgb"] * (1.0 / (n + 1.0))).astype(np.float32)
+        sharp["passes"] = n + 1
+        self.accumulated += 1
+
     def _keep_sharp(self, key, rgb, z, render_s: float, source: str, cold: bool | None = None,
                     main_s: float | None = None, steps: dict | None = None) -> None:
         self.sharp = {"key": key, "rgb": rgb, "z": z, "depth": None, "depth_of": None, "version": self.renders,
+                      "passes": 1,
                       "render_s": render_s, "source": source, "main_s": render_s if main_s is None else main_s,
                       "cold": (self.renders == 0) if cold is None else cold, "fresh": True, "steps": steps or {}}
         self.renders += 1
@@ -283,17 +350,18 @@ class Preview:
             sharp["depth"] = dcdi_camera.depth_from_planar_z(sharp["z"], ep, mpu)
             sharp["depth_of"] = (ep, mpu)
         served = (sharp["version"], a["request"])
-        if self.served == served and self.result is not None:
+        if self.served == served and self.result is not None and self.served_passes == sharp["passes"]:
             return                                   # nothing the preview shows has changed
-        if served in self.recent:                    # shown before on this render: from memory
+        if served in self.recent and self.served != served:     # shown before on this render: from memory
             self._recall(served)
-            return
+            if self.served_passes == sharp["passes"]:
+                return                               # else the lens stage on the passes added since
         fresh, sharp["fresh"] = sharp["fresh"], False    # the render is counted by the first refresh using it
         gen = self.generation
         job = self.job = {"generation": gen, "key": served, "render_s": sharp["render_s"] if fresh else 0.0,
                           "main_s": sharp["main_s"] if fresh else 0.0, "cold": sharp["cold"] and fresh,
                           "source": sharp["source"] if fresh else None, "steps": sharp["steps"] if fresh else {},
-                          "t0": time.perf_counter()}
+                          "t0": time.perf_counter(), "passes": sharp["passes"]}
         rgb, depth, refocus = sharp["rgb"], sharp["depth"], bool(a["scene"].dcdi_lens_bokeh.refocus)
         quality = a["quality"]
 
@@ -320,7 +388,7 @@ class Preview:
         self.error = ""
         self.result = {"image": kept["image"], "info": kept["info"], "generation": self.generation,
                        "render_s": 0.0, "lens_s": 0.0}
-        self.served = served
+        self.served, self.served_passes, self.result_at = served, kept["passes"], time.perf_counter()
         self.log.append({"render_s": 0.0, "lens_s": 0.0, "cold": False, "source": None, "main_s": 0.0,
                          "render_steps": {}, "recalled": True})
         self.texture = _texture(kept["image"])
@@ -336,12 +404,14 @@ class Preview:
         self.error = ""
         self.result = {"image": job["out"], "info": job["info"], "generation": job["generation"],
                        "render_s": job["render_s"], "lens_s": job["lens_s"]}
-        self.served = job["key"]
-        self.recent[job["key"]] = {"image": job["out"], "info": job["info"]}
+        self.served, self.served_passes, self.result_at = job["key"], job["passes"], time.perf_counter()
+        self.recent[job["key"]] = {"image": job["out"], "info": job["info"], "passes": job["passes"]}
+        self.recent.move_to_end(job["key"])
         while len(self.recent) > RECENT_RESULTS:
             self.recent.popitem(last=False)
         self.log.append({"render_s": job["render_s"], "lens_s": job["lens_s"], "cold": job["cold"],
-                         "source": job["source"], "main_s": job["main_s"], "render_steps": job["steps"]})
+                         "source": job["source"], "main_s": job["main_s"], "render_steps": job["steps"],
+                         "passes": job["passes"]})
         self.texture = _texture(job["out"])
         _redraw(bpy.context)
 

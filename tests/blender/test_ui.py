@@ -139,6 +139,19 @@ def test_the_add_on_holds_the_main_thread_briefly(preview_run):
             assert c["source"] == "worker" and c["main_render"] is False and c["main_s"] <= 0.1, c
 
 
+def test_the_preview_accumulates_passes_while_nothing_changes(preview_run):
+    """Left alone after a change, the preview renders the same view again
+    with other seeds (ACCUMULATE_PASSES in all) and shows the lens on their
+    mean, nearer a render of as many samples than the first pass; the
+    passes are not counted as renders, the main thread answers meanwhile."""
+    _, res = preview_run
+    acc = res["accumulation"]
+    assert acc["first_pass_kept"] and acc["seconds"] is not None, acc
+    assert acc["passes"] == acc["wanted"] >= 4 and acc["shown_passes"] == acc["wanted"], acc
+    assert acc["mean_rms"] < acc["first_rms"] / 1.5, acc
+    assert acc["heartbeat"]["gap_s"] < 0.5, acc
+
+
 def test_blade_rotation_refreshes_the_preview(preview_run):
     """Turning the camera's blades (Camera Aperture on, a catalogue lens at
     f/8 with six blades) refreshes the preview with the lens stage alone."""

@@ -270,6 +270,7 @@ def steps():
     yield from change("frame change", "python", frame_10)
     RESULT["frame_10_focus"] = s.focus_distance
 
+    yield from accumulation()
     yield from ui_changes()
     yield from blade_rotation()
     yield from worker_fails()
@@ -291,6 +292,33 @@ def timeline():
                  if b - a > 0.1],
         "calls": [(round(a - t0, 3), round(d, 3), n, round(o, 3)) for a, d, n, o in CALLS.calls if d > 0.01],
         "draws": [round(d - t0, 3) for d in DRAWS], "starts": [(round(a - t0, 3), n) for a, n in STARTS]}))
+
+
+def accumulation():
+    """Left alone, the preview asks the worker for more passes of the same
+    view (other seeds) and shows the lens on their mean: closer to a
+    render of as many samples than its first pass was."""
+    def moved():
+        cube.location.x -= 0.1
+        yield 0.0
+    yield from change("object moved back", "python", moved)
+    first = P.sharp["rgb"].copy() if P.sharp is not None and P.sharp["passes"] == 1 else None
+    t = time.perf_counter()
+    done = yield from wait_until(lambda: P.served_passes >= P.accumulate_passes and P.worker is None,
+                                 120.0, 0.1)
+    rec = {"passes": P.served_passes, "wanted": P.accumulate_passes, "first_pass_kept": first is not None,
+           "seconds": None if done is None else round(time.perf_counter() - t, 3),
+           "heartbeat": HEART.longest(t), "renders_counted": P.renders, "accumulated": P.accumulated}
+    if first is not None and done is not None:
+        bpy_render = importlib.import_module(f"{MODULE}.bpy_render")
+        h, w = first.shape[:2]
+        ref, _ = bpy_render.render_aif_depth(scene, cam, h, w, s.samples * P.accumulate_passes,
+                                              ctx.view_layer.name, seed=1000)
+        rec["first_rms"] = float(np.sqrt(np.mean((first - ref) ** 2)))
+        rec["mean_rms"] = float(np.sqrt(np.mean((P.sharp["rgb"] - ref) ** 2)))
+        rec["shown_passes"] = P.result is not None and P.served_passes
+    RESULT["accumulation"] = rec
+    print(f"ui_preview: accumulation {rec}", flush=True)
 
 
 def blade_rotation():
@@ -415,7 +443,7 @@ def ui_changes():
             w.clear()
             w.update((yield from widgets()))
         assert key in w, f"the panel shows no {key} where it was looked for; found {sorted(w)}"
-        return w[key][0]
+        return w[key][len(w[key]) // 2]          # the middle of the widget: a line's shift above keeps it there
 
     def typed(path, text):
         def fn():
@@ -441,7 +469,9 @@ def ui_changes():
     yield from change("focus distance", "ui", typed("focus_distance", "3"))
     yield from change("kept range", "ui", typed("keep_front", "0.4"))
     yield from change("refocus off", "ui", clicked("refocus"))
+    RESULT["ui_preview_size_before"] = s.preview_size
     yield from change("preview size", "ui", typed("preview_size", "300"))
+    RESULT["ui_preview_size"] = s.preview_size
 
     yield from change("lens", "ui", wheeled("lens"))
     RESULT["ui_lens"] = s.lens
