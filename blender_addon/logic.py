@@ -232,6 +232,7 @@ def lens_readout(path: str) -> dict:
 THUMBNAIL_FIELDS = (0.0, 0.5, 0.9)
 THUMBNAIL_DEPTHS_M = (1.0, 3.0, math.inf)
 THUMBNAIL_TILE_PX = 31
+THUMBNAIL_RAYS_PER_PX = 4
 
 
 def psf_thumbnail(lens, tile: int = THUMBNAIL_TILE_PX) -> np.ndarray:
@@ -241,14 +242,14 @@ def psf_thumbnail(lens, tile: int = THUMBNAIL_TILE_PX) -> np.ndarray:
     photographic lens focused at infinity blurs a point at 1 m over many
     times the tile: clipped, every tile would be a flat square), scaled to
     its own peak and gamma-encoded (1/2.2) so that halos show: float32 (H,
-    W, 3) in [0, 1], rows top to bottom, 1-px gaps. Quick settings (32 x 32
-    pupil rays, twice the tile's width where the blur fills it; 5
-    wavelengths): a picture of the lens's character, not its exact PSFs."""
+    W, 3) in [0, 1], rows top to bottom, 1-px gaps. Quick settings (four
+    pupil rays a pixel across the widest; 5 wavelengths): a picture of the
+    lens's character, not its exact PSFs."""
     pitch = 2.0 * lens.sensor.semi_diagonal_mm / 600.0
-    kernels, needed = _thumbnail_kernels(lens, tile, pitch)
-    if needed > tile:                                  # one pitch for the grid: its tiles compare
-        # a disc as wide as the tile: two rays a pixel across it, so the pupil's grid does not show
-        kernels, _ = _thumbnail_kernels(lens, tile, pitch * needed / tile, rays=2 * tile)
+    _, needed = _thumbnail_kernels(lens, tile, pitch)          # how wide the widest is (a quick look)
+    # one pitch for the grid (its tiles compare), the widest as wide as the tile; four rays a pixel across the
+    # pupil, so that the balls are the lens's and not the ray grid's moire (two left it in every wide disc)
+    kernels, _ = _thumbnail_kernels(lens, tile, pitch * max(needed, tile) / tile, rays=THUMBNAIL_RAYS_PER_PX * tile)
     nf, nd = len(THUMBNAIL_FIELDS), len(THUMBNAIL_DEPTHS_M)
     out = np.zeros((nf * (tile + 1) - 1, nd * (tile + 1) - 1, 3), np.float32)
     for (i, j), k in kernels.items():
@@ -257,6 +258,15 @@ def psf_thumbnail(lens, tile: int = THUMBNAIL_TILE_PX) -> np.ndarray:
         tile_img = (img / peak) ** (1.0 / 2.2) if peak > 0 else img
         out[i * (tile + 1):i * (tile + 1) + tile, j * (tile + 1):j * (tile + 1) + tile] = tile_img
     return out
+
+
+def thumbnail_ball(grid: np.ndarray, tile: int = THUMBNAIL_TILE_PX) -> np.ndarray:
+    """The icon of a lens in the list: one tile of its :func:`psf_thumbnail`
+    grid, the ball a light at 1 m makes toward the frame's corner (field
+    0.9), where lenses differ most (cat's eyes, oval or clipped balls,
+    rims): (tile, tile, 3)."""
+    i, j = len(THUMBNAIL_FIELDS) - 1, 0
+    return grid[i * (tile + 1):i * (tile + 1) + tile, j * (tile + 1):j * (tile + 1) + tile]
 
 
 def _thumbnail_kernels(lens, tile: int, pitch: float, rays: int = 32) -> tuple[dict, int]:
@@ -402,6 +412,21 @@ def _source_info(source) -> dict:
         message = re.sub(rf"(?<![\w.'-]){re.escape(other_id)}(?![\w'-])", _lens_name(Path(path)), message)
     message = re.sub(r"[ \t]{2,}", " ", message).replace(" )", ")")
     return {"psf_source": source.kind, "psf_source_message": message, "psf_quality": source.quality}
+
+
+# where a job's blur came from, in an artist's words (the engine's message is the status line's tooltip)
+SOURCE_WORDS = {"raymap": "the lens's ray map", "trace": "rays traced through the lens",
+                "basis": "the lens's PSF basis", "olf": "the Omni-Lens-Field"}
+
+
+def source_words(info: dict) -> str:
+    """One short line on a job's blur from its data (the source's kind, the
+    error budget's plan): "Blur from the lens's ray map, about 41 dB"."""
+    words = f"Blur from {SOURCE_WORDS.get(info.get('psf_source'), 'the lens')}"
+    q = info.get("quality") or {}
+    if q.get("expected_db") is not None:
+        words += f", about {q['expected_db']:.0f} dB"
+    return words
 
 
 def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], patch: int = 16,

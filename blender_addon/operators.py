@@ -127,7 +127,8 @@ def finish(op, context, job, out, info, seconds: float, store_inputs: bool):
         bpy_render.put_image(DEPTH_IMAGE, job["depth"][..., None].repeat(3, axis=-1))
     bpy_render.show_in_image_editor(context, img)
     h, w = out.shape[:2]
-    context.window_manager.dcdi_lens_bokeh_status.psf_source = info["psf_source_message"]
+    st = context.window_manager.dcdi_lens_bokeh_status
+    st.psf_source, st.psf_words = info["psf_source_message"], logic.source_words(info)
     note = f"; {info['focus_note']}" if info.get("focus_note") else ""
     op.report({"INFO"}, f"Lens Bokeh: {w} x {h} px, kept sharp {job['keep'][0]:.2f}-{job['keep'][1]:.2f} m "
                         f"({info['kept_pixels']} px), {_render_words(job)}, bokeh {seconds:.1f} s; "
@@ -188,6 +189,7 @@ class _JobOperator:
         st = getattr(context.window_manager, "dcdi_lens_bokeh_status", None)
         if st is not None:               # the status is this job's from now on (the last one's is stale)
             st.job, st.inputs, st.message, st.psf_source = self.job_label, reading.inputs_key(context.scene), "", ""
+            st.psf_words = ""
         t_start = time.perf_counter()
         try:
             job = self.prepare(context)
@@ -209,7 +211,7 @@ class _JobOperator:
         st = context.window_manager.dcdi_lens_bokeh_status
         st.message, st.progress = self.first_message, 0.0
         # the status is this job's from now on: its name and the settings it runs with (the last job's is stale)
-        st.job, st.inputs, st.psf_source = self.job_label, reading.inputs_key(context.scene), ""
+        st.job, st.inputs, st.psf_source, st.psf_words = self.job_label, reading.inputs_key(context.scene), "", ""
         # the click returns at once: the status ("rendering all-in-focus...") and the released button are
         # drawn before the first timer event prepares the job (its render, where one is needed, holds the
         # main thread: with Preview in Viewport on and current, none is; see render_inputs)
@@ -382,7 +384,7 @@ class DCDI_OT_simulate_lens(_JobOperator, bpy.types.Operator):
                                   record=info["record"])
         bpy_render.show_in_image_editor(context, bpy_render.put_image(SIMULATION_IMAGE, out, info["record"]))
         st = context.window_manager.dcdi_lens_bokeh_status
-        st.psf_source = info["psf_source_message"]
+        st.psf_source, st.psf_words = info["psf_source_message"], logic.source_words(info)
         st.correction = ""                   # the last correction was of another simulation
         h, w = out.shape[:2]
         noise = ", sensor noise" if job["noise"] else ""
@@ -610,5 +612,23 @@ class DCDI_OT_focus_active(bpy.types.Operator):
         return {"FINISHED"}
 
 
+class DCDI_OT_status_detail(bpy.types.Operator):
+    """The last job's blur line: its tooltip says in the engine's words where
+    the PSFs came from; a click copies that to the clipboard"""
+    bl_idname = "dcdi.status_detail"
+    bl_label = "Details"
+    bl_options = {"INTERNAL"}
+
+    @classmethod
+    def description(cls, context, properties):
+        return context.window_manager.dcdi_lens_bokeh_status.psf_source or "No job has run yet"
+
+    def execute(self, context):
+        detail = context.window_manager.dcdi_lens_bokeh_status.psf_source
+        context.window_manager.clipboard = detail
+        self.report({"INFO"}, f"Copied: {detail}")
+        return {"FINISHED"}
+
+
 CLASSES = (DCDI_OT_apply_lens_bokeh, DCDI_OT_simulate_lens, DCDI_OT_correct_simulation, DCDI_OT_match_camera,
-           DCDI_OT_import_zemax, DCDI_OT_focus_pick, DCDI_OT_focus_active)
+           DCDI_OT_import_zemax, DCDI_OT_focus_pick, DCDI_OT_focus_active, DCDI_OT_status_detail)

@@ -233,8 +233,8 @@ def status_lines(context) -> list[tuple[str, str]]:
     if st.message:
         out.append((f"{st.job}: {st.message}" if getattr(st, "job", "") else st.message,
                     "ERROR" if st.message.startswith("failed") else "NONE"))
-    if st.psf_source:
-        out.append((st.psf_source, "INFO"))
+    if st.psf_source:       # in an artist's words where there are some; the engine's are the line's tooltip
+        out.append((getattr(st, "psf_words", "") or st.psf_source, "INFO"))
     return out
 
 
@@ -300,7 +300,11 @@ def draw_lens_bokeh(layout, context, in_viewport: bool = True):
         # the status bar says "Esc cancels"; the slider keeps to stage and time
         layout.prop(st, "progress", text=(st.message or "working").split(" (")[0], slider=True)
     for text, icon in status_lines(context):
-        _wrapped(layout, context, text, icon, max_lines=6)
+        if text == getattr(st, "psf_words", None):
+            # a label that shows the engine's detail as its tooltip (an operator's description) and copies it
+            layout.operator("dcdi.status_detail", text=text, icon=icon, emboss=False)
+        else:
+            _wrapped(layout, context, text, icon, max_lines=6)
     _draw_preview(layout, context, st)
     _draw_renders(layout.box(), context, scene, s, st)
     _draw_round_trip(layout.box(), context, s, st)

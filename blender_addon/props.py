@@ -150,7 +150,10 @@ class DCDI_LensBokehStatus(bpy.types.PropertyGroup):
                                                 "Lens Correction)")
     inputs: StringProperty(default="", description="The settings and camera the last job ran with "
                                                    "(reading.inputs_key): its status shows while they are unchanged")
-    psf_source: StringProperty(default="", description="Where the last bokeh's PSFs came from, and why")
+    psf_source: StringProperty(default="", description="Where the last bokeh's PSFs came from, and why (the "
+                                                       "engine's words: the status line's tooltip)")
+    psf_words: StringProperty(default="", description="Where the last job's blur came from, in the panel's "
+                                                      "words (logic.source_words)")
     correction: StringProperty(default="", description="The method the last Correct Simulation ran, why, and "
                                                       "its time")
     render_message: StringProperty(default="", description="What Lens in Renders did in the last render")

@@ -1,6 +1,8 @@
 """The lens list's thumbnails: each lens's PSF grid (``logic.psf_thumbnail``:
 fields 0 / 0.5 / 0.9 down, 1 m / 3 m / infinity across) as a Blender
-preview icon. Made on a worker thread the first time the list is drawn
+preview: its image the grid (the panel draws it large), its icon one ball
+of it (``logic.thumbnail_ball``: the list's 16-px icons show a ball's
+shape, not nine dots). Made on a worker thread the first time the list is drawn
 (about 0.1-0.3 s a lens), handed to the main thread by a timer; until then
 a lens shows the plain camera icon. Kept per lens file and modification
 time for the session (``SESSION.thumbnails``)."""
@@ -83,16 +85,20 @@ def collect() -> int:
         img = state.ready.pop(key)
         if pcoll is None or key in pcoll:
             continue
-        h, w = img.shape[:2]
-        rgba = np.ones((h, w, 4), np.float32)
-        rgba[..., :3] = img
         p = pcoll.new(key)
-        p.image_size = (w, h)
-        p.image_pixels_float = rgba[::-1].ravel()
-        p.icon_size = (w, h)
-        p.icon_pixels_float = rgba[::-1].ravel()
+        # the list's small icon: one ball (readable at 16 px); the panel's large picture: the whole grid
+        p.image_size, p.image_pixels_float = _size_pixels(img)
+        p.icon_size, p.icon_pixels_float = _size_pixels(logic.thumbnail_ball(img))
         n += 1
     return n
+
+
+def _size_pixels(img: np.ndarray) -> tuple:
+    """(w, h) and the RGBA floats, rows bottom to top, of an (H, W, 3) picture."""
+    h, w = img.shape[:2]
+    rgba = np.ones((h, w, 4), np.float32)
+    rgba[..., :3] = img
+    return (w, h), rgba[::-1].ravel()
 
 
 def register() -> None:

@@ -223,19 +223,25 @@ def _wrapped_groups(state, space):
     return groups
 
 
-def test_texts_wrap_at_whole_words(panel_run):
-    """The PSF source, the sharp range's error and the warnings are wrapped
-    between words: the lines hold the message's words, whole, in order."""
+def test_the_blur_line_speaks_plainly_with_the_detail_as_its_tooltip(panel_run):
+    """After Apply the panel says where the blur came from in one short line
+    of an artist's words; the engine's message is
+    its tooltip (an operator's description), which a click copies."""
     _, res = panel_run
     source = res["after_apply"]["psf_source"]
+    assert source.startswith("PSFs"), source
     for space in ("VIEW_3D", "PROPERTIES"):
-        groups = _wrapped_groups(res["states"]["after apply"], space)
-        lines = next((g for g in groups if g[0].startswith("PSFs")), None)
-        assert lines and len(lines) > 1, (space, groups)
-        words = " ".join(lines).split()
-        if words[-1] == "\N{HORIZONTAL ELLIPSIS}":           # shortened after a whole word
-            words = words[:-1]
-        assert words == source.split()[:len(words)], (space, lines)
+        ops = [i for _, i, _, _ in drawn({space: res["states"]["after apply"][space]})
+               if i["kind"] == "operator" and i["op"] == "dcdi.status_detail"]
+        assert len(ops) == 1 and ops[0]["text"].startswith("Blur from the "), ops
+        assert not [t for t in labels(res["states"]["after apply"]) if t.startswith("PSFs")]
+
+
+def test_texts_wrap_at_whole_words(panel_run):
+    """The sharp range's error and the warnings are wrapped between words:
+    the lines hold the message's words, whole, in order."""
+    _, res = panel_run
+    for space in ("VIEW_3D", "PROPERTIES"):
         warn = res["states"]["renders, network, no focus object"]
         groups = _wrapped_groups(warn, space)
         lock = next(g for g in groups if g[0].startswith("Turn Lock Interface on"))
