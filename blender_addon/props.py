@@ -12,7 +12,7 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, Po
 from . import logic, reading, thumbnails, viewport
 from .session import SESSION
 
-DEFAULT_LENS = "6p"      # the paper's bokeh lens
+DEFAULT_LENS = "zeiss-sonnar-50mm-f1-5"      # a standard photographic lens (the paper's phone lens is in the list)
 
 
 def lens_item_description(entry) -> str:

@@ -275,7 +275,7 @@ def test_zip_installs_into_a_temporary_user_folder_and_enables(headless):
     assert headless["engine_file"].startswith(headless["user_folder"]), headless["engine_file"]
     assert set(headless["lenses"]) == {p.stem for p in (ROOT / "lenses").glob("*.toml")}
     assert all(p.startswith(headless["user_folder"]) for p in headless["lenses"].values())
-    assert headless["default_lens"] == "6p"
+    assert headless["default_lens"] == "zeiss-sonnar-50mm-f1-5"      # a standard photographic lens
 
 
 def test_match_camera_sets_the_lens_focal_length(headless):
