@@ -45,6 +45,49 @@ def is_name(value) -> bool:
     return name_problem(value) is None
 
 
+# what a terminal acts on instead of showing: C0 controls, DEL, C1 controls, line and paragraph separators,
+# bidirectional marks and overrides (a file's text could otherwise move the cursor, set the window's title, clear
+# the screen, or start a line that looks like the program's own)
+_CONTROLS = [*range(0x00, 0x20), 0x7F, *range(0x80, 0xA0), 0x061C, 0x200E, 0x200F, 0x2028, 0x2029,
+             *range(0x202A, 0x202F), *range(0x2066, 0x206A)]
+_ESCAPED = {c: (f"\\x{c:02x}" if c < 0x100 else f"\\u{c:04x}") for c in _CONTROLS}
+_ESCAPED.update({0x09: "\\t", 0x0A: "\\n", 0x0D: "\\r"})
+# a terminal stream keeps its own line breaks and tabs (the program's), and escapes every other control
+_STREAM_ESCAPED = {c: v for c, v in _ESCAPED.items() if c not in (0x09, 0x0A)}
+
+
+def printable(text, limit: int | None = None) -> str:
+    """``text`` read from a file (a lens's name, a capture record's field)
+    as a message quotes it: on one line, every control character written as
+    its escape (``\\n``, ``\\x1b``, ``\\u202e``), cut to ``limit``
+    characters (None: whole). The one function every message that quotes a
+    file's content uses."""
+    out = str(text).translate(_ESCAPED)
+    return out if limit is None or len(out) <= limit else out[:max(limit - 3, 0)] + "..."
+
+
+def terminal_safe(text: str) -> str:
+    """What :class:`TerminalStream` writes for ``text``: the program's line
+    breaks and tabs kept, every other control character escaped."""
+    return text.translate(_STREAM_ESCAPED)
+
+
+class TerminalStream:
+    """A text stream (the command line's stdout and stderr) that writes
+    every control character but the line break and the tab as its escape:
+    whatever a message quotes, no escape sequence reaches the terminal."""
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        self._stream.write(terminal_safe(text))
+        return len(text)
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
 def shown(value, limit: int = 80) -> str:
     """``value`` as an error message shows it: repr, at most ``limit`` characters (one line)."""
     text = repr(value)

@@ -41,17 +41,21 @@ def main(argv=None) -> int:
     import warnings
 
     from ..errors import DcdiError
+    from ..names import TerminalStream
     args = build_parser().parse_args(argv)
     from ..signals import stop_code, stop_on_signals
-    with warnings.catch_warnings(), stop_on_signals():
+    with warnings.catch_warnings(), stop_on_signals(), _terminal_safe(TerminalStream):
         warnings.showwarning = show_warning          # one line each, no source line
         try:
             files = job_files(args)          # every path it reads and writes, checked before any work
             if files is None:
-                return args.func(args)
-            files.check()
-            with files.together():           # its output files appear together, or none does
-                return args.func(args)
+                code = args.func(args)
+            else:
+                files.check()
+                with files.together():       # its output files appear together, or none does
+                    code = args.func(args)
+            sys.stdout.flush()               # here, where a reader gone away is answered (not at the exit)
+            return code
         except DcdiError as e:
             print(f"dcdi: error: {one_line(e.in_words(error_words(args)))}", file=sys.stderr)
             return 2
@@ -62,6 +66,40 @@ def main(argv=None) -> int:
             code, word = stop_code(e)
             print(f"dcdi: {word}", file=sys.stderr)
             return code
+        except BrokenPipeError:                  # the reader went away (`dcdi lens list | head -n 1`): quietly
+            _quiet_stdout()
+            return BROKEN_PIPE_EXIT
+
+
+BROKEN_PIPE_EXIT = 141      # as a process killed by SIGPIPE: 128 + 13
+
+
+def _quiet_stdout() -> None:
+    """Point stdout at the null device, so that the interpreter's flush at
+    exit does not meet the closed pipe again (and print a traceback)."""
+    import os
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.__stdout__.fileno())
+    except (OSError, ValueError, AttributeError):
+        pass
+
+
+class _terminal_safe:
+    """While a command runs, its stdout and stderr escape every control
+    character but line breaks and tabs (``names.TerminalStream``): a lens
+    name or a record's field from someone's file cannot drive the terminal."""
+
+    def __init__(self, stream_type):
+        self.stream_type = stream_type
+
+    def __enter__(self):
+        self.saved = sys.stdout, sys.stderr
+        sys.stdout, sys.stderr = self.stream_type(sys.stdout), self.stream_type(sys.stderr)
+
+    def __exit__(self, *exc):
+        sys.stdout, sys.stderr = self.saved
+        return False
 
 
 __all__ = ["main", "build_parser"]

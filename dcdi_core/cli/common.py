@@ -265,16 +265,21 @@ def add_aperture_options(q) -> None:
     q.add_argument("--blades", type=int, default=0, metavar="N",
                    help=f"the iris's blades: 0 round (default), or {MIN_BLADES}-{MAX_BLADES}: a regular polygon "
                         "(its corners on the f-number's circle)")
-    q.add_argument("--blade-rotation", type=float, default=0.0, metavar="DEG",
+    q.add_argument("--blade-rotation", type=float, default=None, metavar="DEG",
                    help="with --blades: a corner's angle from up towards the right, degrees (default 0)")
 
 
 def load_lens_with_aperture(args, name: str | None = None):
     """The lens ``name`` (default ``args.lens``) stopped down and shaped as
     the aperture options say (checked before any work)."""
-    from ..optics.aperture import Aperture, stopped_down
+    from ..errors import InputRangeError
+    from ..optics.aperture import MAX_BLADES, MIN_BLADES, Aperture, stopped_down
     from ..optics.lens import load_lens
-    aperture = Aperture(args.f_number, args.blades, args.blade_rotation)
+    if args.blade_rotation is not None and not args.blades:     # a round iris has no corner to turn
+        raise InputRangeError("--blade-rotation", args.blade_rotation,
+                              f"only with --blades {MIN_BLADES}-{MAX_BLADES} (a round iris has no corners to turn)")
+    rotation = 0.0 if args.blade_rotation is None else args.blade_rotation
+    aperture = Aperture(args.f_number, args.blades, rotation)
     return stopped_down(load_lens(args.lens if name is None else name), aperture)
 
 

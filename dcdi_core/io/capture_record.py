@@ -28,8 +28,9 @@ import stat
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
-from ..errors import DcdiError
 from ..atomic import atomic_path, remove_file
+from ..errors import DcdiError
+from ..names import printable
 
 EXR_ATTRIBUTE = "dcdiCapture"       # no ':' in the name: OpenImageIO reads 'x:' as another format's namespace
 FORMAT = 1
@@ -138,7 +139,7 @@ class CaptureRecord:
                 v = f"{v[0]} x {v[1]} px (height x width)"
             elif isinstance(v, dict):
                 v = ", ".join(f"{k}={x}" for k, x in sorted(v.items()))
-            out.append(f"{f.name}: {v}")
+            out.append(f"{f.name}: {printable(v)}")        # a file's text: no line or escape of its own
         return out
 
 
@@ -155,8 +156,8 @@ def _positive(v) -> bool:
 
 
 def _shown(text: str) -> str:
-    """``text`` cut to :data:`_SHOWN_CHARS` for a one-line message."""
-    return text if len(text) <= _SHOWN_CHARS else text[:_SHOWN_CHARS] + "..."
+    """``text`` (a file's) cut to :data:`_SHOWN_CHARS` for a one-line message, its controls escaped."""
+    return printable(text, _SHOWN_CHARS + 3)
 
 
 def _bad(name: str, value, allowed: str) -> str:

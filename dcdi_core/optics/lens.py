@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputRangeError
-from ..names import MAX_NAME_CHARS, NAME_RULE, name_problem, shown
+from ..names import MAX_NAME_CHARS, NAME_RULE, name_problem, printable, shown
 
 from .errors import LensFileError, OpticsError, UnknownGlassError
 from .materials import AIR, get_material
@@ -203,8 +203,9 @@ class Lens:
         if len(stops) != 1:
             raise err("exactly one surface must have stop = true",
                       field="stop", value=[i + 1 for i in stops])
-        lens = cls(id=lens_id, name=str(d.get("name", lens_id)), surfaces=tuple(surfaces),
-                   sensor=sensor, stated=dict(stated), source=str(d.get("source", "")),
+        # a name and a source are shown on one line wherever the lens is named: their controls escaped
+        lens = cls(id=lens_id, name=printable(d.get("name", lens_id)), surfaces=tuple(surfaces),
+                   sensor=sensor, stated=dict(stated), source=printable(d.get("source", "")),
                    notes=str(d.get("notes", "")), wavelength_nm=wl, path=path,
                    content_hash=content_hash)
         _check_no_crossing(lens.surfaces, err)

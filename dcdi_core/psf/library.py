@@ -42,7 +42,7 @@ from ..optics.aiming import sources
 from ..errors import InputRangeError, OutputError, field, output_error
 from ..optics.errors import OpticsError
 from ..optics.lens import Lens, lens_fingerprint
-from .compute import (CLIP_WARNING, KernelTooSmallWarning, PSFSettings, clip_message, compute_sources, focused_lens, pixel_pitch_mm,
+from .compute import (CLIP_WARNING, KernelTooSmallWarning, PSFSettings, check_psf_memory, clip_message, compute_sources, focused_lens, pixel_pitch_mm,
                       spectral_samples)
 from .pitch import SAME_GIVEN_RTOL
 from .spectral import SpectralResponse, default_response
@@ -342,7 +342,11 @@ class PSFLibrary:
             with open(tmp, "wb") as f:
                 np.savez_compressed(f, meta=np.array(json.dumps(meta)), **arrays)
 
-    def _load_into(self, path: Path) -> bool:
+    def _load_into(self, path: Path, *, cache: bool = True) -> bool:
+        """The arrays of ``path`` into this library; False where the file is
+        unusable. ``cache``: the file is the disk cache's own (dropped, with
+        a warning, to be rebuilt); otherwise it is the user's file, never
+        touched, and the reason is raised (OpticsError)."""
         try:
             with np.load(path, allow_pickle=False) as z:
                 meta = loads(str(z["meta"]), path)
@@ -357,6 +361,8 @@ class PSFLibrary:
             if not np.isfinite(arrays["psf"]).all():
                 raise ValueError("non-finite PSF values")
         except Exception as e:  # noqa: BLE001 - any failure means: do not use it
+            if not cache:
+                raise OpticsError(f"{path}: corrupt PSF library file ({e})") from None
             warnings.warn(f"PSF cache {path} is unusable ({e}); rebuilding it", CacheWarning, stacklevel=3)
             try:
                 path.unlink()
@@ -382,20 +388,45 @@ class PSFLibrary:
         path = Path(path)
         try:
             with np.load(path, allow_pickle=False) as z:
+                missing = [n for n in ("meta", *cls.ARRAYS) if n not in z.files]
+                if missing:             # another .npz: a ray map, a basis, an image's arrays
+                    raise OpticsError(f"{path}: not a PSF library file (it holds no {', '.join(missing[:3])}; "
+                                      "`dcdi psflib build -o` writes one)")
                 meta = loads(str(z["meta"]), path)
-        except Exception as e:  # noqa: BLE001
+                shapes = {name: _stored_shape(z, name) for name in cls.ARRAYS}
+            s = dict(meta["settings"])
+            s["band_nm"] = tuple(s["band_nm"])
+            settings = PSFSettings(**s)
+            grid = LibraryGrid(**meta["grid"])
+            fingerprint = str(meta["lens_fingerprint"])
+        except OpticsError:
+            raise
+        except KeyError as e:           # metadata without a part the reader needs
+            raise OpticsError(f"{path}: not a PSF library file (its metadata has no {e.args[0]!r})") from None
+        except Exception as e:  # noqa: BLE001 - a file that is not one of ours, or damaged: said, never used
             raise OpticsError(f"{path}: not a PSF library file ({e})") from None
-        s = dict(meta["settings"])
-        s["band_nm"] = tuple(s["band_nm"])
-        settings = PSFSettings(**s)
-        grid = LibraryGrid(**meta["grid"])
-        if lens is not None and lens_fingerprint(lens) != meta["lens_fingerprint"]:
+        # what the file declares is allocated only where its own arrays hold that much (a 20 KB file declaring a
+        # grid of millions of PSFs is refused here, not after gigabytes) and it fits in memory
+        want = (grid.n_depths + 1, grid.n_fields, 3, settings.kernel_size, settings.kernel_size)
+        if shapes["psf"] != want:
+            raise OpticsError(f"{path}: corrupt PSF library file (its PSFs have shape {shapes['psf']}; its settings "
+                              f"and grid declare {want})")
+        check_psf_memory(settings, 1, library_psfs=grid.n_fields * (grid.n_depths + 1))
+        if lens is not None and lens_fingerprint(lens) != fingerprint:
             raise OpticsError(f"{path}: built for another lens or version of it "
-                              f"({meta['lens_id']}, {meta['lens_file']})")
+                              f"({meta.get('lens_id')}, {meta.get('lens_file')})")
         lib = cls(lens, settings, grid, None, meta=meta)
-        if not lib._load_into(path):
-            raise OpticsError(f"{path}: corrupt PSF library file")
+        lib._load_into(path, cache=False)             # the user's file: a damaged one is said, never deleted
         return lib
+
+
+def _stored_shape(z, name: str) -> tuple:
+    """The shape of array ``name`` in the open .npz ``z``, from its header
+    alone (nothing of it is read)."""
+    with z.zip.open(f"{name}.npy") as f:
+        version = np.lib.format.read_magic(f)
+        shape, _, _ = np.lib.format._read_array_header(f, version)
+    return tuple(shape)
 
 
 def _frame(depth: int):

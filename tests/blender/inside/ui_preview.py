@@ -320,6 +320,11 @@ def accumulation():
     RESULT["accumulation"] = rec
     print(f"ui_preview: accumulation {rec}", flush=True)
 
+    def moved_again():                   # the scene as the steps after this one (and the depth check) expect it
+        cube.location.x += 0.1
+        yield 0.0
+    yield from change("object moved again", "python", moved_again)
+
 
 def blade_rotation():
     """A catalogue lens stopped down to the camera's F-Stop with six blades,
