@@ -35,6 +35,7 @@ from pathlib import Path
 
 from .atomic import _ACTIVE, active, backup_name, remove_dead_temporaries
 from .errors import DcdiError, InputRangeError, OutputError, check_writable_folder, output_error
+from .shipped import is_shipped_file
 
 
 
@@ -123,6 +124,10 @@ class JobFiles:
                 seen_id[ident] = o
             if o.path.is_dir():
                 raise OutputError(o.path, f"{o.label}: a folder stands where the file is to be written")
+            if is_shipped_file(o.path):     # a shipped store is every job's input, whether named or not
+                raise InputRangeError(o.label, str(o.path), "a file other than one the engine ships (its ray "
+                                      "maps, PSF bases, weights and lenses are read by every job: writing one "
+                                      "would replace it)")
             check_writable_folder(Path(os.path.abspath(o.path)).parent, f"{o.label} {o.path}")
         for f in self.folders:
             ident = _identity(f.path)

@@ -9,6 +9,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+ENGINE_DIR = Path(__file__).resolve().parent
+# the lens folders that ship beside the engine (the repository's, the add-on's bundle): inputs like the rest
+SHIPPED_LENS_DIRS = (ENGINE_DIR.parent / "lenses", ENGINE_DIR / "lenses")
 WEIGHTS_DIR = Path(__file__).resolve().parent / "models" / "weights"
 BASIS_DIR = Path(__file__).resolve().parent / "psf" / "data" / "basis"
 
@@ -38,6 +41,17 @@ class Network:
 
     def shipped_file(self, key: str) -> Path | None:
         return weights_file(self.weights_prefix, key)
+
+
+def is_shipped_file(path) -> bool:
+    """Whether ``path`` is a file the engine ships (its code, ray maps, bases,
+    weights, quality tables, or a lens of the folders beside it): an input
+    of every job, never a job's output."""
+    p = Path(path)
+    if not p.is_file():
+        return False
+    real = p.resolve()
+    return any(real.is_relative_to(d.resolve()) for d in (ENGINE_DIR, *SHIPPED_LENS_DIRS) if d.is_dir())
 
 
 def weights_file(prefix: str, key: str) -> Path | None:

@@ -74,3 +74,15 @@ def test_blade_rotation_without_blades_is_refused(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2 and "--blade-rotation" in err and "--blades" in err, err
     assert not (tmp_path / "p.npz").exists()
+
+
+def test_an_output_onto_a_shipped_file_is_refused(tmp_path, capsys):
+    """`dcdi psf ... --out` onto the shipped ray map it reads (or any file the
+    engine ships) is refused before any work; the file is unchanged."""
+    import dcdi_core
+    shipped = Path(dcdi_core.__file__).resolve().parent / "psf" / "data" / "raymap" / "zeiss-sonnar-50mm-f1-5.npz"
+    before = shipped.read_bytes()
+    code = main(["psf", "zeiss-sonnar-50mm-f1-5", "--field", "0", "--depth", "2", "--out", str(shipped)])
+    err = capsys.readouterr().err
+    assert code == 2 and "ships" in err and "--out" in err, err
+    assert shipped.read_bytes() == before
