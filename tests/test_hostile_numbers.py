@@ -12,6 +12,7 @@ import warnings
 import numpy as np
 import pytest
 
+from support.build import ROOT
 from support.cli import run_cli
 
 from dcdi_core.errors import InputRangeError
@@ -259,3 +260,37 @@ def test_a_picture_without_matplotlib_is_refused_before_any_work(scene, capsys, 
     code, out, err = run_cli(capsys, *argv)
     _one_line_refusal(code, err, f"{option} needs matplotlib", "pip install matplotlib")
     assert not (scene / "cache").exists() and not (scene / "o.exr").exists() and not (scene / "s.png").exists()
+
+
+def test_a_ray_map_with_absurd_finite_coefficients_is_refused_at_load(tmp_path):
+    """A ray map whose coefficients are finite but scaled by 1e30 (its
+    checksum made anew) is refused when loaded, naming the file and the
+    array, before any position is served (it once ended in an OverflowError)."""
+    from dcdi_core.errors import DcdiError
+    from dcdi_core.psf.raymap import RayMap
+    src = ROOT / "dcdi_core" / "psf" / "data" / "raymap" / "zeiss-sonnar-50mm-f1-5.npz"
+    rm = RayMap.load(src)
+    arrays = dict(rm.arrays)
+    arrays["xy"] = (arrays["xy"].astype(np.float64) * 1e30).astype(np.float32)
+    assert np.isfinite(arrays["xy"]).all()
+    RayMap(rm.meta, arrays).save(tmp_path / "absurd.npz")
+    with pytest.raises(DcdiError, match=r"absurd\.npz.*xy"):
+        RayMap.load(tmp_path / "absurd.npz")
+
+
+def test_a_lens_length_of_1e300_is_refused_at_load(tmp_path):
+    """A thickness, a semi-diameter or an asphere's sag over its aperture
+    beyond a kilometre is refused naming the file, the surface and the
+    field (a thickness of 1e300 once gave a traceback in one verb and a
+    map of NaN in another)."""
+    import re
+    from dcdi_core.optics.lens import load_lens
+    from dcdi_core.optics.errors import LensFileError
+    text = (ROOT / "lenses" / "mos-s1.toml").read_text()
+    for pattern, value, fieldname in ((r"^thickness_mm = [0-9.]+", "thickness_mm = 1e300", "thickness_mm"),
+                                      (r"^semi_diameter_mm = [0-9.]+", "semi_diameter_mm = 1e300",
+                                       "semi_diameter_mm")):
+        f = tmp_path / f"{fieldname}.toml"
+        f.write_text(re.sub(pattern, value, text, count=1, flags=re.M))
+        with pytest.raises(LensFileError, match=rf"{fieldname}.*out of range"):
+            load_lens(f)

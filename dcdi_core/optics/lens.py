@@ -46,6 +46,12 @@ _ID_RE = re.compile(r"^[a-z0-9][a-z0-9-]*$")
 MAX_SURFACES = 200
 MAX_LENS_FILE_BYTES = 1 << 20
 MAX_ASPHERIC_TERMS = 32
+# the longest length a lens file may give (a thickness, a semi-diameter, the sensor's semi-diagonal, a surface's
+# sag over its clear aperture): a kilometre, far beyond any lens; a finite 1e300 would overflow the trace's
+# squares into inf and NaN, found as a traceback or a map of NaN far from the file
+MAX_LENGTH_MM = 1e6
+# a conic constant beyond this is no surface a lens holds (its sag is the same numbers' overflow)
+MAX_CONIC = 1e6
 
 
 def lens_dirs() -> list[Path]:
@@ -314,7 +320,8 @@ def _sensor(s, err) -> Sensor:
     bad = set(s) - _SENSOR_KEYS
     if bad:
         raise err("unknown key in [sensor]", field=sorted(bad)[0], allowed=sorted(_SENSOR_KEYS))
-    sd = _number(s.get("semi_diagonal_mm"), err, "sensor.semi_diagonal_mm", None, lo=0.0, lo_open=True)
+    sd = _number(s.get("semi_diagonal_mm"), err, "sensor.semi_diagonal_mm", None, lo=0.0, lo_open=True,
+                 hi=MAX_LENGTH_MM)
     res = s.get("resolution_px")
     if res is not None:
         if (not isinstance(res, list) or len(res) != 2
@@ -355,9 +362,9 @@ def _surface(num, s, err, materials) -> Surface:
         if key not in s:
             raise err("missing", surface=num, field=key)
     radius = _number(s["radius_mm"], err, "radius_mm", num, allow_inf=True)
-    thickness = _number(s["thickness_mm"], err, "thickness_mm", num, lo=0.0)
-    sd = _number(s["semi_diameter_mm"], err, "semi_diameter_mm", num, lo=0.0, lo_open=True)
-    conic = _number(s.get("conic", 0.0), err, "conic", num)
+    thickness = _number(s["thickness_mm"], err, "thickness_mm", num, lo=0.0, hi=MAX_LENGTH_MM)
+    sd = _number(s["semi_diameter_mm"], err, "semi_diameter_mm", num, lo=0.0, lo_open=True, hi=MAX_LENGTH_MM)
+    conic = _number(s.get("conic", 0.0), err, "conic", num, lo=-MAX_CONIC, hi=MAX_CONIC)
     coeffs = _coefficients(s, "aspheric_coefficients", err, num)
     odd = _coefficients(s, "odd_aspheric_coefficients", err, num)
     if coeffs and odd:
@@ -379,9 +386,17 @@ def _surface(num, s, err, materials) -> Surface:
         raise err("semi-diameter exceeds the surface's sag domain (the sphere/conic closes before it)",
                   surface=num, field="semi_diameter_mm", value=sd,
                   allowed=f"<= {1.0 / math.sqrt(max((1.0 + conic) * c * c, 1e-300)):.6g}")
-    return Surface(radius_mm=radius, thickness_mm=thickness, material=materials[key],
-                   semi_diameter_mm=sd, conic=conic, aspheric_coefficients=coeffs, stop=stop,
-                   label=str(s.get("label", "")), odd_aspheric_coefficients=odd)
+    surface = Surface(radius_mm=radius, thickness_mm=thickness, material=materials[key],
+                      semi_diameter_mm=sd, conic=conic, aspheric_coefficients=coeffs, stop=stop,
+                      label=str(s.get("label", "")), odd_aspheric_coefficients=odd)
+    if coeffs or odd:           # each term's sag at the clear aperture bounded, as the lengths are
+        with np.errstate(over="ignore", invalid="ignore"):
+            sag = surface.max_abs_sag()
+        if not math.isfinite(sag) or sag > MAX_LENGTH_MM:
+            raise err("the aspheric terms' sag over the clear aperture is out of range", surface=num,
+                      field="odd_aspheric_coefficients" if odd else "aspheric_coefficients",
+                      value=f"{sag:.3g} mm", allowed=f"|sag| <= {MAX_LENGTH_MM:g} mm")
+    return surface
 
 
 def lens_fingerprint(lens: "Lens") -> str:

@@ -372,6 +372,10 @@ def _wavelength_weights(asked: np.ndarray, stored: np.ndarray, nodes: int | None
     return a
 
 
+# the largest coefficient (and chief ray, aim point) a ray map may hold, mm: a position 100 m off the axis
+MAX_COEFFICIENT_MM = 1e5
+
+
 def _check(meta: dict, arrays: dict, fail) -> None:
     """Every field of a ray map's metadata that serving reads, in its range,
     and its arrays shaped as its recipe says."""
@@ -409,6 +413,14 @@ def _check(meta: dict, arrays: dict, fail) -> None:
     check_array(arrays, "geometry", rows, fail)
     check_array(arrays, "reference_geometry", rows[:1], fail)
     check_array(arrays, "ok", rows, fail, kinds="b")
+    # served positions are sums of these over monomials of at most 1 in magnitude: bounded here, they stay finite
+    # and within any integer conversion's range (coefficients scaled by 1e30 once ended in an OverflowError)
+    for name in ("xy", "chroma", "clip", "chief", "aim"):
+        a = arrays[name]
+        if a.size and not (np.isfinite(a).all() and np.abs(a).max() <= MAX_COEFFICIENT_MM):
+            worst = float(np.nanmax(np.abs(np.where(np.isfinite(a), a, np.inf))))
+            raise fail(f"array {name!r} holds {worst:.3g}", field=name,
+                       allowed=f"finite values of at most {MAX_COEFFICIENT_MM:g} mm in magnitude")
 
 
 # -------------------------------------------------------------------- build
