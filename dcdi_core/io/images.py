@@ -40,6 +40,7 @@ are :mod:`dcdi_core.io.image_checks`.
 """
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -278,6 +279,9 @@ def _write(path: Path, fmt, pixels, typename, channelnames, attributes):
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as f:
                 f.write(data)
+            if os.path.getsize(tmp) != len(data):          # a full disk that did not say so
+                raise ImageFileError(path, f"the written file holds {os.path.getsize(tmp)} of its {len(data)} "
+                                           "bytes (is the disk full?)")
         return
     with atomic_path(path) as tmp:
         # The writer is chosen by format name, not by the temporary's suffix
@@ -304,6 +308,26 @@ def _write(path: Path, fmt, pixels, typename, channelnames, attributes):
             oiio.attribute("debug", debug)
         if not ok or not closed:
             raise ImageFileError(path, f"cannot be written ({err or out.geterror() or 'write failed'})")
+        _read_back(oiio, tmp, path, (h, w, c))
+
+
+def _read_back(oiio, tmp, path, shape) -> None:
+    """The temporary just written, read whole before it is renamed into
+    place: a writer that reported success on a full disk (a truncated PNG)
+    is an error here, never a file that cannot be opened."""
+    inp = oiio.ImageInput.open(str(tmp))
+    if inp is None:
+        raise ImageFileError(path, f"the written file cannot be read back (is the disk full?): {oiio.geterror()}")
+    try:
+        spec = inp.spec()
+        got = (spec.height, spec.width, spec.nchannels)
+        data = inp.read_image() if got == tuple(shape) else None
+        why = inp.geterror()
+    finally:
+        inp.close()
+    if got != tuple(shape) or data is None or why:
+        raise ImageFileError(path, f"the written file cannot be read back (is the disk full?): "
+                                   f"{why or f'it holds {got[0]} x {got[1]} x {got[2]}, not {shape}'}")
 
 
 

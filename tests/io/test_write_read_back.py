@@ -1,0 +1,63 @@
+"""A writer that reports success yet leaves a broken file (a full disk
+under a library that does not say so) is an error, and nothing is left at
+the output path: each image is read back whole before it is renamed into
+place."""
+import numpy as np
+import pytest
+
+from dcdi_core.io import images
+from dcdi_core.io.image_file import ImageFileError
+
+
+class _Truncating:
+    """OpenImageIO with a writer whose file loses its second half on close,
+    as a full disk can leave it while the library reports success."""
+
+    def __init__(self, oiio):
+        self._oiio = oiio
+        outer = self
+
+        class ImageOutput:
+            @staticmethod
+            def create(fmt):
+                return _Out(outer._oiio.ImageOutput.create(fmt))
+        self.ImageOutput = ImageOutput
+
+    def __getattr__(self, name):
+        return getattr(self._oiio, name)
+
+
+class _Out:
+    def __init__(self, real):
+        self._real, self._path = real, None
+
+    def open(self, path, spec):
+        self._path = path
+        return self._real.open(path, spec)
+
+    def close(self):
+        ok = self._real.close()
+        with open(self._path, "r+b") as f:
+            f.truncate(max(f.seek(0, 2) // 2, 1))
+        return ok
+
+    def __getattr__(self, name):
+        return getattr(self._real, name)
+
+
+@pytest.mark.parametrize("name", ["out.png", "out.exr", "out.jpg"])
+def test_a_silently_truncated_write_is_an_error_and_leaves_nothing(tmp_path, monkeypatch, name):
+    oiio = images._oiio()
+    if oiio is None:
+        pytest.skip("OpenImageIO is not installed: the numpy EXR writer checks its size instead")
+    monkeypatch.setattr(images, "_oiio", lambda: _Truncating(oiio))
+    out = tmp_path / name
+    with pytest.raises(ImageFileError, match="cannot be read back"):
+        images.write_image(out, np.full((64, 96, 3), 0.4, np.float32))
+    assert not out.exists() and not list(tmp_path.glob("*.tmp*"))
+
+
+def test_an_intact_write_reads_back(tmp_path):
+    img = np.random.default_rng(0).random((40, 60, 3), dtype=np.float32)
+    images.write_image(tmp_path / "ok.exr", img)
+    assert np.array_equal(images.read_image(tmp_path / "ok.exr"), img)
