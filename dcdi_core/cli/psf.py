@@ -67,7 +67,8 @@ def _write_kernel(path, kernel, pitch) -> None:
     from ..atomic import atomic_path
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
-            np.savez(f, psf=kernel, pixel_pitch_mm=np.float64(pitch))
+            from ..io.npzfile import save_npz
+            save_npz(f, {"psf": kernel, "pixel_pitch_mm": np.float64(pitch)}, compressed=False)
 
 
 def cmd_psf(args) -> int:

@@ -37,7 +37,8 @@ def write_model_npz(path, meta: dict, arrays: dict) -> dict:
     path = Path(path)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
-            np.savez(f, meta=np.array(json.dumps(meta)), **arrays)
+            from .npzfile import save_npz
+            save_npz(f, {"meta": np.array(json.dumps(meta)), **arrays}, compressed=False)
     return meta
 
 

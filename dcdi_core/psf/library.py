@@ -340,7 +340,8 @@ class PSFLibrary:
         meta = dict(self.meta, key=self.key, checksum=_checksum(arrays))
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as f:
-                np.savez_compressed(f, meta=np.array(json.dumps(meta)), **arrays)
+                from ..io.npzfile import save_npz
+                save_npz(f, {"meta": np.array(json.dumps(meta)), **arrays})
 
     def _load_into(self, path: Path, *, cache: bool = True) -> bool:
         """The arrays of ``path`` into this library; False where the file is

@@ -61,3 +61,33 @@ def test_an_intact_write_reads_back(tmp_path):
     img = np.random.default_rng(0).random((40, 60, 3), dtype=np.float32)
     images.write_image(tmp_path / "ok.exr", img)
     assert np.array_equal(images.read_image(tmp_path / "ok.exr"), img)
+
+
+def test_a_zip_write_that_fails_closes_its_zip_quietly(tmp_path):
+    """A write that fails inside an .npz (the disk full at the second array)
+    raises one error, leaves nothing, and prints no "Exception ignored"
+    afterwards (numpy's savez left its zip for the collector to close onto
+    the closed file)."""
+    import subprocess
+    import sys
+    script = f"""
+import errno, gc, numpy as np
+from dcdi_core.io import npzfile
+real = np.lib.format.write_array
+calls = []
+def full(fid, a, **k):
+    calls.append(1)
+    if len(calls) == 2:
+        raise OSError(errno.ENOSPC, "No space left on device")
+    return real(fid, a, **k)
+np.lib.format.write_array = full
+try:
+    npzfile.write_format({str(tmp_path / 'x.npz')!r}, {{}}, {{"a": np.zeros(1000), "b": np.ones(1000)}}, "t", 1)
+except OSError as e:
+    print("raised", e.errno)
+gc.collect()
+"""
+    p = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert p.stdout.strip().startswith("raised"), p.stdout + p.stderr
+    assert "Exception ignored" not in p.stderr and "Traceback" not in p.stderr, p.stderr
+    assert list(tmp_path.iterdir()) == []

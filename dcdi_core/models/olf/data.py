@@ -570,4 +570,5 @@ def _write_points(path, key, data: OLFData):
             arrays[f"{ls.lens.id}.val.{c}"] = np.asarray(v, np.float64)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
-            np.savez(f, **arrays)
+            from ...io.npzfile import save_npz
+            save_npz(f, arrays, compressed=False)

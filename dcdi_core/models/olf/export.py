@@ -111,5 +111,6 @@ def export_olf(result, path, *, weights: str = "ema", dtype: str = "float32") ->
     meta["checksum"] = checksum(meta, arrays)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
-            np.savez(f, meta=np.array(json.dumps(meta, sort_keys=True)), **arrays)
+            from ...io.npzfile import save_npz
+            save_npz(f, {"meta": np.array(json.dumps(meta, sort_keys=True)), **arrays}, compressed=False)
     return meta
