@@ -52,8 +52,9 @@ _CONTROLS = [*range(0x00, 0x20), 0x7F, *range(0x80, 0xA0), 0x061C, 0x200E, 0x200
              *range(0x202A, 0x202F), *range(0x2066, 0x206A)]
 _ESCAPED = {c: (f"\\x{c:02x}" if c < 0x100 else f"\\u{c:04x}") for c in _CONTROLS}
 _ESCAPED.update({0x09: "\\t", 0x0A: "\\n", 0x0D: "\\r"})
-# a terminal stream keeps its own line breaks and tabs (the program's), and escapes every other control
-_STREAM_ESCAPED = {c: v for c, v in _ESCAPED.items() if c not in (0x09, 0x0A)}
+# a terminal stream keeps the program's own line breaks, tabs and carriage returns (a progress line redrawn in
+# place), and escapes every other control; a file's text reaches it through ``printable``, which escapes those too
+_STREAM_ESCAPED = {c: v for c, v in _ESCAPED.items() if c not in (0x09, 0x0A, 0x0D)}
 
 
 def printable(text, limit: int | None = None) -> str:
@@ -68,14 +69,16 @@ def printable(text, limit: int | None = None) -> str:
 
 def terminal_safe(text: str) -> str:
     """What :class:`TerminalStream` writes for ``text``: the program's line
-    breaks and tabs kept, every other control character escaped."""
+    breaks, tabs and carriage returns kept, every other control character
+    escaped."""
     return text.translate(_STREAM_ESCAPED)
 
 
 class TerminalStream:
     """A text stream (the command line's stdout and stderr) that writes
-    every control character but the line break and the tab as its escape:
-    whatever a message quotes, no escape sequence reaches the terminal."""
+    every control character but the line break, the tab and the carriage
+    return as its escape: whatever a message quotes, no escape sequence
+    reaches the terminal."""
 
     def __init__(self, stream):
         self._stream = stream

@@ -16,7 +16,8 @@ HOSTILE = "f/2\ndcdi: error: forged\x1b]0;owned\x07\x1b[2J\u202eevil\r"
 
 
 def _no_control(text: str) -> None:
-    assert not any(c in text for c in "\x1b\x07\r\u202e"), repr(text)
+    assert not any(c in text for c in "\x1b\x07\u202e"), repr(text)
+    assert "evil\r" not in text, repr(text)          # the file's carriage return: escaped (printable)
     assert not [line for line in text.splitlines() if line.startswith("dcdi: error: forged")], text
 
 
@@ -26,8 +27,9 @@ def test_printable_escapes_every_control_and_keeps_the_rest():
     assert out.isprintable()
     assert all(e in out for e in ("\\n", "\\x1b", "\\x07", "\\u202e", "\\r"))
     assert printable("abcdefgh", 6) == "abc..."
-    # the command line's own stream keeps its line breaks and tabs, and escapes the rest
-    assert terminal_safe("a\tb\nc\x1b[2Jd") == "a\tb\nc\\x1b[2Jd"
+    # the command line's own stream keeps its line breaks, tabs and carriage returns (a progress line), and
+    # escapes the rest
+    assert terminal_safe("a\tb\nc\x1b[2Jd\re") == "a\tb\nc\\x1b[2Jd\re"
 
 
 def test_a_capture_records_text_reaches_the_terminal_escaped(tmp_path, capsys):
