@@ -25,13 +25,14 @@ bytes. ``write_textures`` puts a seeded set in a folder, as PNGs, for any
 """
 from __future__ import annotations
 
+import json
 import math
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputRangeError
+from ..errors import DcdiError, InputRangeError
 
 # linear-RGB reflectances of surfaces a camera meets (approximate, sRGB primaries)
 MATERIALS = np.array([
@@ -153,30 +154,78 @@ def natural_texture(rng, size: int = 512, options: NaturalTextureOptions = Natur
     return np.clip(img, 0.0, 1.0).astype(np.float32)
 
 
+# peak bytes a texture holds per pixel while made and written (three float64 fields, their FFTs, the sRGB
+# encoding), measured with tracemalloc at 512, 1024 and 2048 px: 160.0 each
+TEXTURE_BYTES_PER_PIXEL = 160
+RECORD = "textures.json"           # the settings a folder's textures were made with (resuming checks them)
+RECORD_FORMAT = "dcdi-textures"
+
+
 def write_textures(folder, count: int, seed: int = 0, size: int = 512,
                    options: NaturalTextureOptions = NaturalTextureOptions(), progress=None) -> list[Path]:
-    """``count`` textures as ``natural-NNNN.png`` (8-bit sRGB) in ``folder``,
-    made if missing; refused before any work if it already holds one of
-    those names (nothing overwritten). Texture i is drawn from seed
-    (``seed``, i): the same arguments give the same files."""
+    """``count`` textures as ``natural-NNNN.png`` (8-bit sRGB) in ``folder``.
+    Texture i is drawn from seed (``seed``, i): the same arguments give the
+    same files. Checked before any work: the arguments, the PNG writer
+    (OpenImageIO), the memory one texture takes
+    (:data:`TEXTURE_BYTES_PER_PIXEL` x size^2). A folder holding textures
+    resumes where its run stopped (the files there are kept, the missing
+    made) when its record (``textures.json``) says they were made with this
+    seed, size and options; otherwise it is refused (nothing overwritten,
+    nothing mixed)."""
+    from ..io.image_checks import check_image_output
     from ..io.images import write_image
+    from ..memory import check_fits
     if isinstance(count, bool) or not isinstance(count, int) or not 1 <= count <= 100000:
         raise InputRangeError("--count", count, "an integer 1 to 100000")
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise InputRangeError("--seed", seed, "an integer >= 0")
+    if isinstance(size, bool) or not isinstance(size, (int, np.integer)) or not 16 <= size <= 8192:
+        raise InputRangeError("--size", size, "an integer 16 to 8192 px")
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise InputRangeError("--out", str(folder), "a folder (this is a file)")
     paths = [folder / f"natural-{i:04d}.png" for i in range(count)]
-    taken = [p for p in paths if p.exists()]
-    if taken:
-        raise InputRangeError("--out", str(folder), f"a folder without natural-NNNN.png files ({taken[0].name} "
-                              "is there: nothing is overwritten)")
-    natural_texture(np.random.default_rng(0), size, options)           # size and options refused before any file
+    check_image_output(paths[0])                            # the writer, before any texture is made
+    check_fits(TEXTURE_BYTES_PER_PIXEL * float(size) ** 2, f"a --size {size} texture",
+               "lower --size (its memory grows as its square)")
+    # as the file will hold it (tuples read back as lists): compared field by field with a kept one
+    record = json.loads(json.dumps({"format": RECORD_FORMAT, "seed": seed, "size_px": int(size),
+                                    "options": asdict(options)}))
+    _check_resumable(folder, record)
     folder.mkdir(parents=True, exist_ok=True)
+    _write_record(folder / RECORD, record)
     for i, path in enumerate(paths):
-        img = natural_texture(np.random.default_rng([seed, i]), size, options)
-        write_image(path, img, bit_depth=8)                 # whole or not at all
+        if not path.exists():                               # a resumed run's files are whole (written atomically)
+            img = natural_texture(np.random.default_rng([seed, i]), size, options)
+            write_image(path, img, bit_depth=8)
         if progress is not None:
             progress(i + 1, count)
     return paths
+
+
+def _check_resumable(folder: Path, record: dict) -> None:
+    """Refuse a folder holding textures unless its record is this run's settings."""
+    made = sorted(folder.glob("natural-*.png")) if folder.is_dir() else []
+    if not made:
+        return
+    from ..io.jsontext import loads
+    side = folder / RECORD
+    try:
+        kept = loads(side.read_text(encoding="utf-8", errors="replace"), side) if side.is_file() else None
+    except (DcdiError, OSError):
+        kept = None
+    if not isinstance(kept, dict):
+        raise InputRangeError("--out", str(folder), f"a folder without natural-NNNN.png files, or one a run of "
+                              f"this command left ({made[0].name} is there without a readable {RECORD}: nothing "
+                              "is overwritten)")
+    differ = [k for k in ("seed", "size_px", "options") if kept.get(k) != record[k]]
+    if kept.get("format") != RECORD_FORMAT or differ:
+        what = ", ".join(f"{k} {kept.get(k)!r}" for k in differ) or "another format"
+        raise InputRangeError("--out", str(folder), f"a folder of textures made with these settings (its "
+                              f"{RECORD} says {what}: resuming would mix them)")
+
+
+def _write_record(path: Path, record: dict) -> None:
+    from ..atomic import atomic_path
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(record, sort_keys=True), encoding="utf-8")

@@ -51,9 +51,43 @@ def test_write_textures_makes_a_texture_library_and_never_overwrites(tmp_path):
     assert [p.name for p in paths] == ["natural-0000.png", "natural-0001.png", "natural-0002.png"]
     assert len(TextureLibrary.from_folder(tmp_path / "t").sets) == 3
     before = paths[0].read_bytes()
-    with pytest.raises(InputRangeError, match="nothing is overwritten"):
+    with pytest.raises(InputRangeError, match="seed 5"):            # other settings: never mixed into the folder
         write_textures(tmp_path / "t", 1, seed=9, size=32)
     assert paths[0].read_bytes() == before
+    (tmp_path / "t" / "textures.json").unlink()                      # textures of unknown making: not touched
+    with pytest.raises(InputRangeError, match="nothing is overwritten"):
+        write_textures(tmp_path / "t", 3, seed=5, size=32)
+
+
+def test_a_stopped_run_resumes_with_the_same_settings(tmp_path):
+    """A run stopped after some textures (here: one removed) is resumed by
+    the same command: the files there are kept, the missing one made as the
+    whole run would have made it, and a larger --count extends the set."""
+    whole = [p.read_bytes() for p in write_textures(tmp_path / "a", 3, seed=2, size=32)]
+    write_textures(tmp_path / "b", 3, seed=2, size=32)
+    (tmp_path / "b" / "natural-0001.png").unlink()
+    kept = (tmp_path / "b" / "natural-0000.png").stat().st_mtime_ns
+    paths = write_textures(tmp_path / "b", 4, seed=2, size=32)
+    assert [p.read_bytes() for p in paths[:3]] == whole and paths[3].exists()
+    assert (tmp_path / "b" / "natural-0000.png").stat().st_mtime_ns == kept
+
+
+def test_textures_are_checked_before_any_work(tmp_path, monkeypatch):
+    """The memory a texture takes (stated: 160 bytes a pixel) and the PNG
+    writer are checked before a texture is made or a folder created."""
+    from dcdi_core import memory
+    from dcdi_core.dataset import natural
+    from dcdi_core.errors import MemoryLimitError
+    from dcdi_core.io import image_checks
+    made = []
+    monkeypatch.setattr(natural, "natural_texture", lambda *a, **k: made.append(1) or np.zeros((8, 8, 3)))
+    monkeypatch.setattr(memory, "available_bytes", lambda: 4 << 30)
+    with pytest.raises(MemoryLimitError, match="--size 8192"):
+        write_textures(tmp_path / "big", 1, size=8192)
+    monkeypatch.setattr(image_checks, "_oiio", lambda: None)
+    with pytest.raises(Exception, match="OpenImageIO"):
+        write_textures(tmp_path / "nooiio", 1, size=32)
+    assert made == [] and not (tmp_path / "big").exists() and not (tmp_path / "nooiio").exists()
 
 
 @pytest.mark.parametrize("kw, field", [({"slope_range": (3.0, 2.0)}, "slope_range"),
@@ -71,4 +105,4 @@ def test_cli_writes_the_folder_and_refuses_bad_input_in_one_line(tmp_path, capsy
     assert out["textures"] == 2 and len(list((tmp_path / "t").glob("natural-*.png"))) == 2
     assert main(["dataset", "textures", "-o", str(tmp_path / "u"), "--count", "2", "--size", "8"]) != 0
     err = capsys.readouterr().err.strip()
-    assert "texture size" in err and len(err.splitlines()) == 1 and not (tmp_path / "u").exists()
+    assert "--size" in err and len(err.splitlines()) == 1 and not (tmp_path / "u").exists()
