@@ -54,6 +54,9 @@ class Step:
         return shlex.join(self.argv)
 
 
+MAX_CONFIG_BYTES = 1 << 20       # a config is a page of TOML
+
+
 def config_names() -> list[str]:
     return sorted(p.stem for p in CONFIGS.glob("*.toml"))
 
@@ -63,8 +66,16 @@ def load_config(name: str) -> dict:
     path = Path(name) if name.endswith(".toml") else CONFIGS / f"{name}.toml"
     if not path.is_file():
         raise ConfigError(f"no config {name!r}: one of {', '.join(config_names())} (lab/configs/), or a .toml file")
-    with open(path, "rb") as f:
-        cfg = tomllib.load(f)
+    if path.stat().st_size > MAX_CONFIG_BYTES:
+        raise ConfigError(f"{path}: {path.stat().st_size} bytes; a config is at most {MAX_CONFIG_BYTES}")
+    try:
+        cfg = tomllib.loads(path.read_bytes().decode("utf-8"))
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{path}: not TOML ({' '.join(str(e).split())})") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: nested too deep to be a config") from None
     cfg.setdefault("name", path.stem)
     _check(cfg, path)
     return cfg
@@ -176,12 +187,17 @@ def finished(out: Path) -> set[str]:
     log = _done_log(out)
     if not log.is_file():
         return set()
+    from dcdi_core.errors import DcdiError
+    from dcdi_core.io.jsontext import loads
     done = set()
-    for line in log.read_text(encoding="utf-8").splitlines():
+    # a byte that is not UTF-8, a line nested deep, a line that is not ours: that step is not done (it runs again)
+    for n, line in enumerate(log.read_text(encoding="utf-8", errors="replace").splitlines(), 1):
         try:
-            done.add(json.loads(line)["step"])
-        except (ValueError, KeyError, TypeError):
+            step = loads(line, f"{log} line {n}")["step"]
+        except (DcdiError, KeyError, TypeError):
             continue                                    # a torn last line: that step runs again
+        if isinstance(step, str):
+            done.add(step)
     return done
 
 

@@ -157,3 +157,25 @@ def test_a_bad_config_is_refused_by_name(tmp_path, capsys):
     assert reproduce.main([str(bad), "--out", str(tmp_path / "o"), "--dry-run"]) == 2
     assert "magic" in capsys.readouterr().err
     assert reproduce.main(["no-such-network", "--out", str(tmp_path / "o")]) == 2
+
+
+@pytest.mark.parametrize("content, words", [(b"seed = 1\n\xff\xfe name = 'x'\n", "not UTF-8"),
+                                             (b"seed = = 1\n", "not TOML"),
+                                             (b"x = " + b"[" * 100_000 + b"]" * 100_000 + b"\n", "")])
+def test_a_config_that_is_not_toml_is_one_line(tmp_path, content, words):
+    f = tmp_path / "bad.toml"
+    f.write_bytes(content)
+    r = subprocess.run([sys.executable, "-m", "lab", "reproduce", str(f), "--out", str(tmp_path / "o"), "--dry-run"],
+                       cwd=ROOT, capture_output=True, text=True)
+    assert r.returncode == 2 and "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "bad.toml" in r.stderr and words in r.stderr
+
+
+def test_a_damaged_resume_file_runs_the_steps_again(tmp_path):
+    """The resume record with bytes that are not UTF-8, a line nested
+    100,000 deep and a line that is not a record: read, never a traceback;
+    the one good line counts as done."""
+    log = tmp_path / "reproduce.jsonl"
+    log.write_bytes(b'{"config": "x", "step": "a b"}\n\xff\xfe\n' + b"[" * 100_000 + b"]" * 100_000
+                    + b'\n{"step": 5}\n[1, 2]\n')
+    assert reproduce.finished(tmp_path) == {"a b"}
