@@ -15,7 +15,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..errors import InputRangeError
+from ..errors import InputRangeError, RenderError
 from ..render.inputs import depth_counts, depth_notes
 from ..render.request import RenderRequest
 from ..control import Cancelled, Control
@@ -157,6 +157,36 @@ class SimulateResult:
     notes: list = field(default_factory=list)
 
 
+# a pixel is lit where a channel of the scene exceeds LIT (linear), black where no channel of the result exceeds
+# BLACK: what no ray reaching it leaves (the result of a lens that passes light is never that dark where it is lit)
+LIT, BLACK = 1e-4, 1e-7
+DARK_NOTE_SHARE = 0.005   # the share of the lit frame left black that is said
+
+
+def check_light(scene: np.ndarray, result: np.ndarray, lens, what: str) -> str | None:
+    """Whatever the PSFs' source: refuse a result that is black wherever
+    the ``scene`` is lit (no ray of ``lens`` reaches the sensor: a clear
+    aperture that passes nothing, a blur no kernel holds); the note of the
+    share of the lit frame left black where part of it is (None: none)."""
+    if scene.shape != result.shape:
+        return None
+    lit = scene.max(axis=-1) > LIT
+    n = int(lit.sum())
+    if n == 0:
+        return None
+    dark = int((np.abs(result).max(axis=-1) <= BLACK)[lit].sum())
+    name = getattr(lens, "id", "the lens")
+    if dark == n:
+        raise RenderError(f"no light of {what} reaches the sensor through {name}: the picture would be black (no "
+                          "ray passes the lens at these fields and depths: a clear aperture or a stop that passes "
+                          "nothing?)")
+    share = dark / n
+    if share < DARK_NOTE_SHARE:
+        return None
+    return (f"{share:.1%} of {what}'s lit pixels are black through {name}: no ray reaches them (fields the lens "
+            "vignettes wholly, or a blur wider than its kernels hold)")
+
+
 def simulate(request: SimulateRequest, control: Control | None = None, *,
              cache: SourceCache | None = None) -> SimulateResult:
     """Run a :class:`SimulateRequest` (progress: 'PSFs', then 'simulating';
@@ -199,6 +229,9 @@ def simulate(request: SimulateRequest, control: Control | None = None, *,
         counts = depth_counts(depth, src.library.grid.near_m)
         notes = depth_notes(counts, f"the depth map of {request.image_name}",
                             "each takes its patch's blur, a patch with none is left sharp")
+    if render.noise_settings is None:                 # (noise lifts a black pixel off zero)
+        dark = check_light(img, r.image, lens, request.image_name)
+        notes += [dark] if dark else []
     from .records import simulated_record
     extra = {} if render.fixed_depth_m is None else {"fixed_depth_m": float(render.fixed_depth_m)}
     if getattr(lens, "iris", ""):
@@ -383,6 +416,8 @@ def bokeh(request: BokehRequest, control: Control | None = None, *, cache: Sourc
                      f"kernel were rendered at 1/{f} of the resolution with PSFs made at {f} x the pixel pitch by the same source "
                      "(their blur whole, not clipped)")
     seconds = {"psfs": t1 - t0, "bokeh": time.perf_counter() - t1}
+    dark = check_light(img, r.image, request.lens, request.image_name)
+    notes += [dark] if dark else []
     counts = depth_counts(depth, src.library.grid.near_m)
     notes += depth_notes(counts, f"the depth map of {request.image_name}", "left sharp")
     if focus_m != request.focus_m:

@@ -1,0 +1,51 @@
+"""No lens yields black without a word: a result black wherever the scene
+is lit is refused whatever the PSFs' source (nothing written), and a
+result black over part of the lit frame is said with its share."""
+import re
+
+import numpy as np
+import pytest
+
+from support.build import ROOT
+from support.cli import run_cli
+
+from dcdi_core.app.render import check_light
+from dcdi_core.errors import RenderError
+from dcdi_core.io.images import write_depth, write_image
+
+
+@pytest.fixture(scope="module")
+def blind(tmp_path_factory):
+    """MOS-S1 with its last clear aperture a micrometre: no ray passes."""
+    d = tmp_path_factory.mktemp("blind")
+    text = (ROOT / "lenses" / "mos-s1.toml").read_text()
+    parts = text.split("[[surface]]")
+    parts[-1] = re.sub(r"^semi_diameter_mm = [0-9.]+", "semi_diameter_mm = 0.000001", parts[-1], count=1,
+                       flags=re.M)
+    (d / "blind.toml").write_text("[[surface]]".join(parts).replace('id = "mos-s1"', 'id = "blind"'))
+    write_image(d / "aif.exr", np.full((48, 64, 3), 0.5, np.float32))
+    write_depth(d / "depth.exr", np.full((48, 64), 2.0, np.float32))
+    return d
+
+
+@pytest.mark.parametrize("verb", [["simulate"], ["bokeh", "--keep", "0.7", "0.8"]])
+def test_a_lens_that_passes_no_ray_is_refused_not_black(blind, verb, capsys):
+    code, out, err = run_cli(capsys, verb[0], "--image", blind / "aif.exr", "--depth", blind / "depth.exr", "--lens",
+                             blind / "blind.toml", *verb[1:], "-o", blind / "out.exr")
+    assert code == 2 and "no light" in err and "blind" in err, err
+    assert not (blind / "out.exr").exists()
+
+
+def test_a_partly_black_result_is_said_with_its_share():
+    scene = np.full((40, 40, 3), 0.5, np.float32)
+    result = scene.copy()
+    result[:, :10] = 0.0                                   # a quarter of the frame: no ray reached it
+    note = check_light(scene, result, None, "the image x")
+    assert note is not None and note.startswith("25.0% of the image x's lit pixels are black")
+    # a scene black there itself: nothing to say; a result barely dark: none either
+    dark_scene = scene.copy()
+    dark_scene[:, :10] = 0.0
+    assert check_light(dark_scene, result, None, "x") is None
+    assert check_light(scene, np.full_like(scene, 1e-5), None, "x") is None
+    with pytest.raises(RenderError, match="no light"):
+        check_light(scene, np.zeros_like(scene), None, "x")
