@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -46,7 +47,8 @@ from ..optics.errors import OpticsError
 from ..optics.lens import Lens, lens_fingerprint
 from ..optics.paraxial import image_distance_mm
 from ..optics.trace import trace
-from .compute import PSFSettings, _illumination_geometry, pixel_pitch_mm, rays_to_kernels, spectral_samples
+from .compute import (KernelTooSmallWarning, PSFSettings, _illumination_geometry, clip_message, pixel_pitch_mm,
+                      rays_to_kernels, spectral_samples)
 from .library import LibraryGrid, PSFLibrary, _fitted
 
 FORMAT = "dcdi-ray-map"
@@ -641,9 +643,21 @@ class RayMapLibrary(PSFLibrary):
                                                                    f"{self.raymap.path} holds, or inf")
         k = self.kernel_size
         out = np.zeros(f.shape + (3, k, k), np.float32)
+        outside, needed, zero = [], [], []
         for depth in np.unique(d):
             at = d == depth
-            out[at] = self._deposit(float(depth), np.minimum(f[at], 1.0))["psf"]
+            got = self._deposit(float(depth), np.minimum(f[at], 1.0))
+            out[at] = got["psf"]
+            outside.append(got["energy_outside"].ravel())
+            needed.append(got["kernel_size_needed"].ravel())
+            zero.append(got["zero_energy"].ravel())
+        if np.concatenate(zero).all():      # as a trace says it: no kernel to serve
+            raise OpticsError(f"no ray of {self.lens.id} reaches the sensor at field {float(f.max()):g}, depth "
+                              f"{float(d.min()):g} m: the kernel would be empty")
+        # the same warning as a traced kernel's (psf.compute): a clipped kernel is not rescaled to 1 in silence
+        text = clip_message(np.concatenate(outside), np.concatenate(needed), k)
+        if text:
+            warnings.warn(text, KernelTooSmallWarning, stacklevel=2)
         return out
 
     def at_geometry(self, geometry, settings: PSFSettings | None = None, *, fit_depth_m=None,
