@@ -294,3 +294,22 @@ def test_a_lens_length_of_1e300_is_refused_at_load(tmp_path):
         f.write_text(re.sub(pattern, value, text, count=1, flags=re.M))
         with pytest.raises(LensFileError, match=rf"{fieldname}.*out of range"):
             load_lens(f)
+
+
+def test_a_ray_map_with_no_usable_source_is_refused(tmp_path):
+    """A ray map whose sources are all marked unreachable is neither written
+    nor read (it served empty kernels at every field and depth)."""
+    from dcdi_core.errors import DcdiError
+    from dcdi_core.psf.raymap import RayMap
+    rm = RayMap.load(ROOT / "dcdi_core" / "psf" / "data" / "raymap" / "zeiss-sonnar-50mm-f1-5.npz")
+    arrays = dict(rm.arrays, ok=np.zeros_like(rm.arrays["ok"]))
+    with pytest.raises(DcdiError, match="no usable source"):
+        RayMap(rm.meta, arrays).save(tmp_path / "none.npz")
+    assert not (tmp_path / "none.npz").exists()
+    # written by another hand (the checksum made anew): refused when read
+    from dcdi_core.io.npzfile import write_format
+    from dcdi_core.psf import raymap as R
+    write_format(tmp_path / "none.npz", rm.meta, {k: np.asarray(v) for k, v in arrays.items()}, R.FORMAT,
+                 R.FORMAT_VERSION)
+    with pytest.raises(DcdiError, match="none.npz.*usable"):
+        RayMap.load(tmp_path / "none.npz")

@@ -320,6 +320,10 @@ class RayMap:
 
     # --------------------------------------------------------------- storage
     def save(self, path) -> None:
+        """Write the map (refused, nothing written, where no grid point is usable: a lens no ray passes)."""
+        if not np.asarray(self.arrays["ok"]).any():
+            raise OpticsError(f"{path}: a ray map of {self.lens_id} would hold no usable source (no ray of the lens "
+                              "reaches the sensor at any field and depth of its grid): not written")
         write_format(path, self.meta, {k: np.asarray(v) for k, v in self.arrays.items()}, FORMAT, FORMAT_VERSION)
 
     @classmethod
@@ -414,7 +418,10 @@ def _check(meta: dict, arrays: dict, fail) -> None:
     check_array(arrays, "aim", rows + (2,), fail)
     check_array(arrays, "geometry", rows, fail)
     check_array(arrays, "reference_geometry", rows[:1], fail)
-    check_array(arrays, "ok", rows, fail, kinds="b")
+    ok = check_array(arrays, "ok", rows, fail, kinds="b")
+    if not ok.any():                 # it would serve empty kernels at every field and depth
+        raise fail("no grid point of the map is usable (every source marked unreachable)", field="ok",
+                   allowed="a map with a usable source")
     # served positions are sums of these over monomials of at most 1 in magnitude: bounded here, they stay finite
     # and within any integer conversion's range (coefficients scaled by 1e30 once ended in an OverflowError)
     for name in ("xy", "chroma", "clip", "chief", "aim"):
