@@ -63,3 +63,23 @@ def test_a_ray_map_kernel_that_clips_warns_as_a_traced_one(capsys):
         err = capsys.readouterr().err
         texts[source] = [line for line in err.splitlines() if "kernel clips" in line]
     assert len(texts["raymap"]) == 1 and texts["raymap"] == texts["trace"], texts
+
+
+def test_a_large_blur_whose_coarse_kernels_clip_says_so():
+    """The Mamiya 150 mm focused far, a light at 0.5 m, 3 um pixels: the
+    blur passes even 8 x the 129-px kernel; the note says it is still
+    clipped (it once said "their blur whole, not clipped")."""
+    import warnings
+    from dcdi_core.app.render import BokehRequest, bokeh
+    from dcdi_core.optics.lens import load_lens
+    from dcdi_core.psf.compute import PSFSettings
+    from dcdi_core.render.request import RenderRequest
+    lens = load_lens("mamiya-sekor-sf-150mm-f4")
+    img = np.full((24, 32, 3), 0.5, np.float32)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = bokeh(BokehRequest(img, np.full((24, 32), 0.5, np.float32), lens, focus_m=100.0,
+                               render=RenderRequest(lens, psf=PSFSettings(pixel_pitch_mm=0.003))))
+    assert r.info["large_blur_factor"] == 8 and "kernel clips" in r.info["clipped"]
+    note = next(n for n in r.notes if "1/8 of the resolution" in n)
+    assert "still clipped" in note and "not clipped" not in note

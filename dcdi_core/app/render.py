@@ -406,15 +406,17 @@ def bokeh(request: BokehRequest, control: Control | None = None, *, cache: Sourc
     finally:
         if quiet is not None:
             lib.quiet_clipping = quiet
-    clipped = None if quiet is None or r.info.get("large_blur_factor") else lib.clip_text()
-    if clipped:
+    # a large blur answers the image-pitch kernel's clipping, unless its own coarse kernels clip too
+    clipped = r.info.get("large_blur_clipped") if r.info.get("large_blur_factor") else \
+        (None if quiet is None else lib.clip_text())
+    if clipped and not r.info.get("large_blur_factor"):
         lib.warn_if_clipped()
     note = _focus_note(depth, keep, request.lens, plan.geometry.pixel_pitch_mm, options.focus_distance_m)
     if r.info.get("large_blur_factor"):
         f = r.info["large_blur_factor"]
         notes.append(f"{r.info['large_blur_layers']} depth layer(s) blurred beyond the {src.library.kernel_size}-px "
                      f"kernel were rendered at 1/{f} of the resolution with PSFs made at {f} x the pixel pitch by the same source "
-                     "(their blur whole, not clipped)")
+                     + (f"(still clipped: {clipped})" if clipped else "(their blur whole, not clipped)"))
     seconds = {"psfs": t1 - t0, "bokeh": time.perf_counter() - t1}
     dark = check_light(img, r.image, request.lens, request.image_name)
     notes += [dark] if dark else []

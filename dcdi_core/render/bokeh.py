@@ -455,6 +455,10 @@ def _layered_bokeh(sc: _BokehScene, options: BokehOptions, cancelled, layer_prog
     if layer_progress is not None:
         layer_progress(len(order), len(order))
     info["layers"] = len(order)
+    if large is not None:           # the coarse kernels may clip too (a blur past 8 x the kernel): said, not hidden
+        text = getattr(large.library, "clip_text", lambda: None)()
+        if text:
+            info["large_blur_clipped"] = text
     return sc.result(col, info)
 
 
