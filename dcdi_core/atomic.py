@@ -7,7 +7,7 @@ import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 
-from .errors import DcdiError, output_error
+from .errors import DcdiError, OutputError, output_error
 
 # the job (``outputs.JobFiles``) whose declared outputs are renamed together, set by its ``together`` block
 _ACTIVE: contextvars.ContextVar = contextvars.ContextVar("dcdi_job_files", default=None)
@@ -171,13 +171,30 @@ def write_text(path, text: str) -> None:
             f.write(text)
 
 
-def save_figure(fig, path, dpi: int = 100) -> None:
-    """Save a matplotlib figure as PNG atomically, then close it."""
+def save_figure(fig, path, dpi: int = 100, **savefig) -> None:
+    """Save a matplotlib figure atomically (PNG, or ``savefig``'s
+    ``format``), read back whole before it is renamed into place; the
+    figure is closed whatever happens."""
     import matplotlib.pyplot as plt
 
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=dpi, format="png")
-    plt.close(fig)
+    try:
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=dpi, **{"format": "png", **savefig})
+            read_back_picture(tmp, path)
+    finally:
+        plt.close(fig)
+
+
+def read_back_picture(tmp, path) -> None:
+    """A picture just written to ``tmp`` (for ``path``), decoded whole
+    (PIL, matplotlib's own writer): a writer that reported success on a full
+    disk is an error here, not a file that cannot be opened."""
+    from PIL import Image
+    try:
+        with Image.open(tmp) as im:
+            im.load()
+    except (OSError, ValueError, SyntaxError) as e:
+        raise OutputError(path, f"the written picture cannot be read back (is the disk full?): {e}") from None
 
 
 def active():

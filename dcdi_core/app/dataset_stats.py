@@ -52,7 +52,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..atomic import atomic_path, write_text
+from ..atomic import atomic_path, read_back_picture, write_text
 from ..dataset import factory_folder as ff
 from ..dataset.statistics import (DEPTH_BANDS_M, HIGH_FREQUENCY_CYCLES_PER_PX, clipped_mask, depth_band_counts,
                                   spectral_energy)
@@ -485,6 +485,7 @@ def write_picture(path: Path, recipe: str, samples: list) -> None:
         for quality in (85, 70, 55, 40):            # a textured frame compresses worse: the size bound holds
             with atomic_path(path) as tmp:
                 fig.savefig(tmp, dpi=100, format="jpeg", pil_kwargs={"quality": quality})
+                read_back_picture(tmp, path)
             if path.stat().st_size <= PICTURE_MAX_BYTES:
                 break
     finally:

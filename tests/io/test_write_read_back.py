@@ -91,3 +91,24 @@ gc.collect()
     assert p.stdout.strip().startswith("raised"), p.stdout + p.stderr
     assert "Exception ignored" not in p.stderr and "Traceback" not in p.stderr, p.stderr
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_picture_that_cannot_be_read_back_is_an_error(tmp_path, monkeypatch):
+    """matplotlib reporting success on a full disk (the PNG cut short):
+    save_figure refuses it and leaves nothing; the figure is closed."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from dcdi_core.atomic import save_figure
+    from dcdi_core.errors import OutputError
+    fig = plt.figure()
+    real = fig.savefig
+
+    def cut_short(path, **k):
+        real(path, **k)
+        with open(path, "r+b") as f:
+            f.truncate(100)
+    monkeypatch.setattr(fig, "savefig", cut_short)
+    with pytest.raises(OutputError, match="cannot be read back"):
+        save_figure(fig, tmp_path / "p.png")
+    assert list(tmp_path.iterdir()) == [] and not plt.fignum_exists(fig.number)
