@@ -194,7 +194,8 @@ def test_a_full_cache_keeps_the_psfs_in_memory_with_one_warning(tmp_path, monkey
     if where == "save":                         # the library's write fails as a whole
         monkeypatch.setattr(PSFLibrary, "save", _no_space)
     else:                                       # the bytes fail inside atomic_path: an OutputError
-        monkeypatch.setattr(np, "savez_compressed", _no_space)
+        from dcdi_core.io import npzfile
+        monkeypatch.setattr(npzfile, "save_npz", _no_space)
     lib = PSFLibrary.open(load_lens("mos-s1"), TINY, GRID, cache_dir=tmp_path / "cache")
     with warnings.catch_warnings(record=True) as got:
         warnings.simplefilter("always")

@@ -163,14 +163,26 @@ LIT, BLACK = 1e-4, 1e-7
 DARK_NOTE_SHARE = 0.005   # the share of the lit frame left black that is said
 
 
-def check_light(scene: np.ndarray, result: np.ndarray, lens, what: str) -> str | None:
+def check_light(scene: np.ndarray, result: np.ndarray, lens, what: str, depth_m=None, *,
+                input_lit: bool = True) -> str | None:
     """Whatever the PSFs' source: refuse a result that is black wherever
     the ``scene`` is lit (no ray of ``lens`` reaches the sensor: a clear
     aperture that passes nothing, a blur no kernel holds); the note of the
-    share of the lit frame left black where part of it is (None: none)."""
+    share of the lit frame left black where part of it is (None: none).
+    ``scene``: the sharp image on the result's frame (a simulation's is
+    moved where the lens puts it: its corners beyond the input are black
+    there too, and not counted); ``input_lit``: whether the input image
+    has light at all (a frame onto which nothing of it was mapped is
+    black too). ``depth_m``: the depth on that frame; its invalid pixels
+    (said by the depth's own notes) are not counted."""
     if scene.shape != result.shape:
         return None
     lit = scene.max(axis=-1) > LIT
+    if input_lit and not lit.any():
+        raise RenderError(f"no light of {what} reaches the sensor through {getattr(lens, 'id', 'the lens')}: the "
+                          "picture would be black (no ray maps the image onto the sensor)")
+    if depth_m is not None and depth_m.shape == lit.shape:
+        lit &= np.isfinite(depth_m) & (depth_m > 0)
     n = int(lit.sum())
     if n == 0:
         return None
@@ -230,7 +242,8 @@ def simulate(request: SimulateRequest, control: Control | None = None, *,
         notes = depth_notes(counts, f"the depth map of {request.image_name}",
                             "each takes its patch's blur, a patch with none is left sharp")
     if render.noise_settings is None:                 # (noise lifts a black pixel off zero)
-        dark = check_light(img, r.image, lens, request.image_name)
+        dark = check_light(r.sharp, r.image, lens, request.image_name, r.depth,
+                           input_lit=bool((img.max(axis=-1) > LIT).any()))
         notes += [dark] if dark else []
     from .records import simulated_record
     extra = {} if render.fixed_depth_m is None else {"fixed_depth_m": float(render.fixed_depth_m)}
@@ -418,7 +431,8 @@ def bokeh(request: BokehRequest, control: Control | None = None, *, cache: Sourc
                      f"kernel were rendered at 1/{f} of the resolution with PSFs made at {f} x the pixel pitch by the same source "
                      + (f"(still clipped: {clipped})" if clipped else "(their blur whole, not clipped)"))
     seconds = {"psfs": t1 - t0, "bokeh": time.perf_counter() - t1}
-    dark = check_light(img, r.image, request.lens, request.image_name)
+    dark = check_light(img if r.sharp is None else r.sharp, r.image, request.lens, request.image_name,
+                       depth if r.depth is None else r.depth, input_lit=bool((img.max(axis=-1) > LIT).any()))
     notes += [dark] if dark else []
     counts = depth_counts(depth, src.library.grid.near_m)
     notes += depth_notes(counts, f"the depth map of {request.image_name}", "left sharp")
