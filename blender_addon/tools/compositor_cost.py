@@ -1,7 +1,7 @@
 """What keeping the scene's compositor costs a render through the lens (Lens
 in Renders): the lens stage of F12 at 1920 x 1080 without a compositor and
-with one (Render Layers -> Glare -> Group Output), each twice (the first
-builds the PSFs).
+with one (Render Layers -> Glare -> Group Output), alternated (the first
+builds the PSFs; the later ones compare on a warm process).
 
     blender -b --factory-startup --python blender_addon/tools/compositor_cost.py -- [--lens 6p] [--samples 1]
 
@@ -62,6 +62,10 @@ def main(argv=None) -> int:
     scene.compositing_node_group, r.use_compositing = tree, True
     once("glare, first")
     once("glare")
+    r.use_compositing = False                         # the compositor off again: the same lens stage without it
+    once("plain, again")
+    r.use_compositing = True
+    once("glare, again")
     blender_addon.unregister()
     return 0
 
