@@ -142,6 +142,7 @@ class Session:
             _run_all(steps)
         finally:
             self.sources.clear()
+            app.clear_caches()              # the engine's own (files kept, tables, the worker pool)
             self._fresh()
 
 

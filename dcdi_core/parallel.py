@@ -12,6 +12,8 @@ import threading
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 
+from . import caches
+
 _POOL: ThreadPoolExecutor | None = None
 _LOCK = threading.Lock()
 
@@ -19,6 +21,18 @@ _LOCK = threading.Lock()
 def workers() -> int:
     """Threads of the pool: one per CPU."""
     return max(1, os.cpu_count() or 1)
+
+
+def _end_pool() -> None:
+    """The pool's threads end once their work is done; the next use makes a new pool."""
+    global _POOL
+    with _LOCK:
+        pool, _POOL = _POOL, None
+    if pool is not None:
+        pool.shutdown(wait=False)
+
+
+caches.register("worker pool", _end_pool, lambda: int(_POOL is not None))
 
 
 def thread_pool() -> ThreadPoolExecutor:

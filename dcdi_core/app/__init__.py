@@ -18,6 +18,7 @@ own words (``DcdiError.in_words``).
 
 Units: depths in metres, lengths on the sensor in mm, positions in pixels.
 """
+from ..caches import clear as clear_caches, sizes as cache_sizes
 from ..control import Cancelled, Control
 from ..psf.budget import DEFAULT_DB as DEFAULT_BUDGET_DB
 from ..psf.sources import PREVIEW_TRACE, PSFRequest, PSFSourceResult, open_source
@@ -31,4 +32,4 @@ __all__ = ["Cancelled", "Control", "PSFRequest", "PSFSourceResult", "SourceCache
            "DEFAULT_BUDGET_DB",
            "SimulateRequest", "SimulateResult", "simulate", "BokehRequest", "BokehResult", "bokeh",
            "CorrectRequest", "CorrectResult", "correct", "prepare", "CaptureFrame", "capture_frame",
-           "DofRequest", "DofResult", "dof"]
+           "DofRequest", "DofResult", "dof", "clear_caches", "cache_sizes"]

@@ -76,7 +76,7 @@ def recorded_better(lens_id: str, pitch_mm: float) -> bool:
 
 # a refinement file is read once for a job's checks and its estimate (and kept
 # for the next job while the file is unchanged on disk)
-_open_refiner = FileCache(DfdRefiner, 2)
+_open_refiner = FileCache(DfdRefiner, 2, "depth refinements")
 
 
 def refinement(refine, lens_id: str, pitch_mm: float):

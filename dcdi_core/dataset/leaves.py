@@ -44,6 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import caches
 from ..errors import InputRangeError
 
 SHAPE_KINDS = ("disc", "ellipse", "rectangle", "polygon", "bar", "line")
@@ -503,6 +504,7 @@ def _tile(kind, rng, noise: _Noise) -> np.ndarray:
 
 
 _photo_cache: OrderedDict = OrderedDict()
+caches.register("texture photographs", _photo_cache.clear, lambda: len(_photo_cache))
 
 
 def _photo(path) -> np.ndarray:

@@ -428,8 +428,13 @@ class FileCache:
     resolved path, size and modification time), at most ``size`` files; a
     file changed on disk is read again. ``stat`` errors pass to the caller."""
 
-    def __init__(self, load, size: int):
+    def __init__(self, load, size: int, name: str | None = None):
         self._load, self._size, self._kept = load, size, {}
+        from .. import caches           # one registry the add-on's session clears
+        caches.register(name or f"{getattr(load, '__qualname__', 'files')}", self.clear, lambda: len(self._kept))
+
+    def clear(self) -> None:
+        self._kept.clear()
 
     def __call__(self, path):
         path = Path(path)

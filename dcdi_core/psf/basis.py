@@ -664,7 +664,7 @@ class BasisLibrary(PSFLibrary):
         raise OpticsError("a basis-backed library is not saved; it is computed from its basis file")
 
 
-_STORES = FileCache(BasisStore.load, 8)
+_STORES = FileCache(BasisStore.load, 8, "PSF bases")
 
 
 def open_store(path) -> BasisStore:

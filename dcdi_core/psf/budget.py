@@ -169,7 +169,7 @@ def _read(path) -> dict:
     return t
 
 
-_TABLES = FileCache(_read, 32)
+_TABLES = FileCache(_read, 32, "error tables")
 
 
 def load_table(lens_id: str, folder: Path | None = None) -> dict | None:

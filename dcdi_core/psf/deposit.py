@@ -43,9 +43,10 @@ sensor +x, the centre pixel (k // 2, k // 2) centred on the kernel origin.
 from __future__ import annotations
 
 import math
-from functools import lru_cache
 
 import numpy as np
+
+from .. import caches
 
 # rays reaching up to this many pixels outside the k x k window still deposit
 # their Gaussian tail inside it (3 sigma < 1.5 px)
@@ -72,7 +73,7 @@ def _box_deposit(hist_fine: np.ndarray, s: int) -> np.ndarray:
 TAPS_PX = 3
 
 
-@lru_cache(maxsize=16)
+@caches.lru("deposit phase taps", maxsize=16)
 def phase_taps(oversample: int, sigma_px: float) -> np.ndarray:
     """g (oversample, 2 T + 1): energy that pixel (own + t - T) receives from a
     unit ray in fine cell of phase p within its own pixel (erf differences)."""

@@ -40,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import caches
 from ..errors import InputRangeError
 from ..io.npzfile import FileCache, Record, check_array, file_error_text, read_format, write_format
 from ..optics.aiming import aim_chief, pupil_rays, sources, stop_grid
@@ -152,6 +153,7 @@ class _MonomialCache:
 
 
 _MONOMIALS = _MonomialCache()
+caches.register("raymap monomials", _MONOMIALS.kept.clear, lambda: len(_MONOMIALS.kept))
 
 
 def n_terms(degree: int) -> tuple[int, int]:
@@ -684,7 +686,7 @@ class RayMapLibrary(PSFLibrary):
         raise OpticsError("a ray-map library is not saved; it is computed from its ray map file")
 
 
-_MAPS = FileCache(RayMap.load, 4)
+_MAPS = FileCache(RayMap.load, 4, "ray maps")
 
 
 def open_raymap(path) -> RayMap:

@@ -205,7 +205,7 @@ def _settings_differences(learned: dict, settings: PSFSettings | None, *, rays_a
 # a refocus, a new pixel pitch or another lens opens a new source, but not the
 # 10 MB file again (0.1-0.3 s of every focus change in the add-on's preview);
 # one file at a time: the shipped one, or the user's
-_load_olf = FileCache(OmniLensField.load, 1)
+_load_olf = FileCache(OmniLensField.load, 1, "Omni-Lens-Field files")
 
 
 # the request's fields the source's messages name (errors.field: each front end shows them in its own words;

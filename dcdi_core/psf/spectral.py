@@ -61,6 +61,7 @@ from importlib import resources
 
 import numpy as np
 
+from .. import caches
 from ..errors import InputRangeError
 
 from ..optics.errors import OpticsError
@@ -315,6 +316,14 @@ def _parse_response(text: str, path) -> SpectralResponse:
 
 
 _DEFAULT: SpectralResponse | None = None
+
+
+def _forget_default() -> None:
+    global _DEFAULT
+    _DEFAULT = None
+
+
+caches.register("default spectral response", _forget_default, lambda: int(_DEFAULT is not None))
 
 
 def default_response() -> SpectralResponse:

@@ -94,3 +94,28 @@ def test_the_catalogue_is_the_folders_first_file_of_each_id(tmp_path, monkeypatc
     assert len(ids) == len(set(ids)) and ids[-1] == "zz" and cat[-1].name == "ZZ"
     assert dict((e.id, e.path) for e in cat)["6p"] == os.path.join(ROOT, "lenses", "6p.toml")
     assert all(logic.lens_file(e.id, [extra]) == e.path for e in cat)
+
+
+def test_clear_drops_the_engines_own_caches_too():
+    """The engine's process-wide caches (files kept, tables, the pool) are
+    one object (``dcdi_core.caches``) that the session's clear() empties:
+    after a bokeh fills them, every one holds nothing."""
+    import numpy as np
+    from dcdi_core import caches
+    from dcdi_core.optics.lens import load_lens
+    from dcdi_core.psf.spectral import default_response
+    from dcdi_core.parallel import thread_pool
+    lens = load_lens("zeiss-jena-tessar-50mm-f2-8")
+    depth = np.full((24, 32), 3.0, np.float32)
+    logic.run_bokeh(np.full((24, 32, 3), 0.5, np.float32), depth, lens, focus_m=1.5, keep=(1.5, 1.5),
+                    preview=True)
+    default_response()
+    thread_pool()
+    held = caches.sizes()
+    assert held["ray maps"] >= 1 and held["default spectral response"] == 1 and held["worker pool"] == 1, held
+    assert sum(held.values()) >= 4
+    s = Session()
+    s.clear()
+    assert set(caches.sizes().values()) == {0}, caches.sizes()
+    # filled again on use: nothing broken by the clear
+    thread_pool().submit(lambda: 1).result()
