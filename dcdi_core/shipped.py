@@ -1,5 +1,5 @@
 """What ships with the engine, in one place: for each lens its PSF basis,
-the Omni-Lens-Field, its correction network (DACN), its depth network and
+its ray map, the Omni-Lens-Field, its correction network (DACN), its depth network and
 the learned refinement of its depth from blur, and what each is recorded to
 beat (:func:`for_lens`); the networks by name (the ``dcdi`` command's
 nouns). Read by the PSF sources, the correction rule, the depth job, the
@@ -14,6 +14,7 @@ ENGINE_DIR = Path(__file__).resolve().parent
 SHIPPED_LENS_DIRS = (ENGINE_DIR.parent / "lenses", ENGINE_DIR / "lenses")
 WEIGHTS_DIR = Path(__file__).resolve().parent / "models" / "weights"
 BASIS_DIR = Path(__file__).resolve().parent / "psf" / "data" / "basis"
+RAYMAP_DIR = Path(__file__).resolve().parent / "psf" / "data" / "raymap"
 
 
 @dataclass(frozen=True)
@@ -99,6 +100,15 @@ def basis_file(lens_id: str, focus_stack: bool = False) -> Path | None:
     return p if p.is_file() else None
 
 
+def raymap_file(lens_id: str) -> Path | None:
+    """The shipped ray map of ``lens_id`` (psf/data/raymap/<lens>.npz: its
+    rays at any focus, stop and pitch), or None; ``lens_id`` must be a name."""
+    from .errors import InputRangeError
+    from .names import check_name
+    p = RAYMAP_DIR / f"{check_name(lens_id, 'lens id', error=InputRangeError)}.npz"
+    return p if p.is_file() else None
+
+
 @dataclass(frozen=True)
 class LensShipped:
     """What ships for one lens (files, None where none ships) and what each
@@ -108,6 +118,7 @@ class LensShipped:
 
     lens_id: str
     basis: Path | None
+    raymap: Path | None
     olf: Path | None
     dacn: Path | None
     depth_network: Path | None
@@ -120,7 +131,7 @@ class LensShipped:
 def for_lens(lens_id: str) -> LensShipped:
     """What ships for ``lens_id`` (a name; checked before it becomes a file's name)."""
     olf = NETWORKS["olf"].shipped_files()
-    return LensShipped(lens_id, basis_file(lens_id), olf[0] if olf else None,
+    return LensShipped(lens_id, basis_file(lens_id), raymap_file(lens_id), olf[0] if olf else None,
                        NETWORKS["dacn"].shipped_file(lens_id), NETWORKS["depth"].shipped_file(lens_id),
                        REFINEMENT.shipped_file(lens_id),
                        lens_id in NETWORKS["dacn"].beats_deconvolution,

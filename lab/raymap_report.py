@@ -108,9 +108,10 @@ def lens_rows(lens_id: str, n_points: int, seed: int, rays: int, log=print) -> d
 
     from dcdi_core.optics.lens import load_lens
     from dcdi_core.psf.compute import KernelTooSmallWarning, PSFSettings, psf
-    from dcdi_core.psf.raymap import open_raymap, shipped_raymap
+    from dcdi_core.psf.raymap import open_raymap
+    from dcdi_core.shipped import raymap_file
     base = load_lens(lens_id)
-    path = shipped_raymap(lens_id)
+    path = raymap_file(lens_id)
     rm = open_raymap(path)
     pts = []
     import zlib
@@ -171,7 +172,8 @@ def basis_rows(lens_id: str, n_points: int, seed: int, rays: int, log=print) -> 
     from dcdi_core.psf.basis import BasisLibrary, compress
     from dcdi_core.psf.compute import KernelTooSmallWarning, PSFSettings, psf
     from dcdi_core.psf.library import LibraryGrid, PSFLibrary
-    from dcdi_core.psf.raymap import open_raymap, shipped_raymap
+    from dcdi_core.psf.raymap import open_raymap
+    from dcdi_core.shipped import raymap_file as shipped_raymap
     lens = load_lens(lens_id)
     rm = open_raymap(shipped_raymap(lens_id))
     grid = LibraryGrid(n_fields=32, n_depths=20, near_m=0.7, far_m=10.0)
@@ -222,7 +224,7 @@ def main(argv=None) -> int:
     import json
     from pathlib import Path
 
-    from dcdi_core.psf.raymap import RAYMAP_DIR
+    from dcdi_core.shipped import RAYMAP_DIR
     p = argparse.ArgumentParser(prog="python -m lab raymap",
                                 description="the catalogue's ray maps against tracing (module docstring)")
     p.add_argument("--lens", action="append", default=None, help="lens id (repeat; default: every shipped map)")

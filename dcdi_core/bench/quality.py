@@ -41,8 +41,8 @@ BUDGETS_DB = (30.0, 40.0, 50.0, 55.0)
 
 def planned_source(lens) -> str:
     """The source a planned job of ``lens`` is measured with: its ray map where one ships, else traced."""
-    from ..psf.raymap import shipped_raymap
-    return "raymap" if shipped_raymap(lens.id) is not None else "trace"
+    from ..shipped import raymap_file
+    return "raymap" if raymap_file(lens.id) is not None else "trace"
 
 
 def render(lens, img, depth, knobs: dict, source: str, focus_m: float = FOCUS_M, seconds: dict | None = None):

@@ -54,7 +54,6 @@ from .library import LibraryGrid, PSFLibrary, _fitted
 
 FORMAT = "dcdi-ray-map"
 FORMAT_VERSION = 1
-RAYMAP_DIR = Path(__file__).resolve().parent / "data" / "raymap"
 # a fitted ray reaches its stop target within this fraction of the stop's radius
 AIM_TOLERANCE = 1e-4
 # the reachable disc's radius beyond the farthest reachable target (a fraction of the stop's radius)
@@ -697,12 +696,4 @@ def open_raymap(path) -> RayMap:
         raise RayMapFileError(f"{path}: not a readable ray map file ({type(e).__name__}: {e.strerror})") from None
 
 
-def shipped_raymap(lens_id: str) -> Path | None:
-    """The ray map that ships for ``lens_id``, or None."""
-    from ..names import check_name
-    p = RAYMAP_DIR / f"{check_name(lens_id, 'lens id', error=InputRangeError)}.npz"
-    return p if p.is_file() else None
-
-
-__all__ = ["RayMap", "RayMapRecipe", "RayMapLibrary", "RayMapFileError", "build", "open_raymap",
-           "shipped_raymap", "RAYMAP_DIR"]
+__all__ = ["RayMap", "RayMapRecipe", "RayMapLibrary", "RayMapFileError", "build", "open_raymap"]

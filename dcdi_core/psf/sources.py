@@ -43,9 +43,9 @@ from .compute import KernelTooSmallWarning, PSFSettings
 from .library import MAX_FITTED_KERNEL, LibraryGrid, PSFLibrary, _fitted, open_library, valid_depth_mask  # noqa: F401 (served from here)
 from .sampling import field_grid
 from .pitch import SAME_GIVEN_RTOL, area_resample, check_downsampling, resampled_size, same_pitch
-from ..shipped import NETWORKS, WEIGHTS_DIR
+from ..shipped import NETWORKS, WEIGHTS_DIR, for_lens
 from .olf import OmniLensField
-from .raymap import RayMap, RayMapLibrary, open_raymap, shipped_raymap
+from .raymap import RayMap, RayMapLibrary, open_raymap
 from .rule import RULE_ORDER, rule_text
 
 SHIPPED = WEIGHTS_DIR / "olf-radial.npz"
@@ -359,7 +359,7 @@ def _try_raymap(lens, pitch, settings, kernel_size, unknown_response, response, 
     """(PSFSource, None) where the lens's shipped ray map serves the request
     (any focus, f-number, blades, pixel pitch, kernel and rays: ``psf.
     raymap``), else (None, why)."""
-    path = shipped_raymap(lens.id)
+    path = for_lens(lens.id).raymap                 # the one registry of what ships (``shipped``)
     if path is None:
         return None, f"no ray map of {lens.id} ships with this engine"
     if unknown_response:

@@ -45,7 +45,8 @@ def _traced_and_mapped(lens, rm, field, depth_m, settings):
 
 
 def shipped():
-    return R.open_raymap(R.shipped_raymap(LENS))
+    from dcdi_core.shipped import raymap_file
+    return R.open_raymap(raymap_file(LENS))
 
 
 def test_the_map_deposits_the_traced_rays_of_its_grid_points():

@@ -135,7 +135,8 @@ def test_a_ray_maps_large_blur_takes_its_coarse_psfs_from_the_map(monkeypatch):
     kernel clips at reduced resolution with coarse PSFs from the same map:
     nothing is traced, and a constant image stays constant."""
     import dcdi_core.psf.library as psf_library
-    from dcdi_core.psf.raymap import RayMapLibrary, open_raymap, shipped_raymap
+    from dcdi_core.psf.raymap import RayMapLibrary, open_raymap
+    from dcdi_core.shipped import raymap_file as shipped_raymap
     lens = load_lens("zeiss-jena-tessar-50mm-f2-8")
     geom = ImageGeometry.from_pixel_pitch(lens, 64, 96, 0.02, center_px=(31.5, 47.5))
     lib = RayMapLibrary(open_raymap(shipped_raymap(lens.id)), lens,
@@ -162,7 +163,8 @@ def test_coarse_layers_blur_a_wide_blur_at_reduced_resolution_close_to_the_full_
     resolution (lights' discs included), the sharp subject is untouched, a
     constant image stays constant, and a rule no layer reaches changes
     nothing."""
-    from dcdi_core.psf.raymap import RayMapLibrary, open_raymap, shipped_raymap
+    from dcdi_core.psf.raymap import RayMapLibrary, open_raymap
+    from dcdi_core.shipped import raymap_file as shipped_raymap
     monkeypatch.setenv("DCDI_CACHE_DIR", str(tmp_path))
     lens = load_lens("zeiss-sonnar-50mm-f1-5")
     geom = ImageGeometry.from_pixel_pitch(lens, 96, 128, 0.03, center_px=(47.5, 63.5))
