@@ -277,8 +277,11 @@ def _bokeh_scene(image, depth, lens, options: BokehOptions, library: PSFLibrary 
     check_within_sensor(geometry)
     moved = options.distortion or (source is not None and source != geometry)
     if moved:
-        from .distortion import radial_distortion
-        table = radial_distortion(lens) if options.distortion else None
+        from ..psf.library import LibraryGrid
+        from .distortion import chief_ray_map
+        # the lens's chief rays at the focus, per depth (breathing, depth-dependent distortion)
+        near_m = (library.grid if library is not None else LibraryGrid()).near_m
+        table = chief_ray_map(lens, focus_m=options.focus_distance_m, near_m=near_m) if options.distortion else None
         img, d, _ = on_sensor(img, d, lens, geometry, source_geometry=source, distortion=table,
                               interpolation=options.interpolation)
     if library is None:

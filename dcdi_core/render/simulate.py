@@ -166,7 +166,7 @@ class LensSimulator:
     def __init__(self, lens, options: SimulateOptions, *, library: PSFLibrary | None = None, fit_depth_m=None,
                  progress=None):
         from . import fft
-        from .distortion import radial_distortion
+        from .distortion import chief_ray_map
 
         if not isinstance(options, SimulateOptions):
             raise InputRangeError("options", options, "SimulateOptions (how to simulate)")
@@ -186,12 +186,16 @@ class LensSimulator:
         self.interpolation = options.interpolation
         self.lens, self.geometry = lens, geometry
         self.source_geometry = options.source_geometry or geometry
-        self.table = radial_distortion(lens) if options.distortion else None
         if library is None:
             library = lens_library(lens, geometry, options.settings, options.grid, response=options.response,
                                    cache=options.cache, fit_depth_m=fit_depth_m, progress=progress)
         check_library_pitch(library, geometry)
         self.library = library
+        # the lens's chief rays at the PSFs' own focus, per depth (breathing and
+        # depth-dependent distortion); depths nearer than the library's use its near limit
+        focus = (options.settings.focus_distance_m if options.settings is not None
+                 else library.settings.focus_distance_m)
+        self.table = chief_ray_map(lens, focus_m=focus, near_m=library.grid.near_m) if options.distortion else None
         self.margin = self._scene_margin()
         m = self.margin
         self.work_geometry = geometry if m == 0 else replace(
