@@ -275,6 +275,19 @@ class RayKernels:
     kernel_size_needed: np.ndarray     # (b,) 0 where the kernel does not clip
 
 
+def ray_spacing_px(nv: np.ndarray, sx: np.ndarray, sy: np.ndarray, s2: np.ndarray, pitch: float) -> np.ndarray:
+    """(b,) the spacing (pixels) of each source's rays on the sensor: the
+    area a wavelength's rays cover, taken as a uniform disc of their RMS
+    radius (area 2 pi rms^2), shared among them; the mean over wavelengths
+    weighted by their rays. From the per-wavelength ray count ``nv``, sums
+    of x, y and x^2 + y^2 (b, W), in mm."""
+    safe = np.where(nv > 0, nv, 1.0)
+    var = np.maximum(s2 / safe - (sx / safe) ** 2 - (sy / safe) ** 2, 0.0)
+    spacing = np.sqrt(2.0 * math.pi * var / safe) / pitch
+    total = nv.sum(-1)
+    return np.where(total > 0, (spacing * nv).sum(-1) / np.where(total > 0, total, 1.0), 0.0)
+
+
 def rays_to_kernels(x: np.ndarray, y: np.ndarray, valid: np.ndarray, cy: np.ndarray, weights: np.ndarray,
                     n_p: int, pitch: float, settings: PSFSettings) -> RayKernels:
     """Kernels of ``b`` sources from their rays on the sensor: ``x``, ``y``
@@ -284,8 +297,7 @@ def rays_to_kernels(x: np.ndarray, y: np.ndarray, valid: np.ndarray, cy: np.ndar
     pupil samples launched per wavelength. The one place rays become kernels,
     whether they were traced or read from a ray map (``psf.raymap``)."""
     k = settings.kernel_size
-    raw = deposit(x / pitch, (y - cy[:, None, None]) / pitch, valid, weights, k,
-                  settings.oversample, settings.deposit_sigma_px)
+    x_px, y_px = x / pitch, (y - cy[:, None, None]) / pitch
     # per-wavelength sums -> per-channel ray statistics (dead rays are finite: zero them)
     vf = valid.astype(np.float64)
     nv = vf.sum(-1)                                              # (b, W)
@@ -293,6 +305,9 @@ def rays_to_kernels(x: np.ndarray, y: np.ndarray, valid: np.ndarray, cy: np.ndar
     y *= vf
     sx, sy = x.sum(-1), y.sum(-1)
     s2 = (x * x + y * y).sum(-1)
+    raw = deposit(x_px, y_px, valid, weights, k, settings.oversample, settings.deposit_sigma_px,
+                  footprint_px=ray_spacing_px(nv, sx, sy, s2, pitch))
+    del x_px, y_px
     arrived = nv @ weights                                       # (b, 3) energy that reached the sensor
     safe = np.where(arrived > 0, arrived, 1.0)
     cx_c, cy_c = (sx @ weights) / safe, (sy @ weights) / safe

@@ -99,7 +99,48 @@ def _blur_rows(h: np.ndarray, taps: np.ndarray) -> np.ndarray:
     return out
 
 
-def deposit(x_px, y_px, valid, channel_weights, k: int, oversample: int, sigma_px: float):
+# a ray's footprint (its pupil cell on the sensor) is drawn when it spans at
+# least this many pixels (below, the histogram's moire is under 25 % of a
+# pixel's share and the kernel is small)
+FOOTPRINT_MIN_PX = 0.25
+
+
+def _overlaps(u: np.ndarray, width: float, n: int):
+    """The pixels (index arrays, one per offset) a box of ``width`` px centred
+    at ``u`` (pixel coordinates: pixel j spans [j, j + 1)) overlaps, and the
+    fraction of the box each holds; ``n`` offsets cover any box's pixels."""
+    lo, hi = u - width / 2.0, u + width / 2.0
+    first = np.floor(lo)
+    out = []
+    for o in range(n):
+        j = first + o
+        frac = (np.minimum(hi, j + 1.0) - np.maximum(lo, j)) / width
+        out.append((j.astype(np.int64), np.maximum(frac, 0.0)))
+    return out
+
+
+def _footprint_deposit(x: np.ndarray, y: np.ndarray, wl: np.ndarray, width: float, k: int,
+                       channel_weights: np.ndarray) -> np.ndarray:
+    """(3, k, k): each ray's energy spread evenly over a square of side
+    ``width`` px centred on it, integrated over each pixel (exactly: the
+    square's overlap with the pixel); x, y the rays' positions relative to
+    the kernel's centre (px), wl their wavelength index."""
+    w = channel_weights.shape[0]
+    n = int(math.ceil(width)) + 1
+    c = k / 2.0
+    ox, oy = _overlaps(x + c, width, n), _overlaps(y + c, width, n)
+    hist = np.zeros(k * k * w)
+    for jx, fx in ox:
+        okx = (jx >= 0) & (jx < k) & (fx > 0)
+        for jy, fy in oy:
+            ok = okx & (jy >= 0) & (jy < k) & (fy > 0)
+            if ok.any():
+                hist += np.bincount((jy[ok] * k + jx[ok]) * w + wl[ok], weights=fx[ok] * fy[ok], minlength=k * k * w)
+    return (hist.reshape(k * k, w) @ channel_weights).T.reshape(3, k, k)
+
+
+def deposit(x_px, y_px, valid, channel_weights, k: int, oversample: int, sigma_px: float,
+            footprint_px=None):
     """Deposit of rays into (B, 3, k, k) kernels: ``sigma_px`` 0 puts each
     ray into the pixel it lands in (the ray histogram; ``oversample`` is then
     irrelevant), > 0 spreads it by a Gaussian of that width (pixels)
@@ -111,7 +152,17 @@ def deposit(x_px, y_px, valid, channel_weights, k: int, oversample: int, sigma_p
     normalised (a ray's energy is its weight).
 
     Each kernel's histogram covers only the fine cells its rays reach (most
-    PSFs are far smaller than the window), so the cost follows the blur."""
+    PSFs are far smaller than the window), so the cost follows the blur.
+
+    footprint_px: (B,) the rays' spacing on the sensor (pixels), or None.
+    With the histogram (``sigma_px`` 0), where it is at least
+    :data:`FOOTPRINT_MIN_PX`, each ray's energy is spread evenly over a
+    square of that side centred on it (the pupil cell it stands for, on the
+    sensor), integrated exactly over each pixel: a regular grid of rays then
+    covers a uniformly lit blur evenly, where the histogram alone beats the
+    ray grid against the pixel grid (moire of relative amplitude about the
+    spacing in pixels). The square's variance, side^2 / 12, vanishes as rays
+    are added."""
     b, w, p = x_px.shape
     half = k / 2.0 + MARGIN_PX
     if not (math.isfinite(sigma_px) and sigma_px >= 0):
@@ -119,6 +170,10 @@ def deposit(x_px, y_px, valid, channel_weights, k: int, oversample: int, sigma_p
     taps = phase_taps(oversample, float(sigma_px)) if sigma_px > 0 else None
     if taps is None:
         oversample = 1          # whole pixels: sub-pixel cells would only be summed again
+    spread = np.zeros(b) if footprint_px is None or taps is not None else \
+        np.nan_to_num(np.broadcast_to(np.asarray(footprint_px, np.float64), (b,)), nan=0.0, posinf=0.0)
+    # no wider than the window (a wider one is no pupil cell's image)
+    spread = np.where(spread >= FOOTPRINT_MIN_PX, np.minimum(spread, float(k)), 0.0)
     g = (k + 2 * MARGIN_PX) * oversample
     out = np.zeros((b, 3, k, k))
     wl_index = np.broadcast_to(np.arange(w)[:, None], (w, p))
@@ -129,6 +184,10 @@ def deposit(x_px, y_px, valid, channel_weights, k: int, oversample: int, sigma_p
     inside = valid & (x_px > -half) & (y_px > -half) & (fx < g) & (fy < g)
     s = oversample
     for i in range(b):
+        if spread[i] > 0:
+            v = valid[i]
+            out[i] = _footprint_deposit(x_px[i][v], y_px[i][v], wl_index[v], float(spread[i]), k, channel_weights)
+            continue
         ins = inside[i]
         if not ins.any():
             continue

@@ -50,7 +50,7 @@ from ..io.jsontext import loads
 
 FORMAT_VERSION = 1
 # bumped whenever the PSF computation changes what it produces
-ALGORITHM_VERSION = 2     # 2: rays into the pixel they land in (deposit_sigma_px), not a Gaussian
+ALGORITHM_VERSION = 3     # 2: rays into the pixel they land in (deposit_sigma_px), not a Gaussian; 3: over their footprint
 
 
 class CacheWarning(UserWarning):
