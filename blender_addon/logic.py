@@ -431,7 +431,8 @@ def source_words(info: dict) -> str:
 
 def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], patch: int = 16,
               refocus: bool = True, progress=None, cancelled=None, preview: bool = False,
-              max_error_db: float | None = None):
+              max_error_db: float | None = None, lens_geometry: bool = False,
+              pinhole_focal_length_mm: float | None = None):
     """The lens's depth of field on an all-in-focus (H, W, 3) float32 linear
     image with depth (H, W) metres: ``dcdi_core.app.bokeh`` (`dcdi bokeh
     --focus F --keep NEAR FAR`), the lens focused at ``focus_m`` (or, with
@@ -442,7 +443,11 @@ def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], 
     with ``PREVIEW_TRACE`` (info's ``psf_quality`` 'preview') where the
     lens has no error table. ``max_error_db``: the error budget (dB; None:
     the preview's or the render's default, ``app.DEFAULT_BUDGET_DB``),
-    the plan in info's ``quality``. Returns
+    the plan in info's ``quality``. ``lens_geometry``: the picture moved
+    as the lens at its focus moves it (breathing, distortion; `dcdi bokeh
+    --distort`), the render read as a pinhole's of
+    ``pinhole_focal_length_mm`` (:func:`reading.pinhole_focal_length_mm`;
+    None: the lens's own). Returns
     (image, info: the bokeh's, the PSF source and its message, and
     ``focus_note`` where nothing in view lies in the kept range)."""
     # the PSF work planned by the job's error budget (``psf.budget``); FIELD_STEP_PX and the preview's
@@ -450,8 +455,9 @@ def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], 
     psf = app.PSFRequest(preview=preview, field_step_px=FIELD_STEP_PX, focus_tolerance_px=FOCUS_TOLERANCE_PX,
                          max_error_db=app.DEFAULT_BUDGET_DB["preview" if preview else "render"]
                          if max_error_db is None else float(max_error_db))
+    render = RenderRequest(lens, patch=patch, pinhole_focal_length_mm=pinhole_focal_length_mm if lens_geometry else None)
     request = app.BokehRequest(image, depth, lens, keep=tuple(keep), focus_m=float(focus_m) if refocus else None,
-                               render=RenderRequest(lens, patch=patch), psf=psf, image_name="the render")
+                               render=render, psf=psf, image_name="the render", distortion=bool(lens_geometry))
     r = app.bokeh(request, _control(progress, cancelled), cache=SESSION.sources)
     info = dict(r.info, focus_m=float(focus_m), keep_m=[float(keep[0]), float(keep[1])], refocus=bool(refocus),
                 seconds=dict(r.seconds),
@@ -480,7 +486,8 @@ class FrameRequest:
     focus (m from the lens's first vertex), the kept range (m) and whether
     the lens is refocused (the bokeh's), the lens's entrance pupil (mm
     behind its first vertex) and the scene's metres per unit (the Z pass's
-    conversion)."""
+    conversion); Lens Geometry (the depth of field's) and the camera's
+    pinhole focal length on the lens's sensor (None: the lens's own)."""
 
     effect: str
     focus_m: float
@@ -488,6 +495,8 @@ class FrameRequest:
     refocus: bool
     entrance_pupil_mm: float
     metres_per_unit: float = 1.0
+    lens_geometry: bool = False
+    pinhole_focal_length_mm: float | None = None
 
     def __post_init__(self):
         if self.effect not in RENDER_EFFECTS:
@@ -506,27 +515,31 @@ def lens_frame(rgb, z, lens, request: FrameRequest, *, progress=None, cancelled=
     rgb = np.nan_to_num(np.asarray(rgb, np.float32)[..., :3], nan=0.0, posinf=0.0, neginf=0.0)
     if request.effect == "dof":
         out, info = run_bokeh(rgb, depth, lens, focus_m=request.focus_m, keep=request.keep,
-                              refocus=request.refocus, progress=progress, cancelled=cancelled)
+                              refocus=request.refocus, progress=progress, cancelled=cancelled,
+                              lens_geometry=request.lens_geometry,
+                              pinhole_focal_length_mm=request.pinhole_focal_length_mm)
     else:
         out, _, _, info = run_simulation(rgb, depth, lens, focus_m=request.focus_m, progress=progress,
-                                         cancelled=cancelled)
+                                         cancelled=cancelled, pinhole_focal_length_mm=request.pinhole_focal_length_mm)
     return out, depth, dict(info, effect=request.effect)
 
 
 # ------------------------------------------------------------------ the DCDI round trip
 def run_simulation(image, depth, lens, *, noise: bool = False, seed: int = 0, focus_m: float | None = None,
-                   progress=None, cancelled=None):
+                   progress=None, cancelled=None, pinhole_focal_length_mm: float | None = None):
     """The all-in-focus (H, W, 3) render with depth (H, W) metres as ``lens``
     (as prescribed, or with ``focus_m`` its sensor moved to focus there)
     would have taken it: ``dcdi_core.app.simulate`` (`dcdi simulate
     [--focus F] [--noise --seed S]`: distortion, then patch-wise PSFs of
     field and depth; sensor noise if ``noise``, seeded by ``seed``).
-    ``progress`` / ``cancelled`` as :func:`run_bokeh`. Returns (image, depth
+    ``progress`` / ``cancelled`` as :func:`run_bokeh`; the render read as a
+    pinhole's of ``pinhole_focal_length_mm`` (None: the lens's own). Returns (image, depth
     on the sensor (NaN where the lens images nothing), the image's geometry
     on the sensor, info with ``record``: what the capture remembers, the
     defaults of its correction)."""
     psf = replace(compute.PSFSettings(), focus_distance_m=None if focus_m is None else float(focus_m))
-    render = RenderRequest(lens, psf=psf, noise=bool(noise), seed=int(seed) if noise else None)
+    render = RenderRequest(lens, psf=psf, noise=bool(noise), seed=int(seed) if noise else None,
+                           pinhole_focal_length_mm=pinhole_focal_length_mm)
     r = app.simulate(app.SimulateRequest(image, depth, lens, render, image_name="the render",
                                          psf=app.PSFRequest(max_error_db=app.DEFAULT_BUDGET_DB["render"])),
                      _control(progress, cancelled), cache=SESSION.sources)

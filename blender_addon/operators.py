@@ -111,13 +111,15 @@ def prepare(context, rendered=None):
     r = reading.read_scene(context.scene)
     rgb, depth, seconds, how = render_inputs(context, r, rendered, context.scene.dcdi_lens_bokeh.apply_render_size)
     return {"rgb": rgb, "depth": depth, "lens": r.lens, "focus_m": r.focus_m, "keep": r.keep,
-            "refocus": r.refocus, "render_s": seconds, "render_how": how}
+            "refocus": r.refocus, "render_s": seconds, "render_how": how, "lens_geometry": r.lens_geometry,
+            "pinhole_mm": r.pinhole_focal_length_mm}
 
 
 def bokeh_of(job, **kw):
     """logic.run_bokeh on a prepared job (kw: progress, cancelled)."""
     return logic.run_bokeh(job["rgb"], job["depth"], job["lens"], focus_m=job["focus_m"], keep=job["keep"],
-                           refocus=job["refocus"], **kw)
+                           refocus=job["refocus"], lens_geometry=job["lens_geometry"],
+                           pinhole_focal_length_mm=job["pinhole_mm"], **kw)
 
 
 def finish(op, context, job, out, info, seconds: float, store_inputs: bool):
@@ -357,7 +359,7 @@ def prepare_simulation(context, rendered=None):
     r = reading.read_scene(context.scene, focus=False)
     rgb, depth, seconds, how = render_inputs(context, r, rendered)
     return {"rgb": rgb, "depth": depth, "lens": r.lens, "noise": bool(context.scene.dcdi_lens_bokeh.sensor_noise),
-            "render_s": seconds, "render_how": how}
+            "render_s": seconds, "render_how": how, "pinhole_mm": r.pinhole_focal_length_mm}
 
 
 class DCDI_OT_simulate_lens(_JobOperator, bpy.types.Operator):
@@ -374,7 +376,8 @@ class DCDI_OT_simulate_lens(_JobOperator, bpy.types.Operator):
         return prepare_simulation(context, rendered)
 
     def compute(self, job, **kw):
-        return logic.run_simulation(job["rgb"], job["depth"], job["lens"], noise=job["noise"], **kw)
+        return logic.run_simulation(job["rgb"], job["depth"], job["lens"], noise=job["noise"],
+                                    pinhole_focal_length_mm=job["pinhole_mm"], **kw)
 
     def finish(self, context, job, result, seconds):
         out, sensor_depth, geometry, info = result
@@ -461,7 +464,7 @@ def _redraw(context):
 
 
 class DCDI_OT_match_camera(bpy.types.Operator):
-    """Set the active camera's focal length, sensor and F-Stop to the lens's (paraxial focal length; the sensor's diagonal spans the render; both scaled up together where Blender's 1 mm minimum sensor would change the field of view; the F-Stop wide open)"""
+    """Set the active camera's focal length, sensor and F-Stop to the lens's: the camera frames what the lens focused at the focus distance shows (with Lens Geometry and Refocus Lens; the lens breathes and distorts, so its framing changes with the focus), else the lens's paraxial focal length; the sensor's diagonal spans the render; both scaled up together where Blender's 1 mm minimum sensor would change the field of view; the F-Stop wide open"""
 
     bl_idname = "dcdi.match_camera_to_lens"
     bl_label = "Match Camera to Lens"
@@ -473,7 +476,10 @@ class DCDI_OT_match_camera(bpy.types.Operator):
             cam = reading.camera(scene)
             lens, _ = reading.chosen_lens(scene.dcdi_lens_bokeh)
             r = scene.render
-            pinhole = dcdi_camera.PinholeCamera.for_lens(lens, r.resolution_y, r.resolution_x)
+            s = scene.dcdi_lens_bokeh
+            # with Lens Geometry the lens moves the picture: frame as it does at the focus distance
+            focus_m = _framing_focus(scene) if s.refocus and s.lens_geometry else None
+            pinhole = dcdi_camera.PinholeCamera.for_lens(lens, r.resolution_y, r.resolution_x, focus_m=focus_m)
         except _user_errors() as e:
             self.report({"ERROR"}, logic.message(e))
             return {"CANCELLED"}
@@ -485,10 +491,24 @@ class DCDI_OT_match_camera(bpy.types.Operator):
         scale = pinhole.blender_scale()
         scaled = (f" (the lens's {pinhole.focal_length_mm:.3g} mm and its sensor scaled x{scale:.3g} to Blender's "
                   "1 mm minimum; the field of view is the lens's)" if scale > 1 else "")
-        self.report({"INFO"}, f"{cam.name}: focal length {c['lens']:.2f} mm, sensor "
+        framing = ""
+        if focus_m is not None:
+            efl = logic.lens_readout(reading.chosen_lens(scene.dcdi_lens_bokeh)[1])["focal_length_mm"]
+            framing = (f", framing as {lens.id} focused at {focus_m:.3g} m (its {efl:.3g} mm breathes to "
+                       f"{pinhole.focal_length_mm:.4g} mm there; match again after a refocus)")
+        self.report({"INFO"}, f"{cam.name}: focal length {c['lens']:.2f} mm{framing}, sensor "
                               f"{c['sensor_width']:.2f} x {c['sensor_height']:.2f} mm{scaled}, "
                               f"F-Stop {cam.data.dof.aperture_fstop:.3g} (wide open)")
         return {"FINISHED"}
+
+
+def _framing_focus(scene) -> float | None:
+    """The focus distance (m from the lens's first vertex) Match Camera frames
+    at, or None where the scene gives none (then the lens's focal length)."""
+    try:
+        return reading.read_scene(scene).focus_m
+    except _user_errors():
+        return None
 
 
 class DCDI_OT_import_zemax(bpy.types.Operator):

@@ -268,6 +268,7 @@ def draw_lens_bokeh(layout, context, in_viewport: bool = True):
         row.operator("dcdi.focus_pick", icon="EYEDROPPER")
     row.operator("dcdi.focus_active_object", text="Active", icon="OBJECT_DATA")
     col.prop(s, "refocus")
+    col.prop(s, "lens_geometry")
     _aperture(layout, context, s)
     # a column's heading shows only before a checkbox when properties are split: a label of its own
     layout.label(text="Kept Sharp")

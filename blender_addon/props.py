@@ -76,6 +76,12 @@ class DCDI_LensBokehSettings(bpy.types.PropertyGroup):
                                       "for each focus, then cached). Off: the lens as its prescription stands, the "
                                       "kept range still sharp; a shipped lens is then served by the bundled "
                                       "Omni-Lens-Field network, with no tracing")
+    lens_geometry: BoolProperty(update=_settings_changed, name="Lens Geometry", default=False,
+                                description="Move the picture as the lens focused here does: it breathes (the "
+                                            "image grows as the lens focuses closer) and it distorts. Your camera's "
+                                            "view is read at its own focal length; Match Camera to Lens frames it "
+                                            "as the lens at the focus distance. Off: the depth of field on your "
+                                            "camera's framing as it stands")
     use_camera_aperture: BoolProperty(update=_settings_changed, name="Camera Aperture", default=False,
                                       description="Stop the lens down to the active camera's F-Stop, shaped by its "
                                                   "Blades and Rotation (Properties > Camera > Depth of Field > "

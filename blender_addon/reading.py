@@ -13,6 +13,8 @@ scale (``metres_per_unit``).
 """
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 
 import bpy
@@ -46,6 +48,8 @@ class SceneReading:
     aperture_note: str = ""          # why the camera's F-Stop was not used as it stands ('': it was, or not asked)
     preview_quality: float = 30.0    # the preview's error budget (dB; psf.budget)
     render_percentage: int = 100     # the render's resolution percentage (Output > Format)
+    lens_geometry: bool = False      # Lens Geometry: the depth of field moves the picture as the lens does
+    pinhole_focal_length_mm: float | None = None    # the camera's, on the lens's sensor (pinhole_focal_length_mm)
 
     def preview_shape(self) -> tuple[int, int]:
         """(height, width) of the preview: the render's aspect, its long side the Preview Size."""
@@ -78,9 +82,10 @@ def read_scene(scene, *, focus: bool = True, depsgraph=None, lens_path: str | No
     if focus:
         focus_m, keep = focus_and_keep(scene, cam, s, ep, depsgraph)
     r = scene.render
+    size = (r.resolution_x, r.resolution_y, r.pixel_aspect_x, r.pixel_aspect_y)
     return SceneReading(cam, lens, lens_path, ep, metres_per_unit(scene), focus_m, keep, bool(s.refocus),
-                        (r.resolution_x, r.resolution_y, r.pixel_aspect_x, r.pixel_aspect_y), s.preview_size,
-                        s.samples, note, float(s.preview_quality), int(r.resolution_percentage))
+                        size, s.preview_size, s.samples, note, float(s.preview_quality), int(r.resolution_percentage),
+                        bool(s.lens_geometry), pinhole_focal_length_mm(cam, size, lens))
 
 
 # ------------------------------------------------------------------ the parts
@@ -100,6 +105,26 @@ def camera(scene):
         raise logic.BokehInputError(f"camera {cam.name!r} is {cam.data.type.lower()}: "
                                     "Lens Bokeh needs a perspective camera (Camera > Type > Perspective)")
     return cam
+
+
+def pinhole_focal_length_mm(cam, render_size, lens) -> float:
+    """The camera's focal length on the scale of the lens's sensor (mm): a
+    job's image spans the lens's sensor diagonal, so it is the semi-diagonal
+    over the tangent of half the render's diagonal angle of view (Blender's
+    Sensor Fit: Auto fits the sensor width to the longer side). Equal to the
+    lens's focal length after Match Camera to Lens at infinity; what the
+    engine reads the render's scale by where the lens moves the picture."""
+    d = cam.data
+    rx, ry, ax, ay = render_size
+    w, h = float(rx) * float(ax), float(ry) * float(ay)
+    fit = d.sensor_fit
+    if fit == "AUTO":
+        fit = "HORIZONTAL" if w >= h else "VERTICAL"
+        side = float(d.sensor_width)
+    else:
+        side = float(d.sensor_width if fit == "HORIZONTAL" else d.sensor_height)
+    per_unit = side / float(d.lens) / (w if fit == "HORIZONTAL" else h)      # tan of the angle per pixel
+    return float(lens.sensor.semi_diagonal_mm) / (per_unit * math.hypot(w, h) / 2.0)
 
 
 def camera_aperture(cam, settings, lens):
@@ -199,7 +224,7 @@ def inputs_key(scene) -> str:
         return None if obj is None else [obj.name, [round(v, 6) for row in obj.matrix_world for v in row]]
 
     s = scene.dcdi_lens_bokeh
-    parts = [s.lens, s.focus_mode, round(s.focus_distance, 9), placed(s.focus_object), s.refocus,
+    parts = [s.lens, s.focus_mode, round(s.focus_distance, 9), placed(s.focus_object), s.refocus, s.lens_geometry,
              round(s.keep_front, 9), round(s.keep_behind, 9), s.preview_size, round(s.preview_quality, 6), s.samples,
              s.sensor_noise,
              s.correction_method, s.correction_model, s.apply_render_size, scene.render.resolution_percentage]

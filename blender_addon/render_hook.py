@@ -227,8 +227,13 @@ def _focus(scene, run: _LensRender, depsgraph) -> tuple[float, tuple[float, floa
 def _request(scene, run: _LensRender, frame: int) -> logic.FrameRequest:
     s = scene.dcdi_lens_bokeh
     focus, keep = run.focus_by_frame.get(frame) or _focus(scene, run, None)
+    r = scene.render
+    size = (r.resolution_x, r.resolution_y, r.pixel_aspect_x, r.pixel_aspect_y)
     return logic.FrameRequest(s.render_effect.lower(), focus, keep, bool(s.refocus),
-                              logic.lens_readout(run.lens_path)["entrance_pupil_mm"], reading.metres_per_unit(scene))
+                              logic.lens_readout(run.lens_path)["entrance_pupil_mm"], reading.metres_per_unit(scene),
+                              lens_geometry=bool(s.lens_geometry),
+                              pinhole_focal_length_mm=reading.pinhole_focal_length_mm(
+                                  scene.camera, size, logic.load_lens_cached(run.lens_path)))
 
 
 def _read_passes(run: _LensRender) -> dict:

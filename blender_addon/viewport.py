@@ -363,14 +363,15 @@ class Preview:
                           "source": sharp["source"] if fresh else None, "steps": sharp["steps"] if fresh else {},
                           "t0": time.perf_counter(), "passes": sharp["passes"]}
         rgb, depth, refocus = sharp["rgb"], sharp["depth"], bool(a["scene"].dcdi_lens_bokeh.refocus)
-        quality = a["quality"]
+        quality, geometry, pinhole = a["quality"], a["lens_geometry"], a["pinhole_mm"]
 
         def run():
             _lower_thread_priority()
             try:
                 out, info = logic.run_bokeh(rgb, depth, lens, focus_m=focus, keep=keep,
                                             refocus=refocus, cancelled=lambda: self.generation != gen,
-                                            preview=True, max_error_db=quality)
+                                            preview=True, max_error_db=quality, lens_geometry=geometry,
+                                            pinhole_focal_length_mm=pinhole)
                 job["out"], job["info"] = out, info
             except logic.Cancelled:
                 job["cancelled"] = True
@@ -465,9 +466,9 @@ def inputs(context) -> dict:
                  d.sensor_width, d.sensor_height, d.sensor_fit, d.shift_x, d.shift_y, d.clip_start, d.clip_end)
     return {"scene": scene, "camera": cam, "lens": lens, "path": path, "entrance_pupil_mm": ep, "h": h, "w": w,
             "mpu": mpu, "focus": r.focus_m, "keep": r.keep, "sharp_key": sharp_key,
-            "quality": r.preview_quality,
+            "quality": r.preview_quality, "lens_geometry": r.lens_geometry, "pinhole_mm": r.pinhole_focal_length_mm,
             "request": (lens.id, path, r.focus_m, r.keep, r.refocus, round(ep, 9), mpu, lens.iris,
-                        round(r.preview_quality, 6))}
+                        round(r.preview_quality, 6), r.lens_geometry, round(r.pinhole_focal_length_mm, 9))}
 
 
 def wanted(context) -> tuple:

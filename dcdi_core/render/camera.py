@@ -6,10 +6,16 @@ two to line up the pinhole must see what the lens sees:
 
 - it sits at the lens's entrance pupil (the centre of projection of the
   object-space chief rays), ``entrance_pupil_mm`` behind the first vertex;
-- its focal length is the lens's paraxial effective focal length (EFL);
+- its focal length is the scale of the lens's ideal image
+  (:func:`ideal_scale_mm`: the paraxial image height per unit tan of the
+  field angle at the sensor where the prescription puts it): the EFL for a
+  lens focused at infinity; 18.94 mm for MOS-S1, whose sensor sits 4
+  diopters inside its infinity focus, against its 19.95 mm EFL. With a
+  focus distance, the one that frames what the lens focused there shows
+  (:func:`framing_focal_length_mm`: breathing and distortion);
 - its sensor is the image's rectangle on the lens's sensor when the image
   spans the sensor's full diagonal (``ImageGeometry.full_sensor``), so the
-  pinhole's diagonal field of view is 2 atan(semi-diagonal / EFL).
+  pinhole's diagonal field of view is 2 atan(semi-diagonal / focal length).
 
 Depth is planar (along the optical axis, as Blender's Z pass) in metres
 from the lens's first vertex; the renderer's Z is planar from the pinhole,
@@ -40,11 +46,45 @@ BLENDER_MIN_SENSOR_MM = 1.0
 BLENDER_MIN_FOCAL_LENGTH_MM = 1.0
 
 
+def ideal_scale_mm(lens) -> float:
+    """The scale of the lens's ideal (pinhole) image: paraxial image height
+    (mm) per unit p = tan(field angle), the prescription as it stands (its
+    EFL when focused at infinity). What ``distortion`` calls the ideal
+    height is p times this."""
+    from ..optics.paraxial import paraxial_image_height_mm
+    p = 1e-3
+    return float(paraxial_image_height_mm(lens, math.degrees(math.atan(p))) / p)
+
+
+def framing_focal_length_mm(lens, focus_m: float, height: int, width: int, near_m: float = 0.7) -> float:
+    """The focal length (mm, on the lens's sensor) of the pinhole whose
+    ``height`` x ``width`` frame (spanning the sensor's diagonal) holds all
+    that ``lens`` focused at ``focus_m`` metres shows on that frame, at any
+    depth from ``near_m`` to infinity: the longest for which every point of
+    the frame's border has its source inside the pinhole's frame (the
+    corner exactly, for barrel distortion; the middle of the long side for
+    pincushion). Longer than the EFL where the lens breathes in as it
+    focuses close."""
+    from .distortion import chief_ray_map
+    m = chief_ray_map(lens, focus_m=focus_m, near_m=min(near_m, focus_m))
+    g = ImageGeometry.full_sensor(lens, height, width)
+    half_w, half_h = g.width * g.pixel_pitch_mm / 2.0, g.height * g.pixel_pitch_mm / 2.0
+    t = np.linspace(0.0, 1.0, 257)
+    # a quadrant's border (radial symmetry): the right side and the top side, corner included
+    bx = np.concatenate([np.full(t.size, half_w), t * half_w])
+    by = np.concatenate([t * half_h, np.full(t.size, half_h)])
+    r = np.hypot(bx, by)
+    ideal = m.widest_ideal_from_real(r)
+    return float(ideal_scale_mm(lens) * np.min(r / ideal))
+
+
 @dataclass(frozen=True)
 class PinholeCamera:
     """A pinhole that frames an H x W image like the lens (lengths in mm).
 
-    ``focal_length_mm`` is the lens's paraxial EFL; ``sensor_width_mm`` x
+    ``focal_length_mm`` is the scale of the lens's ideal image
+    (:func:`ideal_scale_mm`, its EFL when focused at infinity) or its framing
+    at a focus distance; ``sensor_width_mm`` x
     ``sensor_height_mm`` the image's size on the lens's sensor;
     ``entrance_pupil_mm`` where the pinhole sits: the entrance pupil's
     position behind the lens's first vertex (negative: in front of it);
@@ -59,16 +99,24 @@ class PinholeCamera:
     width: int
 
     @classmethod
-    def for_lens(cls, lens, height: int, width: int) -> "PinholeCamera":
+    def for_lens(cls, lens, height: int, width: int, *, focus_m: float | None = None,
+                 near_m: float = 0.7) -> "PinholeCamera":
         """The pinhole of ``lens`` for an image of ``height`` x ``width`` px
-        that spans the lens's sensor diagonal."""
+        that spans the lens's sensor diagonal: its focal length the scale
+        of the lens's ideal image (:func:`ideal_scale_mm`: the engine reads
+        a render at it) or, with ``focus_m`` (metres), the one that frames what
+        the lens focused there shows (breathing and distortion: the image's
+        corner sees the direction whose chief ray lands at the sensor's
+        corner, the widest over depths from ``near_m`` to infinity, so that
+        the lens's frame is covered at every depth)."""
         fo = first_order(lens)
         efl = float(fo.effective_focal_length_mm)
         if not (math.isfinite(efl) and efl > 0):
             raise InputRangeError(f"{lens.path}: effective focal length (mm)", efl,
                                   "> 0 (a lens that forms a real image of distant objects)")
         geom = ImageGeometry.full_sensor(lens, height, width)
-        return cls(efl, geom.width * geom.pixel_pitch_mm, geom.height * geom.pixel_pitch_mm,
+        f = ideal_scale_mm(lens) if focus_m is None else framing_focal_length_mm(lens, focus_m, height, width, near_m)
+        return cls(f, geom.width * geom.pixel_pitch_mm, geom.height * geom.pixel_pitch_mm,
                    float(fo.entrance_pupil_position_mm), geom.height, geom.width)
 
     @property

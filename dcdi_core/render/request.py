@@ -75,6 +75,12 @@ class RenderRequest:
     centre). ``noise``: add shot and read noise (needs ``seed``).
     ``perturb_fraction``: checked when ``perturb_seed`` is set.
     ``fixed_depth_m``: one depth for the whole image (depth-unaware).
+    ``pinhole_focal_length_mm``: the focal length of the pinhole camera that
+    rendered the image, on the scale of the image's frame on the sensor (mm;
+    None: the lens's own, ``camera.ideal_scale_mm``: the image is the lens's
+    ideal image). A camera framed as the lens is at a close focus
+    (``camera.PinholeCamera.for_lens(..., focus_m=...)``) has a longer one;
+    the image is then read as the ideal image at that scale.
     """
 
     lens: object
@@ -92,6 +98,7 @@ class RenderRequest:
     perturb_seed: int | None = None
     perturb_fraction: float = 0.10
     fixed_depth_m: float | None = None
+    pinhole_focal_length_mm: float | None = None
     labels: dict = field(default_factory=dict)
 
     def __post_init__(self):
@@ -118,6 +125,11 @@ class RenderRequest:
             if not self.fixed_depth_m >= near:
                 raise InputRangeError(self._label("fixed_depth_m"), self.fixed_depth_m,
                                       f">= {near:g} m, the PSF library's nearest depth bin (or inf)")
+        f = self.pinhole_focal_length_mm
+        if f is not None and (isinstance(f, bool) or not isinstance(f, (int, float)) or not math.isfinite(f)
+                              or not 0.0 < f <= 1e6):
+            raise InputRangeError(self._label("pinhole_focal_length_mm"), f,
+                                  "a focal length in (0, 1e6] mm on the sensor's scale, or none (the lens's own)")
         if self.psf.wavelength_nm is not None:
             self.lens.check_wavelengths(self.psf.wavelength_nm, self._label("wavelength_nm"))
         if self.image_pitch_mm is not None:      # the pitch options checked now, before an image is read
@@ -178,7 +190,20 @@ class RenderRequest:
     # ------------------------------------------------------------ with the image's size
     def geometries(self, height: int, width: int, image: str = "the image"):
         """(sensor geometry, source geometry or None) of an image of
-        ``height`` x ``width`` pixels; ``image`` names it in messages."""
+        ``height`` x ``width`` pixels; ``image`` names it in messages. A
+        pinhole focal length other than the lens's own scales the source's
+        pitch (its pixels seen at the lens's ideal scale)."""
+        sensor, source = self._frames(height, width, image)
+        f = self.pinhole_focal_length_mm
+        if f is not None:
+            from .camera import ideal_scale_mm
+            scale = ideal_scale_mm(self.lens) / float(f)
+            if abs(scale - 1.0) > 1e-12:
+                src = source or sensor
+                source = replace(src, pixel_pitch_mm=src.pixel_pitch_mm * scale)
+        return sensor, source
+
+    def _frames(self, height: int, width: int, image: str):
         lens, h, w = self.lens, height, width
         pitch = self.image_pitch_mm
         axis = tuple(self.axis_px) if self.axis_px is not None else None

@@ -32,6 +32,7 @@ images0 = {i.name for i in bpy.data.images}        # a real Blender's startup fi
 res["install"], res["install_s"] = install(ZIP)
 res["enabled"] = MODULE in bpy.context.preferences.addons
 logic = sys.modules[f"{MODULE}.logic"]
+reading = sys.modules[f"{MODULE}.reading"]
 res["engine_file"] = sys.modules["dcdi_core"].__file__
 res["lenses"] = {e.id: e.path for e in logic.lens_catalogue()}
 res["user_folder"] = os.environ["BLENDER_USER_RESOURCES"]
@@ -44,8 +45,16 @@ s.focus_object = cube
 s.keep_front, s.keep_behind = 0.3, 0.3
 s.preview_size = 128
 s.samples = 4
+res["lens_geometry_default"] = s.lens_geometry
+s.lens_geometry = True
 res["match_camera"] = sorted(bpy.ops.dcdi.match_camera_to_lens())
 res["camera_lens_mm"] = cam.data.lens
+res["match_focus_m"] = reading.read_scene(scene).focus_m
+s.lens_geometry = False                          # the camera's framing as it stands: the lens's focal length
+bpy.ops.dcdi.match_camera_to_lens()
+res["camera_lens_mm_no_geometry"] = cam.data.lens
+size = (scene.render.resolution_x, scene.render.resolution_y, 1.0, 1.0)
+res["camera_pinhole_mm"] = reading.pinhole_focal_length_mm(cam, size, logic.load_lens_cached(res["lenses"]["6p"]))
 # a lens whose sensor is below Blender's 1 mm minimum, then back to the 6p
 s.lens = "double-gauss"
 res["double_gauss_camera"] = {"match": sorted(bpy.ops.dcdi.match_camera_to_lens()), "angle": cam.data.angle,
@@ -79,6 +88,23 @@ for name, key in (("Lens Bokeh", "out"), ("Lens Bokeh AiF", "aif"), ("Lens Bokeh
 res["keep_m"] = [s.keep_front, s.keep_behind]
 ep = res["readout"]["entrance_pupil_mm"] / 1000.0
 res["focus_m"] = 1.0 - ep
+
+# Lens Geometry: the camera matched at the focus, the picture moved as the lens at its focus moves it;
+# the add-on's result is the engine's bokeh with the distortion, reading the render at the camera's focal length
+s.lens_geometry = True
+bpy.ops.dcdi.match_camera_to_lens()
+res["geometry_apply"] = sorted(bpy.ops.dcdi.apply_lens_bokeh(store_inputs=True))
+geo = {k: bpy_render.get_image(n) for k, n in (("out", "Lens Bokeh"), ("aif", "Lens Bokeh AiF"),
+                                                ("depth", "Lens Bokeh Depth"))}
+r_geo = reading.read_scene(scene)
+want, _ = logic.run_bokeh(geo["aif"][..., :3], geo["depth"][..., 0].astype(np.float64), r_geo.lens,
+                          focus_m=r_geo.focus_m, keep=r_geo.keep, lens_geometry=True,
+                          pinhole_focal_length_mm=r_geo.pinhole_focal_length_mm)
+res["geometry_engine_diff"] = float(np.abs(geo["out"][..., :3] - want).max())
+res["geometry_pinhole_mm"] = r_geo.pinhole_focal_length_mm
+res["geometry_vs_plain"] = float(np.abs(geo["out"][..., :3] - np.load(OUT / "out.npy")[..., :3]).mean())
+s.lens_geometry = False
+bpy.ops.dcdi.match_camera_to_lens()
 
 # a shipped lens with the lens as prescribed (Refocus Lens off): served by the
 # bundled Omni-Lens-Field; the tracer raises, so a finished run traced nothing

@@ -63,6 +63,7 @@ PANEL = {
     "focus_distance": (mode("DISTANCE"), assign(s, "focus_distance", 3.3)),
     "focus_object": (mode("OBJECT", focus_object=other), assign(s, "focus_object", cube)),
     "refocus": (mode("DISTANCE"), assign(s, "refocus", False)),
+    "lens_geometry": (mode("DISTANCE"), assign(s, "lens_geometry", True)),
     "use_camera_aperture": (aperture(False), assign(s, "use_camera_aperture", True)),
     "keep_front": (mode("DISTANCE"), assign(s, "keep_front", 0.05)),
     "keep_behind": (mode("DISTANCE"), assign(s, "keep_behind", 0.07)),

@@ -279,8 +279,34 @@ def test_zip_installs_into_a_temporary_user_folder_and_enables(headless):
 
 
 def test_match_camera_sets_the_lens_focal_length(headless):
+    """With Lens Geometry the camera frames what the lens focused at the
+    focus distance shows (the 6P's 14.5 % barrel at the corner: a wider
+    camera); without, the scale of the lens's ideal image (its focal length
+    at its prescribed sensor), which the engine reads back from the camera
+    as the lens's own."""
+    from dcdi_core.optics.lens import load_lens
+    from dcdi_core.render.camera import framing_focal_length_mm, ideal_scale_mm
     assert headless["match_camera"] == ["FINISHED"]
-    assert headless["camera_lens_mm"] == pytest.approx(headless["readout"]["focal_length_mm"], rel=1e-6)
+    lens = load_lens("6p")
+    efl, scale = headless["readout"]["focal_length_mm"], ideal_scale_mm(lens)
+    assert scale == pytest.approx(efl, rel=1e-3)
+    framing = framing_focal_length_mm(lens, headless["match_focus_m"], 480, 640)
+    assert headless["camera_lens_mm"] == pytest.approx(framing, rel=1e-6)
+    assert framing < 0.9 * efl
+    assert headless["camera_lens_mm_no_geometry"] == pytest.approx(scale, rel=1e-6)
+    assert headless["camera_pinhole_mm"] == pytest.approx(scale, rel=1e-6)
+
+
+def test_lens_geometry_moves_the_picture_as_the_engine_does(headless):
+    """Lens Geometry (off by default: the camera's framing as it stands):
+    Apply is the engine's bokeh with the lens's distortion and breathing at
+    the focus, the render read at the camera's focal length (Match Camera at
+    the focus: the 6P's framing, 14.5 % barrel at the corner)."""
+    assert headless["lens_geometry_default"] is False
+    assert headless["geometry_apply"] == ["FINISHED"]
+    assert headless["geometry_engine_diff"] < 1e-5
+    assert headless["geometry_pinhole_mm"] < 0.9 * headless["readout"]["focal_length_mm"]
+    assert headless["geometry_vs_plain"] > 0.01
 
 
 def test_match_camera_keeps_the_double_gauss_field_of_view(headless):

@@ -9,16 +9,17 @@ import pytest
 from conftest import singlet_dict
 from dcdi_core.errors import InputRangeError
 from dcdi_core.optics.lens import Lens, load_lens
-from dcdi_core.optics.paraxial import first_order
-from dcdi_core.render.camera import (BLENDER_MIN_SENSOR_MM, PinholeCamera, depth_from_planar_z,
+from dcdi_core.optics.paraxial import first_order, prescribed_focus_diopters
+from dcdi_core.render.camera import (BLENDER_MIN_SENSOR_MM, PinholeCamera, depth_from_planar_z, ideal_scale_mm,
                                      planar_depth_m)
 
 H, W = 480, 640
 
 
 def true_fov_deg(lens) -> float:
-    """The lens's diagonal field of view on its sensor: 2 atan(semi-diagonal / EFL)."""
-    return math.degrees(2.0 * math.atan(lens.sensor.semi_diagonal_mm / first_order(lens).effective_focal_length_mm))
+    """The lens's paraxial diagonal field of view on its sensor where the
+    prescription puts it: 2 atan(semi-diagonal / its ideal image's scale)."""
+    return math.degrees(2.0 * math.atan(lens.sensor.semi_diagonal_mm / ideal_scale_mm(lens)))
 
 
 def blender_fov_deg(settings: dict, height: int, width: int, clamp_mm: float = BLENDER_MIN_SENSOR_MM) -> float:
@@ -33,8 +34,22 @@ def blender_fov_deg(settings: dict, height: int, width: int, clamp_mm: float = B
 
 def test_pinhole_has_the_paraxial_focal_length_and_spans_the_sensor_diagonal(paper_lens):
     cam = PinholeCamera.for_lens(paper_lens, H, W)
-    # the focal length the paper's tables state (lenses/*.toml [stated]), not the code's own paraxial trace
-    assert cam.focal_length_mm == pytest.approx(paper_lens.stated["effective_focal_length_mm"], rel=3e-3)
+    assert cam.focal_length_mm == ideal_scale_mm(paper_lens)
+    stated = paper_lens.stated["effective_focal_length_mm"]
+    if abs(prescribed_focus_diopters(paper_lens)) < 0.5:
+        # focused near infinity: the focal length the paper's tables state (lenses/*.toml [stated]), not
+        # the code's own paraxial trace
+        assert cam.focal_length_mm == pytest.approx(stated, rel=3e-3)
+    else:
+        # MOS-S1 and MOS-S2: the sensor 4 diopters inside the infinity focus, the image 5 % smaller than
+        # the EFL's (a paraxial trace to that sensor, independent of ideal_scale_mm)
+        fo = first_order(paper_lens)
+        (a, b), (c, d) = fo.lens_matrix
+        u0 = 1e-4
+        y0 = -fo.entrance_pupil_position_mm * u0
+        traced = (a * y0 + b * u0 + fo.sensor_distance_mm * (c * y0 + d * u0)) / u0
+        assert cam.focal_length_mm == pytest.approx(traced, rel=1e-9)
+        assert cam.focal_length_mm < 0.97 * stated
     assert math.hypot(cam.sensor_width_mm, cam.sensor_height_mm) == pytest.approx(
         2.0 * paper_lens.sensor.semi_diagonal_mm, rel=1e-12)
     assert cam.sensor_width_mm / cam.sensor_height_mm == pytest.approx(W / H, rel=1e-12)
