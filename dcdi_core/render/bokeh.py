@@ -315,13 +315,34 @@ def _plain_bokeh(sc: _BokehScene, options: BokehOptions, cancelled) -> RenderRes
     return sc.result(out, dict(sc.info, **pm.info), pm)
 
 
+# the diopter range is seen in this many bins when the layers share out the depths the frame holds
+LAYER_BINS = 1024
+
+
+def _layer_edges(values: np.ndarray, lo: float, hi: float, n_layers: int) -> np.ndarray:
+    """(n_layers + 1,) diopter edges: equal shares of the depths the frame
+    holds (the occupied ones of LAYER_BINS bins over [lo, hi]), so that an
+    empty stretch of depth between two objects takes no layer: a light at 7
+    m before a wall at 9 m gets a layer of its own beside a near occluder,
+    where equal widths over the whole range put both in one (and the light
+    took the wall's blur). A continuous range of depths keeps equal widths;
+    no layer is ever wider than equal widths over [lo, hi] would make it."""
+    counts, _ = np.histogram(values, bins=LAYER_BINS, range=(lo, hi))
+    occupied = np.concatenate([[0], np.cumsum(counts > 0)])
+    at = np.searchsorted(occupied, np.linspace(0.0, occupied[-1], n_layers + 1), side="left")
+    edges = lo + (hi - lo) * np.clip(at, 0, LAYER_BINS) / LAYER_BINS
+    edges[0], edges[-1] = lo, hi
+    return np.maximum.accumulate(edges)
+
+
 def _layer_masks(inv: np.ndarray, valid: np.ndarray, n_layers: int):
-    """([(layer index, mask)] of the non-empty depth layers of equal width in
-    diopters, far to near; the (H, W) layer index, -1 off ``valid``)."""
+    """([(layer index, mask)] of the non-empty depth layers, far to near
+    (:func:`_layer_edges`: equal shares of the occupied diopters); the (H, W)
+    layer index, -1 off ``valid``."""
     lo, hi = float(inv[valid].min()), float(inv[valid].max())
     if hi - lo < 1e-12:
         return [(0, valid)], np.where(valid, 0, -1)
-    edges = np.linspace(lo, hi, n_layers + 1)
+    edges = _layer_edges(inv[valid], lo, hi, n_layers)
     idx = np.where(valid, np.clip(np.searchsorted(edges, inv, side="right") - 1, 0, n_layers - 1), -1)
     return [(i, idx == i) for i in range(n_layers) if (idx == i).any()], idx
 

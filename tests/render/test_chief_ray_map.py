@@ -148,3 +148,4 @@ def test_a_camera_framed_at_the_focus_keeps_the_lens_framing():
     for bad in (0.0, -3.0, float("nan"), True):
         with pytest.raises(InputRangeError):
             RenderRequest(lens, pinhole_focal_length_mm=bad)
+
