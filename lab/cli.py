@@ -8,7 +8,7 @@
                                         bench-defocus, bokeh-variants, capture-records,
                                         resample-accuracy, focus-stack, raymap, aperture, catalogue-table,
                                         contact-sheet, large-bokeh, quality-tables, cli-reference,
-                                        reproduce
+                                        reproduce, traced-render, breathing
 
 `python -m lab COMMAND --help` says more; lab/README.md lists which figure or
 table of docs/ each one makes. The lab uses the engine (``dcdi_core``); the
@@ -59,6 +59,10 @@ MODULES = {
                                          "against the converged render, per lens and pitch (docs/performance.md)"),
     "cli-reference": ("cli_reference", "the `dcdi` command's reference page, docs/cli.md, from its parser"),
     "reproduce": ("reproduce", "a shipped network from scratch, from its config in lab/configs/"),
+    "breathing": ("breathing", "each lens's focus breathing and depth-dependent distortion: the chief-ray map "
+                               "against a direct trace (docs/image-formation.md)"),
+    "traced-render": ("traced_render", "the fast bokeh (--distort --focus) against a render traced through the lens, "
+                                       "every catalogue lens (docs/image-formation.md)"),
 }
 
 #: the reports' options that never name a path, beside the `dcdi` command's (``dcdi_core.cli.files.NOT_PATHS``)
