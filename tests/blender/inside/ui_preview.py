@@ -437,18 +437,26 @@ def ui_changes():
 
     def at(path):
         """A sub-generator: where the widget of ``path`` is; scrolls the
-        panel up and looks again while it is out of view."""
+        panel up and looks again while it is out of view, and scans again
+        where the panel moved since the last scan (Blender scrolls a field
+        being edited at the region's edge into view)."""
         key = f"dcdi_lens_bokeh.{path}"
         for _ in range(4):
             if key in w:
-                break
+                xy = w[key][len(w[key]) // 2]    # the middle of the widget: a line's shift above keeps it there
+                if (yield from uidrive.path_at(win, *xy)) == key:
+                    return xy
+                w.clear()
+                w.update((yield from widgets()))
+                if key in w:
+                    continue
             yield from uidrive.hover(win, region.x + region.width / 2, region.y + region.height / 2)
             uidrive._xdo("click", "--repeat", "6", "--delay", "10", "4")
             yield 0.3
             w.clear()
             w.update((yield from widgets()))
         assert key in w, f"the panel shows no {key} where it was looked for; found {sorted(w)}"
-        return w[key][len(w[key]) // 2]          # the middle of the widget: a line's shift above keeps it there
+        return w[key][len(w[key]) // 2]
 
     def typed(path, text):
         def fn():

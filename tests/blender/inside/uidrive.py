@@ -32,21 +32,23 @@ def hover(win, x, y):
 def scan(win, region, x_fraction: float = 0.7, step: int = 6) -> dict:
     """A sub-generator: {data path: [(x, y) window coordinates, top to
     bottom]} of the properties under a vertical line through ``region``."""
-    wm = bpy.context.window_manager
     found: dict = {}
     x = region.x + region.width * x_fraction
-    last = None
     for y in range(region.y + region.height - step, region.y + step, -step):
-        wm.clipboard = ""
-        yield from hover(win, x, y)
-        _xdo("key", "ctrl+shift+c")
-        yield STEP_S
-        path = wm.clipboard
+        path = yield from path_at(win, x, y)
         if path:
             found.setdefault(path, []).append((x, y))
-        last = path
-    del last
     return found
+
+
+def path_at(win, x, y):
+    """A sub-generator: the data path of the property under (x, y), or ''."""
+    wm = bpy.context.window_manager
+    wm.clipboard = ""
+    yield from hover(win, x, y)
+    _xdo("key", "ctrl+shift+c")
+    yield STEP_S
+    return wm.clipboard
 
 
 def click(win, x, y, button: int = 1):
