@@ -128,14 +128,13 @@ def _footprint_deposit(x: np.ndarray, y: np.ndarray, wl: np.ndarray, width: floa
     w = channel_weights.shape[0]
     n = int(math.ceil(width)) + 1
     c = k / 2.0
-    ox, oy = _overlaps(x + c, width, n), _overlaps(y + c, width, n)
-    hist = np.zeros(k * k * w)
-    for jx, fx in ox:
-        okx = (jx >= 0) & (jx < k) & (fx > 0)
-        for jy, fy in oy:
-            ok = okx & (jy >= 0) & (jy < k) & (fy > 0)
-            if ok.any():
-                hist += np.bincount((jy[ok] * k + jx[ok]) * w + wl[ok], weights=fx[ok] * fy[ok], minlength=k * k * w)
+    jx, fx = (np.stack(a) for a in zip(*_overlaps(x + c, width, n)))      # (n, rays) each
+    jy, fy = (np.stack(a) for a in zip(*_overlaps(y + c, width, n)))
+    # every (row offset, column offset) pair of every ray, binned in one pass
+    ok = ((jx >= 0) & (jx < k) & (fx > 0))[None, :, :] & ((jy >= 0) & (jy < k) & (fy > 0))[:, None, :]
+    idx = (jy[:, None, :] * k + jx[None, :, :]) * w + wl[None, None, :]
+    wts = fy[:, None, :] * fx[None, :, :]
+    hist = np.bincount(idx[ok], weights=wts[ok], minlength=k * k * w)
     return (hist.reshape(k * k, w) @ channel_weights).T.reshape(3, k, k)
 
 
