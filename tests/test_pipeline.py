@@ -283,3 +283,48 @@ def test_correct_and_dof_deconvolve_with_the_camera_lens(tmp_path, monkeypatch):
     assert res.correction.method == "deconv" and "no DACN ships for lens 6p" in res.correction.reason
     assert res.depth_source == "given"
     np.testing.assert_array_equal(res.corrected, fixed.image)
+
+
+def test_a_dof_job_decides_its_frame_and_its_target_plan_once(tmp_path, monkeypatch):
+    """app.dof makes the capture's frame and the target lens's plan once for
+    the whole job (the depth, the correction and the bokeh share them), and
+    chooses the depth estimator by the rule where none is given."""
+    from dcdi_core import app
+    from dcdi_core.app import correction as app_correction, depth as app_depth, pipeline, render as app_render
+    from dcdi_core.errors import ModelError
+    from dcdi_core.optics.lens import load_lens
+    from dcdi_core.psf.compute import PSFSettings
+    from dcdi_core.render.request import RenderRequest
+    img, depth = write_rgbd_scene(tmp_path, monkeypatch, 48, 64)
+    cam, target = load_lens("6p"), load_lens("mos-s1")
+    settings = PSFSettings(pupil_samples=16, n_wavelengths=3, kernel_size=15)
+    calls = {"frame": 0, "plan": 0}
+
+    def counted(name, fn):
+        def wrapped(*a, **k):
+            calls[name] += 1
+            return fn(*a, **k)
+        return wrapped
+    for module in (pipeline, app_correction, app_depth):
+        monkeypatch.setattr(module, "capture_frame", counted("frame", module.capture_frame))
+    for module in (pipeline, app_render):
+        monkeypatch.setattr(module, "bokeh_plan", counted("plan", app_render.bokeh_plan))
+    request = app.CorrectRequest(img, depth, cam, render=RenderRequest(cam, psf=settings, image_pixel_pitch_mm=0.05),
+                                 psf=app.PSFRequest(source="trace"))
+    bokeh = app.BokehRequest(None, None, target, keep=(1.0, 2.0), psf=app.PSFRequest(source="trace"),
+                             render=RenderRequest(target, psf=settings))
+    res = app.dof(app.DofRequest(request, bokeh))
+    assert res.depth_source == "given"
+    assert calls == {"frame": 1, "plan": 1}, calls
+    # the depth read from the capture's blur: its estimate, the rule on its posterior and the correction
+    # on the one frame, the rule and the bokeh on the one plan
+    calls.update(frame=0, plan=0)
+    res = app.dof(app.DofRequest(replace(request, depth_m=None), bokeh, depth_backend="blur",
+                                 uncertain_depth="accept"))
+    assert res.depth_source == "blur" and calls == {"frame": 1, "plan": 1}, calls
+    # no depth map and no backend: the estimator by the rule (here refused: no shipped depth network for
+    # the 6P, none recorded for its blur at this pitch), before any correction
+    calls.update(frame=0, plan=0)
+    with pytest.raises(ModelError, match="no depth map"):
+        app.dof(app.DofRequest(replace(request, depth_m=None), bokeh))
+    assert calls["frame"] == 1

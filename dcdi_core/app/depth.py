@@ -241,3 +241,54 @@ def blur_estimator(lens, render=None, psf: PSFRequest | None = None, recorded=No
             return self.result.depth_m
 
     return BlurDepth()
+
+
+# what the refusals below offer where no depth is given
+BLUR_HINT = "the depth from the capture's own blur (--depth-backend blur: numpy, no checkpoint; docs/depth.md)"
+
+
+def dof_estimator(camera, correct_request, backend: str | None = None, checkpoint=None, threads: int | None = None):
+    """The depth estimator of a DCDI job that has no depth map, by the rule
+    (``backend`` None): the depth from the capture's blur where the registry
+    records it better than a constant for ``camera`` at the capture's pitch
+    (``correct_request.frame``), else the camera lens's shipped depth
+    network where it beats a constant, else a ``ModelError`` asking for a
+    depth map. A ``backend`` given ('blur', 'dcdi' or a public estimator's
+    name, with ``checkpoint``) is loaded as asked. Loaded (and refused,
+    by name) before any work; ``threads``: torch's, for a network."""
+    from ..errors import ModelError
+    from ..shipped import network
+
+    lens_id = camera.id if camera is not None else None
+    if backend is None:
+        backend = "dcdi"
+        if camera is not None and checkpoint is None and correct_request is not None:
+            backend = "blur" if recorded_better(lens_id, correct_request.frame.pitch_mm) else "dcdi"
+    if backend == "blur":
+        if camera is None:
+            raise ModelError("--depth-backend blur reads depth from the camera lens's blur: give --camera LENS "
+                             "(--camera none: a sharp image has none), or --depth")
+        r = correct_request
+        return blur_estimator(camera, r.render, r.psf, r.recorded, r.image_name, frame=r.frame)
+    ck = checkpoint
+    if ck is None and backend == "dcdi":
+        nets = network("depth")
+        ck = nets.shipped_file(lens_id) if lens_id is not None else None
+        if ck is None:
+            raise ModelError("no depth map (--depth) and no shipped depth network for "
+                             f"{'a sharp image (--camera none)' if camera is None else camera.id} (shipped: "
+                             f"{', '.join(nets.shipped_keys()) or 'none'}); give --depth, {BLUR_HINT}, or "
+                             "--depth-backend with --depth-checkpoint")
+        if lens_id not in nets.beats_constant_depth:
+            # a guess worse than one number for the whole frame would blur the wrong things: ask instead
+            raise ModelError(f"no depth map (--depth): neither the shipped depth network of {lens_id} nor the "
+                             "depth from its blur at this pixel pitch is recorded 30 % better than a constant depth "
+                             "on held-out scenes; give --depth DEPTH.exr, or ask for an estimate: " + BLUR_HINT +
+                             ", a public estimator (--depth-backend unidepth, depth-anything-v2 or depth-pro), "
+                             "or your own network (--depth-checkpoint)")
+    from ..models.depth.estimators import load_estimator
+    if threads is not None:
+        import torch
+        torch.set_num_threads(int(threads))
+    opts = {"threads": threads} if backend == "dcdi" and threads is not None else {}
+    return load_estimator(backend, ck, **opts)

@@ -17,7 +17,8 @@ import numpy as np
 from ..control import Control
 from ..errors import InputRangeError
 from .correction import CorrectRequest, CorrectResult, correct
-from .render import BokehRequest, BokehResult, _array
+from .frame import capture_frame
+from .render import BokehRequest, BokehResult, _array, bokeh_plan
 from .render import bokeh as run_bokeh
 
 
@@ -28,7 +29,10 @@ class DofRequest:
     the depth is ``estimator``'s) then ``bokeh`` (a :class:`BokehRequest`
     of the target lens, its image and depth filled here: the corrected
     image and the depth used). ``estimator``: a
-    ``models.depth.estimators.DepthEstimator``, or None with a depth map.
+    ``models.depth.estimators.DepthEstimator``; None without a depth map:
+    the rule's (``app.depth.dof_estimator``: ``depth_backend``, or by the
+    rule where that is None; ``depth_checkpoint``; torch's ``threads``).
+    The capture's frame is made here, once, where ``correct`` has none.
     ``uncertain_depth``: where the depth read from the capture's blur is
     too uncertain for the correction to help the bokeh on enough of the
     frame (``app.depth.DofDepthRule``), 'refuse' (a ``ModelError`` asking
@@ -40,6 +44,9 @@ class DofRequest:
     bokeh: BokehRequest
     estimator: object = None
     uncertain_depth: str = "refuse"
+    depth_backend: str | None = None
+    depth_checkpoint: object = None
+    threads: int | None = None
 
     def __post_init__(self):
         if self.uncertain_depth not in ("refuse", "accept"):
@@ -90,7 +97,7 @@ def _depth(capture, request: DofRequest, seconds: dict) -> tuple[np.ndarray, str
     return depth, request.estimator.name
 
 
-def _correction_weight(request: DofRequest, shape):
+def _correction_weight(request: DofRequest, shape, target_plan):
     """(the correction's weight (H, W) float32 in [0, 1], notes), or (None,
     []) where the depth was given or has no posterior: where the depth was
     read from the capture's blur, the correction is kept only where it is
@@ -101,9 +108,8 @@ def _correction_weight(request: DofRequest, shape):
     if request.correct.depth_m is not None or post is None or request.correct.lens is None:
         return None, []
     from .depth import DofDepthRule, target_blur
-    from .render import bokeh_plan
     b = request.bokeh
-    _, plan, _ = bokeh_plan(b, shape)
+    _, plan, _ = target_plan
     keep = b.keep
     blur_of = target_blur(b.lens, plan.geometry.pixel_pitch_mm, None if keep is not None else b.focus_m, keep)
     rule = DofDepthRule()
@@ -123,14 +129,31 @@ def _correction_weight(request: DofRequest, shape):
                      "--uncertain-depth accept")
 
 
+def _decided(request: DofRequest, shape) -> DofRequest:
+    """The job's decisions, made once: the capture's frame (for the depth
+    and the correction) and, without a depth map or an estimator, the depth
+    estimator by the rule."""
+    c = request.correct
+    if c.lens is not None and c.frame is None:
+        c = replace(c, frame=capture_frame(c.lens, c.render, c.recorded, shape, c.image_name))
+    estimator = request.estimator
+    if estimator is None and c.depth_m is None:
+        from .depth import dof_estimator
+        estimator = dof_estimator(c.lens, c if c.lens is not None else None, request.depth_backend,
+                                  request.depth_checkpoint, request.threads)
+    return replace(request, correct=c, estimator=estimator)
+
+
 def dof(request: DofRequest, control: Control | None = None, *, networks=None, cache=None) -> DofResult:
     """Run a :class:`DofRequest`: depth (given or estimated), correction,
     then the target lens's bokeh (module docstring)."""
     control = control or Control()
     capture = _array("capture", request.correct.capture, 3)
+    request = _decided(request, capture.shape[:2])
+    target = bokeh_plan(request.bokeh, capture.shape[:2])           # the target lens's plan, once for the job
     seconds, notes = {}, []
     depth, depth_source = _depth(capture, request, seconds)
-    weight, notes = _correction_weight(request, capture.shape[:2])     # refused here, before the correction
+    weight, notes = _correction_weight(request, capture.shape[:2], target)   # refused here, before the correction
     corrected, fixed = capture, None
     if request.correct.lens is not None:
         fixed = correct(replace(request.correct, capture=capture, depth_m=depth), control, networks=networks)
@@ -140,7 +163,7 @@ def dof(request: DofRequest, control: Control | None = None, *, networks=None, c
         seconds.update(fixed.seconds)
         notes += fixed.notes
     t0 = time.perf_counter()
-    b = run_bokeh(replace(request.bokeh, image=corrected, depth_m=depth), control, cache=cache)
+    b = run_bokeh(replace(request.bokeh, image=corrected, depth_m=depth), control, cache=cache, plan=target)
     seconds["psfs and bokeh"] = time.perf_counter() - t0
     notes = list(dict.fromkeys(notes + b.notes))         # the depth's notes once, not per stage
     share = None if weight is None else float(weight.mean())

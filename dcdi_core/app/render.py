@@ -360,12 +360,15 @@ def bokeh_plan(request: BokehRequest, shape):
     return render, render.plan(*shape, image=request.image_name), notes
 
 
-def bokeh(request: BokehRequest, control: Control | None = None, *, cache: SourceCache | None = None) -> BokehResult:
+def bokeh(request: BokehRequest, control: Control | None = None, *, cache: SourceCache | None = None,
+          plan=None) -> BokehResult:
     """Run a :class:`BokehRequest`. The PSF bins the scene blurs are built
     first (progress 'PSFs', cancel between bins), then the layers (progress
     'depth layers', cancel between them). The kernel grows to hold the blur
     of the frame's depth bins (the kept ones too: the layers' patches at a
-    sharp subject's edge take their kernels from its bins)."""
+    sharp subject's edge take their kernels from its bins). ``plan``: the
+    request's :func:`bokeh_plan` where the caller made it already (a DCDI
+    job plans its target once)."""
     from ..render.bokeh import BokehOptions
     from ..render.bokeh import bokeh as render_bokeh
     from ..render.base import Cancelled as RenderCancelled
@@ -373,7 +376,7 @@ def bokeh(request: BokehRequest, control: Control | None = None, *, cache: Sourc
     img = _array("image", request.image, 3)
     depth = _array("depth_m", request.depth_m, 2)
     t0 = time.perf_counter()
-    render, plan, notes = bokeh_plan(request, img.shape[:2])
+    render, plan, notes = plan or bokeh_plan(request, img.shape[:2])
     # nearby focus distances share PSFs where the request allows it (``psf.sampling``)
     focus_m = snap_focus(request.lens, request.focus_m, plan.geometry.pixel_pitch_mm, request.psf.focus_tolerance_px)
     options = BokehOptions(keep=request.keep, focus_m=focus_m, geometry=plan.geometry,

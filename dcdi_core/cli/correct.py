@@ -14,17 +14,6 @@ from ..psf.rule import rule_text
 from .render import add_focus_options, add_rgbd_options, check_image_fits, quiet_input_warnings, render_inputs
 
 
-def _shipped(kind: str, lens_id: str | None):
-    """The shipped ``kind`` network file (shipped) of ``lens_id``, or None."""
-    from ..shipped import network
-    return network(kind).shipped_file(lens_id) if lens_id is not None else None
-
-
-def _shipped_for(kind: str) -> str:
-    from ..shipped import network
-    return ", ".join(network(kind).shipped_keys()) or "none"
-
-
 # ------------------------------------------------------------------ the deconvolution's options
 # the option each DeconvOptions / NoiseModel field is given by
 DECONV_LABELS = {"weight": "--deconv-weight", "one_depth_m": "--one-depth", "method": "--deconv-method",
@@ -175,49 +164,6 @@ def cmd_correct(args) -> int:
 
 
 # ------------------------------------------------------------------ dcdi dof
-BLUR_HINT = "the depth from the capture's own blur (--depth-backend blur: numpy, no checkpoint; docs/depth.md)"
-
-
-def _dof_estimator(args, camera, correct_request=None):
-    """The depth estimator of `dcdi dof` (None with --depth), loaded and refused, by name, before any work.
-    No --depth-backend: the depth from the capture's blur where the registry records it better than a
-    constant for --camera at the capture's pitch, else the shipped depth network where it is, else refused."""
-    if args.depth is not None:
-        return None
-    from ..errors import ModelError
-    lens_id = camera.id if camera is not None else None
-    backend = args.depth_backend
-    if backend is None:
-        backend = "dcdi"
-        if camera is not None and args.depth_checkpoint is None and correct_request is not None:
-            from ..app.depth import recorded_better
-            backend = "blur" if recorded_better(lens_id, correct_request.frame.pitch_mm) else "dcdi"
-    if backend == "blur":
-        if camera is None:
-            raise ModelError("--depth-backend blur reads depth from the camera lens's blur: give --camera LENS "
-                             "(--camera none: a sharp image has none), or --depth")
-        from ..app.depth import blur_estimator
-        r = correct_request
-        return blur_estimator(camera, r.render, r.psf, r.recorded, r.image_name, frame=r.frame)
-    ck = args.depth_checkpoint
-    if ck is None and backend == "dcdi":
-        from ..shipped import network
-        ck = _shipped("depth", lens_id)
-        if ck is None:
-            raise ModelError("no depth map (--depth) and no shipped depth network for "
-                             f"{'a sharp image (--camera none)' if camera is None else camera.id} (shipped: "
-                             f"{_shipped_for('depth')}); give --depth, {BLUR_HINT}, or --depth-backend with "
-                             "--depth-checkpoint")
-        if lens_id not in network("depth").beats_constant_depth:
-            # a guess worse than one number for the whole frame would blur the wrong things: ask instead
-            raise ModelError(f"no depth map (--depth): neither the shipped depth network of {lens_id} nor the "
-                             "depth from its blur at this pixel pitch is recorded 30 % better than a constant depth "
-                             "on held-out scenes; give --depth DEPTH.exr, or ask for an estimate: " + BLUR_HINT +
-                             ", a public estimator (--depth-backend unidepth, depth-anything-v2 or depth-pro), "
-                             "or your own network (--depth-checkpoint)")
-    from ..models.depth.estimators import load_estimator
-    opts = {"threads": args.threads} if backend == "dcdi" else {}
-    return load_estimator(backend, ck, **opts)
 
 
 def _refuse_correction_of_sharp(args) -> None:
@@ -238,7 +184,6 @@ def _camera_render(args, camera):
 
 
 def cmd_dof(args) -> int:
-    from dataclasses import replace
     from pathlib import Path
 
     from ..app import CorrectRequest, DofRequest, dof
@@ -264,17 +209,14 @@ def cmd_dof(args) -> int:
         img, depth, camera, args.method, args.dacn,
         render=_camera_render(args, camera) if camera is not None else None, deconv=_given_deconv(args),
         psf=psf_request(args, resp), recorded=_recorded(args.image), image_name=f"the image {args.image}")
-    if camera is not None:                              # the capture's frame, once for the depth and the correction
-        from ..app import capture_frame
-        r = correct_request
-        correct_request = replace(r, frame=capture_frame(camera, r.render, r.recorded, img.shape[:2], r.image_name))
-    estimator = _dof_estimator(args, camera, correct_request)
-    if (estimator is not None and estimator.name != "blur") or args.method == "dacn" or args.dacn is not None:
+    if args.method == "dacn" or args.dacn is not None:
         import torch
         torch.set_num_threads(args.threads)
     with quiet_input_warnings():
-        r = dof(DofRequest(correct_request, bokeh_request(args, lens, request, resp, None, None), estimator,
-                           args.uncertain_depth),
+        # app.dof decides the rest once: the capture's frame, the depth estimator by the rule, the target's plan
+        r = dof(DofRequest(correct_request, bokeh_request(args, lens, request, resp, None, None), None,
+                           args.uncertain_depth, depth_backend=args.depth_backend,
+                           depth_checkpoint=args.depth_checkpoint, threads=args.threads),
                 job_control("dcdi dof", args))
     notes = in_cli_words(args, r.notes)
     for note in notes:
