@@ -217,3 +217,35 @@ def test_the_checker_finds_each_kind_of_break(tmp_path):
     assert "dcdi_core/models/runtime/y.py:2: imports dcdi_core.models.dacn.train (numpy only: no torch, no training code)" in found
     assert "dcdi_core.stray: no layer in docs/design.md" in found
     assert "lab/study.py" not in text and "only mentioned" not in text
+
+
+def _reads_args(source: str) -> list[str]:
+    """The lines of ``source`` that read an argparse namespace: ``args.x``
+    or ``getattr(args, ...)``, a parameter or a name called ``args``."""
+    tree = ast.parse(source)
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id == "args":
+            found.append(f"line {node.lineno}: args.{node.attr}")
+        elif isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "getattr" \
+                and node.args and isinstance(node.args[0], ast.Name) and node.args[0].id == "args":
+            found.append(f"line {node.lineno}: getattr(args, ...)")
+    return found
+
+
+def test_no_command_line_namespace_below_cli():
+    """The engine below ``cli/`` takes values, not the command line's
+    namespace: a job is decided from its request's fields (``cli`` turns
+    options into requests)."""
+    bad = {}
+    for path in sorted((ROOT / "dcdi_core").rglob("*.py")):
+        rel = path.relative_to(ROOT / "dcdi_core")
+        if rel.parts[0] == "cli":
+            continue
+        hits = _reads_args(path.read_text(encoding="utf-8"))
+        if hits:
+            bad[str(rel)] = hits
+    assert not bad, bad
+    # the check can fail
+    assert _reads_args("def f(args):\n    return args.depth, getattr(args, 'x', None)\n") == [
+        "line 2: args.depth", "line 2: getattr(args, ...)"]

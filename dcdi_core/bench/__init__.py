@@ -14,8 +14,13 @@ their helpers. Each is imported when its benchmark runs.
 from __future__ import annotations
 
 
-def run(what: str, args) -> int:
-    quick = getattr(args, "quick", False)
+def run(what: str, *, quick: bool = False, threads: int = 1, lens=None, sizes=None, measure: bool = False,
+        rays: int = 1 << 20, repeat: int = 3, optiland=None) -> int:
+    """Run the benchmark ``what`` (the `dcdi bench` choices) with its
+    settings, given as values (the command line's options are read in
+    ``cli.bench``): ``quick`` smaller workloads; ``threads`` torch's (dacn);
+    ``lens``, ``sizes`` (rows, cols) and ``measure`` (quality); ``rays``,
+    ``repeat`` and ``optiland`` (trace)."""
     if what == "memory":
         from .processes import bench_memory
         return bench_memory(quick)
@@ -24,15 +29,13 @@ def run(what: str, args) -> int:
         return bench_cli(quick, repeat=1 if quick else 2)
     if what == "dacn":
         from .correction import bench_dacn
-        return bench_dacn(quick, getattr(args, "threads", 1))
+        return bench_dacn(quick, threads)
     if what == "correction":
         from .correction import bench_correction
         return bench_correction(quick)
     if what == "quality":
         from .quality import bench_quality
-        sizes = getattr(args, "size", None)
-        return bench_quality(getattr(args, "lens", None), quick, tuple(map(tuple, sizes)) if sizes else None,
-                             getattr(args, "measure", False))
+        return bench_quality(lens, quick, tuple(map(tuple, sizes)) if sizes else None, measure)
     if what == "sampling":
         from .sampling import bench_sampling
         return bench_sampling(quick)
@@ -41,10 +44,9 @@ def run(what: str, args) -> int:
         return bench_render(quick)
     if what == "trace":
         from .trace import bench_trace, check_optiland
-        optiland = getattr(args, "optiland", None)
         if optiland is not None:
             check_optiland(optiland)
-        return bench_trace(args.rays, args.repeat, optiland)
+        return bench_trace(rays, repeat, optiland)
     if what == "psflib":
         from .trace import bench_psflib
         return bench_psflib(quick)

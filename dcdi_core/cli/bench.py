@@ -7,7 +7,8 @@ from .common import positive_int
 
 def cmd_bench(args) -> int:
     from .. import bench
-    return bench.run(args.what, args)
+    return bench.run(args.what, quick=args.quick, threads=args.threads, lens=args.lens, sizes=args.size,
+                     measure=args.measure, rays=args.rays, repeat=args.repeat, optiland=args.optiland)
 
 
 def cmd_demo(args) -> int:
