@@ -60,6 +60,7 @@ class LensEntry:
 PANEL_WORDS = {"patch": "Patch Size", "interpolation": "Interpolation", "seed": "Seed", "noise": "Sensor Noise",
                "wavelength_nm": "Wavelength", "image_pixel_pitch_mm": "pixel pitch", "sensor_size": "sensor size",
                "axis_px": "optical axis", "pixel_pitch_mm": "pixel pitch", "fixed_depth_m": "fixed depth",
+               "pinhole_focal_length_mm": "the camera's Focal Length",
                "perturb_fraction": "perturbation", "method": "Method", "model": "Correction Model", "lens": "Lens",
                "keep": "Kept Sharp", "focus_m": "Focus Distance", "image": "the render", "capture": "the simulation",
                "depth_m": "the depth pass", "psf_source": "PSF source", "basis": "PSF basis file",

@@ -133,6 +133,7 @@ WORDS = {
     "psf_source": "--psf-source", "basis": "--basis", "olf": "--olf", "keep": "--keep", "focus_m": "--focus",
     "image_pixel_pitch_mm": "--image-pixel-pitch", "pixel_pitch_mm": "--pixel-pitch",
     "sensor_size": "--sensor-size", "axis_px": "--axis", "patch": "--patch", "interpolation": "--interpolation",
+    "pinhole_focal_length_mm": "--pinhole-focal-length",
     "seed": "--seed", "noise": "--noise", "perturb_fraction": "--perturb-fraction", "fixed_depth_m": "--fixed-depth",
     "wavelength_nm": "--wavelength", "multires": "--multires", "max_level": "--max-level",
     "interp_eps": "--exact-layers", "seam_tol": "--exact-layers",

@@ -38,6 +38,11 @@ def add_rgbd_options(q, *, sensor_focus: bool, depth_required: bool = True,
                         "larger (an over-scan render); the output has this size (default: the whole image)")
     q.add_argument("--axis", type=float, nargs=2, default=None, metavar=("ROW", "COL"),
                    help="the optical axis's pixel position in the image (default: its centre)")
+    q.add_argument("--pinhole-focal-length", type=float, default=None, metavar="MM",
+                   help="the focal length of the pinhole camera that rendered the image, on the scale of the image's "
+                        "frame on the sensor (default: the lens's own, the scale of its ideal image; a camera framed "
+                        "as the lens at a close focus has a longer one): where the lens moves the picture "
+                        "(distortion, breathing) the image is read at this scale")
     q.add_argument("--wavelength", type=float, default=None, metavar="NM",
                    help="one wavelength for all three channels (monochrome, narrow-band); default: the "
                         "visible band weighted by the sensor's response")
@@ -102,7 +107,8 @@ def render_request(args, lens, *, sensor_focus: bool):
         noise=getattr(args, "noise", False), full_well_electrons=getattr(args, "full_well", 10000.0),
         read_noise_electrons=getattr(args, "read_noise", 3.0), seed=getattr(args, "seed", None),
         perturb_seed=getattr(args, "perturb", None), perturb_fraction=getattr(args, "perturb_fraction", 0.10),
-        fixed_depth_m=getattr(args, "fixed_depth", None))
+        fixed_depth_m=getattr(args, "fixed_depth", None),
+        pinhole_focal_length_mm=getattr(args, "pinhole_focal_length", None))
 
 
 def check_render_outputs(args) -> None:

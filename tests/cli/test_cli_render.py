@@ -251,3 +251,22 @@ def test_a_budget_out_of_range_is_refused_before_any_work(scene, capsys, bad):
 def test_bench_quality_needs_a_lens(capsys):
     assert main(["bench", "quality"]) == 2
     assert "dcdi bench quality LENS" in capsys.readouterr().err
+
+
+def test_bokeh_reads_the_image_at_the_pinhole_focal_length_given(scene, capsys):
+    """--pinhole-focal-length: a render from a camera framed as the lens at a
+    close focus is read at that scale (the picture not zoomed twice); a bad
+    one is refused by its option before any work."""
+    d, img = scene
+    assert _run(d, "bokeh", "--focus", "1.5", "--distort", lens="6p", out="own.exr") == 0
+    capsys.readouterr()
+    assert _run(d, "bokeh", "--focus", "1.5", "--distort", "--pinhole-focal-length", "22.6", lens="6p",
+                out="framed.exr") == 0
+    capsys.readouterr()
+    own, framed = read_image(d / "own.exr"), read_image(d / "framed.exr")
+    assert own.shape == framed.shape == img.shape and np.abs(own - framed).mean() > 1e-3
+    for bad in ("-3", "0", "nan"):
+        assert _run(d, "bokeh", "--focus", "1.5", "--pinhole-focal-length", bad, lens="6p", out="bad.exr") == 2
+        err = capsys.readouterr().err
+        assert "--pinhole-focal-length" in err and len(err.strip().splitlines()) == 1, err
+    assert not (d / "bad.exr").exists()
