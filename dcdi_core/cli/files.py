@@ -83,7 +83,7 @@ SPECS = {
 NOT_PATHS = frozenset("""
     wavelength json paraxial_only id field angle depth_channel kernel deposit_sigma rays wavelengths precision
     pixel_pitch focus psf_source fields depths near far no_cache rank n_fields n_depths pitch_factor kernel_size
-    near_rays show_fields show_depths patch image_pixel_pitch sensor_size axis interpolation fixed_depth
+    near_rays show_fields show_depths patch image_pixel_pitch sensor_size axis interpolation fixed_depth pinhole_focal_length
     no_distortion noise full_well read_noise seed perturb perturb_fraction accelerator keep distort plain multires
     max_level exact_layers method deconv_weight deconv_method noise_full_well noise_read one_depth tile overlap
     weights threads device depth_backend variant size iters batch lr checkpoint_every dtype offgrid held_out
