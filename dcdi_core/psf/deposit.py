@@ -124,8 +124,15 @@ def _footprint_deposit(x: np.ndarray, y: np.ndarray, wl: np.ndarray, width: floa
     """(3, k, k): each ray's energy spread evenly over a square of side
     ``width`` px centred on it, integrated over each pixel (exactly: the
     square's overlap with the pixel); x, y the rays' positions relative to
-    the kernel's centre (px), wl their wavelength index."""
+    the kernel's centre (px), wl their wavelength index. A square wider than
+    :data:`FOOTPRINT_EXACT_PX` (rays sparse across a wide blur: a preview's
+    few rays, a coarse level's) is drawn as the rays' histogram spread by a
+    moving sum of the nearest odd number of pixels: the cost stays one pass
+    over the rays and a few over the window, where the exact overlaps would
+    cost the square's area in pixels per ray."""
     w = channel_weights.shape[0]
+    if width > FOOTPRINT_EXACT_PX:
+        return _wide_footprint(x, y, wl, width, k, channel_weights)
     n = int(math.ceil(width)) + 1
     c = k / 2.0
     jx, fx = (np.stack(a) for a in zip(*_overlaps(x + c, width, n)))      # (n, rays) each
@@ -136,6 +143,38 @@ def _footprint_deposit(x: np.ndarray, y: np.ndarray, wl: np.ndarray, width: floa
     wts = fy[:, None, :] * fx[None, :, :]
     hist = np.bincount(idx[ok], weights=wts[ok], minlength=k * k * w)
     return (hist.reshape(k * k, w) @ channel_weights).T.reshape(3, k, k)
+
+
+# a footprint up to this wide (px) is integrated exactly over the pixels (at most 16 per ray); a wider one
+# is a moving sum over the rays' histogram, its side rounded to an odd number of pixels
+FOOTPRINT_EXACT_PX = 3.0
+
+
+def _moving_sum(a: np.ndarray, n: int, axis: int) -> np.ndarray:
+    """Centred moving sum of odd width ``n`` along ``axis``, zeros beyond the ends."""
+    h = n // 2
+    pad = [(0, 0)] * a.ndim
+    pad[axis] = (h + 1, h)
+    c = np.cumsum(np.pad(a, pad), axis=axis)
+    m = a.shape[axis]
+    return np.take(c, np.arange(n, n + m), axis=axis) - np.take(c, np.arange(m), axis=axis)
+
+
+def _wide_footprint(x, y, wl, width: float, k: int, channel_weights: np.ndarray) -> np.ndarray:
+    """(3, k, k): the rays' pixel histogram over the window grown by half the
+    square, spread by an n x n moving sum (n the odd number of pixels
+    nearest ``width``), cropped to the window."""
+    w = channel_weights.shape[0]
+    n = max(1, int(round((width - 1.0) / 2.0)) * 2 + 1)
+    h = n // 2
+    g = k + 2 * h
+    jx = np.floor(x + k / 2.0).astype(np.int64) + h
+    jy = np.floor(y + k / 2.0).astype(np.int64) + h
+    ok = (jx >= 0) & (jx < g) & (jy >= 0) & (jy < g)
+    hist = np.bincount((jy[ok] * g + jx[ok]) * w + wl[ok], minlength=g * g * w).astype(np.float64)
+    grid = (hist.reshape(g * g, w) @ channel_weights).T.reshape(3, g, g)
+    spread = _moving_sum(_moving_sum(grid, n, 1), n, 2) / float(n * n)
+    return spread[:, h:h + k, h:h + k]
 
 
 def deposit(x_px, y_px, valid, channel_weights, k: int, oversample: int, sigma_px: float,

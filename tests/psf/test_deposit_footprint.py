@@ -101,3 +101,25 @@ def test_footprint_deposit_conserves_energy_and_survives_degenerate_input():
                           footprint_px=np.array([2.0]))[0, 0]
     assert two[2, 2] == pytest.approx(0.25) and two[2, 1] == pytest.approx(0.125)
     assert two[1, 1] == pytest.approx(0.0625)
+
+
+def test_a_wide_footprint_is_the_exact_square_within_its_rounding():
+    """Sparse rays across a wide blur (a footprint over FOOTPRINT_EXACT_PX):
+    the moving sum over the histogram agrees with the exact overlaps where
+    the side is a whole odd number of pixels, keeps the energy, and costs a
+    pass, not the square's area per ray."""
+    rng = np.random.default_rng(1)
+    x, y = rng.uniform(-20, 20, 4000), rng.uniform(-20, 20, 4000)
+    wl = np.zeros(4000, np.int64)
+    cw = np.ones((1, 3))
+    saved = deposit.FOOTPRINT_EXACT_PX
+    try:
+        deposit.FOOTPRINT_EXACT_PX = 100.0
+        exact = deposit._footprint_deposit(x, y, wl, 5.0, 61, cw)
+    finally:
+        deposit.FOOTPRINT_EXACT_PX = saved
+    wide = deposit._footprint_deposit(x, y, wl, 5.0, 61, cw)
+    assert wide.sum() == pytest.approx(exact.sum(), rel=1e-9) == pytest.approx(3 * 4000.0)
+    # the same square, the rays' sub-pixel positions rounded to their pixel: within a ray's share
+    assert np.abs(wide - exact).max() < 0.12 * exact.max()
+    assert np.abs(wide - exact).sum() / exact.sum() < 0.05
