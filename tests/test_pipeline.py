@@ -286,11 +286,13 @@ def test_correct_and_dof_deconvolve_with_the_camera_lens(tmp_path, monkeypatch):
 
 
 def test_a_dof_job_decides_its_frame_and_its_target_plan_once(tmp_path, monkeypatch):
-    """app.dof makes the capture's frame and the target lens's plan once for
-    the whole job (the depth, the correction and the bokeh share them), and
-    chooses the depth estimator by the rule where none is given."""
+    """app.dof makes the capture's frame, the target lens's plan and each
+    lens's PSF source once for the whole job (the depth, the correction and
+    the bokeh share them), returns the depth estimate's posterior in its
+    result, and chooses the depth estimator by the rule where none is given."""
     from dcdi_core import app
     from dcdi_core.app import correction as app_correction, depth as app_depth, pipeline, render as app_render
+    from dcdi_core.psf import sources as psf_sources
     from dcdi_core.errors import ModelError
     from dcdi_core.optics.lens import load_lens
     from dcdi_core.psf.compute import PSFSettings
@@ -299,12 +301,26 @@ def test_a_dof_job_decides_its_frame_and_its_target_plan_once(tmp_path, monkeypa
     cam, target = load_lens("6p"), load_lens("mos-s1")
     settings = PSFSettings(pupil_samples=16, n_wavelengths=3, kernel_size=15)
     calls = {"frame": 0, "plan": 0}
+    chosen, made = [], []
 
     def counted(name, fn):
         def wrapped(*a, **k):
             calls[name] += 1
             return fn(*a, **k)
         return wrapped
+
+    def chose(lens, **k):
+        chosen.append(lens.id)
+        return psf_source(lens, **k)
+    psf_source = psf_sources.psf_source
+    monkeypatch.setattr(psf_sources, "psf_source", chose)
+    from dcdi_core.psf.library import PSFLibrary
+    open_library = PSFLibrary.open
+
+    def opened(lens, settings, *a, **k):
+        made.append((lens.id, settings.kernel_size))
+        return open_library(lens, settings, *a, **k)
+    monkeypatch.setattr(PSFLibrary, "open", staticmethod(opened))
     for module in (pipeline, app_correction, app_depth):
         monkeypatch.setattr(module, "capture_frame", counted("frame", module.capture_frame))
     for module in (pipeline, app_render):
@@ -314,14 +330,21 @@ def test_a_dof_job_decides_its_frame_and_its_target_plan_once(tmp_path, monkeypa
     bokeh = app.BokehRequest(None, None, target, keep=(1.0, 2.0), psf=app.PSFRequest(source="trace"),
                              render=RenderRequest(target, psf=settings))
     res = app.dof(app.DofRequest(request, bokeh))
-    assert res.depth_source == "given"
+    assert res.depth_source == "given" and res.depth is None
     assert calls == {"frame": 1, "plan": 1}, calls
+    assert sorted(chosen) == ["6p", "mos-s1"], chosen
     # the depth read from the capture's blur: its estimate, the rule on its posterior and the correction
-    # on the one frame, the rule and the bokeh on the one plan
+    # on the one frame and the one PSF source of the camera lens (its traced library opened once: the
+    # deconvolution's kernel grown from the estimate's), the rule and the bokeh on the one plan
     calls.update(frame=0, plan=0)
+    chosen.clear(), made.clear()
     res = app.dof(app.DofRequest(replace(request, depth_m=None), bokeh, depth_backend="blur",
                                  uncertain_depth="accept"))
     assert res.depth_source == "blur" and calls == {"frame": 1, "plan": 1}, calls
+    assert sorted(chosen) == ["6p", "mos-s1"], chosen
+    assert len(set(made)) == len(made) and ("6p", 15) in made, made     # no library opened twice
+    assert res.depth.posterior is not None and res.corrected_share is not None
+    np.testing.assert_array_equal(res.depth.depth_m, res.depth_m)
     # no depth map and no backend: the estimator by the rule (here refused: no shipped depth network for
     # the 6P, none recorded for its blur at this pitch), before any correction
     calls.update(frame=0, plan=0)

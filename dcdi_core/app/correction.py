@@ -116,7 +116,7 @@ def choose(request: CorrectRequest, pitch_mm: float | None) -> tuple[str, str]:
     return chosen, reason
 
 
-def prepare(request: CorrectRequest, shape, *, networks=None):
+def prepare(request: CorrectRequest, shape, *, networks=None, sources=None):
     """The correction of a capture of ``shape`` (H, W): (the request with
     its frame and recorded defaults, a ``app.correction_rule.Deconvolution`` or
     ``NetworkCorrection``, the capture's geometry, notes on the record). ``networks(path, weights,
@@ -147,9 +147,8 @@ def prepare(request: CorrectRequest, shape, *, networks=None):
         noise = NoiseModel.sensor(recorded_noise["full_well_electrons"], recorded_noise["read_noise_electrons"])
         deconv = replace(deconv or DeconvOptions(), noise=noise)
     template = None if lens is None else Deconvolution(
-        lens, options=deconv, psf_source=psf.source, olf_file=psf.olf_file, basis_file=psf.basis_file,
-        settings=settings, kernel_size=None if render.fit_kernel else settings.kernel_size,
-        response=psf.response, geometry=geometry, reason=reason)
+        lens, options=deconv, geometry=geometry, reason=reason, sources=sources,
+        psf=replace(psf, settings=settings, kernel_size=None if render.fit_kernel else settings.kernel_size))
     if chosen == "deconv":
         return request, template, geometry, notes
     path = request.model if request.model is not None else NETWORKS["dacn"].shipped_file(lens.id)
@@ -164,13 +163,15 @@ def prepare(request: CorrectRequest, shape, *, networks=None):
                                       geometry=geometry), geometry, notes
 
 
-def correct(request: CorrectRequest, control: Control | None = None, *, networks=None) -> CorrectResult:
+def correct(request: CorrectRequest, control: Control | None = None, *, networks=None,
+            sources=None) -> CorrectResult:
     """Run a :class:`CorrectRequest` (progress: 'PSFs' then 'deconvolving'
-    windows, or 'correcting' tiles; cancel between them)."""
+    windows, or 'correcting' tiles; cancel between them). ``sources`` as
+    :func:`prepare`'s."""
     from .correction_rule import pitch_note, recover
     control = control or Control()
     capture = _array("capture", request.capture, 3)
-    request, correction, geometry, notes = prepare(request, capture.shape[:2], networks=networks)
+    request, correction, geometry, notes = prepare(request, capture.shape[:2], networks=networks, sources=sources)
     depth = request.depth_m
     if depth is None:
         one = getattr(request.deconv, "one_depth_m", None)

@@ -13,6 +13,7 @@ deconvolution corrects.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -125,23 +126,19 @@ class Deconvolution:
 
     lens: the lens that took the capture. options: ``correct.DeconvOptions``
     (None: its defaults). geometry: the capture on that lens's sensor (None:
-    it spans the sensor's diagonal). psf_source ('basis', 'raymap', 'olf',
-    'trace' or None: the source rule, ``psf.rule``),
-    olf_file, basis_file, kernel_size (an explicit kernel, px) and response
-    (the sensor's spectral response) as ``app.sources.PSFRequest``;
-    settings: the PSF settings (their pitch is the geometry's; None: the
-    defaults). reason: why it was chosen."""
+    it spans the sensor's diagonal). psf: its PSFs (``psf.sources.
+    PSFRequest``: the source, files, settings, kernel and spectral
+    response; the settings' pitch is the geometry's). reason: why it was
+    chosen. sources: the job's ``app.sources.SourceCache`` (None: the PSFs
+    opened for this run alone), which the depth estimate of the same
+    capture shares."""
 
     lens: object
     options: object = None
     geometry: object = None
-    psf_source: str | None = None
-    olf_file: str | None = None
-    settings: object = None
-    kernel_size: int | None = None
-    basis_file: str | None = None
-    response: object = None
+    psf: object = None
     reason: str = ""
+    sources: object = dataclasses.field(default=None, compare=False, repr=False)
 
     method = "deconv"
 
@@ -155,11 +152,12 @@ class Deconvolution:
         from ..render.geometry import ImageGeometry
         h, w = np.shape(capture)[:2]
         geometry = self.geometry or ImageGeometry.full_sensor(self.lens, h, w)
-        settings = replace(self.settings, pixel_pitch_mm=None) if self.settings is not None else None
-        request = PSFRequest(source=self.psf_source, olf_file=self.olf_file, basis_file=self.basis_file,
-                             settings=settings, kernel_size=self.kernel_size, response=self.response)
+        request = self.psf or PSFRequest()
+        if request.settings is not None:
+            request = replace(request, settings=replace(request.settings, pixel_pitch_mm=None))
         control = Control(progress=None if psf_progress is None else (lambda stage, d, t: psf_progress(d, t)))
-        src = open_source(self.lens, geometry, request, fit_depth_m=depth_m, control=control)
+        opened = self.sources.open if self.sources is not None else open_source
+        src = opened(self.lens, geometry, request, fit_depth_m=depth_m, control=control)
         res = deconvolve(capture, depth_m, self.lens, self.options or DeconvOptions(), geometry=geometry,
                          library=src.library, progress=progress)
         return res.image, {**res.info, "lens": self.lens.id, "pixel_pitch_mm": geometry.pixel_pitch_mm,

@@ -13,6 +13,7 @@ import numpy as np
 
 from ..control import Control
 from ..io.npzfile import FileCache
+from ..models.depth.estimators import DepthEstimator
 from ..models.runtime.dfd_refine import DfdRefiner
 from .frame import capture_frame
 from .render import _array
@@ -100,9 +101,11 @@ def refinement(refine, lens_id: str, pitch_mm: float):
     return refiner, ""
 
 
-def estimate(request: DepthRequest, control: Control | None = None) -> DepthResult:
+def estimate(request: DepthRequest, control: Control | None = None, *, sources=None) -> DepthResult:
     """Run a :class:`DepthRequest` (progress: 'PSFs', then 'depth
-    hypotheses')."""
+    hypotheses'). ``sources``: the job's ``app.sources.SourceCache`` (the
+    lens's PSF source kept for the correction that follows; None: opened
+    for this estimate alone)."""
     from ..correct.noise import NoiseModel
     from ..dfd import estimate_depth
     from ..psf.sources import open_source
@@ -120,7 +123,7 @@ def estimate(request: DepthRequest, control: Control | None = None) -> DepthResu
         noise = NoiseModel.sensor(recorded_noise["full_well_electrons"], recorded_noise["read_noise_electrons"])
     t0 = time.perf_counter()
     psf = request.psf if request.psf.settings is not None else replace(request.psf, settings=plan.settings)
-    src = open_source(request.lens, plan.geometry, psf, control=control)
+    src = (sources.open if sources is not None else open_source)(request.lens, plan.geometry, psf, control=control)
     t_psf = time.perf_counter() - t0
     refiner, why = refinement(request.refine, request.lens.id, plan.geometry.pixel_pitch_mm)
     if why:
@@ -221,26 +224,34 @@ class DofDepthRule:
         return None
 
 
+class BlurDepth(DepthEstimator):
+    """The depth of a capture read from its own blur through ``lens``
+    (:func:`estimate` with these settings: ``render``, ``psf``,
+    ``recorded``, ``image_name``; ``frame``: the capture's
+    ``app.frame.CaptureFrame``, made once by the job), as a
+    ``models.depth.estimators.DepthEstimator`` (name 'blur')."""
+
+    name = "blur"
+
+    def __init__(self, lens, render=None, psf: PSFRequest | None = None, recorded=None,
+                 image_name: str = "the capture", frame=None):
+        self.request = DepthRequest(None, lens, render=render, psf=psf or PSFRequest(), recorded=recorded,
+                                    image_name=image_name, frame=frame)
+
+    def run(self, img, control: Control | None = None, sources=None) -> DepthResult:
+        """The whole :class:`DepthResult` of ``img`` (its posterior:
+        ``app.dof``'s rule); ``sources``: the job's ``app.sources.
+        SourceCache``, whose camera PSFs the correction then shares."""
+        return estimate(replace(self.request, capture=img), control, sources=sources)
+
+    def _estimate(self, img):
+        return self.run(img).depth_m
+
+
 def blur_estimator(lens, render=None, psf: PSFRequest | None = None, recorded=None, image_name="the capture",
-                   frame=None):
-    """A ``models.depth.estimators.DepthEstimator`` (name 'blur') that reads
-    a capture's depth from its own blur through ``lens`` (:func:`estimate`
-    with these settings), for ``app.dof`` and the demo. ``frame``: the
-    capture's ``app.frame.CaptureFrame``, made once by the job."""
-    from ..models.depth.estimators import DepthEstimator
-
-    class BlurDepth(DepthEstimator):
-        name = "blur"
-
-        result = None          # the last estimate's DepthResult: its confidence, for app.dof's rule
-
-        def _estimate(self, img):
-            request = DepthRequest(img, lens, render=render, psf=psf or PSFRequest(), recorded=recorded,
-                                   image_name=image_name, frame=frame)
-            self.result = estimate(request)
-            return self.result.depth_m
-
-    return BlurDepth()
+                   frame=None) -> BlurDepth:
+    """A :class:`BlurDepth` of ``lens`` with these settings, for ``app.dof`` and the demo."""
+    return BlurDepth(lens, render, psf, recorded, image_name, frame)
 
 
 # what the refusals below offer where no depth is given

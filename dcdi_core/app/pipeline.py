@@ -20,6 +20,7 @@ from .correction import CorrectRequest, CorrectResult, correct
 from .frame import capture_frame
 from .render import BokehRequest, BokehResult, _array, bokeh_plan
 from .render import bokeh as run_bokeh
+from .sources import SourceCache
 
 
 @dataclass(frozen=True)
@@ -61,7 +62,9 @@ class DofResult:
     name); ``correction``: the :class:`CorrectResult` (None for a sharp
     image); ``bokeh``: the :class:`BokehResult`; ``notes``; ``seconds`` per
     stage; ``corrected_share``: where the depth was read from the blur, the
-    share of the frame the correction was kept on (else None)."""
+    share of the frame the correction was kept on, and ``depth``: that
+    estimate's ``app.depth.DepthResult`` (its confidence, posterior and
+    PSF source; else None)."""
 
     image: np.ndarray
     corrected: np.ndarray
@@ -72,6 +75,7 @@ class DofResult:
     notes: list
     seconds: dict
     corrected_share: float | None = None   # the share of the frame the correction was kept on (a blur depth)
+    depth: object = None                   # app.depth.DepthResult where the depth was read from the blur
 
     def correction_dict(self) -> dict:
         if self.correction is None:
@@ -79,32 +83,42 @@ class DofResult:
         return self.correction.as_dict()
 
 
-def _depth(capture, request: DofRequest, seconds: dict) -> tuple[np.ndarray, str]:
+def _depth(capture, request: DofRequest, seconds: dict, control: Control, sources):
+    """(depth (H, W) metres, its source's name, the depth estimate's
+    ``app.depth.DepthResult`` where it was read from the capture's blur,
+    else None)."""
     depth = request.correct.depth_m
     if depth is not None:
         depth = _array("depth_m", depth, 2)
         if depth.shape != capture.shape[:2]:
             raise InputRangeError("depth_m", depth.shape, f"{capture.shape[:2]}, the capture's size")
-        return depth, "given"
+        return depth, "given", None
     from ..models.depth.estimators import DepthEstimator
     from ..errors import ModelError
     if not isinstance(request.estimator, DepthEstimator):
         raise ModelError("no depth map and no depth estimator: give a depth map, or an estimator "
                          "(the shipped depth network of the camera lens, or a public one from a checkpoint)")
     t0 = time.perf_counter()
-    depth = request.estimator.estimate(capture)
+    result = None
+    from .depth import BlurDepth
+    if isinstance(request.estimator, BlurDepth):
+        # the depth from the capture's blur: its posterior for the rule, its PSF source for the correction
+        # its progress and cancel are the job's; which PSFs serve is said once, by the correction that shares them
+        result = request.estimator.run(capture, replace(control, note=None), sources)
+        depth = result.depth_m
+    else:
+        depth = request.estimator.estimate(capture)
     seconds["depth"] = time.perf_counter() - t0
-    return depth, request.estimator.name
+    return depth, request.estimator.name, result
 
 
-def _correction_weight(request: DofRequest, shape, target_plan):
+def _correction_weight(request: DofRequest, shape, target_plan, estimated):
     """(the correction's weight (H, W) float32 in [0, 1], notes), or (None,
     []) where the depth was given or has no posterior: where the depth was
     read from the capture's blur, the correction is kept only where it is
     expected to bring the bokeh nearer (``app.depth.DofDepthRule``); where
     that is too little of the frame, refused ('refuse') or said ('accept')."""
-    result = getattr(request.estimator, "result", None)
-    post = getattr(result, "posterior", None)
+    post = None if estimated is None else estimated.posterior
     if request.correct.depth_m is not None or post is None or request.correct.lens is None:
         return None, []
     from .depth import DofDepthRule, target_blur
@@ -146,25 +160,31 @@ def _decided(request: DofRequest, shape) -> DofRequest:
 
 def dof(request: DofRequest, control: Control | None = None, *, networks=None, cache=None) -> DofResult:
     """Run a :class:`DofRequest`: depth (given or estimated), correction,
-    then the target lens's bokeh (module docstring)."""
+    then the target lens's bokeh (module docstring). ``cache``: the front
+    end's ``app.sources.SourceCache`` (None: one for this job), which holds
+    each lens's PSF source once for the job."""
     control = control or Control()
     capture = _array("capture", request.correct.capture, 3)
     request = _decided(request, capture.shape[:2])
     target = bokeh_plan(request.bokeh, capture.shape[:2])           # the target lens's plan, once for the job
     seconds, notes = {}, []
-    depth, depth_source = _depth(capture, request, seconds)
-    weight, notes = _correction_weight(request, capture.shape[:2], target)   # refused here, before the correction
+    # the job's PSF sources: the camera lens's, shared by the depth from its blur and the correction, and the
+    # target lens's (the front end's kept ones where it gives them)
+    sources = cache if cache is not None else SourceCache()
+    depth, depth_source, estimated = _depth(capture, request, seconds, control, sources)
+    weight, notes = _correction_weight(request, capture.shape[:2], target, estimated)   # refused here, before the correction
     corrected, fixed = capture, None
     if request.correct.lens is not None:
-        fixed = correct(replace(request.correct, capture=capture, depth_m=depth), control, networks=networks)
+        fixed = correct(replace(request.correct, capture=capture, depth_m=depth), control, networks=networks,
+                        sources=sources)
         corrected = fixed.image
         if weight is not None:
             corrected = (weight[..., None] * corrected + (1.0 - weight[..., None]) * capture).astype(np.float32)
         seconds.update(fixed.seconds)
         notes += fixed.notes
     t0 = time.perf_counter()
-    b = run_bokeh(replace(request.bokeh, image=corrected, depth_m=depth), control, cache=cache, plan=target)
+    b = run_bokeh(replace(request.bokeh, image=corrected, depth_m=depth), control, cache=sources, plan=target)
     seconds["psfs and bokeh"] = time.perf_counter() - t0
     notes = list(dict.fromkeys(notes + b.notes))         # the depth's notes once, not per stage
     share = None if weight is None else float(weight.mean())
-    return DofResult(b.image, corrected, depth, depth_source, fixed, b, notes, seconds, share)
+    return DofResult(b.image, corrected, depth, depth_source, fixed, b, notes, seconds, share, estimated)

@@ -13,7 +13,7 @@ from collections import OrderedDict
 from dataclasses import replace
 
 from ..optics.lens import lens_fingerprint
-from ..psf.sources import PSFRequest, choose
+from ..psf.sources import PSFRequest, PSFSourceResult, choose, open_source
 
 
 class SourceCache:
@@ -30,8 +30,10 @@ class SourceCache:
         path = str(getattr(lens, "path", "") or "")
         mtime = os.stat(path).st_mtime_ns if path and os.path.exists(path) else None
         response = None if request.response is None else id(request.response)
+        # the pitch is the geometry's: settings that carry it ask for the same PSFs as those that leave it out
+        settings = None if request.settings is None else replace(request.settings, pixel_pitch_mm=None)
         return (lens.id, path, mtime, lens_fingerprint(lens), round(float(geometry.pixel_pitch_mm), 12),
-                replace(request, response=None), response)
+                replace(request, response=None, settings=settings), response)
 
     def chosen(self, lens, geometry, request: PSFRequest):
         """``psf_source``'s choice for this request, kept."""
@@ -44,6 +46,12 @@ class SourceCache:
         while len(self._kept) > self.size:
             self._kept.popitem(last=False)
         return src
+
+    def open(self, lens, geometry, request: PSFRequest, *, fit_depth_m=None, control=None) -> PSFSourceResult:
+        """``psf.sources.open_source`` from the kept choice: a source opened
+        again at the same settings serves the bins it made (``PSFSource.opened``)."""
+        return open_source(lens, geometry, request, fit_depth_m=fit_depth_m, control=control,
+                           chosen=self.chosen(lens, geometry, request))
 
     def clear(self) -> None:
         self._kept.clear()

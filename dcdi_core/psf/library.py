@@ -476,7 +476,7 @@ MAX_FITTED_KERNEL = 129      # px: beyond this a patch-wise FFT blur costs more 
 
 def open_library(lens, geometry, settings: PSFSettings | None = None,
                  grid: LibraryGrid | None = None, *, response=None, cache: bool = True, fit_depth_m=None,
-                 progress=None) -> PSFLibrary:
+                 progress=None, kept: dict | None = None) -> PSFLibrary:
     """The lens's PSF library sampled at the image's pixel pitch.
 
     settings.pixel_pitch_mm, if set, must be the geometry's (the PSFs of an
@@ -488,13 +488,24 @@ def open_library(lens, geometry, settings: PSFSettings | None = None,
     library is reopened with the odd kernel size that holds them, at most
     MAX_FITTED_KERNEL px (beyond that the usual KernelTooSmallWarning says
     how much is clipped). Without it the kernel size is the settings'.
-    progress(done, total): called as PSF bins are computed."""
+    progress(done, total): called as PSF bins are computed. ``kept``: the
+    libraries already opened for this lens, grid and response, by their
+    settings (``psf.sources.PSFSource.opened``): one of the same settings is
+    served with the bins it holds; those opened here are added."""
     s = settings or PSFSettings()
     if s.pixel_pitch_mm is not None and not math.isclose(s.pixel_pitch_mm, geometry.pixel_pitch_mm, rel_tol=SAME_GIVEN_RTOL):
         raise InputRangeError("pixel pitch", s.pixel_pitch_mm,
                               f"{geometry.pixel_pitch_mm:.6g} mm, the image's own pixel pitch (give one, not two)")
     s = replace(s, pixel_pitch_mm=geometry.pixel_pitch_mm)
-    return _fitted(lambda st: PSFLibrary.open(lens, st, grid, response, cache=cache), s, fit_depth_m, progress)
+
+    def make(st):
+        if kept is None:
+            return PSFLibrary.open(lens, st, grid, response, cache=cache)
+        key = (st, grid, None if response is None else id(response), cache)
+        if key not in kept:
+            kept[key] = PSFLibrary.open(lens, st, grid, response, cache=cache)
+        return kept[key]
+    return _fitted(make, s, fit_depth_m, progress)
 
 
 def _fitted(make, settings: PSFSettings, fit_depth_m, progress):

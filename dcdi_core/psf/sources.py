@@ -25,6 +25,7 @@ histograms at the learned pitch) are area-resampled exactly
 from __future__ import annotations
 
 import time
+import dataclasses
 from dataclasses import dataclass, replace
 from pathlib import Path
 from types import MappingProxyType
@@ -149,6 +150,9 @@ class PSFSource:
     basis_file: str | None = None
     raymap_file: str | None = None
     lens: object = None
+    # the traced libraries this source opened, by their settings: a job that opens it twice (the depth from
+    # blur, then the deconvolution) shares the bins, and a kernel grown for the second starts from the first
+    opened: dict = dataclasses.field(default_factory=dict, repr=False, compare=False)
 
     def at(self, geometry, request: "PSFRequest", *, fit_depth_m=None,
            control: Control | None = None) -> "PSFSourceResult":
@@ -174,7 +178,7 @@ class PSFSource:
             library = self.library.at_geometry(geometry, settings, fit_depth_m=fit, progress=progress)
             return PSFSourceResult("raymap", self.message, library, quality=quality, raymap_file=self.raymap_file)
         library = open_library(self.lens, geometry, settings, _request_grid(self.lens, geometry, request),
-                               response=request.response, fit_depth_m=fit, progress=progress)
+                               response=request.response, fit_depth_m=fit, progress=progress, kept=self.opened)
         return PSFSourceResult("trace", self.message, library, self.olf_file, self.basis_file, quality)
 
 

@@ -102,19 +102,21 @@ def test_dcdi_correct_tells_such_a_run_its_depth_too(derived, tmp_path):
     from dcdi_core.models.dacn.train import train_dacn
     from dcdi_core.optics.lens import load_lens
     from dcdi_core.app.correction_rule import Deconvolution, load_network
+    from dcdi_core.psf.sources import PSFRequest
     from dcdi_core.render.geometry import ImageGeometry
     train_dacn(dacn_config(derived, iters=2, checkpoint_every=2, config="refine",
                            arch=dict(channels=8, groups=1, blocks=1)), tmp_path / "told")
     lens = load_lens("mos-s2")
     geom = ImageGeometry.full_sensor(lens, 48, 64)
-    net = replace(load_network(tmp_path / "told", "mos-s2"), deconvolution=Deconvolution(lens, psf_source="trace"),
+    net = replace(load_network(tmp_path / "told", "mos-s2"), deconvolution=Deconvolution(lens, psf=PSFRequest(source="trace")),
                   geometry=geom)
     rng = np.random.default_rng(1)
     img = rng.uniform(0.1, 0.9, (48, 64, 3)).astype(np.float32)
     depth = np.where(np.arange(64) < 30, 0.9, 5.0)[None, :] * np.ones((48, 1), np.float32)
     out, _ = net.run(img, depth)
     told = np.full_like(depth, 2.0)
-    dec, _ = Deconvolution(lens, options=DeconvOptions(one_depth_m=2.0), geometry=geom, psf_source="trace").run(
+    dec, _ = Deconvolution(lens, options=DeconvOptions(one_depth_m=2.0), geometry=geom,
+                           psf=PSFRequest(source="trace")).run(
         img, told)
     want = correct(net.model, img, told, deconvolved=dec, geometry=geom)
     assert np.allclose(out, np.clip(want, 0, None), atol=1e-6)
