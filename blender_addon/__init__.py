@@ -42,7 +42,7 @@ def _engine_importable() -> None:
     installs it); say what to do where it did not come."""
     import importlib
     try:
-        importlib.import_module("dcdi_core")
+        importlib.import_module("dcdi_core.app")
     except ImportError as e:
         raise ImportError("DCDI Lens Bokeh: its engine (dcdi_core) is not installed in this Blender's Python: "
                           "Blender 4.2+ installs it from the zip's wheels/ folder; before 4.2, run <Blender's "

@@ -20,7 +20,7 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from dcdi_core.io import rawexr
+from dcdi_core import app
 
 
 RESULT_IMAGE = "Lens Bokeh"
@@ -134,7 +134,7 @@ def render_aif_depth(scene, camera_obj, height: int, width: int, samples: int, v
             bpy.ops.render.render(write_still=True, scene=tmp_scene.name)
         if not out.exists():
             raise RuntimeError(f"Cycles wrote no file to {out} (see the console)")
-        ch = rawexr.read_exr_channels(out)
+        ch = app.rawexr.read_exr_channels(out)
     finally:
         bpy.data.scenes.remove(tmp_scene)
         bpy.data.objects.remove(cam_obj)

@@ -212,9 +212,9 @@ class Compositor:
                                           "out": str(out)}) + "\n")
         self.proc.stdin.flush()
         self._answer(FRAME_S)
-        from dcdi_core.io import rawexr
+        from dcdi_core import app
         try:
-            ch = rawexr.read_exr_channels(out)
+            ch = app.rawexr.read_exr_channels(out)
         finally:
             out.unlink(missing_ok=True)
             for p in feed.values():

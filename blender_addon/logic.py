@@ -18,26 +18,19 @@ import os
 import re
 import sys
 import tomllib
-import warnings
 import zlib
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
-import dcdi_core.models          # TORCH_VERSION, TorchMissingError: no torch imported
-from dcdi_core import app
-from dcdi_core.errors import DcdiError, in_words
-from dcdi_core.optics import analysis, paraxial, zemax
-from dcdi_core.optics.aperture import MAX_BLADES, MAX_F_NUMBER, MIN_BLADES, Aperture, stopped_down, wide_open_f_number
-from dcdi_core.optics.lens import Lens, lens_dirs
-from dcdi_core.psf import compute
-from dcdi_core.render import camera as dcdi_camera
-from dcdi_core.render.request import RenderRequest
+from dcdi_core import app                  # the engine, through its application layer alone
+from dcdi_core.optics import report       # the lens report: the figures the panel shows
 
 from .session import SESSION
 
 Cancelled = app.Cancelled        # the user pressed Esc while a job ran
+DcdiError, in_words, lens_dirs = app.DcdiError, app.in_words, app.lenses.lens_dirs
 
 
 class BokehInputError(ValueError):
@@ -195,7 +188,7 @@ def load_lens_cached(path: str):
     lenses = SESSION.lenses
     key = (path, os.stat(path).st_mtime_ns)
     if key not in lenses:
-        lenses[key] = Lens.from_toml(path)
+        lenses[key] = app.lenses.read_lens(path)
     return lenses[key]
 
 
@@ -214,88 +207,29 @@ def lens_readout(path: str) -> dict:
     key = (path, os.stat(path).st_mtime_ns)
     if key not in readouts:
         lens = load_lens_cached(path)
-        fo = paraxial.first_order(lens)
-        half = float(analysis.real_field_angle_deg(lens, [1.0])[0])
+        info = report.lens_info(lens, real_rays="field")          # `dcdi lens info`'s figures
         readouts[key] = {
             "id": lens.id, "name": lens.name, "title": _lens_name(Path(path)),
-            "stated": dict(getattr(lens, "stated", None) or {}),
-            "focal_length_mm": float(fo.effective_focal_length_mm),
-            "f_number": float(fo.f_number),
-            "field_of_view_deg": 2.0 * half if half > 0 else None,
-            "entrance_pupil_mm": float(fo.entrance_pupil_position_mm),
-            "sensor_semi_diagonal_mm": float(lens.sensor.semi_diagonal_mm),
+            "stated": dict(info["stated"] or {}),
+            "focal_length_mm": float(info["effective_focal_length_mm"]),
+            "f_number": float(info["f_number"]),
+            "field_of_view_deg": info["field_of_view_deg"] or None,
+            "entrance_pupil_mm": float(info["entrance_pupil_position_mm"]),
+            "sensor_semi_diagonal_mm": float(info["sensor_semi_diagonal_mm"]),
         }
     return readouts[key]
 
 
-# the lens list's thumbnails: PSFs at these fields (rows) and depths (columns,
-# metres from the lens; inf: infinity), the lens as prescribed
-THUMBNAIL_FIELDS = (0.0, 0.5, 0.9)
-THUMBNAIL_DEPTHS_M = (1.0, 3.0, math.inf)
-THUMBNAIL_TILE_PX = 31
-THUMBNAIL_RAYS_PER_PX = 4
-
-
-def psf_thumbnail(lens, tile: int = THUMBNAIL_TILE_PX) -> np.ndarray:
-    """A grid of the lens's RGB PSFs (THUMBNAIL_FIELDS x THUMBNAIL_DEPTHS_M),
-    each tile ``tile`` px at the pixel pitch of a 600-px-diagonal image on
-    its sensor, or at the coarser one that holds the widest of them (a fast
-    photographic lens focused at infinity blurs a point at 1 m over many
-    times the tile: clipped, every tile would be a flat square), scaled to
-    its own peak and gamma-encoded (1/2.2) so that halos show: float32 (H,
-    W, 3) in [0, 1], rows top to bottom, 1-px gaps. Quick settings (four
-    pupil rays a pixel across the widest; 5 wavelengths): a picture of the
-    lens's character, not its exact PSFs."""
-    pitch = 2.0 * lens.sensor.semi_diagonal_mm / 600.0
-    _, needed = _thumbnail_kernels(lens, tile, pitch)          # how wide the widest is (a quick look)
-    # one pitch for the grid (its tiles compare), the widest as wide as the tile; four rays a pixel across the
-    # pupil, so that the balls are the lens's and not the ray grid's moire (two left it in every wide disc)
-    kernels, _ = _thumbnail_kernels(lens, tile, pitch * max(needed, tile) / tile, rays=THUMBNAIL_RAYS_PER_PX * tile)
-    nf, nd = len(THUMBNAIL_FIELDS), len(THUMBNAIL_DEPTHS_M)
-    out = np.zeros((nf * (tile + 1) - 1, nd * (tile + 1) - 1, 3), np.float32)
-    for (i, j), k in kernels.items():
-        img = np.moveaxis(np.nan_to_num(k, nan=0.0), 0, -1)
-        peak = float(img.max())
-        tile_img = (img / peak) ** (1.0 / 2.2) if peak > 0 else img
-        out[i * (tile + 1):i * (tile + 1) + tile, j * (tile + 1):j * (tile + 1) + tile] = tile_img
-    return out
-
-
-def thumbnail_ball(grid: np.ndarray, tile: int = THUMBNAIL_TILE_PX) -> np.ndarray:
-    """The icon of a lens in the list: one tile of its :func:`psf_thumbnail`
-    grid, the ball a light at 1 m makes toward the frame's corner (field
-    0.9), where lenses differ most (cat's eyes, oval or clipped balls,
-    rims): (tile, tile, 3)."""
-    i, j = len(THUMBNAIL_FIELDS) - 1, 0
-    return grid[i * (tile + 1):i * (tile + 1) + tile, j * (tile + 1):j * (tile + 1) + tile]
-
-
-def _thumbnail_kernels(lens, tile: int, pitch: float, rays: int = 32) -> tuple[dict, int]:
-    """({(row, column): RGB kernel (3, tile, tile)} of the thumbnail's grid at
-    ``pitch`` mm with ``rays`` per pupil side, the widest kernel any of them
-    needs (99 % of its rays), px)."""
-    settings = compute.PSFSettings(kernel_size=tile, pupil_samples=rays, n_wavelengths=5, pixel_pitch_mm=pitch)
-    kernels, needed = {}, 0
-    for i, f in enumerate(THUMBNAIL_FIELDS):
-        for j, d in enumerate(THUMBNAIL_DEPTHS_M):
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")         # a PSF larger than the tile is clipped: measured below
-                b = compute.psf(lens, depth_m=d, field=f, settings=settings)
-            kernels[i, j] = b.psf
-            needed = max(needed, int(b.kernel_size_needed))
-    return kernels, needed
+# the lens list's thumbnails: the engine draws them (``app.lenses.psf_thumbnail``: PSFs at
+# THUMBNAIL_FIELDS down and THUMBNAIL_DEPTHS_M across, the lens as prescribed)
+THUMBNAIL_FIELDS, THUMBNAIL_DEPTHS_M = app.lenses.THUMBNAIL_FIELDS, app.lenses.THUMBNAIL_DEPTHS_M
+THUMBNAIL_TILE_PX, THUMBNAIL_RAYS_PER_PX = app.lenses.THUMBNAIL_TILE_PX, app.lenses.THUMBNAIL_RAYS_PER_PX
+psf_thumbnail, thumbnail_ball = app.lenses.psf_thumbnail, app.lenses.thumbnail_ball
 
 
 def import_zemax(zmx_path: str, out_dir: str) -> str:
-    """Convert a Zemax .zmx file to a lens TOML in ``out_dir`` (validated
-    before anything is written; written atomically); returns the TOML path."""
-    d = zemax.read_zmx(zmx_path)
-    Lens.from_dict(d, zmx_path)      # raises with file / surface / field
-    from dcdi_core.errors import InputRangeError
-    from dcdi_core.names import check_name
-    out = Path(out_dir) / f"{check_name(d['id'], 'id', zmx_path, error=InputRangeError)}.toml"   # a name, not a path
-    zemax.write_toml(d, out)
-    return str(out)
+    """Convert a Zemax .zmx file to a lens TOML in ``out_dir`` (``app.lenses.import_zemax``); the TOML's path."""
+    return app.lenses.import_zemax(zmx_path, out_dir)
 
 
 # ------------------------------------------------------------------ scene -> job
@@ -313,20 +247,8 @@ def preview_shape(res_x: int, res_y: int, aspect_x: float, aspect_y: float, long
 def camera_aperture(lens, f_stop: float, blades: int, rotation_rad: float):
     """(``lens`` stopped down to a camera's ``f_stop`` with its iris's
     ``blades`` (Blender's: 0 round, 3 or more a polygon) turned by
-    ``rotation_rad``; a note, or ''). An F-Stop at or wider than the lens's
-    widest leaves it wide open, said in the note (a camera's F-Stop is the
-    artist's, not the lens's: it is never refused)."""
-    n0 = wide_open_f_number(lens)
-    blades = int(blades) if int(blades) >= MIN_BLADES else 0
-    note = ""
-    if not (math.isfinite(f_stop) and f_stop > n0 * (1.0 + 1e-3)):
-        if f_stop < n0 * (1.0 - 1e-3):
-            note = f"F-Stop {f_stop:.3g} is wider than this lens's widest, f/{n0:.3g}: the lens wide open"
-        f_stop = None
-    else:
-        f_stop = min(float(f_stop), MAX_F_NUMBER)
-    rotation = math.degrees(float(rotation_rad)) if math.isfinite(rotation_rad) else 0.0
-    return stopped_down(lens, Aperture(f_stop, min(blades, MAX_BLADES), rotation if blades else 0.0)), note
+    ``rotation_rad``; a note, or ''): ``app.lenses.camera_stop``."""
+    return app.lenses.camera_stop(lens, f_stop, blades, rotation_rad)
 
 
 def keep_range(focus_m: float, front_m: float, behind_m: float) -> tuple[float, float]:
@@ -371,48 +293,20 @@ FIELD_STEP_PX = 16.0
 FOCUS_TOLERANCE_PX = 0.25
 
 
+def panel_words() -> "app.SourceWords":
+    """How the engine's PSF messages name files and lenses in the panel: no
+    file's path (the engine's own files are "the PSF basis / ray map /
+    Omni-Lens-Field that ships with the add-on", another file goes by its
+    name), the chosen lens "this lens", other lenses (those an OLF learned)
+    by their names in the list. Listed here, not through the session's
+    folder listing (a worker thread runs this)."""
+    names = tuple((lens_id, _lens_name(Path(path))) for lens_id, path in _list_lens_files(list(lens_dirs())))
+    return app.SourceWords(lens="this lens", shipped="that ships with the add-on", file_names=True, names=names)
+
+
 def _source_info(source) -> dict:
-    """The PSF source's kind, quality and message in the panel's words: no
-    file's path (the engine's own files are "the PSF basis / Omni-Lens-Field
-    that ships with the add-on", another file goes by its name) and no lens
-    id (the lens is the chosen one: "this lens")."""
-    message = _note(source.message)
-    import dcdi_core
-    engine = Path(dcdi_core.__file__).resolve().parent
-    lens = getattr(getattr(source, "library", None), "lens", None)
-    lens_path = str(getattr(lens, "path", "") or "")
-    paths = {str(p) for p in (getattr(source, "basis_file", None), getattr(source, "olf_file", None),
-                              getattr(source, "raymap_file", None), lens_path) if p}
-    paths |= set(re.findall(r"(?:^|(?<=[\s(]))(?:/|[A-Za-z]:[\\/])[^\s;,()]+", message))
-    for path in sorted(paths, key=len, reverse=True):         # a path before any path it starts with
-        name = Path(path).name
-        message = message.replace(f"({path})", "")             # "(/…/6p.toml)" after the lens it names
-        if path == lens_path:
-            message = message.replace(path, name)
-            continue
-        kind = ("Omni-Lens-Field" if name.lower().startswith("olf") else
-                "ray map" if Path(path).parent.name == "raymap" else "PSF basis")
-        try:
-            shipped = Path(path).resolve().is_relative_to(engine)
-        except (OSError, ValueError):
-            shipped = False
-        if shipped:
-            message = message.replace(f"the {kind} {path}", f"the {kind} that ships with the add-on")
-            message = message.replace(path, f"the shipped {kind}")
-        else:
-            message = message.replace(f"the {kind} {path}", f"the {kind} {name}").replace(path, name)
-    lens_id = getattr(lens, "id", None)
-    if lens_id:
-        i = re.escape(lens_id)
-        message = re.sub(rf"\(\s*{i}\s*[,:]\s*", "(", message)                 # "(6p, rank 160" -> "(rank 160"
-        message = re.sub(rf"\blens '{i}'", "this lens", message)
-        message = re.sub(rf"(?<![\w.-]){i}(?![\w-])", "this lens", message)
-    # other lenses (those an OLF learned) by name; listed here, not through the session's folder listing (a
-    # worker thread runs this)
-    for other_id, path in _list_lens_files(list(lens_dirs())):
-        message = re.sub(rf"(?<![\w.'-]){re.escape(other_id)}(?![\w'-])", _lens_name(Path(path)), message)
-    message = re.sub(r"[ \t]{2,}", " ", message).replace(" )", ")")
-    return {"psf_source": source.kind, "psf_source_message": message, "psf_quality": source.quality}
+    """The PSF source's kind, quality and message (made in the panel's words, :func:`panel_words`)."""
+    return {"psf_source": source.kind, "psf_source_message": _note(source.message), "psf_quality": source.quality}
 
 
 # where a job's blur came from, in an artist's words (the engine's message is the status line's tooltip)
@@ -455,8 +349,8 @@ def run_bokeh(image, depth, lens, *, focus_m: float, keep: tuple[float, float], 
     # lighter trace where a lens has no error table
     psf = app.PSFRequest(preview=preview, field_step_px=FIELD_STEP_PX, focus_tolerance_px=FOCUS_TOLERANCE_PX,
                          max_error_db=app.DEFAULT_BUDGET_DB["preview" if preview else "render"]
-                         if max_error_db is None else float(max_error_db))
-    render = RenderRequest(lens, patch=patch, pinhole_focal_length_mm=pinhole_focal_length_mm if lens_geometry else None)
+                         if max_error_db is None else float(max_error_db), words=panel_words())
+    render = app.RenderRequest(lens, patch=patch, pinhole_focal_length_mm=pinhole_focal_length_mm if lens_geometry else None)
     request = app.BokehRequest(image, depth, lens, keep=tuple(keep), focus_m=float(focus_m) if refocus else None,
                                render=render, psf=psf, image_name="the render", distortion=bool(lens_geometry))
     r = app.bokeh(request, _control(progress, cancelled), cache=SESSION.sources)
@@ -512,7 +406,7 @@ def lens_frame(rgb, z, lens, request: FrameRequest, *, progress=None, cancelled=
     float32 linear and planar Z pass ``z`` (H, W) scene units (Blender's
     1e10 for the background), as ``request`` says. Returns (image, depth
     metres from the lens's first vertex, info: the job's, with 'effect')."""
-    depth = dcdi_camera.depth_from_planar_z(z, request.entrance_pupil_mm, request.metres_per_unit)
+    depth = app.camera.depth_from_planar_z(z, request.entrance_pupil_mm, request.metres_per_unit)
     rgb = np.nan_to_num(np.asarray(rgb, np.float32)[..., :3], nan=0.0, posinf=0.0, neginf=0.0)
     if request.effect == "dof":
         out, info = run_bokeh(rgb, depth, lens, focus_m=request.focus_m, keep=request.keep,
@@ -538,11 +432,12 @@ def run_simulation(image, depth, lens, *, noise: bool = False, seed: int = 0, fo
     on the sensor (NaN where the lens images nothing), the image's geometry
     on the sensor, info with ``record``: what the capture remembers, the
     defaults of its correction)."""
-    psf = replace(compute.PSFSettings(), focus_distance_m=None if focus_m is None else float(focus_m))
-    render = RenderRequest(lens, psf=psf, noise=bool(noise), seed=int(seed) if noise else None,
+    psf = replace(app.PSFSettings(), focus_distance_m=None if focus_m is None else float(focus_m))
+    render = app.RenderRequest(lens, psf=psf, noise=bool(noise), seed=int(seed) if noise else None,
                            pinhole_focal_length_mm=pinhole_focal_length_mm)
     r = app.simulate(app.SimulateRequest(image, depth, lens, render, image_name="the render",
-                                         psf=app.PSFRequest(max_error_db=app.DEFAULT_BUDGET_DB["render"])),
+                                         psf=app.PSFRequest(max_error_db=app.DEFAULT_BUDGET_DB["render"],
+                                                                 words=panel_words())),
                      _control(progress, cancelled), cache=SESSION.sources)
     info = dict(r.info, lens=lens.id, pixel_pitch_mm=float(r.geometry.pixel_pitch_mm), record=r.record,
                 **_source_info(r.source))
@@ -551,7 +446,7 @@ def run_simulation(image, depth, lens, *, noise: bool = False, seed: int = 0, fo
 
 def torch_install_command(python: str | None = None) -> str:
     """The command that installs the PyTorch the engine is tested with into ``python`` (default: this one)."""
-    return f'"{python or sys.executable}" -m pip install torch=={dcdi_core.models.TORCH_VERSION}'
+    return f'"{python or sys.executable}" -m pip install torch=={app.TORCH_VERSION}'
 
 
 def torch_missing() -> str | None:
@@ -585,17 +480,16 @@ def load_dacn_cached(path, weights: str = "ema", device: str = "cpu"):
     """(model, info) of ``models.dacn.correct.load_dacn``, the last one kept
     (by path and modification time); a missing torch is reported with the
     install command."""
-    try:
-        from dcdi_core.models.dacn import correct
-    except dcdi_core.models.TorchMissingError:
-        raise BokehInputError(_torch_message()) from None
-    except ImportError as e:                 # a torch that is there but does not import
-        raise BokehInputError(_torch_message(f" that imports ({e})")) from None
     key = (str(path), os.stat(path).st_mtime_ns, weights, device)
     networks = SESSION.networks
     if key not in networks:
         networks.clear()                     # one network at a time: they are the biggest thing held
-        networks[key] = correct.load_dacn(path, weights=weights, device=device)
+        try:
+            networks[key] = app.load_dacn(path, weights=weights, device=device)
+        except app.TorchMissingError:
+            raise BokehInputError(_torch_message()) from None
+        except ImportError as e:             # a torch that is there but does not import
+            raise BokehInputError(_torch_message(f" that imports ({e})")) from None
     return networks[key]
 
 
@@ -622,11 +516,12 @@ def _correct_request(image, depth_m, lens, method: str, model_path, record=None,
                      geometry=None) -> "app.CorrectRequest":
     """The engine's request: the capture on the lens's sensor from its record, or from ``geometry``."""
     render = None
-    if geometry is not None and record is None and isinstance(lens, Lens):
-        render = RenderRequest(lens, image_pixel_pitch_mm=float(geometry.pixel_pitch_mm),
+    if geometry is not None and record is None and isinstance(lens, app.lenses.Lens):
+        render = app.RenderRequest(lens, image_pixel_pitch_mm=float(geometry.pixel_pitch_mm),
                                axis_px=tuple(geometry.center_px))
     return app.CorrectRequest(image, depth_m, lens, ENGINE_METHODS[method], model_path, render=render,
-                              recorded=record, image_name="the simulation")
+                              recorded=record, image_name="the simulation",
+                              psf=app.PSFRequest(words=panel_words()))
 
 
 def choose_correction(requested: str, lens_id: str, pixel_pitch_mm: float, given_model: str = "", *,
@@ -646,9 +541,8 @@ def choose_correction(requested: str, lens_id: str, pixel_pitch_mm: float, given
             raise BokehInputError(why)
     # the deconvolution reads no network file: a Correction Model left set is not used
     model = correction_model_path(lens_id, given_model) if requested != "deconvolution" else None
-    from dcdi_core.app.correction import choose
     try:
-        chosen, reason = choose(_correct_request(None, None, lens if lens is not None else _LensId(lens_id),
+        chosen, reason = app.choose_correction(_correct_request(None, None, lens if lens is not None else _LensId(lens_id),
                                                  requested, model, record), pixel_pitch_mm)
     except DcdiError as e:                   # what cannot run, said in the panel's words
         raise BokehInputError(message(e)) from None
@@ -656,8 +550,7 @@ def choose_correction(requested: str, lens_id: str, pixel_pitch_mm: float, given
         reason = "chosen in the panel"
     if chosen != "dacn":                     # a network Auto passed over (no torch) is not run
         return CorrectionChoice(PANEL_METHODS[chosen], _note(reason))
-    from dcdi_core.app.correction_rule import shipped_model
-    return CorrectionChoice(PANEL_METHODS[chosen], _note(reason), model or shipped_model("dacn", lens_id))
+    return CorrectionChoice(PANEL_METHODS[chosen], _note(reason), model or app.shipped_model("dacn", lens_id))
 
 
 @dataclass(frozen=True)

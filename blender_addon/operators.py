@@ -27,8 +27,7 @@ import time
 import bpy
 from bpy.props import BoolProperty, StringProperty
 
-from dcdi_core import errors as dcdi_errors
-from dcdi_core.render import camera as dcdi_camera
+from dcdi_core import app
 
 from . import bpy_render, logic, reading, viewport
 from .session import SESSION
@@ -40,7 +39,7 @@ DEPTH_IMAGE = "Lens Bokeh Depth"
 
 def _user_errors():
     """Errors whose message is meant for the user (shown as is)."""
-    return (logic.BokehInputError, dcdi_errors.DcdiError, ValueError, OSError, RuntimeError)
+    return (logic.BokehInputError, app.errors.DcdiError, ValueError, OSError, RuntimeError)
 
 
 # how the last job's sharp render came ("kept": the preview's; "worker": the preview's render worker, a
@@ -68,7 +67,7 @@ def render_inputs(context, scene_reading: "reading.SceneReading", rendered=None,
     else:
         rgb, z = bpy_render.render_aif_depth(context.scene, r.camera, h, w, r.samples, context.view_layer.name)
         how = "main"
-    depth = dcdi_camera.depth_from_planar_z(z, r.entrance_pupil_mm, r.metres_per_unit)
+    depth = app.camera.depth_from_planar_z(z, r.entrance_pupil_mm, r.metres_per_unit)
     seconds = rendered[2] if how == "worker" else time.perf_counter() - t0
     LAST_RENDER.clear()
     LAST_RENDER.update(how=how, seconds=seconds)
@@ -479,7 +478,7 @@ class DCDI_OT_match_camera(bpy.types.Operator):
             s = scene.dcdi_lens_bokeh
             # with Lens Geometry the lens moves the picture: frame as it does at the focus distance
             focus_m = _framing_focus(scene) if s.refocus and s.lens_geometry else None
-            pinhole = dcdi_camera.PinholeCamera.for_lens(lens, r.resolution_y, r.resolution_x, focus_m=focus_m)
+            pinhole = app.camera.PinholeCamera.for_lens(lens, r.resolution_y, r.resolution_x, focus_m=focus_m)
         except _user_errors() as e:
             self.report({"ERROR"}, logic.message(e))
             return {"CANCELLED"}
@@ -487,7 +486,7 @@ class DCDI_OT_match_camera(bpy.types.Operator):
         for name, value in c.items():
             setattr(cam.data, name, value)
         # the lens wide open: Camera Aperture then stops it down from there
-        cam.data.dof.aperture_fstop = logic.wide_open_f_number(lens)
+        cam.data.dof.aperture_fstop = app.lenses.wide_open_f_number(lens)
         scale = pinhole.blender_scale()
         scaled = (f" (the lens's {pinhole.focal_length_mm:.3g} mm and its sensor scaled x{scale:.3g} to Blender's "
                   "1 mm minimum; the field of view is the lens's)" if scale > 1 else "")

@@ -11,7 +11,7 @@ import textwrap
 
 import bpy
 
-from dcdi_core import errors as dcdi_errors
+from dcdi_core import app
 
 from . import logic, operators, reading, render_hook, thumbnails, viewport
 from .session import SESSION
@@ -156,7 +156,7 @@ def _readout(layout, context, settings):
         return
     try:
         title, figures = readout_lines(path)
-    except (dcdi_errors.DcdiError, ValueError, OSError) as e:
+    except (app.errors.DcdiError, ValueError, OSError) as e:
         row.label(text="Broken lens file:", icon="ERROR")
         row.operator("dcdi.import_zemax", text="", icon="FILEBROWSER")
         col = box.column(align=True)
@@ -194,7 +194,7 @@ def _aperture(layout, context, settings) -> None:
         lens = logic.load_lens_cached(path)
         _, note = logic.camera_aperture(lens, float(dof.aperture_fstop), int(dof.aperture_blades),
                                         float(dof.aperture_rotation))
-    except (dcdi_errors.DcdiError, ValueError, OSError) as e:
+    except (app.errors.DcdiError, ValueError, OSError) as e:
         note = logic.message(e)
     if note:
         _wrapped(layout, context, note, "INFO", max_lines=3)
@@ -207,7 +207,7 @@ def _sharp_range(scene, s) -> str:
     computed yet."""
     try:
         r = reading.read_scene(scene)
-    except (logic.BokehInputError, dcdi_errors.DcdiError, ValueError, OSError) as e:
+    except (logic.BokehInputError, app.errors.DcdiError, ValueError, OSError) as e:
         return logic.message(e)
     pupil = r.entrance_pupil_mm / 1000.0
     (near, far), focus = r.keep, r.focus_m
@@ -389,7 +389,7 @@ def _draw_round_trip(layout, context, s, status):
             used = f" with {choice.model_path.name}" if choice.model_path else ""
             _wrapped(layout, context, f"{logic.METHOD_NAMES[choice.method]}{used}: {choice.reason}", "INFO",
                      indent_px=BOX_PX)
-        except (logic.BokehInputError, dcdi_errors.DcdiError, OSError) as e:
+        except (logic.BokehInputError, app.errors.DcdiError, OSError) as e:
             _wrapped(layout, context, logic.message(e), "ERROR", indent_px=BOX_PX)
     if not status.running and status.correction:
         _wrapped(layout, context, f"Last Correct: {status.correction}", "CHECKMARK", indent_px=BOX_PX)

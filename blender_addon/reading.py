@@ -19,8 +19,7 @@ from dataclasses import dataclass
 
 import bpy
 
-from dcdi_core import errors as dcdi_errors
-from dcdi_core.render import camera as dcdi_camera
+from dcdi_core import app
 
 from . import logic
 
@@ -166,7 +165,7 @@ def chosen_lens(settings):
                                     "(lenses/*.toml or Import Zemax File)")
     try:
         return logic.load_lens_cached(path), path
-    except dcdi_errors.DcdiError as e:
+    except app.errors.DcdiError as e:
         raise logic.BokehInputError(f"the lens file is broken: {logic.message(e)}") from None
 
 
@@ -183,12 +182,12 @@ def focus_metres(scene, cam, settings, entrance_pupil_mm: float, depsgraph=None)
         cam = cam.evaluated_get(depsgraph)
     mpu = metres_per_unit(scene)
     if settings.focus_mode == "DISTANCE":        # from the camera, as the camera's own distance below
-        return dcdi_camera.planar_depth_m(-settings.focus_distance, entrance_pupil_mm, mpu)
+        return app.camera.planar_depth_m(-settings.focus_distance, entrance_pupil_mm, mpu)
     if settings.focus_mode == "CAMERA":
         dof = cam.data.dof
         obj = dof.focus_object
         if obj is None:            # the camera's distance runs from the camera, i.e. the entrance pupil
-            return dcdi_camera.planar_depth_m(-dof.focus_distance, entrance_pupil_mm, mpu)
+            return app.camera.planar_depth_m(-dof.focus_distance, entrance_pupil_mm, mpu)
     else:
         obj = settings.focus_object
         if obj is None:
@@ -202,7 +201,7 @@ def point_depth_m(scene, cam, point, entrance_pupil_mm: float) -> float:
     """Depth in metres from the lens's first vertex of the world ``point``
     (scene units): its depth along the camera's view axis."""
     z = (cam.matrix_world.inverted() @ point).z          # camera space: the camera looks down -Z
-    return dcdi_camera.planar_depth_m(z, entrance_pupil_mm, metres_per_unit(scene))
+    return app.camera.planar_depth_m(z, entrance_pupil_mm, metres_per_unit(scene))
 
 
 def focus_and_keep(scene, cam, settings, entrance_pupil_mm: float, depsgraph=None):

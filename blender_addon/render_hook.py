@@ -44,8 +44,7 @@ import bpy
 import numpy as np
 from bpy.app.handlers import persistent
 
-from dcdi_core import errors as dcdi_errors
-from dcdi_core.io import rawexr
+from dcdi_core import app
 
 from . import bpy_render, compositor, logic, reading
 from .session import SESSION
@@ -122,7 +121,7 @@ def blocker(scene) -> str | None:
     try:
         reading.camera(scene)
         reading.chosen_lens(scene.dcdi_lens_bokeh)
-    except (logic.BokehInputError, dcdi_errors.DcdiError) as e:
+    except (logic.BokehInputError, app.errors.DcdiError) as e:
         return logic.message(e)
     return None
 
@@ -246,7 +245,7 @@ def _read_passes(run: _LensRender) -> dict:
             raise RuntimeError(f"the compositor wrote no passes of view layer '{src.layer}' for this frame (is "
                                "compositing disabled by the command line, or the render cancelled?)")
         try:
-            passes = compositor.split_passes(rawexr.read_exr_channels(files[-1]))
+            passes = compositor.split_passes(app.rawexr.read_exr_channels(files[-1]))
         finally:
             for p in files:
                 p.unlink(missing_ok=True)
@@ -292,7 +291,7 @@ def on_render_init(scene, *_):
         return
     try:
         SESSION.render_run = _start(scene)
-    except (logic.BokehInputError, dcdi_errors.DcdiError, RuntimeError, ValueError, OSError) as e:
+    except (logic.BokehInputError, app.errors.DcdiError, RuntimeError, ValueError, OSError) as e:
         SESSION.last_render = {"error": logic.message(e), "frames": []}
         _status(f"Lens in Renders not applied: {logic.message(e)}")
         print(f"dcdi: Lens in Renders not applied: {logic.message(e)}")
@@ -309,7 +308,7 @@ def on_frame_change(scene, depsgraph=None):
         return
     try:
         run.focus_by_frame[scene.frame_current] = _focus(scene, run, depsgraph)
-    except (logic.BokehInputError, dcdi_errors.DcdiError) as e:
+    except (logic.BokehInputError, app.errors.DcdiError) as e:
         run.error = logic.message(e)
 
 
@@ -326,7 +325,7 @@ def on_render_post(scene, *_):
         rgb, z, out, info = _lens_passes(run, passes, req)
         if run.compositor is not None:
             out = _composite(run, frame, passes, out)
-    except (logic.BokehInputError, dcdi_errors.DcdiError, RuntimeError, ValueError, OSError) as e:
+    except (logic.BokehInputError, app.errors.DcdiError, RuntimeError, ValueError, OSError) as e:
         run.error = f"frame {frame}: {logic.message(e)}"
         print(f"dcdi: Lens in Renders: {run.error}; the frame is left as rendered")
         _status(f"Lens in Renders failed: {run.error}")

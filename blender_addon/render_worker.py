@@ -104,8 +104,8 @@ class RenderWorker:
             return False
         self.stop()
         self.dir = Path(tempfile.mkdtemp(prefix="dcdi-preview-"))
-        import dcdi_core
-        env = dict(os.environ, DCDI_RENDER_WORKER_PATH=json.dumps([str(Path(dcdi_core.__file__).parents[1])]))
+        from dcdi_core import app           # the folder that holds the engine, for the worker's sys.path
+        env = dict(os.environ, DCDI_RENDER_WORKER_PATH=json.dumps([str(Path(app.__file__).parents[2])]))
         self.warm_key = None
         if scene is not None:
             warm = self._warm_request(context, scene)

@@ -48,9 +48,7 @@ from collections import OrderedDict
 import bpy
 import numpy as np
 
-from dcdi_core import errors as dcdi_errors
-from dcdi_core.io import images as dcdi_images
-from dcdi_core.render import camera as dcdi_camera
+from dcdi_core import app
 
 from . import bpy_render, logic, reading, render_worker
 from .session import SESSION
@@ -194,7 +192,7 @@ class Preview:
         """Run a step of the refresh; its error is shown in the panel."""
         try:
             step()
-        except (logic.BokehInputError, dcdi_errors.DcdiError, RuntimeError, ValueError, OSError) as e:
+        except (logic.BokehInputError, app.errors.DcdiError, RuntimeError, ValueError, OSError) as e:
             self.error = logic.message(e)
             _redraw(context)
             return None
@@ -306,7 +304,7 @@ class Preview:
             return max(wait, POLL_S)
         try:
             a = inputs(context)
-        except (logic.BokehInputError, dcdi_errors.DcdiError, RuntimeError, ValueError, OSError):
+        except (logic.BokehInputError, app.errors.DcdiError, RuntimeError, ValueError, OSError):
             return None                              # the next refresh says why
         if a["sharp_key"] != sharp["key"] or self.data_changed:
             return None                              # a change the watcher reports: its refresh renders anew
@@ -347,7 +345,7 @@ class Preview:
         lens, ep, mpu, focus, keep = a["lens"], a["entrance_pupil_mm"], a["mpu"], a["focus"], a["keep"]
         sharp = self.sharp
         if sharp["depth_of"] != (ep, mpu):           # the lens's pupil or the scene's unit changed: Z -> metres
-            sharp["depth"] = dcdi_camera.depth_from_planar_z(sharp["z"], ep, mpu)
+            sharp["depth"] = app.camera.depth_from_planar_z(sharp["z"], ep, mpu)
             sharp["depth_of"] = (ep, mpu)
         served = (sharp["version"], a["request"])
         if self.served == served and self.result is not None and self.served_passes == sharp["passes"]:
@@ -446,7 +444,7 @@ def kept_render(context):
         return None
     try:
         key = inputs(context)["sharp_key"]
-    except (logic.BokehInputError, dcdi_errors.DcdiError, ValueError, OSError):
+    except (logic.BokehInputError, app.errors.DcdiError, ValueError, OSError):
         return None
     return (p.sharp["rgb"], p.sharp["z"]) if p.sharp["key"] == key else None
 
@@ -477,7 +475,7 @@ def wanted(context) -> tuple:
     (the refresh shows that message; the same error is not retried)."""
     try:
         a = inputs(context)
-    except (logic.BokehInputError, dcdi_errors.DcdiError, ValueError, OSError) as e:
+    except (logic.BokehInputError, app.errors.DcdiError, ValueError, OSError) as e:
         return ("error", logic.message(e))
     return a["sharp_key"], a["request"]
 
@@ -535,7 +533,7 @@ def _texture(image: np.ndarray):
         rgba[..., :3] = view_transform.to_display(image, bpy.context.scene)
     except (RuntimeError, OSError, ValueError, TypeError) as e:
         print(f"Lens Bokeh preview: the scene's view transform could not be baked ({e}); showing sRGB")
-        rgba[..., :3] = dcdi_images.linear_to_srgb(np.clip(np.nan_to_num(image), 0.0, 1.0))
+        rgba[..., :3] = app.images.linear_to_srgb(np.clip(np.nan_to_num(image), 0.0, 1.0))
     buf = gpu.types.Buffer("FLOAT", h * w * 4, rgba[::-1].ravel())
     tex = gpu.types.GPUTexture((w, h), format="RGBA16F", data=buf)
     if hasattr(tex, "filter_mode"):         # drawn over a larger frame: interpolated, not in blocks

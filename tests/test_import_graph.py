@@ -249,3 +249,43 @@ def test_no_command_line_namespace_below_cli():
     # the check can fail
     assert _reads_args("def f(args):\n    return args.depth, getattr(args, 'x', None)\n") == [
         "line 2: args.depth", "line 2: getattr(args, ...)"]
+
+
+# the add-on reaches the engine through its application layer and the lens report alone
+ADDON_ENGINE_DOORS = ("dcdi_core.app", "dcdi_core.optics.report")
+# folders of the add-on that do not ship in it (build.py ADDON_EXCLUDE_DIRS): the factory's batch job and tools
+ADDON_APART = ("blender_addon.factory", "blender_addon.tools")
+
+
+def addon_engine_imports(root: Path) -> dict[str, list[str]]:
+    """{add-on module: ['line N: engine module', ...]} of the imports of the
+    engine by the modules that ship in the add-on, outside ``app`` and the
+    lens report."""
+    modules = module_names(root)
+    out = {}
+    for name, path in modules.items():
+        if not name.startswith("blender_addon") or _within(name, ADDON_APART):
+            continue
+        hits = [f"line {line}: {imp}" for line, imp in imports_of(path, name, modules)
+                if _within(imp, ("dcdi_core",)) and not _within(imp, ADDON_ENGINE_DOORS)]
+        if hits:
+            out[name] = hits
+    return out
+
+
+def test_the_addon_imports_the_engine_through_app_alone(tmp_path):
+    """Counted from the files: the add-on's imports of the engine outside
+    ``dcdi_core.app`` and the lens report are zero (what it needs, the
+    engine serves there: jobs, lenses, thumbnails, pixels, errors)."""
+    assert addon_engine_imports(ROOT) == {}
+    # the count can fail: an import of an engine module past app, at the top or in a function
+    for top in ("blender_addon", "dcdi_core", "dcdi_core/app", "dcdi_core/optics", "dcdi_core/psf"):
+        (tmp_path / top).mkdir(parents=True, exist_ok=True)
+        (tmp_path / top / "__init__.py").write_text("")
+    for name in ("report", "compute"):
+        (tmp_path / ("dcdi_core/optics" if name == "report" else "dcdi_core/psf") / f"{name}.py").write_text("")
+    (tmp_path / "blender_addon" / "logic.py").write_text(
+        "from dcdi_core import app\nfrom dcdi_core.optics import report\n"
+        "def f():\n    from dcdi_core.psf import compute\n    import dcdi_core.errors\n")
+    assert addon_engine_imports(tmp_path) == {"blender_addon.logic": ["line 4: dcdi_core.psf.compute",
+                                                                      "line 5: dcdi_core.errors"]}

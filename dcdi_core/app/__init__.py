@@ -16,13 +16,35 @@ own words (``DcdiError.in_words``).
     open_source(lens, geometry, PSFRequest)         the PSFs of a job, always a library
     DEFAULT_BUDGET_DB                               each job's default error budget (dB; psf.budget)
 
+What a front end needs besides the jobs comes from here too, so that the
+add-on imports the engine through this module alone (and the lens report,
+``optics.report``): ``lenses`` (the catalogue's folders, a lens read, a
+camera's stop, a Zemax import, the thumbnails), ``camera`` (the pinhole
+camera of a render and its depth conventions), ``images`` and ``rawexr``
+(pixels in and out), ``errors`` (the one family of errors and the words
+they are shown in), ``RenderRequest``, ``PSFSettings``, ``SourceWords``
+(how a PSF source's message names files and lenses), the correction rule
+(``choose_correction``, ``shipped_model``) and the network loader
+(``load_dacn``; ``TORCH_VERSION``, ``TorchMissingError``).
+
 Units: depths in metres, lengths on the sensor in mm, positions in pixels.
 """
+from .. import errors
 from ..caches import clear as clear_caches, sizes as cache_sizes
+from ..errors import DcdiError, InputRangeError, TorchMissingError, in_words
+from ..io import images, rawexr
+from ..models import TORCH_VERSION
+from ..psf.compute import PSFSettings
+from ..psf.sources import SourceWords
+from ..render import camera
+from ..render.request import RenderRequest
+from . import lenses
 from ..control import Cancelled, Control
 from ..psf.budget import DEFAULT_DB as DEFAULT_BUDGET_DB
 from ..psf.sources import PREVIEW_TRACE, PSFRequest, PSFSourceResult, open_source
 from .correction import CorrectRequest, CorrectResult, correct, prepare
+from .correction import choose as choose_correction
+from .correction_rule import shipped_model
 from .frame import CaptureFrame, capture_frame
 from .pipeline import DofRequest, DofResult, dof
 from .render import BokehRequest, BokehResult, SimulateRequest, SimulateResult, bokeh, simulate
@@ -32,4 +54,15 @@ __all__ = ["Cancelled", "Control", "PSFRequest", "PSFSourceResult", "SourceCache
            "DEFAULT_BUDGET_DB",
            "SimulateRequest", "SimulateResult", "simulate", "BokehRequest", "BokehResult", "bokeh",
            "CorrectRequest", "CorrectResult", "correct", "prepare", "CaptureFrame", "capture_frame",
-           "DofRequest", "DofResult", "dof", "clear_caches", "cache_sizes"]
+           "DofRequest", "DofResult", "dof", "clear_caches", "cache_sizes",
+           "errors", "DcdiError", "InputRangeError", "TorchMissingError", "in_words", "images", "rawexr",
+           "TORCH_VERSION", "PSFSettings", "SourceWords", "camera", "RenderRequest", "lenses", "choose_correction",
+           "shipped_model", "load_dacn"]
+
+
+def load_dacn(path, weights: str = "ema", device: str = "cpu"):
+    """(model, info) of a DACN file or run folder (``models.dacn.correct.
+    load_dacn``); imports torch: ``TorchMissingError`` (with the command that
+    installs it) where there is none."""
+    from ..models.dacn.correct import load_dacn as load
+    return load(path, weights=weights, device=device)

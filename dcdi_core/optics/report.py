@@ -16,8 +16,11 @@ def _finite(x):
     return x
 
 
-def lens_info(lens: Lens, wavelength_nm: float | None = None, *, real_rays: bool = True) -> dict:
-    """Everything `dcdi lens info` prints, as a JSON-ready dict (mm, m, degrees, nm)."""
+def lens_info(lens: Lens, wavelength_nm: float | None = None, *, real_rays: bool | str = True) -> dict:
+    """Everything `dcdi lens info` prints, as a JSON-ready dict (mm, m, degrees, nm).
+    ``real_rays``: True, the real-ray figures too (about 1 s: the best
+    focus, the working F-number); 'field', the fields of view alone (what a
+    panel shows, ~0.02 s); False, first order only."""
     fo = first_order(lens, wavelength_nm)
     sd = lens.sensor.semi_diagonal_mm
     info = {
@@ -57,6 +60,8 @@ def lens_info(lens: Lens, wavelength_nm: float | None = None, *, real_rays: bool
             v, h = (_figure(a) for a in real_field_angle_deg(lens, [rows / diag, cols / diag], wavelength_nm))
             info["vertical_field_of_view_deg"] = None if v is None else 2 * v
             info["horizontal_field_of_view_deg"] = None if h is None else 2 * h
+        if real_rays == "field":
+            return info
         info["distortion_at_field_1"] = (float(distortion(lens, [half], wavelength_nm)[0])
                                          if half is not None and half > 0 else None)
         info["working_f_number"] = _figure(working_f_number(lens, wavelength_nm))

@@ -44,7 +44,7 @@ from .compute import KernelTooSmallWarning, PSFSettings
 from .library import MAX_FITTED_KERNEL, LibraryGrid, PSFLibrary, _fitted, open_library, valid_depth_mask  # noqa: F401 (served from here)
 from .sampling import field_grid
 from .pitch import SAME_GIVEN_RTOL, area_resample, check_downsampling, resampled_size, same_pitch
-from ..shipped import NETWORKS, WEIGHTS_DIR, for_lens
+from ..shipped import NETWORKS, WEIGHTS_DIR, for_lens, is_shipped_file
 from .olf import OmniLensField
 from .raymap import RayMap, RayMapLibrary, open_raymap
 from .rule import RULE_ORDER, rule_text
@@ -54,6 +54,58 @@ SOURCES = ("basis", "raymap", "olf", "trace")
 # each source in a message's words
 SOURCE_NAMES = {"basis": "PSF basis", "raymap": "ray map", "olf": "Omni-Lens-Field"}
 SHORT_NAMES = {"basis": "basis", "raymap": "ray map", "olf": "OLF"}
+
+
+@dataclass(frozen=True)
+class SourceWords:
+    """How a PSF source's message names the files it read and the lenses.
+    The defaults (the command line's) name a file by its path and a lens by
+    its id. A front end may name the request's own lens in its words
+    (``lens``: "this lens"), the engine's own files by what they are
+    (``shipped``: "that ships with the add-on": "the ray map that ships
+    with the add-on"), any other file by its name alone (``file_names``)
+    and other lenses by their names (``names``: (id, name) pairs). The
+    engine makes its message in these words; no front end rewrites it."""
+
+    lens: str | None = None
+    shipped: str | None = None
+    file_names: bool = False
+    names: tuple = ()
+
+    def _ships(self, path) -> bool:
+        return self.shipped is not None and is_shipped_file(path)
+
+    def store(self, kind: str, path) -> str:
+        """A store named with what it is: "the ray map /…/6p.npz"."""
+        return f"the {kind} {self.shipped}" if self._ships(path) else f"the {kind} {self.file(kind, path)}"
+
+    def file(self, kind: str, path) -> str:
+        """A store's file where the sentence names it alone: "/…/6p.npz", "the shipped ray map"."""
+        if self._ships(path):
+            return f"the shipped {kind}"
+        return Path(path).name if self.file_names else str(path)
+
+    def name(self, lens_id: str) -> str:
+        """Another lens than the request's (one an OLF learned): by its name."""
+        return dict(self.names).get(lens_id, lens_id)
+
+    def lens_of(self, lens, *, file: bool = False) -> str:
+        """The request's lens where the sentence is about it: its id (with
+        ``file``, and its file's path), or the front end's words."""
+        if self.lens is not None:
+            return self.lens
+        return f"{lens.id} ({lens.path})" if file and getattr(lens, "path", None) else f"{lens.id}"
+
+    def quoted(self, lens) -> str:
+        """'lens '6p'' or "this lens"."""
+        return self.lens if self.lens is not None else f"lens {lens.id!r}"
+
+    def lead(self, lens, sep: str = ", ") -> str:
+        """'6p, ' before a source's figures, or '' where the front end's words say the lens already."""
+        return "" if self.lens is not None else f"{lens.id}{sep}"
+
+
+DEFAULT_WORDS = SourceWords()
 
 
 def shipped_olf_files() -> list[Path]:
@@ -221,7 +273,7 @@ def psf_source(lens, *, source: str | None = None, olf_file=None, pixel_pitch_mm
                settings: PSFSettings | None = None, kernel_size: int | None = None, focus_m=None,
                custom_response: bool = False, grid: LibraryGrid | None = None,
                need_field: bool = True, basis_file=None, labels=None, olf_grid: LibraryGrid | None = None,
-               response=None) -> PSFSource:
+               response=None, words: SourceWords | None = None) -> PSFSource:
     """The PSF source for ``lens`` and a request: ``source`` 'basis' (the
     lens's compressed library), 'olf' (the OLF), each an error saying why if
     it cannot serve, 'trace', or None: the source rule (``psf.rule.
@@ -235,15 +287,16 @@ def psf_source(lens, *, source: str | None = None, olf_file=None, pixel_pitch_mm
     leaves the option unnamed) name the choices in the messages. ``olf_grid``:
     the grid an OLF serves on when ``grid`` is None (a basis keeps its own).
     ``response``: the custom spectral response itself, which a ray map
-    serves (the others refuse any)."""
+    serves (the others refuse any). ``words``: how the message names
+    files and lenses (:class:`SourceWords`; None: by path and id)."""
     src = _psf_source(lens, source, olf_file, pixel_pitch_mm, settings, kernel_size, focus_m, custom_response, grid,
-                      basis_file, labels, olf_grid, response)
+                      basis_file, labels, olf_grid, response, words or DEFAULT_WORDS)
     src.lens = lens
     return src
 
 
 def _psf_source(lens, source, olf_file, pixel_pitch_mm, settings, kernel_size, focus_m, custom_response, grid,
-                basis_file, labels, olf_grid, response) -> PSFSource:
+                basis_file, labels, olf_grid, response, w: SourceWords) -> PSFSource:
     lab = {**PSF_SOURCE_LABELS, **(labels or {})}
     if source not in (None,) + SOURCES:
         raise InputRangeError("psf source", source,
@@ -258,11 +311,11 @@ def _psf_source(lens, source, olf_file, pixel_pitch_mm, settings, kernel_size, f
             continue
         if kind == "raymap":
             src, why = _try_raymap(lens, pixel_pitch_mm, settings, kernel_size, custom_response and response is None,
-                                   response, grid if grid is not None else olf_grid)
+                                   response, grid if grid is not None else olf_grid, w)
         else:
             src, why = (_try_basis if kind == "basis" else _try_olf)(
                 lens, basis_file if kind == "basis" else olf_file, pixel_pitch_mm, settings, kernel_size, focus_m,
-                custom_response, grid if kind == "basis" or grid is not None else olf_grid, lab[kind])
+                custom_response, grid if kind == "basis" or grid is not None else olf_grid, lab[kind], w)
         if src is not None:
             return src
         if source == kind:
@@ -274,11 +327,11 @@ def _psf_source(lens, source, olf_file, pixel_pitch_mm, settings, kernel_size, f
                      None if olf_path is None else str(olf_path))
 
 
-def _stopped_down(lens, path) -> str | None:
+def _stopped_down(lens, kind, path, w: SourceWords) -> str | None:
     """Why a store of the lens wide open does not serve it stopped down (None: it is not)."""
     if not getattr(lens, "iris", ""):
         return None
-    return f"{lens.id} is stopped down ({lens.iris}); {path} holds it as prescribed (wide open)"
+    return f"{w.lens_of(lens)} is stopped down ({lens.iris}); {w.file(kind, path)} holds it as prescribed (wide open)"
 
 
 def _none_given(label: str | None) -> str:
@@ -286,7 +339,8 @@ def _none_given(label: str | None) -> str:
     return f" and none was given ({label})" if label else ""
 
 
-def _try_basis(lens, basis_file, pitch, settings, kernel_size, focus_m, custom_response, grid, label="--basis"):
+def _try_basis(lens, basis_file, pitch, settings, kernel_size, focus_m, custom_response, grid, label="--basis",
+               w: SourceWords = DEFAULT_WORDS):
     """(PSFSource, None) where the lens's PSF basis serves the request, else (None, why); ``label``: the
     option that gives a basis file (None: none). A refocused lens is served by a focus stack (the shipped
     one of the lens, or the file given) that covers the focus."""
@@ -294,32 +348,33 @@ def _try_basis(lens, basis_file, pitch, settings, kernel_size, focus_m, custom_r
     path = Path(basis_file) if basis_file else shipped_store(lens.id, focus_stack=stack)
     if path is None:
         if stack:
-            return None, (f"focus {focus_m:.3g} m asked for; no focus-stack PSF basis of {lens.id} ships with "
-                          f"this engine{_none_given(label)}")
-        return None, f"no PSF basis of {lens.id} ships with this engine{_none_given(label)}"
+            return None, (f"focus {focus_m:.3g} m asked for; no focus-stack PSF basis of {w.lens_of(lens)} ships "
+                          f"with this engine{_none_given(label)}")
+        return None, f"no PSF basis of {w.lens_of(lens)} ships with this engine{_none_given(label)}"
     try:
         store = open_store(path)
         store.check_lens(lens)
     except OpticsError as e:
-        return None, _stopped_down(lens, path) or str(e)
+        return None, _stopped_down(lens, "PSF basis", path, w) or str(e)
+    f, it = w.file("PSF basis", path), w.lens_of(lens)
     if stack and store.focus_diopters is None:
-        return None, f"focus {focus_m:.3g} m asked for; {path} holds {lens.id} at its prescribed focus"
+        return None, f"focus {focus_m:.3g} m asked for; {f} holds {it} at its prescribed focus"
     if stack and not store.covers_focus(focus_m):
         near, far = store.focus_range_m()
-        return None, f"focus {focus_m:.3g} m is outside {path}'s {near:.3g} m to {far:.3g} m"
+        return None, f"focus {focus_m:.3g} m is outside {f}'s {near:.3g} m to {far:.3g} m"
     if not stack and store.focus_diopters is not None:
-        return None, f"{path} is a focus stack: it serves {lens.id} refocused, not at its prescribed focus"
+        return None, f"{f} is a focus stack: it serves {it} refocused, not at its prescribed focus"
     stored = store.pixel_pitch_mm
     if pitch is not None and not (pitch >= stored or same_pitch(pitch, stored)):
         return None, (f"the image's pixel pitch {pitch * 1000:.6g} um is finer than the {stored * 1000:.6g} um "
-                      f"{path} holds {lens.id} at")
+                      f"{f} holds {it} at")
     k = resampled_size(store.kernel_size, stored, stored if pitch is None else pitch)
     if kernel_size is not None and kernel_size != k:
-        return None, f"a {kernel_size} px kernel was asked for; {path} serves {lens.id} at {k} px at this pitch"
+        return None, f"a {kernel_size} px kernel was asked for; {f} serves {it} at {k} px at this pitch"
     if custom_response:
         return None, "a custom spectral response was given; the PSF basis holds the shipped one"
     if grid is not None and grid != store.grid:
-        return None, f"a library grid {grid} was asked for; {path} holds {store.grid}"
+        return None, f"a library grid {grid} was asked for; {f} holds {store.grid}"
     diff = _settings_differences(store.meta["psf_settings"], settings, rays_at_least=True, verb="holds")
     if diff:
         return None, "PSF settings differ from the stored ones: " + "; ".join(diff)
@@ -331,12 +386,13 @@ def _try_basis(lens, basis_file, pitch, settings, kernel_size, focus_m, custom_r
         near, far = store.focus_range_m()
         focus = (f"a focus stack: focus {focus_m:.3g} m from {len(store.focus_diopters)} focus distances "
                  f"{near:.3g} m to {far:.3g} m")
-    return PSFSource("basis", f"PSFs from the PSF basis {path} ({lens.id}, rank {store.rank}, {pixels}, "
+    return PSFSource("basis", f"PSFs from {w.store('PSF basis', path)} ({w.lead(lens)}rank {store.rank}, {pixels}, "
                               f"{lib.kernel_size} x {lib.kernel_size} px, {focus})",
                      lib, None, str(path)), None
 
 
-def _try_olf(lens, olf_file, pitch, settings, kernel_size, focus_m, custom_response, grid, label="--olf"):
+def _try_olf(lens, olf_file, pitch, settings, kernel_size, focus_m, custom_response, grid, label="--olf",
+             w: SourceWords = DEFAULT_WORDS):
     """(PSFSource, None) where the OLF serves the request, else (None, why); ``label``: the option that gives
     an OLF file (None: none)."""
     path = Path(olf_file) if olf_file else (SHIPPED if SHIPPED.exists() else None)
@@ -344,7 +400,7 @@ def _try_olf(lens, olf_file, pitch, settings, kernel_size, focus_m, custom_respo
         return None, f"no OLF file ships with this engine{_none_given(label)}"
     try:
         olf = _load_olf(path)
-        reason = _why_not(olf, lens, pitch, settings, kernel_size, focus_m, custom_response)
+        reason = _why_not(olf, lens, pitch, settings, kernel_size, focus_m, custom_response, w)
         if reason is not None:
             return None, reason
         lib = OLFLibrary(olf, lens, grid, pixel_pitch_mm=pitch, focus_m=focus_m)
@@ -353,19 +409,19 @@ def _try_olf(lens, olf_file, pitch, settings, kernel_size, focus_m, custom_respo
     k = lib.kernel_size
     pixels = (f"{lib.pixel_pitch_mm * 1000:.4g} um pixels, its {lib.learned_pitch_mm * 1000:.4g} um kernels "
               "area-resampled" if lib.resampled else f"{lib.pixel_pitch_mm * 1000:.4g} um pixels")
-    return PSFSource("olf", f"PSFs from the Omni-Lens-Field {path} ({lens.id}: its learned prescription, "
+    return PSFSource("olf", f"PSFs from {w.store('Omni-Lens-Field', path)} ({w.lead(lens, ': ')}its learned prescription, "
                             f"{pixels}, {k} x {k} px, "
                             + ("prescribed focus" if focus_m is None else f"focus {focus_m:.3g} m") + ")",
                      lib, str(path)), None
 
 
-def _try_raymap(lens, pitch, settings, kernel_size, unknown_response, response, grid):
+def _try_raymap(lens, pitch, settings, kernel_size, unknown_response, response, grid, w: SourceWords = DEFAULT_WORDS):
     """(PSFSource, None) where the lens's shipped ray map serves the request
     (any focus, f-number, blades, pixel pitch, kernel and rays: ``psf.
     raymap``), else (None, why)."""
     path = for_lens(lens.id).raymap                 # the one registry of what ships (``shipped``)
     if path is None:
-        return None, f"no ray map of {lens.id} ships with this engine"
+        return None, f"no ray map of {w.lens_of(lens)} ships with this engine"
     if unknown_response:
         return None, "a custom spectral response was asked for without its curves"
     try:
@@ -375,8 +431,8 @@ def _try_raymap(lens, pitch, settings, kernel_size, unknown_response, response, 
         return None, str(e)
     focus = "prescribed focus" if lib.settings.focus_distance_m is None else \
         f"focus {lib.settings.focus_distance_m:.3g} m"
-    iris = f", {lens.iris}" if getattr(lens, "iris", "") else ""
-    return PSFSource("raymap", f"PSFs from the ray map {path} ({lens.id}{iris}, {lib.pixel_pitch_mm * 1000:.4g} um "
+    iris = f"{lens.iris}, " if getattr(lens, "iris", "") else ""
+    return PSFSource("raymap", f"PSFs from {w.store('ray map', path)} ({w.lead(lens)}{iris}{lib.pixel_pitch_mm * 1000:.4g} um "
                                f"pixels, {lib.kernel_size} x {lib.kernel_size} px, {focus}; no tracing)",
                      lib, None, None, str(path)), None
 
@@ -392,24 +448,27 @@ def raymap_library(rm: RayMap, lens, pitch, settings: PSFSettings | None, kernel
     return RayMapLibrary(rm, lens, s, grid, response)
 
 
-def _why_not(olf: OmniLensField, lens, pitch, settings, kernel_size, focus_m, custom_response) -> str | None:
+def _why_not(olf: OmniLensField, lens, pitch, settings, kernel_size, focus_m, custom_response,
+             w: SourceWords = DEFAULT_WORDS) -> str | None:
     """None if ``olf`` covers the request, else the reason (one phrase)."""
+    f, it = w.file("Omni-Lens-Field", olf.path), w.lens_of(lens)
     if olf.variant != "radial":
-        return f"{olf.path} is a {olf.variant!r} OLF (the renderer takes radial ones)"
+        return f"{f} is a {olf.variant!r} OLF (the renderer takes radial ones)"
     if lens.id not in olf.lens_ids:
-        return f"{olf.path} did not learn lens {lens.id!r} (it learned {', '.join(olf.lens_ids)})"
+        return f"{f} did not learn {w.quoted(lens)} (it learned {', '.join(w.name(i) for i in olf.lens_ids)})"
     if not olf.covers(lens):
-        return _stopped_down(lens, olf.path) or (f"{lens.id} ({lens.path}) differs optically from the prescription {olf.path} learned "
+        return _stopped_down(lens, "Omni-Lens-Field", olf.path, w) or (
+            f"{w.lens_of(lens, file=True)} differs optically from the prescription {f} learned "
                 "(changed prescription: not served)")
     entry = olf.lens_entry(lens.id)
     learned = float(entry["pixel_pitch_mm"])
     if pitch is not None and not (pitch >= learned or same_pitch(pitch, learned)):
         return (f"the image's pixel pitch {pitch * 1000:.6g} um is finer than the {learned * 1000:.6g} um "
-                f"{olf.path} learned {lens.id} at (its kernels are area-resampled to coarser pitches only: "
+                f"{f} learned {it} at (its kernels are area-resampled to coarser pitches only: "
                 "a finer one would invent detail)")
     k = resampled_size(int(entry["kernel_size"]), learned, learned if pitch is None else pitch)
     if kernel_size is not None and kernel_size != k:
-        return f"a {kernel_size} px kernel was asked for; {olf.path} serves {lens.id} at {k} px at this pitch"
+        return f"a {kernel_size} px kernel was asked for; {f} serves {it} at {k} px at this pitch"
     if custom_response:
         return "a custom spectral response was given; the OLF learned the shipped one"
     diff = _settings_differences(entry["psf_settings"], settings)
@@ -417,18 +476,18 @@ def _why_not(olf: OmniLensField, lens, pitch, settings, kernel_size, focus_m, cu
         return "PSF settings differ from the learned ones: " + "; ".join(diff)
     fr = entry.get("focus_range_m")
     if focus_m is not None and not fr:
-        return f"focus {focus_m:.3g} m asked for; {olf.path} learned {lens.id} at its prescribed focus only"
+        return f"focus {focus_m:.3g} m asked for; {f} learned {it} at its prescribed focus only"
     if fr:
         try:
             olf.focus_diopters(lens.id, focus_m)
         except InputRangeError:
             if focus_m is None:
-                return f"{olf.path} learned {lens.id} across focus distances but not its prescribed focus; give one"
+                return f"{f} learned {it} across focus distances but not its prescribed focus; give one"
             return f"focus {focus_m:g} m is outside the learned {fr[0]:g} m to {fr[1]:g} m"
     return None
 
 
-__all__ = ["BasisLibrary", "OLFLibrary", "PSFSource", "psf_source", "shipped_olf_files", "SHIPPED", "WEIGHTS_DIR", "SOURCES"]
+__all__ = ["BasisLibrary", "OLFLibrary", "PSFSource", "SourceWords", "psf_source", "shipped_olf_files", "SHIPPED", "WEIGHTS_DIR", "SOURCES"]
 
 
 def lens_library(lens, geometry, settings: PSFSettings | None = None, grid: LibraryGrid | None = None, *,
@@ -477,7 +536,9 @@ class PSFRequest:
     the render with converged PSFs; None: the settings as given). A job
     whose source is a ray map or a trace plans its rays, wavelengths and
     field step by it, keeping the knobs named in ``fixed`` (``budget.KNOBS``)
-    as the request gives them; a stored source (basis, OLF) serves as it is."""
+    as the request gives them; a stored source (basis, OLF) serves as it is.
+    ``words``: how the source's message names files and lenses
+    (:class:`SourceWords`; None: by path and id)."""
 
     source: str | None = None
     olf_file: str | None = None
@@ -491,6 +552,7 @@ class PSFRequest:
     focus_tolerance_px: float | None = None
     max_error_db: float | None = None
     fixed: tuple = ()
+    words: SourceWords | None = None
 
     def __post_init__(self):
         from .budget import KNOBS, check_budget
@@ -546,7 +608,8 @@ def choose(lens, geometry, request: PSFRequest) -> PSFSource:
                       pixel_pitch_mm=geometry.pixel_pitch_mm, settings=request.settings,
                       kernel_size=request.kernel_size, focus_m=request.focus_m,
                       custom_response=request.response is not None,
-                      olf_grid=_request_grid(lens, geometry, request), response=request.response)
+                      olf_grid=_request_grid(lens, geometry, request), response=request.response,
+                      words=request.words)
 
 
 def _request_grid(lens, geometry, request: PSFRequest) -> LibraryGrid | None:

@@ -1278,25 +1278,33 @@ def test_the_lens_name_is_shortened_by_whole_parts_only(tmp_path):
         assert lg._lens_name(p) == want, given
 
 
-def test_the_psf_source_line_names_no_path_and_no_lens_id():
+def test_the_psf_source_line_names_no_path_and_no_lens_id(tmp_path):
     """Where the PSFs came from, as the panel and the report say it: the
-    engine's files are "shipped", no absolute path, no lens id."""
-    from types import SimpleNamespace
+    engine makes its message in the panel's words (``logic.panel_words``):
+    its files are "shipped", another file goes by its name, no absolute
+    path, no lens id; the command line's names both."""
+    import shutil
     from dcdi_core.optics.lens import load_lens
     from dcdi_core.psf.sources import psf_source
+    from dcdi_core.shipped import BASIS_DIR
     for lens_id, focus, want in (("6p", None, "PSFs from the PSF basis that ships with the add-on ("),
                                  ("6p", 2.0, "PSFs from the Omni-Lens-Field that ships with the add-on ("),
                                  ("mos-s1", 2.0, "PSFs from the PSF basis that ships with the add-on ("),
-                                 ("mos-s1", 0.5, "PSFs traced: ")):
+                                 ("mos-s1", 0.5, "PSFs traced: "),
+                                 ("nikkor-85mm-f1-4", 2.0, "PSFs from the ray map that ships with the add-on (")):
         lens = load_lens(lens_id)
         src = psf_source(lens, pixel_pitch_mm=0.05, focus_m=focus)
-        assert str(src.basis_file or src.olf_file or "/") in src.message or src.kind == "trace"
-        got = logic._source_info(SimpleNamespace(kind=src.kind, message=src.message, quality="full",
-                                                 basis_file=src.basis_file, olf_file=src.olf_file,
-                                                 library=SimpleNamespace(lens=lens)))["psf_source_message"]
+        assert str(src.basis_file or src.olf_file or src.raymap_file or "/") in src.message, src.message
+        assert lens_id in src.message
+        got = logic._note(psf_source(lens, pixel_pitch_mm=0.05, focus_m=focus, words=logic.panel_words()).message)
         assert got.startswith(want), got
         assert "/" not in got.replace("F/", "") and ".npz" not in got, got
         assert lens_id not in got, got
+    # a user's file: by its name alone
+    mine = tmp_path / "my-basis.npz"
+    shutil.copy(BASIS_DIR / "6p.npz", mine)
+    got = psf_source(load_lens("6p"), pixel_pitch_mm=0.05, basis_file=mine, words=logic.panel_words()).message
+    assert got.startswith("PSFs from the PSF basis my-basis.npz (rank"), got
 
 
 def _labels(log):
