@@ -179,3 +179,22 @@ def test_blenders_own_tracebacks_are_told_from_ours():
     assert our_tracebacks("Blender 5.2.2\n" + BLENDER_STARTUP + "factory: room\n") == []
     assert our_tracebacks(BLENDER_STARTUP + OURS) == [OURS.rstrip("\n")]
     assert our_tracebacks(expr) == [expr.rstrip("\n")]
+
+
+def test_the_factory_command_runs_a_real_blender_from_any_folder(blender, psf_cache, tmp_path):
+    """`dcdi-factory --blender BLENDER ...` from a folder outside the clone:
+    the factory under that Blender, --background, its folder at the caller's
+    relative path."""
+    script = Path(sys.executable).with_name("dcdi-factory")
+    away = tmp_path / "elsewhere"
+    away.mkdir()
+    # GIT_DIR: the provisioned Blender's sandbox (real_blender.sh) binds the clone it finds from git; a Blender
+    # of one's own needs nothing
+    env = dict(_env(psf_cache), GIT_DIR=str(ROOT / ".git"), GIT_WORK_TREE=str(ROOT))
+    p = subprocess.run([str(script), "--blender", blender, "--recipe", "room", "--count", "1", "--lens", "mos-s1",
+                        "--out", "ds", "--seed", "0", "--resolution", "24", "32", "--cycles-samples", "2",
+                        "--psf-rays", "12", "--psf-wavelengths", "3"], cwd=away, env=env, capture_output=True,
+                       text=True, timeout=300)
+    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
+    records = [json.loads(x) for x in (away / "ds" / "manifest.jsonl").read_text().splitlines()]
+    assert [r["id"] for r in records] == ["room-000000"] and records[0]["render"]["engine"] == "CYCLES"
