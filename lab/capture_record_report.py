@@ -1,5 +1,5 @@
 """What a capture's record is worth: `dcdi correct` on a capture made by
-`dcdi simulate --image-pixel-pitch 0.0122 --noise`, with its record, with the
+`dcdi simulate --pixel-pitch 0.0122 --noise`, with its record, with the
 same pixels but no record, and with no record but the pitch given.
 
     python -m lab capture-records [--out DIR] [--size H W] [--seed S]
@@ -48,12 +48,12 @@ def run(folder: Path, size=(240, 360), seed: int = 3, lenses=("mos-s1", "mos-s2"
     for lens in lenses:
         f = {k: folder / f"{k}-{lens}.exr" for k in ("cap", "sharp", "bare", "rec", "plain", "told")}
         _dcdi("simulate", "--image", folder / "aif.exr", "--depth", folder / "depth.exr", "--lens", lens,
-              "--image-pixel-pitch", "0.0122", "--noise", "--seed", "0", "-o", f["cap"], "--sharp-out", f["sharp"])
+              "--pixel-pitch", "0.0122", "--noise", "--seed", "0", "-o", f["cap"], "--sharp-out", f["sharp"])
         write_image(f["bare"], read_image(f["cap"]))            # the pixels without their record
         common = ["--depth", folder / "depth.exr", "--lens", lens]
         got = {"rec": _dcdi("correct", "--image", f["cap"], *common, "-o", f["rec"]),
                "plain": _dcdi("correct", "--image", f["bare"], *common, "-o", f["plain"]),
-               "told": _dcdi("correct", "--image", f["bare"], *common, "--image-pixel-pitch", "0.0122",
+               "told": _dcdi("correct", "--image", f["bare"], *common, "--pixel-pitch", "0.0122",
                              "-o", f["told"])}
         sharp = read_image(f["sharp"])
         cells = [f"{got[k]['correction']['method']} {_psnr(read_image(f[k]), sharp):.2f}" for k in ("rec", "plain",

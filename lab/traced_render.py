@@ -655,7 +655,7 @@ def scene_for(lens, geometry) -> Scene:
 
 def fast_bokeh(lens, image, depth, geometry, focus_m: float):
     """The engine's bokeh of the over-scan pinhole RGB-D, as `dcdi bokeh
-    --distort --focus D --image-pixel-pitch P --sensor-size H W` runs it:
+    --distort --focus D --pixel-pitch P --sensor-size H W` runs it:
     (BokehResult, seconds)."""
     from dcdi_core.app import BokehRequest, bokeh
     from dcdi_core.render.request import RenderRequest

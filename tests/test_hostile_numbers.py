@@ -133,7 +133,7 @@ def test_bokeh_at_a_pitch_no_kernel_holds_is_refused_before_tracing(scene, capsy
     code, out, err = run_cli(capsys, "bokeh", "--image", scene / "aif.exr", "--depth", scene / "depth.exr",
                              "--lens", "mos-s2", "--focus", "2", "-o", scene / "o.exr", option, "1e-9",
                              "--psf-source", "trace", *QUICK)
-    line = _one_line_refusal(code, err, option, "1e-09", "mm", "129 px")
+    line = _one_line_refusal(code, err, "--pixel-pitch", "1e-09", "mm", "129 px")   # the option's one name
     assert "2.47e-05 to" in line                          # the smallest pitch allowed, in mm
     assert not (scene / "cache").exists() and not (scene / "o.exr").exists()
 
@@ -159,7 +159,7 @@ def test_correct_at_an_absurd_pitch_is_one_line(scene, capsys):
         code, _, err = run_cli(capsys, "correct", "--image", scene / "aif.exr", "--depth", scene / "depth.exr",
                                "--lens", "mos-s2", "--method", "deconv", "--image-pixel-pitch", pitch,
                                "-o", scene / "out.exr")
-        _one_line_refusal(code, err, "--image-pixel-pitch", "28.15 mm")
+        _one_line_refusal(code, err, "--pixel-pitch", "28.15 mm")
     assert not (scene / "out.exr").exists() and not (scene / "cache").exists()
 
 

@@ -174,7 +174,7 @@ def bench_depth(quick: bool = False, repeat: int = 2) -> int:
         write_image(f"{d}/cap.exr", capture)
         py = [sys.executable, "-m", "dcdi_core"]
         base, _ = min(_process(py + ["--help"]) for _ in range(2))
-        cmd = py + ["depth", "estimate", "--image", f"{d}/cap.exr", "--camera", "mos-s1", "--image-pixel-pitch",
+        cmd = py + ["depth", "estimate", "--image", f"{d}/cap.exr", "--camera", "mos-s1", "--pixel-pitch",
                     "0.0122", "-o", f"{d}/d.exr"]
         _run_rows({"dcdi --help (start-up)": (py + ["--help"], None),
                    "dcdi depth estimate": (cmd, None if quick else DEPTH_GOAL_S)}, repeat, quick, base)

@@ -131,7 +131,7 @@ WORDS = {
     "model": "--model", "deconv": "--deconv-weight / --deconv-method / --one-depth / --noise-full-well / --noise-read",
     "one_depth_m": "--one-depth", "weight": "--deconv-weight",
     "psf_source": "--psf-source", "basis": "--basis", "olf": "--olf", "keep": "--keep", "focus_m": "--focus",
-    "image_pixel_pitch_mm": "--image-pixel-pitch", "pixel_pitch_mm": "--pixel-pitch",
+    "image_pixel_pitch_mm": "--pixel-pitch", "pixel_pitch_mm": "--pixel-pitch",
     "sensor_size": "--sensor-size", "axis_px": "--axis", "patch": "--patch", "interpolation": "--interpolation",
     "pinhole_focal_length_mm": "--pinhole-focal-length",
     "seed": "--seed", "noise": "--noise", "perturb_fraction": "--perturb-fraction", "fixed_depth_m": "--fixed-depth",
@@ -284,6 +284,12 @@ def load_lens_with_aperture(args, name: str | None = None):
     return stopped_down(load_lens(args.lens if name is None else name), aperture)
 
 
+# the pixel pitch's one rule, said alike by every verb that takes it
+PIXEL_PITCH_RULE = ("one pixel on the sensor, mm; the PSFs are sampled at it (default: the image file's record "
+                    "where it has one (`dcdi info`), else the image, or its --sensor-size frame, spans the lens's "
+                    "sensor diagonal; with no image, as `dcdi psf`, the lens's own sensor pixels)")
+
+
 def add_psf_options(q, *, sensor_focus: bool = True, render: bool = False) -> None:
     """The PSF settings' options. ``sensor_focus``: --focus moves the sensor
     (bokeh and dof give --focus a meaning of their own); ``render``: the
@@ -302,8 +308,11 @@ def add_psf_options(q, *, sensor_focus: bool = True, render: bool = False) -> No
                    help=f"wavelength samples over 400-700 nm (default {d.n_wavelengths})")
     q.add_argument("--precision", choices=["float32", "float64"], default=None,
                    help=f"ray tracing precision (default {d.precision})")
-    q.add_argument("--pixel-pitch", type=float, default=None, metavar="MM",
-                   help="pixel pitch in mm (default: the lens's sensor)")
+    if render:      # the image's pitch: one option, its old name kept as a spelling of it
+        q.add_argument("--pixel-pitch", "--image-pixel-pitch", dest="image_pixel_pitch", type=float, default=None,
+                       metavar="MM", help=PIXEL_PITCH_RULE)
+    else:
+        q.add_argument("--pixel-pitch", type=float, default=None, metavar="MM", help=PIXEL_PITCH_RULE)
     if sensor_focus:
         q.add_argument("--focus", type=depth_value, default=None, metavar="D",
                        help="move the sensor to focus depth D metres (default: as prescribed)")
@@ -365,7 +374,7 @@ def psf_settings(args, *, sensor_focus: bool = True):
                        n_wavelengths=args.wavelengths or base.n_wavelengths,
                        precision=args.precision or base.precision,
                        deposit_sigma_px=base.deposit_sigma_px if sigma is None else sigma,
-                       pixel_pitch_mm=args.pixel_pitch,
+                       pixel_pitch_mm=getattr(args, "pixel_pitch", None),     # an image's is the request's
                        focus_distance_m=getattr(args, "focus", None) if sensor_focus else None)
 
 

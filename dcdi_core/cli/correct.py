@@ -74,7 +74,7 @@ def _early_network(args, model_option: str) -> None:
 
 
 def _correct_render(args, lens):
-    """The capture on the lens's sensor (--image-pixel-pitch, --axis) and the PSF options, as a
+    """The capture on the lens's sensor (--pixel-pitch, --axis) and the PSF options, as a
     ``render.request.RenderRequest`` (`dacn correct` has none: None, the capture spans the sensor's
     diagonal, or what the file recorded)."""
     if lens is None or not hasattr(args, "image_pixel_pitch"):
@@ -177,7 +177,7 @@ def _refuse_correction_of_sharp(args) -> None:
 
 
 def _camera_render(args, camera):
-    """The capture on the camera's sensor: the geometry options (--image-pixel-pitch, --sensor-size,
+    """The capture on the camera's sensor: the geometry options (--pixel-pitch, --sensor-size,
     --axis) and the PSF settings, without the target's focus."""
     from .render import render_request
     return render_request(args, camera, sensor_focus=False)
@@ -291,8 +291,6 @@ def correct_parser(subparsers, name: str, *, network_only: bool = False, **kw):
         t.set_defaults(method="dacn", words={"method": "dcdi correct --method"})
     else:
         add_method_option(t, "--lens")
-        t.add_argument("--image-pixel-pitch", type=float, default=None, metavar="MM",
-                       help="size of one image pixel on the sensor (default: the image spans the sensor diagonal)")
         t.add_argument("--axis", type=float, nargs=2, default=None, metavar=("ROW", "COL"),
                        help="the optical axis's pixel position in the image (default: its centre)")
         add_deconv_options(t)

@@ -84,9 +84,6 @@ def estimate_parser(subparsers):
     t.add_argument("--camera", required=True, help="the lens that took it (a shipped id or a lens file)")
     t.add_argument("-o", "--output", required=True, help="the depth map (EXR 'Z' or .npy), metres")
     t.add_argument("--confidence", default=None, metavar="FILE", help="also write the confidence map (0-1) there (EXR 'Z' or .npy)")
-    t.add_argument("--image-pixel-pitch", type=float, default=None, metavar="MM",
-                   help="size of one image pixel on the sensor (default: the file's record, else the image spans "
-                        "the sensor diagonal)")
     t.add_argument("--axis", type=float, nargs=2, default=None, metavar=("ROW", "COL"),
                    help="the optical axis's pixel position in the image (default: the record's, else its centre)")
     t.add_argument("--refine", default="auto", metavar="FILE|none",

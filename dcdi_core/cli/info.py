@@ -19,7 +19,7 @@ def cmd_info(args) -> int:
     print(f"{args.file}: {h} x {w} px (height x width)")
     if record is None:
         print("no capture record: correct, dof and bokeh take this image to span the lens's sensor diagonal "
-              "unless told its pixel pitch (--image-pixel-pitch)")
+              "unless told its pixel pitch (--pixel-pitch)")
         return 0
     print(f"capture record (in {where}):")
     for line in record.lines():

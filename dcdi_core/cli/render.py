@@ -31,8 +31,6 @@ def add_rgbd_options(q, *, sensor_focus: bool, depth_required: bool = True,
     q.add_argument("--lens", required=True, help="lens id or .toml path")
     q.add_argument("-o", "--output", required=True, help="output image (.exr linear, or .png)")
     q.add_argument("--patch", type=positive_int, default=16, help="patch size m in pixels (default 16)")
-    q.add_argument("--image-pixel-pitch", type=float, default=None, metavar="MM",
-                   help="size of one image pixel on the sensor (default: the image spans the sensor diagonal)")
     q.add_argument("--sensor-size", type=positive_int, nargs=2, default=None, metavar=("ROWS", "COLS"),
                    help="the sensor's frame in image pixels, centred on the optical axis, when the image is "
                         "larger (an over-scan render); the output has this size (default: the whole image)")

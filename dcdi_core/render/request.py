@@ -56,9 +56,10 @@ class RenderRequest:
     """A simulation or bokeh job, checked when made (InputRangeError naming
     the setting by its label).
 
-    ``psf``: the PSF settings; its ``pixel_pitch_mm`` (when set) is the
-    image's pixel pitch as well (the PSFs of an image are sampled at its own
-    pitch), ``focus_distance_m`` moves the sensor (a simulation; a bokeh's
+    ``psf``: the PSF settings; a ``pixel_pitch_mm`` set there is taken as
+    ``image_pixel_pitch_mm`` (the PSFs of an image are sampled at its own
+    pitch: the request holds it in that one field, its ``psf`` without
+    one), ``focus_distance_m`` moves the sensor (a simulation; a bokeh's
     focus is its own argument), ``wavelength_nm`` asks for one wavelength in
     all three channels. ``fit_kernel``: the kernel grows to hold the depth
     map's blur, up to ``psf.library.MAX_FITTED_KERNEL`` px (else
@@ -102,6 +103,7 @@ class RenderRequest:
     labels: dict = field(default_factory=dict)
 
     def __post_init__(self):
+        self._one_pitch()
         try:
             check_patch(self.patch)
         except InputRangeError as e:
@@ -138,25 +140,34 @@ class RenderRequest:
     def _label(self, name: str) -> str:
         return self.labels.get(name) or field_ref(name)
 
-    # ------------------------------------------------------------ resolved
-    @property
-    def image_pitch_mm(self) -> float | None:
-        """One image pixel on the sensor (mm) from ``image_pixel_pitch_mm`` or
-        ``psf.pixel_pitch_mm`` (they must agree), or None (the default)."""
+    def _one_pitch(self) -> None:
+        """The pitch in one field: a PSF settings' pitch moves to
+        ``image_pixel_pitch_mm`` (refused where both are given and differ)."""
         a, b = self.image_pixel_pitch_mm, self.psf.pixel_pitch_mm
-        if a is not None and b is not None and a != b:
+        if b is None:
+            return
+        if a is not None and a != b:
             raise InputRangeError(self._label("pixel_pitch_mm"), b,
                                   f"{self._label('image_pixel_pitch_mm')}'s {a} mm, or leave one out (the PSFs "
                                   "of an image are sampled at its own pitch)")
-        pitch = a if a is not None else b
+        object.__setattr__(self, "image_pixel_pitch_mm", b)
+        object.__setattr__(self, "psf", replace(self.psf, pixel_pitch_mm=None))
+        if a is None:                # errors name what was given
+            object.__setattr__(self, "labels", {"image_pixel_pitch_mm": self._label("pixel_pitch_mm"),
+                                                **self.labels})
+
+    # ------------------------------------------------------------ resolved
+    @property
+    def image_pitch_mm(self) -> float | None:
+        """One image pixel on the sensor (mm), or None (the default: the
+        image spans the sensor's diagonal)."""
+        pitch = self.image_pixel_pitch_mm
         if pitch is not None and not (pitch > 0 and math.isfinite(pitch)):
             raise InputRangeError(self._pitch_label(), pitch, "a pixel pitch > 0 mm")
         return pitch
 
     def _pitch_label(self) -> str:
-        """The label of the pitch option given (the image's, else the PSFs')."""
-        return self._label("image_pixel_pitch_mm" if self.image_pixel_pitch_mm is not None or
-                           self.psf.pixel_pitch_mm is None else "pixel_pitch_mm")
+        return self._label("image_pixel_pitch_mm")
 
     @property
     def largest_kernel(self) -> int:
@@ -177,8 +188,8 @@ class RenderRequest:
 
     @property
     def settings(self) -> PSFSettings:
-        """The PSF settings the render uses: the pitch is the geometry's."""
-        return replace(self.psf, pixel_pitch_mm=None)
+        """The PSF settings the render uses (no pitch: the geometry's)."""
+        return self.psf
 
     @property
     def noise_settings(self) -> dict | None:

@@ -154,7 +154,7 @@ def test_over_scan_frame_with_sensor_size_and_axis(scene, capsys):
     (["--sensor-size", "40", "80"], "--sensor-size"),
     (["--sensor-size", "40", "60", "--image-pixel-pitch", "0.5"], "--sensor-size"),
     (["--axis", "100", "5", "--image-pixel-pitch", "0.0122"], "--axis"),
-    (["--image-pixel-pitch", "0.0122", "--pixel-pitch", "0.01"], "--pixel-pitch"),
+    (["--pixel-pitch", "-0.01"], "--pixel-pitch"),     # one option (--image-pixel-pitch its other spelling)
     (["--image-pixel-pitch", "0.5"], "aif.exr"),
     (["--patch", "15"], "patch"),
     (["--interpolation", "cubic"], "invalid choice"),
