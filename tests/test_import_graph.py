@@ -22,28 +22,15 @@ import ast
 import re
 from pathlib import Path
 
+from lab.layers import TOP, layers, layer_of as _layer, within as _within  # the table, shared with `lab walk`
+
 ROOT = Path(__file__).resolve().parents[1]
-TOP = ("dcdi_core", "blender_addon", "lab")
 BLENDER = ("bpy", "bmesh", "mathutils")
 NUMPY_ONLY = ("dcdi_core.models.runtime", "dcdi_core.render", "dcdi_core.correct", "dcdi_core.dfd", "dcdi_core.psf")
 NOT_IN_NUMPY_ONLY = ("torch", "dcdi_core.models.olf", "dcdi_core.models.dacn", "dcdi_core.models.depth",
                      "dcdi_core.models.common")
 # render/accel_torch.py is the simulation's optional torch accelerator, imported only when asked for
 TORCH_ALLOWED = ("dcdi_core.render.accel_torch",)
-
-
-def layers(design: Path = ROOT / "docs" / "design.md") -> dict[str, int]:
-    """{dotted prefix: layer} from the table under '## Layers' in docs/design.md:
-    rows '| N | `name`, `name` ... |', names relative to dcdi_core except
-    blender_addon and lab."""
-    text = design.read_text(encoding="utf-8")
-    section = text.split("\n## Layers", 1)[1].split("\n## ", 1)[0]
-    out = {}
-    for row in re.finditer(r"^\|\s*(\d+)\s*\|(.*)\|\s*$", section, re.M):
-        for name in re.findall(r"`([\w.]+)`", row.group(2)):
-            full = name if name.split(".")[0] in TOP else "dcdi_core" if name == "dcdi_core" else f"dcdi_core.{name}"
-            out[full] = int(row.group(1))
-    return out
 
 
 def module_names(root: Path) -> dict[str, Path]:
@@ -82,17 +69,6 @@ def imports_of(path: Path, module: str, modules=()) -> list[tuple[int, str]]:
                     and isinstance(node.args[0].value, str)):
                 out.append((node.lineno, node.args[0].value))
     return out
-
-
-def _within(name: str, prefixes) -> bool:
-    return any(name == p or name.startswith(p + ".") for p in prefixes)
-
-
-def _layer(name: str, table: dict[str, int]) -> int | None:
-    """The layer of a module: its longest prefix in the table ('dcdi_core' alone
-    is the package's own __init__, not a prefix: a new package needs a row)."""
-    best = max((p for p in table if name == p or (p != "dcdi_core" and _within(name, (p,)))), key=len, default=None)
-    return None if best is None else table[best]
 
 
 def graph(root: Path) -> tuple[dict[str, set[str]], list[str]]:

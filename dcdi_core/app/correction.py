@@ -45,7 +45,10 @@ class CorrectRequest:
     are the defaults of ``render``; a lens other than its own is refused.
     ``frame``: the capture's ``app.frame.CaptureFrame`` where the job made it
     already (``dof``: one frame for the depth and the correction); None:
-    made here from ``lens``, ``render`` and ``recorded``."""
+    made here from ``lens``, ``render`` and ``recorded``. A correction that
+    cannot run whatever the image (``app.correction_rule.check_correction``)
+    is refused when the request is made: a front end makes it (``capture``
+    None) before it reads an image."""
 
     capture: np.ndarray | None
     depth_m: np.ndarray | None
@@ -62,6 +65,18 @@ class CorrectRequest:
     recorded: object = None
     image_name: str = "the capture"
     frame: object = None
+
+    def __post_init__(self):
+        # what cannot run whatever the image is refused when the request is made, before any work
+        # (no lens and no network: a sharp image in a dof job; `correct` refuses it when it chooses)
+        if self.checked:
+            from .correction_rule import check_correction
+            check_correction(getattr(self.lens, "id", None), self.method, self.model)
+
+    @property
+    def checked(self) -> bool:
+        """Whether the request checked its correction when made (it names a lens or a network)."""
+        return self.lens is not None or self.model is not None
 
 
 @dataclass
@@ -109,7 +124,8 @@ def choose(request: CorrectRequest, pitch_mm: float | None) -> tuple[str, str]:
     deconvolution (auto never fails for want of torch)."""
     from .correction_rule import choose_correction
     lens_id = request.lens.id if request.lens is not None else None
-    chosen, reason = choose_correction(lens_id, pitch_mm, request.method, request.model)
+    chosen, reason = choose_correction(lens_id, pitch_mm, request.method, request.model,
+                                       checked=request.checked)
     if chosen == "dacn" and request.method == "auto" and not _torch_importable():
         if request.lens is not None:
             return "deconv", f"{reason}; but this Python has no PyTorch for it"

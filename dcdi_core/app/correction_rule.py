@@ -85,7 +85,7 @@ def check_correction(lens_id: str | None, method: str = "auto", model=None) -> N
 
 
 def choose_correction(lens_id: str | None, image_pitch_mm: float | None, method: str = "auto",
-                      model=None) -> tuple[str, str]:
+                      model=None, *, checked: bool = False) -> tuple[str, str]:
     """('deconv' or 'dacn', why in one phrase): how a capture of ``lens_id``
     sampled at ``image_pitch_mm`` (mm per pixel on the sensor) is corrected.
 
@@ -97,8 +97,9 @@ def choose_correction(lens_id: str | None, image_pitch_mm: float | None, method:
     ``beats_deconvolution``, decided by ``python -m lab report correction``) and the
     image has the pixel pitch it learned (within ``psf.pitch.NETWORK_PITCH_RTOL``), else
     the deconvolution. What cannot run is refused as
-    :func:`check_correction` says."""
-    check_correction(lens_id, method, model)
+    :func:`check_correction` says (``checked``: the caller's request was, when made)."""
+    if not checked:
+        check_correction(lens_id, method, model)
     if method != "auto":
         return method, f"asked for: {field('method')} {method}"
     if model is not None:

@@ -124,7 +124,6 @@ def cmd_correct(args) -> int:
     from ..app import CorrectRequest, correct
     from ..io.image_checks import check_image_output
     from ..io.images import read_image, write_image
-    from ..app.correction_rule import check_correction
     out = check_image_output(args.output)
     _refuse_missing_depth(args)
     lens = None
@@ -132,7 +131,7 @@ def cmd_correct(args) -> int:
         from ..optics.lens import load_lens
         # the deconvolution's lens at the capture's stop (`dacn correct` has no aperture options)
         lens = load_lens_with_aperture(args) if hasattr(args, "f_number") else load_lens(args.lens)
-    check_correction(lens.id if lens is not None else None, args.method, args.model)
+    CorrectRequest(None, None, lens, args.method, args.model)    # refused now, before any image is read
     _early_network(args, "model")
     deconvolves = lens is not None and args.method != "dacn" and args.model is None
     if deconvolves:                                     # its settings, PSF cache and OLF file checked now
@@ -189,19 +188,18 @@ def cmd_dof(args) -> int:
     from ..app import CorrectRequest, DofRequest, dof
     from ..io.images import write_depth, write_image
     from ..optics.lens import load_lens
-    from ..app.correction_rule import check_correction
     from .render import bokeh_request
     if args.side_by_side:                       # a picture needs matplotlib: refused before any work
         from ..render.pictures import require_matplotlib
         require_matplotlib("--side-by-side")
     camera = None if args.camera == "none" else load_lens(args.camera)
     if camera is not None:                              # refused before any image is read
-        check_correction(camera.id, args.method, args.dacn)
+        CorrectRequest(None, None, camera, args.method, args.dacn)
         _early_network(args, "dacn")
     else:
         _refuse_correction_of_sharp(args)
     deconv_options(args)
-    lens, request, plan, resp, img, depth = render_inputs(args, sensor_focus=False)
+    lens, request, resp, img, depth = render_inputs(args, sensor_focus=False)
     if args.save_intermediates:
         for name in ("corrected.exr", "depth.exr"):
             check_output(str(Path(args.save_intermediates) / name), "--save-intermediates", image=True)

@@ -123,16 +123,16 @@ def check_render_outputs(args) -> None:
 
 def render_inputs(args, *, sensor_focus: bool):
     """Everything simulate and bokeh check before any work: the lens, the
-    outputs, the request, the response file, the images, the geometry.
-    Returns (lens, request, plan, response, image, depth)."""
+    outputs, the request, the response file, the images (the geometry and
+    its memory are the job's first step, ``app``'s plan, before any PSF).
+    Returns (lens, request, response, image, depth)."""
     lens = load_lens_with_aperture(args)
     check_render_outputs(args)
     request = render_request(args, lens, sensor_focus=sensor_focus)
     resp = response(args)
     img, depth = read_rgbd(args, check_depth=request.fixed_depth_m is None)
-    plan = request.plan(*img.shape[:2], image=f"the image {args.image}")
     check_olf_file(args)
-    return lens, request, plan, resp, img, depth
+    return lens, request, resp, img, depth
 
 
 @contextlib.contextmanager
@@ -149,7 +149,7 @@ def quiet_input_warnings():
 def cmd_simulate(args) -> int:
     from ..app import SimulateRequest, simulate
     from ..io.images import write_image
-    lens, request, plan, resp, img, depth = render_inputs(args, sensor_focus=True)
+    lens, request, resp, img, depth = render_inputs(args, sensor_focus=True)
     with quiet_input_warnings():
         r = simulate(SimulateRequest(img, depth, lens, request, psf_request(args, resp),
                                      distortion=not args.no_distortion, accelerator=args.accelerator,
@@ -188,7 +188,7 @@ def cmd_bokeh(args) -> int:
     from ..io.images import write_image
     from ..render.multires import DEFAULT_MAX_LEVEL, check_multires
     check_multires(args.multires, DEFAULT_MAX_LEVEL if args.max_level is None else args.max_level, 16)
-    lens, request, plan, resp, img, depth = render_inputs(args, sensor_focus=False)
+    lens, request, resp, img, depth = render_inputs(args, sensor_focus=False)
     with quiet_input_warnings():
         from ..io.capture_record import read_record
         r = bokeh(bokeh_request(args, lens, request, resp, img, depth, read_record(args.image)),
