@@ -151,6 +151,12 @@ def _decided(request: DofRequest, shape) -> DofRequest:
     if c.lens is not None and c.frame is None:
         c = replace(c, frame=capture_frame(c.lens, c.render, c.recorded, shape, c.image_name))
     estimator = request.estimator
+    from .depth import BlurDepth
+    if isinstance(estimator, BlurDepth) and estimator.request.frame is None and c.frame is not None \
+            and estimator.request.lens is c.lens and estimator.request.render == c.render \
+            and estimator.request.recorded is c.recorded:
+        estimator = BlurDepth(c.lens, estimator.request.render, estimator.request.psf, estimator.request.recorded,
+                              estimator.request.image_name, frame=c.frame)     # the job's one frame
     if estimator is None and c.depth_m is None:
         from .depth import dof_estimator
         estimator = dof_estimator(c.lens, c if c.lens is not None else None, request.depth_backend,

@@ -190,17 +190,18 @@ def run_chain(scene: Scene, nets: Networks, settings: ChainSettings, out: Path, 
                           render=RenderRequest(nets.target, **on_sensor))
     camera = RenderRequest(nets.camera, **on_sensor)
 
-    def chain(image, depth_m=None, estimator=None, corrected: bool = True):
+    def chain(image, depth_m=None, corrected: bool = True):
         # the correction by the engine's rule (dcdi correct --method auto): the deconvolution with the
-        # camera's own PSFs unless a shipped network is recorded better
+        # camera's own PSFs unless a shipped network is recorded better; without a depth map, the depth
+        # read from the capture's own blur (`dcdi dof --depth-backend blur`), on the job's one frame
         fix = CorrectRequest(image, depth_m, nets.camera if corrected else None, render=camera if corrected else None)
         # the demo measures the chain whatever the depth's confidence; what `dcdi dof` would do is recorded
-        return dof(DofRequest(fix, target, estimator, uncertain_depth="accept"))
+        return dof(DofRequest(fix, target, depth_backend="blur" if depth_m is None else None,
+                              uncertain_depth="accept"))
 
     # the depth is the estimated one, as a user without an RGB-D camera has: from the capture's own blur
-    from ..app.depth import DofDepthRule, blur_estimator
-    estimator = blur_estimator(nets.camera, render=camera)
-    r = chain(cap.image, estimator=estimator)
+    from ..app.depth import DofDepthRule
+    r = chain(cap.image)
     refused = DofDepthRule().verdict(r.corrected_share) if r.corrected_share is not None else None
     seconds.update(r.seconds)
     log(f"  {scene.key}: depth {r.seconds.get('depth', 0):.1f} s, correction {r.seconds.get('correction', 0):.1f} s, "
