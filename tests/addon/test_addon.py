@@ -168,9 +168,16 @@ def test_every_module_of_the_zip_imports(addon_zip, tmp_path):
     assert not failed, failed
 
 
+# the one module of the engine that starts the Blender layer: `dcdi-factory`, the project's command for the
+# dataset factory, which runs the clone's factory as a separate process (it imports none of it)
+FACTORY_LAUNCHER = ROOT / "dcdi_core" / "cli" / "factory.py"
+
+
 def test_the_engine_never_imports_or_starts_the_blender_layer():
     """Imports (at any depth) and module runs (``-m blender_addon...`` as a
-    string literal), not mentions: a docstring may name the factory."""
+    string literal), not mentions: a docstring may name the factory. The
+    factory's command starts it, in a process of its own, and imports
+    nothing of it."""
     import ast
     for p in (ROOT / "dcdi_core").rglob("*.py"):
         tree = ast.parse(p.read_text())
@@ -180,7 +187,8 @@ def test_the_engine_never_imports_or_starts_the_blender_layer():
             elif isinstance(node, ast.ImportFrom) and node.level == 0:
                 names = [node.module or ""]
             elif isinstance(node, ast.Constant) and isinstance(node.value, str):
-                assert not node.value.startswith(("blender_addon.", "-m blender_addon")), (p, node.value)
+                if p != FACTORY_LAUNCHER:
+                    assert not node.value.startswith(("blender_addon.", "-m blender_addon")), (p, node.value)
                 continue
             else:
                 continue
