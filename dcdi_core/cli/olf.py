@@ -22,7 +22,8 @@ def _data_config(args, **extra):
     return PSFDataConfig(lenses=tuple(args.lens), pupil_samples=args.rays, n_wavelengths=args.wavelengths,
                          n_fields=args.fields, n_depths=args.depths, focus_lenses=tuple(args.focus_lens or ()),
                          focus_range_m=tuple(args.focus_range), focus_bins=args.focus_bins, offgrid=args.offgrid,
-                         held_out=args.held_out, seed=args.seed, **extra)
+                         held_out=args.held_out, seed=args.seed, source=args.psf_data,
+                         held_out_rays=args.held_out_rays, **extra)
 
 
 def cmd_olf_train(args) -> int:
@@ -127,6 +128,13 @@ def _add_data_options(t) -> None:
     """The options of `olf train` and `olf points` that decide the traced samples."""
     t.add_argument("--offgrid", type=int, default=256, help="traced off-grid training points per lens")
     t.add_argument("--held-out", type=positive_int, default=64, help="traced held-out points per lens")
+    t.add_argument("--held-out-rays", type=positive_int, default=None, metavar="N",
+                   help="pupil samples per side of the traced held-out points (default: --rays); 512 scores "
+                        "against converged PSFs")
+    t.add_argument("--psf-data", choices=["trace", "raymap"], default="trace",
+                   help="where the training PSFs come from: traced (default), or deposited from each lens's "
+                        "shipped ray map (the catalogue's lenses: any focus, no tracing; a lens without one is "
+                        "traced); held-out points are traced either way")
     t.add_argument("--rays", type=positive_int, default=64, help="pupil samples per side (PSF settings)")
     t.add_argument("--wavelengths", type=positive_int, default=31, help="wavelengths per PSF")
     t.add_argument("--fields", type=positive_int, default=64, help="library fields")

@@ -1,5 +1,12 @@
 """Training and held-out samples for the Omni-Lens-Field, from the project's
-ray-traced PSFs.
+ray-traced PSFs, or (``source`` 'raymap') from a lens's shipped ray map.
+
+``source`` 'raymap': the grid's libraries and the off-grid training points
+of a lens with a shipped ray map are deposited from it (``psf.raymap``: the
+rays the tracer would launch, from the map's polynomials: any focus, no
+tracing); a lens without one is traced. Held-out points are always traced,
+with ``held_out_rays`` per pupil side (None: the training's), so that the
+score is against the lens and not against the map.
 
 Three sets per lens:
 
@@ -84,6 +91,10 @@ class PSFDataConfig:
     offgrid: int = 256
     held_out: int = 64
     offgrid_fraction: float = 0.25     # of each batch
+    # where the training PSFs come from ('trace', or 'raymap': a lens's shipped ray map where it has one) and
+    # the rays per pupil side of the traced held-out points (None: pupil_samples)
+    source: str = "trace"
+    held_out_rays: int | None = None
     # kernels
     kernel_size: int | None = None     # radial: None = per lens (energy); paper: 41
     energy: float = 0.99
@@ -109,6 +120,10 @@ class PSFDataConfig:
             raise InputRangeError("offgrid, held_out", (self.offgrid, self.held_out), "offgrid >= 0, held_out >= 1")
         if not (0.0 <= self.offgrid_fraction < 1.0):
             raise InputRangeError("offgrid_fraction", self.offgrid_fraction, "[0, 1)")
+        if self.source not in ("trace", "raymap"):
+            raise InputRangeError("source", self.source, "trace or raymap")
+        if self.held_out_rays is not None and self.held_out_rays < 2:
+            raise InputRangeError("held_out_rays", self.held_out_rays, ">= 2 rays per pupil side, or None")
         if not (0.5 < self.energy <= 1.0):
             raise InputRangeError("energy", self.energy, "(0.5, 1]")
         if self.kernel_size is not None and (self.kernel_size < 1 or self.kernel_size % 2 == 0):
@@ -147,6 +162,15 @@ class PSFDataConfig:
     @classmethod
     def from_dict(cls, d: dict) -> "PSFDataConfig":
         return cls(**d)
+
+    def raymap(self, lens: Lens):
+        """The lens's shipped ray map where ``source`` is 'raymap' and one ships, else None (traced)."""
+        if self.source != "raymap":
+            return None
+        from ...psf.raymap import open_raymap
+        from ...shipped import raymap_file
+        path = raymap_file(lens.id)
+        return None if path is None else open_raymap(path)
 
 
 @dataclass
@@ -316,6 +340,26 @@ def trace_points(lens: Lens, settings: PSFSettings, field, depth_m, focus_m=None
     return psf, ok
 
 
+def raymap_points(rm, lens: Lens, settings: PSFSettings, field, depth_m, focus_m=None):
+    """:func:`trace_points`'s PSFs and mask, deposited from the lens's ray
+    map ``rm`` at those very points (``RayMapLibrary.kernels``)."""
+    from ...psf.raymap import RayMapLibrary
+    field = np.asarray(field, float).ravel()
+    depth_m = np.asarray(depth_m, float).ravel()
+    focus = np.full(field.shape, np.nan) if focus_m is None else np.asarray(focus_m, float).ravel()
+    k = settings.kernel_size
+    psf = np.zeros((len(field), 3, k, k), np.float32)
+    keys = np.unique(focus[~np.isnan(focus)]).tolist() + ([None] if np.isnan(focus).any() else [])
+    for f in keys:
+        sel = np.isnan(focus) if f is None else (focus == f)
+        lib = RayMapLibrary(rm, lens, replace(settings, focus_distance_m=f))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", KernelTooSmallWarning)
+            psf[sel] = lib.kernels(field[sel], depth_m[sel])
+    ok = psf.sum(axis=(-1, -2)).min(axis=-1) > 0
+    return psf, ok
+
+
 def _draw_radial_points(rng, n, config: PSFDataConfig, focus: bool):
     field = rng.uniform(0.0, 1.0, n)
     dio = rng.uniform(1.0 / config.far_m, 1.0 / config.near_m, n)
@@ -391,8 +435,13 @@ def data_key(config: PSFDataConfig, lenses: list[Lens]) -> str:
 
 
 def _open_library(lens, config, k, focus_m, cache_dir, progress):
-    lib = PSFLibrary.open(lens, config.psf_settings(k, focus_m), config.grid, cache_dir=cache_dir,
-                          cache=cache_dir is not False)
+    rm = config.raymap(lens)
+    if rm is not None:              # deposited from the ray map: nothing traced, nothing cached
+        from ...psf.raymap import RayMapLibrary
+        lib = RayMapLibrary(rm, lens, config.psf_settings(k, focus_m), config.grid)
+    else:
+        lib = PSFLibrary.open(lens, config.psf_settings(k, focus_m), config.grid, cache_dir=cache_dir,
+                              cache=cache_dir is not False)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", KernelTooSmallWarning)
         lib.build(progress=progress)
@@ -484,10 +533,15 @@ def build_data(config: PSFDataConfig, *, cache_dir=None, points_file=None, lense
                 setattr(ls, which + "_x", np.zeros((0, n_inputs), np.float32))
                 setattr(ls, which + "_y", np.zeros((0, 3, k, k), np.float32))
                 continue
-            say(f"{lens.id}: tracing {n} {'off-grid training' if which == 'off' else 'held-out'} points")
+            rm = config.raymap(lens) if which == "off" else None      # held-out points: always traced
+            rays = settings if which == "off" or config.held_out_rays is None else \
+                replace(settings, pupil_samples=config.held_out_rays)
+            say(f"{lens.id}: {'tracing' if rm is None else 'depositing from its ray map'} {n} "
+                f"{'off-grid training' if which == 'off' else 'held-out'} points ({rays.pupil_samples} rays a side)")
             if config.variant == "radial":
                 f, d, fm = _draw_radial_points(rng, n, config, lens.id in config.focus_lenses)
-                psf, ok = trace_points(lens, settings, f, d, fm)
+                psf, ok = (trace_points(lens, rays, f, d, fm) if rm is None else
+                           raymap_points(rm, lens, rays, f, d, fm))
                 x = encode_radial(spec_d, li, f, inverse_depth(d, config.far_m),
                                   None if fm is None else focus_diopters(lens, fm))
                 y = crop_normalise(psf, k)
@@ -496,7 +550,7 @@ def build_data(config: PSFDataConfig, *, cache_dir=None, points_file=None, lense
                 rows, cols, d = _draw_paper_points(rng, n, config)
                 pr, pc = patch_centres_px(spec_d, rows, cols)
                 f = np.minimum(ls.geometry.field(pr, pc), 1.0)
-                psf, ok = trace_points(lens, settings, f, d)
+                psf, ok = trace_points(lens, rays, f, d) if rm is None else raymap_points(rm, lens, rays, f, d)
                 y = peak_normalise(rotate_exact(crop_normalise(psf, k), _outward(ls.geometry, pr, pc)))
                 x = encode_paper(spec_d, li, rows, cols, d)
                 coords = {"field": f, "depth_m": d, "row": rows, "col": cols}
