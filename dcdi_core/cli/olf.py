@@ -13,7 +13,7 @@ import math
 import sys
 import time
 
-from .common import (UNITS, add_device_option, add_subcommands, dump, positive_int, ran_on, run_training,
+from .common import (PIXEL_PITCH_RULE, UNITS, add_device_option, add_subcommands, dump, positive_int, ran_on, run_training,
                      torchrun_worker)
 
 
@@ -23,7 +23,7 @@ def _data_config(args, **extra):
                          n_fields=args.fields, n_depths=args.depths, focus_lenses=tuple(args.focus_lens or ()),
                          focus_range_m=tuple(args.focus_range), focus_bins=args.focus_bins, offgrid=args.offgrid,
                          held_out=args.held_out, seed=args.seed, source=args.psf_data,
-                         held_out_rays=args.held_out_rays, **extra)
+                         held_out_rays=args.held_out_rays, pixel_pitch_mm=args.pixel_pitch, **extra)
 
 
 def cmd_olf_train(args) -> int:
@@ -34,7 +34,7 @@ def cmd_olf_train(args) -> int:
     data = _data_config(args, variant=args.variant)
     config = OLFTrainConfig(data=data, size=args.size, iters=args.iters, batch=args.batch, lr=args.lr,
                             seed=args.seed, threads=args.threads or (os.cpu_count() or 1),
-                            checkpoint_every=args.checkpoint_every)
+                            checkpoint_every=args.checkpoint_every, validate_every=args.validate_every)
     from ..models.olf.export import export_olf               # torch from here on
     from ..models.olf.train import train
     run = Path(args.run or (str(args.output) + ".run"))
@@ -135,6 +135,7 @@ def _add_data_options(t) -> None:
                    help="where the training PSFs come from: traced (default), or deposited from each lens's "
                         "shipped ray map (the catalogue's lenses: any focus, no tracing; a lens without one is "
                         "traced); held-out points are traced either way")
+    t.add_argument("--pixel-pitch", type=float, default=None, metavar="MM", help=PIXEL_PITCH_RULE)
     t.add_argument("--rays", type=positive_int, default=64, help="pupil samples per side (PSF settings)")
     t.add_argument("--wavelengths", type=positive_int, default=31, help="wavelengths per PSF")
     t.add_argument("--fields", type=positive_int, default=64, help="library fields")
@@ -170,6 +171,9 @@ def add_commands(sub) -> None:
     t.add_argument("-o", "--output", required=True, help="the exported OLF (.npz)")
     t.add_argument("--run", default=None, help="run folder for checkpoints (default OUTPUT.run)")
     t.add_argument("--checkpoint-every", type=positive_int, default=500, help="iterations between checkpoints")
+    t.add_argument("--validate-every", type=int, default=0, metavar="N",
+                   help="score the held-out points every N iterations into the run's log.jsonl: the learning "
+                        "curve (default 0: at the end only)")
     t.add_argument("--weights", choices=["ema", "model"], default="ema", help="which weights to export")
     t.add_argument("--dtype", choices=["float32", "float16"], default="float32",
                    help="how the exported weights are stored (float16 halves the file; the runtime computes in "

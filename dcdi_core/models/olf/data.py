@@ -95,6 +95,8 @@ class PSFDataConfig:
     # the rays per pupil side of the traced held-out points (None: pupil_samples)
     source: str = "trace"
     held_out_rays: int | None = None
+    # the pitch the network learns at (mm; None: each lens's sensor pixels); coarser ones are area-resampled
+    pixel_pitch_mm: float | None = None
     # kernels
     kernel_size: int | None = None     # radial: None = per lens (energy); paper: 41
     energy: float = 0.99
@@ -122,6 +124,9 @@ class PSFDataConfig:
             raise InputRangeError("offgrid_fraction", self.offgrid_fraction, "[0, 1)")
         if self.source not in ("trace", "raymap"):
             raise InputRangeError("source", self.source, "trace or raymap")
+        p = self.pixel_pitch_mm
+        if p is not None and not (isinstance(p, (int, float)) and math.isfinite(p) and p > 0):
+            raise InputRangeError("pixel_pitch_mm", p, "a pixel pitch > 0 mm, or None (each lens's sensor)")
         if self.held_out_rays is not None and self.held_out_rays < 2:
             raise InputRangeError("held_out_rays", self.held_out_rays, ">= 2 rays per pupil side, or None")
         if not (0.5 < self.energy <= 1.0):
@@ -132,7 +137,8 @@ class PSFDataConfig:
 
     def psf_settings(self, kernel_size: int, focus_m: float | None = None) -> PSFSettings:
         return PSFSettings(kernel_size=kernel_size, pupil_samples=self.pupil_samples,
-                           n_wavelengths=self.n_wavelengths, focus_distance_m=focus_m)
+                           n_wavelengths=self.n_wavelengths, focus_distance_m=focus_m,
+                           pixel_pitch_mm=self.pixel_pitch_mm)
 
     @property
     def grid(self) -> LibraryGrid:
