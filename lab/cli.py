@@ -68,7 +68,7 @@ MODULES = {
 }
 
 #: the reports' options that never name a path, beside the `dcdi` command's (``dcdi_core.cli.files.NOT_PATHS``)
-NOT_PATHS = frozenset({"count", "held_out_points", "pitch_only", "points", "compare", "basis_lens", "seed"})
+NOT_PATHS = frozenset({"count", "held_out_points", "pitch_only", "points", "compare", "basis_lens", "seed", "ceiling_rays"})
 
 #: what each report reads and writes (``dcdi_core.cli.files.Spec``), checked before any work
 SPECS = {
@@ -164,7 +164,7 @@ def cmd_report_sim(args) -> int:
 def cmd_report_olf(args) -> int:
     from .olf_report import run_report
     return run_report(args.olf, args.out, quick=args.quick, sweep=args.sweep, pitch_only=args.pitch_only,
-                      held_out_points=args.held_out_points)
+                      held_out_points=args.held_out_points, ceiling_rays=args.ceiling_rays)
 
 
 def cmd_report_psf_source(args) -> int:
@@ -222,7 +222,11 @@ def add_reports(rsub) -> None:
                    help="only the kernels at coarser pixel pitches (area-resampled) against kernels traced there")
     r.add_argument("--held-out-points", default=None, metavar="RUN/points.npz",
                    help="only: every file scored on one training run's held-out points, per lens and focus "
-                        "(compares an old and a new OLF on the same traced points)")
+                        "(compares an old and a new OLF on the same traced points), and a lens's ray map "
+                        "there, the ceiling of an OLF learned from it")
+    r.add_argument("--ceiling-rays", type=positive_int, action="append", default=None, metavar="N",
+                   help="with --held-out-points: the ray map's rows with N rays a side (repeat; default: the "
+                        "OLF's own)")
     r.set_defaults(func=cmd_report_olf)
     r = rsub.add_parser("psf-source", help="every PSF source (basis ranks, libraries, the OLF): off-grid and grid "
                                            "error vs storage, PSF-map time, downstream images",

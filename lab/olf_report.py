@@ -282,14 +282,14 @@ def _fmt(v, spec=".2f"):
 
 
 def run_report(olf_files=None, out="out/report", *, quick: bool = False, sweep=None, pitch_only: bool = False,
-               held_out_points=None, log=print) -> int:
+               held_out_points=None, ceiling_rays=None, log=print) -> int:
     """The report (module docstring) into ``out`` (olf.md, olf.json, the plot);
     ``pitch_only``: only the pixel-pitch tables (``pitch_resampling``, every
     served lens; a minute or two), into olf-pitch.md / olf-pitch.json."""
     if pitch_only:
         return _run_pitch_report(olf_files, Path(out), log)
     if held_out_points:
-        return _run_comparison(olf_files, held_out_points, Path(out), log)
+        return _run_comparison(olf_files, held_out_points, Path(out), log, ceiling_rays)
     out = Path(out)
     files = [Path(f) for f in (olf_files or shipped_olf_files())]
     if not files:
@@ -349,7 +349,7 @@ def _run_pitch_report(olf_files, out: Path, log) -> int:
     return 0
 
 
-def held_out_comparison(olf_files, points_file) -> list[dict]:
+def held_out_comparison(olf_files, points_file, ceiling_rays=None) -> list[dict]:
     """Each OLF file scored on the held-out points of a run's ``points.npz``
     (coordinates field, depth_m, focus_m: NaN at the prescribed focus, and
     the traced kernels): rows of file, lens, focus band, points and scores.
@@ -359,7 +359,7 @@ def held_out_comparison(olf_files, points_file) -> list[dict]:
     from dcdi_core.models.olf.export import FOCUS_BANDS, focus_bands
     with np.load(points_file, allow_pickle=False) as z:
         pts = {k: z[k] for k in z.files}
-    rows = []
+    rows, ceilings = [], {}
     for path in olf_files:
         olf = OmniLensField.load(path)
         for lid in olf.lens_ids:
@@ -385,8 +385,44 @@ def held_out_comparison(olf_files, points_file) -> list[dict]:
                 ref = y[sel]
                 k = min(pred.shape[-1], ref.shape[-1])
                 pred, ref = crop_normalise(pred, k), crop_normalise(ref, k)
-                rows.append({"file": str(path), "lens": lid, "band": band, "k": k,
+                rows.append({"file": str(path), "lens": lid, "band": band, "k": k, "n": int(sel.sum()),
                              **psf_scores(pred, ref, scale="sum")})
+                if lid not in ceilings:
+                    ceilings[lid] = (lens, entry)
+    return rows + raymap_rows(pts, ceilings, ceiling_rays)
+
+
+def raymap_rows(pts: dict, lenses: dict, rays=None) -> list[dict]:
+    """The ceiling of an OLF learned from a ray map: the lens's shipped ray
+    map itself on the same held-out points, deposited with the settings the
+    OLF learned (its rays, wavelengths, pitch and kernel), per focus band
+    (``lenses``: {id: (lens, the OLF's entry)}; a lens without a ray map is
+    left out); ``rays``: rows with these rays a side instead (None: the OLF's)."""
+    from dataclasses import replace
+
+    from dcdi_core.models.olf.data import crop_normalise, raymap_points
+    from dcdi_core.models.olf.export import FOCUS_BANDS, focus_bands
+    from dcdi_core.psf.raymap import open_raymap
+    from dcdi_core.shipped import raymap_file
+    rows = []
+    for lid, (lens, entry) in lenses.items():
+        path = raymap_file(lid)
+        if path is None:
+            continue
+        y = pts[f"{lid}.val.y"]
+        fm = pts.get(f"{lid}.val.focus_m", np.full(len(y), np.nan))
+        learned = replace(_settings(entry), pixel_pitch_mm=float(entry["pixel_pitch_mm"]),
+                          kernel_size=int(y.shape[-1]))
+        bands = focus_bands(fm, entry.get("focus_diopters_range") or [0.0, 1.0 / 0.7])
+        for n_rays in rays or [learned.pupil_samples]:
+            psf, ok = raymap_points(open_raymap(path), lens, replace(learned, pupil_samples=int(n_rays)),
+                                    pts[f"{lid}.val.field"], pts[f"{lid}.val.depth_m"], fm)
+            for band in ("all",) + tuple(FOCUS_BANDS):
+                sel = ok & (True if band == "all" else bands == band)
+                if sel.any():
+                    rows.append({"file": f"ray map, {n_rays} rays a side", "lens": lid, "band": band,
+                                 "k": int(y.shape[-1]), "n": int(sel.sum()),
+                                 **psf_scores(crop_normalise(psf[sel], y.shape[-1]), y[sel], scale="sum")})
     return rows
 
 
@@ -402,9 +438,9 @@ def comparison_markdown(rows: list[dict], points_file) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _run_comparison(olf_files, points_file, out: Path, log) -> int:
+def _run_comparison(olf_files, points_file, out: Path, log, ceiling_rays=None) -> int:
     files = [Path(f) for f in (olf_files or shipped_olf_files())]
-    rows = held_out_comparison(files, points_file)
+    rows = held_out_comparison(files, points_file, ceiling_rays)
     out.mkdir(parents=True, exist_ok=True)
     write_text(out / "olf-held-out.json", json.dumps(rows, indent=1, default=float) + "\n")
     md = comparison_markdown(rows, points_file)
