@@ -68,7 +68,8 @@ MODULES = {
 }
 
 #: the reports' options that never name a path, beside the `dcdi` command's (``dcdi_core.cli.files.NOT_PATHS``)
-NOT_PATHS = frozenset({"count", "held_out_points", "pitch_only", "points", "compare", "basis_lens", "seed", "ceiling_rays"})
+NOT_PATHS = frozenset({"count", "held_out_points", "pitch_only", "points", "compare", "basis_lens", "seed", "ceiling_rays",
+                        "frame_px"})
 
 #: what each report reads and writes (``dcdi_core.cli.files.Spec``), checked before any work
 SPECS = {
@@ -164,7 +165,8 @@ def cmd_report_sim(args) -> int:
 def cmd_report_olf(args) -> int:
     from .olf_report import run_report
     return run_report(args.olf, args.out, quick=args.quick, sweep=args.sweep, pitch_only=args.pitch_only,
-                      held_out_points=args.held_out_points, ceiling_rays=args.ceiling_rays)
+                      held_out_points=args.held_out_points, ceiling_rays=args.ceiling_rays,
+                      frame_px=args.frame_px or ())
 
 
 def cmd_report_psf_source(args) -> int:
@@ -227,6 +229,10 @@ def add_reports(rsub) -> None:
     r.add_argument("--ceiling-rays", type=positive_int, action="append", default=None, metavar="N",
                    help="with --held-out-points: the ray map's rows with N rays a side (repeat; default: the "
                         "OLF's own)")
+    r.add_argument("--frame-px", type=positive_int, action="append", default=None, metavar="M",
+                   help="with --held-out-points: the held-out PSFs through an M x M frame scaled to each one's "
+                        "thin-lens blur and back (repeat): the ceiling of a head that draws a disc of any radius "
+                        "in M x M outputs")
     r.set_defaults(func=cmd_report_olf)
     r = rsub.add_parser("psf-source", help="every PSF source (basis ranks, libraries, the OLF): off-grid and grid "
                                            "error vs storage, PSF-map time, downstream images",

@@ -282,14 +282,14 @@ def _fmt(v, spec=".2f"):
 
 
 def run_report(olf_files=None, out="out/report", *, quick: bool = False, sweep=None, pitch_only: bool = False,
-               held_out_points=None, ceiling_rays=None, log=print) -> int:
+               held_out_points=None, ceiling_rays=None, frame_px=(), log=print) -> int:
     """The report (module docstring) into ``out`` (olf.md, olf.json, the plot);
     ``pitch_only``: only the pixel-pitch tables (``pitch_resampling``, every
     served lens; a minute or two), into olf-pitch.md / olf-pitch.json."""
     if pitch_only:
         return _run_pitch_report(olf_files, Path(out), log)
     if held_out_points:
-        return _run_comparison(olf_files, held_out_points, Path(out), log, ceiling_rays)
+        return _run_comparison(olf_files, held_out_points, Path(out), log, ceiling_rays, frame_px)
     out = Path(out)
     files = [Path(f) for f in (olf_files or shipped_olf_files())]
     if not files:
@@ -349,7 +349,7 @@ def _run_pitch_report(olf_files, out: Path, log) -> int:
     return 0
 
 
-def held_out_comparison(olf_files, points_file, ceiling_rays=None) -> list[dict]:
+def held_out_comparison(olf_files, points_file, ceiling_rays=None, frame_px=()) -> list[dict]:
     """Each OLF file scored on the held-out points of a run's ``points.npz``
     (coordinates field, depth_m, focus_m: NaN at the prescribed focus, and
     the traced kernels): rows of file, lens, focus band, points and scores.
@@ -389,7 +389,70 @@ def held_out_comparison(olf_files, points_file, ceiling_rays=None) -> list[dict]
                              **psf_scores(pred, ref, scale="sum")})
                 if lid not in ceilings:
                     ceilings[lid] = (lens, entry)
-    return rows + raymap_rows(pts, ceilings, ceiling_rays)
+    return rows + raymap_rows(pts, ceilings, ceiling_rays) + frame_rows(pts, ceilings, frame_px or ())
+
+
+# a blur-scaled frame: the kernel's pixels spaced max(1, (FRAME_MARGIN x blur + FRAME_PAD_PX) / M) pixels apart
+FRAME_MARGIN, FRAME_PAD_PX = 1.15, 4.0
+
+
+def frame_round_trip(kernels, blur_px, frame_px: int) -> np.ndarray:
+    """Kernels (n, 3, k, k) summing to 1 per channel, through an M = ``frame_px``
+    frame scaled to each one's thin-lens blur (``blur_px``, diameter): area-
+    resampled into it where the blur is wider than the frame, then back to
+    the pixel grid by linear interpolation and renormalised. What a network
+    whose head draws M x M kernels in blur-scaled coordinates can hold at
+    best (its representation's own error)."""
+    from dcdi_core.psf.pitch import area_resample
+    y = np.asarray(kernels, np.float64)
+    k, m, out = y.shape[-1], int(frame_px), np.zeros_like(y)
+    for i, b in enumerate(np.asarray(blur_px, np.float64)):
+        step = max(1.0, (FRAME_MARGIN * b + FRAME_PAD_PX) / m)
+        if step > 1.0:
+            frame = area_resample(y[i], 1.0, step, m)
+        else:
+            h = min(m, k) // 2
+            frame = np.zeros((3, m, m))
+            frame[:, m // 2 - h:m // 2 + h + 1, m // 2 - h:m // 2 + h + 1] = y[i, :, k // 2 - h:k // 2 + h + 1,
+                                                                                k // 2 - h:k // 2 + h + 1]
+        u = _linear_matrix(k, m, step)
+        back = np.einsum("im,cmn,jn->cij", u, frame, u)
+        out[i] = back / np.maximum(back.sum(axis=(-1, -2), keepdims=True), 1e-300)
+    return out
+
+
+def _linear_matrix(k: int, m: int, step: float) -> np.ndarray:
+    """(k, m): linear interpolation from m frame samples ``step`` pixels apart to k pixel centres (both centred)."""
+    xo = np.arange(k) - k // 2
+    xf = (np.arange(m) - m // 2) * step
+    j = np.clip(np.searchsorted(xf, xo) - 1, 0, m - 2)
+    t = (xo - xf[j]) / (xf[j + 1] - xf[j])
+    inside = (xo >= xf[0]) & (xo <= xf[-1])
+    u = np.zeros((k, m))
+    u[np.arange(k)[inside], j[inside]] = 1.0 - t[inside]
+    u[np.arange(k)[inside], j[inside] + 1] += t[inside]
+    return u
+
+
+def frame_rows(pts: dict, lenses: dict, sizes) -> list[dict]:
+    """The held-out PSFs of each lens through blur-scaled frames of ``sizes``
+    px (:func:`frame_round_trip`), scored against themselves: the ceiling of
+    a head that draws a disc of any radius in a fixed number of outputs."""
+    from dcdi_core.optics.paraxial import prescribed_focus_diopters
+    from dcdi_core.psf.sampling import blur_px_per_diopter
+    rows = []
+    for lid, (lens, entry) in lenses.items():
+        y = pts[f"{lid}.val.y"]
+        d = pts[f"{lid}.val.depth_m"]
+        fm = pts.get(f"{lid}.val.focus_m", np.full(len(y), np.nan))
+        focus_d = np.where(np.isnan(fm), prescribed_focus_diopters(lens), 1.0 / np.where(np.isnan(fm), 1.0, fm))
+        with np.errstate(divide="ignore"):
+            blur = blur_px_per_diopter(lens, float(entry["pixel_pitch_mm"])) * np.abs(1.0 / d - focus_d)
+        for m in sizes:
+            rows.append({"file": f"the held-out PSFs through a {m} px blur-scaled frame", "lens": lid,
+                         "band": "all", "k": int(y.shape[-1]), "n": len(y),
+                         **psf_scores(frame_round_trip(y, blur, m), y, scale="sum")})
+    return rows
 
 
 def raymap_rows(pts: dict, lenses: dict, rays=None) -> list[dict]:
@@ -438,9 +501,9 @@ def comparison_markdown(rows: list[dict], points_file) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _run_comparison(olf_files, points_file, out: Path, log, ceiling_rays=None) -> int:
+def _run_comparison(olf_files, points_file, out: Path, log, ceiling_rays=None, frame_px=()) -> int:
     files = [Path(f) for f in (olf_files or shipped_olf_files())]
-    rows = held_out_comparison(files, points_file, ceiling_rays)
+    rows = held_out_comparison(files, points_file, ceiling_rays, frame_px)
     out.mkdir(parents=True, exist_ok=True)
     write_text(out / "olf-held-out.json", json.dumps(rows, indent=1, default=float) + "\n")
     md = comparison_markdown(rows, points_file)
