@@ -8,7 +8,7 @@
                                         bench-defocus, bokeh-variants, capture-records,
                                         resample-accuracy, focus-stack, raymap, aperture, catalogue-table,
                                         contact-sheet, large-bokeh, quality-tables, cli-reference,
-                                        reproduce, traced-render, breathing, walk
+                                        reproduce, traced-render, breathing, walk, olf-frame
 
 `python -m lab COMMAND --help` says more; lab/README.md lists which figure or
 table of docs/ each one makes. The lab uses the engine (``dcdi_core``); the
@@ -61,6 +61,8 @@ MODULES = {
     "reproduce": ("reproduce", "a shipped network from scratch, from its config in lab/configs/"),
     "breathing": ("breathing", "each lens's focus breathing and depth-dependent distortion: the chief-ray map "
                                "against a direct trace (docs/image-formation.md)"),
+    "olf-frame": ("olf_frame", "an OLF whose head draws each PSF in coordinates scaled to its blur, against the "
+                               "pixel head (docs/olf.md)"),
     "walk": ("walk", "a job's calls through the layers: `dcdi dof` and Apply Lens Bokeh cross into app once "
                      "(docs/design.md)"),
     "traced-render": ("traced_render", "the fast bokeh (--distort --focus) against a render traced through the lens, "

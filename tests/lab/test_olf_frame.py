@@ -28,3 +28,13 @@ def test_a_wide_disc_comes_back_closer_with_a_larger_frame():
         np.testing.assert_allclose(back.sum(axis=(-1, -2)), 1.0, atol=1e-9)
         errors.append(float(np.abs(back - k).sum() / 3))
     assert errors[0] > errors[1] > errors[2] and errors[2] < 0.08, errors
+
+
+def test_the_studys_frame_is_the_reports():
+    """`lab olf-frame`'s targets and their way back are the report's round trip, in two steps."""
+    from lab.olf_frame import from_frame, to_frame
+    k = np.concatenate([_disc(101, 40.0)[None], _disc(101, 2.0)[None]])
+    blur = np.array([80.0, 1.0])
+    frames = to_frame(k, blur, 31)
+    assert frames.shape == (2, 3, 31, 31) and np.allclose(frames.sum(axis=(-1, -2)), 1.0, atol=1e-6)
+    np.testing.assert_allclose(from_frame(frames, blur, 101), frame_round_trip(k, blur, 31), atol=1e-6)
