@@ -50,7 +50,7 @@ import numpy as np
 
 from dcdi_core import app
 
-from . import bpy_render, logic, reading, render_worker
+from . import bpy_render, logic, reading, render_worker, view_transform
 from .session import SESSION
 
 DEBOUNCE_S = 0.25         # a refresh waits until changes have stopped this long
@@ -64,7 +64,7 @@ NOT_IN_PREVIEW = {"lens_in_renders": "what F12 does", "render_effect": "what F12
 CAMERA_DOF_NOT_IN_PREVIEW = {"use_dof": "the lens's depth of field replaces Blender's",
                              "aperture_ratio": "an anamorphic bokeh's squeeze: the lens's own stop is round or "
                                                "bladed"}
-RECENT_RESULTS = 8        # results kept to come back at once (480 x 270: 1.6 MB each)
+RECENT_RESULTS = 8        # results kept to come back at once (480 x 270: 1.6 MB each, 2 MB more as shown)
 # while nothing changes, the worker renders the same view again with other seeds and the preview shows the
 # mean: 16 samples a pass, 8 passes are 128 (a 1-2 px ball's shape is then the lens's, not the noise's)
 ACCUMULATE_PASSES = 8
@@ -226,7 +226,6 @@ class Preview:
         worker = self.worker_renders
         if bpy.app.background or self.worker_failed or not (worker.alive() or worker.start()):
             return False
-        from . import view_transform
         if worker.warm_table is not None:            # baked by the warm-up (warm_up)
             view_transform.keep(worker.warm_table)
             worker.warm_table = None
@@ -264,7 +263,6 @@ class Preview:
                 self.changed_at = time.perf_counter() - DEBOUNCE_S
             return None
         if r.get("table") is not None:              # the display table baked there: none to bake here
-            from . import view_transform
             view_transform.keep(r["table"])
         if r.get("accumulate"):
             self._add_pass(r)
@@ -362,6 +360,8 @@ class Preview:
                           "t0": time.perf_counter(), "passes": sharp["passes"]}
         rgb, depth, refocus = sharp["rgb"], sharp["depth"], bool(a["scene"].dcdi_lens_bokeh.refocus)
         quality, geometry, pinhole = a["quality"], a["lens_geometry"], a["pinhole_mm"]
+        # the display table applied on the thread: the texture is all the main thread makes
+        table = None if bpy.app.background else view_transform.kept(a["scene"])
 
         def run():
             _lower_thread_priority()
@@ -371,6 +371,8 @@ class Preview:
                                             preview=True, max_error_db=quality, lens_geometry=geometry,
                                             pinhole_focal_length_mm=pinhole)
                 job["out"], job["info"] = out, info
+                if table is not None and self.generation == gen:
+                    job["display"] = view_transform.display_rows(table, out)
             except logic.Cancelled:
                 job["cancelled"] = True
             except Exception as e:               # handed to the main thread
@@ -390,7 +392,7 @@ class Preview:
         self.served, self.served_passes, self.result_at = served, kept["passes"], time.perf_counter()
         self.log.append({"render_s": 0.0, "lens_s": 0.0, "cold": False, "source": None, "main_s": 0.0,
                          "render_steps": {}, "recalled": True})
-        self.texture = _texture(kept["image"])
+        self.texture = _texture(kept["image"], kept.get("display"))
         _redraw(bpy.context)
 
     def _collect(self) -> None:
@@ -404,14 +406,15 @@ class Preview:
         self.result = {"image": job["out"], "info": job["info"], "generation": job["generation"],
                        "render_s": job["render_s"], "lens_s": job["lens_s"]}
         self.served, self.served_passes, self.result_at = job["key"], job["passes"], time.perf_counter()
-        self.recent[job["key"]] = {"image": job["out"], "info": job["info"], "passes": job["passes"]}
+        self.recent[job["key"]] = {"image": job["out"], "info": job["info"], "passes": job["passes"],
+                                   "display": job.get("display")}
         self.recent.move_to_end(job["key"])
         while len(self.recent) > RECENT_RESULTS:
             self.recent.popitem(last=False)
         self.log.append({"render_s": job["render_s"], "lens_s": job["lens_s"], "cold": job["cold"],
                          "source": job["source"], "main_s": job["main_s"], "render_steps": job["steps"],
-                         "passes": job["passes"]})
-        self.texture = _texture(job["out"])
+                         "passes": job["passes"], "display_ahead": job.get("display") is not None})
+        self.texture = _texture(job["out"], job.get("display"))
         _redraw(bpy.context)
 
 
@@ -517,24 +520,30 @@ def settings_changed(settings, context) -> None:
     preview().check(context)
 
 
-def _texture(image: np.ndarray):
+def _texture(image: np.ndarray, display: tuple | None = None):
     """A GPU texture of the linear (H, W, 3) image as the scene's colour
     management displays a render (``view_transform``: display values, drawn
-    as they are); None without a GPU (background). Should Blender fail to
-    bake the view transform, the sRGB encoding, and the console says why."""
+    as they are); None without a GPU (background). ``display``: the values
+    made ahead (``view_transform.display_rows``), used when the scene's view settings are
+    still those of its table. Should Blender fail to bake the view transform,
+    the sRGB encoding, and the console says why."""
     if bpy.app.background:
         return None
     import gpu
 
-    from . import view_transform
     h, w = image.shape[:2]
-    rgba = np.ones((h, w, 4), np.float32)
-    try:
-        rgba[..., :3] = view_transform.to_display(image, bpy.context.scene)
-    except (RuntimeError, OSError, ValueError, TypeError) as e:
-        print(f"Lens Bokeh preview: the scene's view transform could not be baked ({e}); showing sRGB")
-        rgba[..., :3] = app.images.linear_to_srgb(np.clip(np.nan_to_num(image), 0.0, 1.0))
-    buf = gpu.types.Buffer("FLOAT", h * w * 4, rgba[::-1].ravel())
+    scene = bpy.context.scene
+    if display is not None and display[0] == view_transform.settings_key(scene):
+        rgba = display[1]
+    else:
+        rgba = np.ones((h, w, 4), np.float32)
+        try:
+            rgba[..., :3] = view_transform.to_display(image, scene)
+        except (RuntimeError, OSError, ValueError, TypeError) as e:
+            print(f"Lens Bokeh preview: the scene's view transform could not be baked ({e}); showing sRGB")
+            rgba[..., :3] = app.images.linear_to_srgb(np.clip(np.nan_to_num(image), 0.0, 1.0))
+        rgba = rgba[::-1]
+    buf = gpu.types.Buffer("FLOAT", h * w * 4, rgba.ravel())
     tex = gpu.types.GPUTexture((w, h), format="RGBA16F", data=buf)
     if hasattr(tex, "filter_mode"):         # drawn over a larger frame: interpolated, not in blocks
         tex.filter_mode(True)

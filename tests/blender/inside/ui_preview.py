@@ -74,8 +74,8 @@ _made_texture = viewport._texture
 MADE_OF: list = [None]       # the image the last texture was made of
 
 
-def _timed_texture(image):
-    tex = _made_texture(image)
+def _timed_texture(image, *display):
+    tex = _made_texture(image, *display)
     MADE.append(time.perf_counter())
     MADE_OF[0] = image
     return tex
@@ -166,7 +166,7 @@ def change(name, via, fn):
                    rendered=P.renders > renders, render_s=round(log["render_s"], 3),
                    main_render=None if main is None else P.main_renders > main, source=log.get("source"),
                    main_s=log.get("main_s"), render_steps=log.get("render_steps"),
-                   lens_s=round(log["lens_s"], 3), current=P.served is not None and asked[1] == P.served[1],
+                   lens_s=round(log["lens_s"], 3), display_ahead=log.get("display_ahead"), current=P.served is not None and asked[1] == P.served[1],
                    shown=shown())
     rec["heartbeat"] = HEART.longest(t, t_end)
     rec["addon_call"] = CALLS.longest(t, t_end, names=TIMED[:-1])
