@@ -8,7 +8,8 @@
                                         bench-defocus, bokeh-variants, capture-records,
                                         resample-accuracy, focus-stack, raymap, aperture, catalogue-table,
                                         contact-sheet, large-bokeh, quality-tables, cli-reference,
-                                        reproduce, traced-render, breathing, walk, olf-frame
+                                        reproduce, traced-render, breathing, walk, olf-frame,
+                                        olf-basis
 
 `python -m lab COMMAND --help` says more; lab/README.md lists which figure or
 table of docs/ each one makes. The lab uses the engine (``dcdi_core``); the
@@ -63,6 +64,8 @@ MODULES = {
                                "against a direct trace (docs/image-formation.md)"),
     "olf-frame": ("olf_frame", "an OLF whose head draws each PSF in coordinates scaled to its blur, against the "
                                "pixel head (docs/olf.md)"),
+    "olf-basis": ("olf_basis", "an OLF giving the coefficients of a basis of blur-scaled PSFs, against the basis "
+                               "and the grid interpolated (docs/olf.md)"),
     "walk": ("walk", "a job's calls through the layers: `dcdi dof` and Apply Lens Bokeh cross into app once "
                      "(docs/design.md)"),
     "traced-render": ("traced_render", "the fast bokeh (--distort --focus) against a render traced through the lens, "
@@ -71,7 +74,7 @@ MODULES = {
 
 #: the reports' options that never name a path, beside the `dcdi` command's (``dcdi_core.cli.files.NOT_PATHS``)
 NOT_PATHS = frozenset({"count", "held_out_points", "pitch_only", "points", "compare", "basis_lens", "seed", "ceiling_rays",
-                        "frame_px"})
+                        "frame_px", "reference_rays"})
 
 #: what each report reads and writes (``dcdi_core.cli.files.Spec``), checked before any work
 SPECS = {
@@ -168,7 +171,7 @@ def cmd_report_olf(args) -> int:
     from .olf_report import run_report
     return run_report(args.olf, args.out, quick=args.quick, sweep=args.sweep, pitch_only=args.pitch_only,
                       held_out_points=args.held_out_points, ceiling_rays=args.ceiling_rays,
-                      frame_px=args.frame_px or ())
+                      frame_px=args.frame_px or (), reference_rays=args.reference_rays or ())
 
 
 def cmd_report_psf_source(args) -> int:
@@ -235,6 +238,10 @@ def add_reports(rsub) -> None:
                    help="with --held-out-points: the held-out PSFs through an M x M frame scaled to each one's "
                         "thin-lens blur and back (repeat): the ceiling of a head that draws a disc of any radius "
                         "in M x M outputs")
+    r.add_argument("--reference-rays", type=positive_int, action="append", default=None, metavar="N",
+                   help="with --held-out-points: the held-out points traced again with N rays a side (repeat; "
+                        "about 15 s a point at 1024): the stored traces' own error, and the ray map's rows "
+                        "against these traces")
     r.set_defaults(func=cmd_report_olf)
     r = rsub.add_parser("psf-source", help="every PSF source (basis ranks, libraries, the OLF): off-grid and grid "
                                            "error vs storage, PSF-map time, downstream images",

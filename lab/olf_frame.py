@@ -138,16 +138,22 @@ def run(points: Path | None, seed: int, out: Path, frame_px: int = 41, iters: in
     return result
 
 
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m lab olf-frame", description=__doc__.split("\n\n")[0])
+def add_pilot_options(p, *, out: str, focus_bins: int) -> None:
+    """The options of a study on the pilot's data: its points, seed, folder, frame and focus bins."""
     p.add_argument("--points", default=None,
                    help="the pixel-head run's points.npz (its held-out points, not traced again; its key must be "
-                        "this run's: the same seed and focus bins); default: traced here")
-    p.add_argument("--seed", type=int, default=0, help="the pixel-head run's seed (its points' key)")
-    p.add_argument("--out", required=True, help="a folder: the run and result.json")
-    p.add_argument("--frame-px", type=int, default=41, help="the head's frame, M x M (default 41)")
+                        "this run's: the same seed, focus bins and deposit); default: traced here")
+    p.add_argument("--seed", type=int, default=0, help="the pixel-head run's seed (its points' key), and the study's")
+    p.add_argument("--out", required=True, help=out)
+    p.add_argument("--frame-px", type=int, default=41, help="the frame, M x M (default 41)")
+    p.add_argument("--focus-bins", type=int, default=focus_bins,
+                   help=f"focus libraries besides the prescribed (default {focus_bins})")
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m lab olf-frame", description=__doc__.split("\n\n")[0])
+    add_pilot_options(p, out="a folder: the run and result.json", focus_bins=3)
     p.add_argument("--iters", type=int, default=4000, help="iterations (default 4000, the pilot's)")
-    p.add_argument("--focus-bins", type=int, default=3, help="focus libraries besides the prescribed (default 3)")
     a = p.parse_args(argv)
     r = run(Path(a.points) if a.points else None, a.seed, Path(a.out), a.frame_px, a.iters, a.focus_bins,
             log=lambda t: print(t, file=sys.stderr))

@@ -282,14 +282,14 @@ def _fmt(v, spec=".2f"):
 
 
 def run_report(olf_files=None, out="out/report", *, quick: bool = False, sweep=None, pitch_only: bool = False,
-               held_out_points=None, ceiling_rays=None, frame_px=(), log=print) -> int:
+               held_out_points=None, ceiling_rays=None, frame_px=(), reference_rays=(), log=print) -> int:
     """The report (module docstring) into ``out`` (olf.md, olf.json, the plot);
     ``pitch_only``: only the pixel-pitch tables (``pitch_resampling``, every
     served lens; a minute or two), into olf-pitch.md / olf-pitch.json."""
     if pitch_only:
         return _run_pitch_report(olf_files, Path(out), log)
     if held_out_points:
-        return _run_comparison(olf_files, held_out_points, Path(out), log, ceiling_rays, frame_px)
+        return _run_comparison(olf_files, held_out_points, Path(out), log, ceiling_rays, frame_px, reference_rays)
     out = Path(out)
     files = [Path(f) for f in (olf_files or shipped_olf_files())]
     if not files:
@@ -349,7 +349,7 @@ def _run_pitch_report(olf_files, out: Path, log) -> int:
     return 0
 
 
-def held_out_comparison(olf_files, points_file, ceiling_rays=None, frame_px=()) -> list[dict]:
+def held_out_comparison(olf_files, points_file, ceiling_rays=None, frame_px=(), reference_rays=()) -> list[dict]:
     """Each OLF file scored on the held-out points of a run's ``points.npz``
     (coordinates field, depth_m, focus_m: NaN at the prescribed focus, and
     the traced kernels): rows of file, lens, focus band, points and scores.
@@ -389,7 +389,8 @@ def held_out_comparison(olf_files, points_file, ceiling_rays=None, frame_px=()) 
                              **psf_scores(pred, ref, scale="sum")})
                 if lid not in ceilings:
                     ceilings[lid] = (lens, entry)
-    return rows + raymap_rows(pts, ceilings, ceiling_rays) + frame_rows(pts, ceilings, frame_px or ())
+    return rows + raymap_rows(pts, ceilings, ceiling_rays) + frame_rows(pts, ceilings, frame_px or ()) \
+        + reference_rows(pts, ceilings, reference_rays, ceiling_rays)
 
 
 # a blur-scaled frame: the kernel's pixels spaced max(1, (FRAME_MARGIN x blur + FRAME_PAD_PX) / M) pixels apart
@@ -455,12 +456,14 @@ def frame_rows(pts: dict, lenses: dict, sizes) -> list[dict]:
     return rows
 
 
-def raymap_rows(pts: dict, lenses: dict, rays=None) -> list[dict]:
+def raymap_rows(pts: dict, lenses: dict, rays=None, refs: dict | None = None, against: str = "") -> list[dict]:
     """The ceiling of an OLF learned from a ray map: the lens's shipped ray
     map itself on the same held-out points, deposited with the settings the
     OLF learned (its rays, wavelengths, pitch and kernel), per focus band
     (``lenses``: {id: (lens, the OLF's entry)}; a lens without a ray map is
-    left out); ``rays``: rows with these rays a side instead (None: the OLF's)."""
+    left out); ``rays``: rows with these rays a side instead (None: the OLF's);
+    ``refs``: {id: kernels} scored against instead of the stored traces
+    (``against`` says which, in the rows' file column)."""
     from dataclasses import replace
 
     from dcdi_core.models.olf.data import crop_normalise, raymap_points
@@ -472,7 +475,7 @@ def raymap_rows(pts: dict, lenses: dict, rays=None) -> list[dict]:
         path = raymap_file(lid)
         if path is None:
             continue
-        y = pts[f"{lid}.val.y"]
+        y = pts[f"{lid}.val.y"] if refs is None else refs[lid]
         fm = pts.get(f"{lid}.val.focus_m", np.full(len(y), np.nan))
         learned = replace(_settings(entry), pixel_pitch_mm=float(entry["pixel_pitch_mm"]),
                           kernel_size=int(y.shape[-1]))
@@ -483,27 +486,54 @@ def raymap_rows(pts: dict, lenses: dict, rays=None) -> list[dict]:
             for band in ("all",) + tuple(FOCUS_BANDS):
                 sel = ok & (True if band == "all" else bands == band)
                 if sel.any():
-                    rows.append({"file": f"ray map, {n_rays} rays a side", "lens": lid, "band": band,
+                    rows.append({"file": f"ray map, {n_rays} rays a side{against}", "lens": lid, "band": band,
                                  "k": int(y.shape[-1]), "n": int(sel.sum()),
                                  **psf_scores(crop_normalise(psf[sel], y.shape[-1]), y[sel], scale="sum")})
     return rows
 
 
+def reference_rows(pts: dict, lenses: dict, rays, ceiling_rays=None) -> list[dict]:
+    """The held-out references' own error: each point traced again with
+    ``rays`` a side (more than the stored traces), the stored traces scored
+    against them, and the ray map (``ceiling_rays``) against them too. A
+    store that reaches the stored traces' own error cannot be told from them."""
+    from dataclasses import replace
+
+    from dcdi_core.models.olf.data import crop_normalise, trace_points
+    rows = []
+    for n_rays in rays or ():
+        refs = {}
+        for lid, (lens, entry) in lenses.items():
+            y = pts[f"{lid}.val.y"]
+            fm = pts.get(f"{lid}.val.focus_m", np.full(len(y), np.nan))
+            s = replace(_settings(entry), pixel_pitch_mm=float(entry["pixel_pitch_mm"]), kernel_size=int(y.shape[-1]),
+                        pupil_samples=int(n_rays))
+            again, ok = trace_points(lens, s, pts[f"{lid}.val.field"], pts[f"{lid}.val.depth_m"], fm)
+            refs[lid] = np.where(ok[:, None, None, None], crop_normalise(again, y.shape[-1]), y)
+            rows.append({"file": f"the held-out traces against {n_rays}-ray traces", "lens": lid, "band": "all",
+                         "k": int(y.shape[-1]), "n": int(ok.sum()), **psf_scores(y[ok], refs[lid][ok], scale="sum")})
+        rows += raymap_rows(pts, lenses, ceiling_rays, refs, f", against {n_rays}-ray traces")
+    return rows
+
+
 def comparison_markdown(rows: list[dict], points_file) -> str:
     lines = [f"Held-out points of `{points_file}` (traced, never trained on), per file, lens and focus band:", "",
-             "| file | lens | focus | points | k | PSNR 8-bit dB | SSIM | rel. L1 |", "|---|---|---|---|---|---|---|---|"]
+             "| file | lens | focus | points | k | PSNR 8-bit dB: mean | median | worst | SSIM | rel. L1 |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         if "not_served" in r:
-            lines.append(f"| {r['file']} | {r['lens']} | {r['band']} | {r['n']} | not served: {r['not_served']} | | | |")
+            lines.append(f"| {r['file']} | {r['lens']} | {r['band']} | {r['n']} | not served: {r['not_served']} "
+                         "| | | | | |")
         else:
             lines.append(f"| {r['file']} | {r['lens']} | {r['band']} | {r['n']} | {r['k']} | {r['psnr_8bit']:.2f} | "
+                         f"{r['psnr_8bit_median']:.2f} | {r['psnr_8bit_worst']:.2f} | "
                          f"{_fmt(r['ssim_8bit'], '.4f')} | {r['rel_l1']:.4f} |")
     return "\n".join(lines) + "\n"
 
 
-def _run_comparison(olf_files, points_file, out: Path, log, ceiling_rays=None, frame_px=()) -> int:
+def _run_comparison(olf_files, points_file, out: Path, log, ceiling_rays=None, frame_px=(), reference_rays=()) -> int:
     files = [Path(f) for f in (olf_files or shipped_olf_files())]
-    rows = held_out_comparison(files, points_file, ceiling_rays, frame_px)
+    rows = held_out_comparison(files, points_file, ceiling_rays, frame_px, reference_rays)
     out.mkdir(parents=True, exist_ok=True)
     write_text(out / "olf-held-out.json", json.dumps(rows, indent=1, default=float) + "\n")
     md = comparison_markdown(rows, points_file)

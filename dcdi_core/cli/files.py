@@ -86,7 +86,7 @@ NOT_PATHS = frozenset("""
     near_rays show_fields show_depths patch image_pixel_pitch sensor_size axis interpolation fixed_depth pinhole_focal_length
     no_distortion noise full_well read_noise seed perturb perturb_fraction accelerator keep distort plain multires
     max_level exact_layers method deconv_weight deconv_method noise_full_well noise_read one_depth tile overlap
-    weights threads device depth_backend variant size iters batch lr checkpoint_every dtype offgrid held_out held_out_rays psf_data
+    weights threads device depth_backend variant size iters batch lr checkpoint_every dtype offgrid held_out held_out_rays deposit_sigma psf_data
     focus_range focus_bins kind variants no_refocus baseline_depth no_noise no_saturate sensor_px placement
     no_deconvolved shard crop schedule warmup loss ema_decay crop_choice validate_every input rdicab d2cb racm
     depth_encoding condition channels groups blocks train_scenes name pictures_count lpips widths quick

@@ -23,7 +23,8 @@ def _data_config(args, **extra):
                          n_fields=args.fields, n_depths=args.depths, focus_lenses=tuple(args.focus_lens or ()),
                          focus_range_m=tuple(args.focus_range), focus_bins=args.focus_bins, offgrid=args.offgrid,
                          held_out=args.held_out, seed=args.seed, source=args.psf_data,
-                         held_out_rays=args.held_out_rays, pixel_pitch_mm=args.pixel_pitch, **extra)
+                         held_out_rays=args.held_out_rays, pixel_pitch_mm=args.pixel_pitch,
+                         deposit_sigma_px=args.deposit_sigma, **extra)
 
 
 def cmd_olf_train(args) -> int:
@@ -136,6 +137,10 @@ def _add_data_options(t) -> None:
                         "shipped ray map (the catalogue's lenses: any focus, no tracing; a lens without one is "
                         "traced); held-out points are traced either way")
     t.add_argument("--pixel-pitch", type=float, default=None, metavar="MM", help=PIXEL_PITCH_RULE)
+    t.add_argument("--deposit-sigma", type=float, default=0.0, metavar="PX",
+                   help="each ray's Gaussian spread in the learned and held-out PSFs, 0 to 5 px (default 0: the "
+                        "ray histogram; 0.4714, the paper's sqrt(2)/3, smooths the ray grid's moire that differs "
+                        "between ray counts)")
     t.add_argument("--rays", type=positive_int, default=64, help="pupil samples per side (PSF settings)")
     t.add_argument("--wavelengths", type=positive_int, default=31, help="wavelengths per PSF")
     t.add_argument("--fields", type=positive_int, default=64, help="library fields")

@@ -74,3 +74,14 @@ def test_psf_scores_scales():
     assert same == {k: pytest.approx(v, abs=1e-12) for k, v in s.items()}
     worse = M.psf_scores(ref + 1e-3, ref, scale="sum")
     assert 0 < worse["rel_l1"] and worse["psnr_sum"] < 100
+
+
+def test_psf_scores_say_how_the_psnr_spreads():
+    """One bad PSF among exact ones: the capped mean stays high, the worst says it."""
+    rng = np.random.default_rng(3)
+    ref = rng.random((10, 3, 15, 15)) ** 8
+    ref /= ref.sum(axis=(-1, -2), keepdims=True)
+    pred = ref.copy()
+    pred[4] = np.roll(ref[4], 3, axis=-1)
+    s = M.psf_scores(pred, ref, scale="sum")
+    assert s["psnr_8bit_median"] == 100.0 and s["psnr_8bit"] > 90.0 and s["psnr_8bit_worst"] < 30.0, s

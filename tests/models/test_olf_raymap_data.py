@@ -59,3 +59,47 @@ def test_a_lens_without_a_ray_map_is_traced():
 def test_the_source_is_checked():
     with pytest.raises(Exception, match="trace or raymap"):
         PSFDataConfig(lenses=("mos-s1",), source="basis")
+
+
+def test_the_deposit_spread_reaches_every_psf_and_keeps_old_keys():
+    """--deposit-sigma: the learned and held-out PSFs' settings carry it; at 0
+    (the histogram) a config's settings, hence its points' key, are as before."""
+    from dcdi_core.errors import InputRangeError
+    plain = PSFDataConfig(lenses=("mos-s1",))
+    assert "deposit_sigma_px" not in plain.as_dict() and PSFDataConfig.from_dict(plain.as_dict()) == plain
+    smooth = PSFDataConfig(lenses=("mos-s1",), deposit_sigma_px=0.4714)
+    assert smooth.psf_settings(31).deposit_sigma_px == 0.4714 and plain.psf_settings(31).deposit_sigma_px == 0.0
+    assert PSFDataConfig.from_dict(smooth.as_dict()) == smooth
+    for bad in (-0.1, 6.0, float("nan")):
+        with pytest.raises(InputRangeError, match="deposit_sigma_px"):
+            PSFDataConfig(lenses=("mos-s1",), deposit_sigma_px=bad)
+
+
+def test_data_too_large_for_the_memory_is_refused_before_any_work(monkeypatch):
+    """12 focus bins of a fast lens held 14.6 GB: a run that cannot fit is
+    refused by name before a library is made (two such runs side by side were
+    ended by the kernel's OOM killer without a word)."""
+    import dcdi_core.memory as memory
+    from dcdi_core.errors import MemoryLimitError
+    from dcdi_core.models.olf import data as olf_data
+    monkeypatch.setattr(memory, "available_bytes", lambda: 8 << 30)
+    monkeypatch.setattr(olf_data, "_open_libraries", lambda *a, **k: pytest.fail("work started"))
+    config = PSFDataConfig(lenses=("nikkor-85mm-f1-4",), focus_lenses=("nikkor-85mm-f1-4",), focus_bins=12,
+                           source="raymap")
+    with pytest.raises(MemoryLimitError, match=r"13 libraries of 64 fields x 21 depth bins at up to 129 px\) "
+                                               r"needs about 13\.\d GiB .* lower --focus-bins"):
+        build_data(config, cache_dir=False)
+    olf_data._check_memory(PSFDataConfig(lenses=("nikkor-85mm-f1-4",)))      # one library: fits
+
+
+def test_the_crop_normalises_in_chunks_as_at_once():
+    rng = np.random.default_rng(1)
+    psf = rng.random((1100, 3, 15, 15)).astype(np.float32)
+    psf[7] = 0.0
+    got = crop_normalise(psf, 9)
+    c = psf[..., 3:12, 3:12].astype(np.float64)
+    s = c.sum(axis=(-1, -2), keepdims=True)
+    want = np.where(s > 0, c / np.where(s > 0, s, 1.0), 0.0).astype(np.float32)
+    assert got.dtype == np.float32 and got.shape == (1100, 3, 9, 9)
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(crop_normalise(psf[0], 9), want[0])

@@ -146,7 +146,10 @@ def psf_scores(pred, ref, *, scale: str) -> dict:
 
     - ``psnr_8bit``, ``ssim_8bit``: the paper's scale: both peak-normalised
       per channel (a ``scale="peak"`` prediction as it is, a ``"sum"`` one by
-      its own peak), as 8-bit images (L = 255);
+      its own peak), as 8-bit images (L = 255); each PSF's PSNR is capped at
+      100 dB (identical 8-bit images), so the mean can hide a few bad PSFs
+      among many exact ones: ``psnr_8bit_median`` and ``psnr_8bit_worst``
+      (the lowest) say how they spread;
     - ``psnr_sum``: both summing to 1 per channel, L = the reference's peak;
     - ``rel_l1``: both summing to 1, sum |P - R| / sum R (mean over channels),
       the metric of `python -m lab report psf-accuracy`.
@@ -163,7 +166,9 @@ def psf_scores(pred, ref, *, scale: str) -> dict:
     p_peak, r_peak = (p if scale == "peak" else by(p, "peak")), by(r, "peak")
     p_sum, r_sum = by(p, "sum"), by(r, "sum")
     q_p, q_r = quantize_8bit(p_peak), quantize_8bit(r_peak)
-    out = {"psnr_8bit": float(np.mean(np.minimum(psnr(q_p, q_r, 255.0), 100.0))),
+    each = np.minimum(psnr(q_p, q_r, 255.0), 100.0)
+    out = {"psnr_8bit": float(np.mean(each)), "psnr_8bit_median": float(np.median(each)),
+           "psnr_8bit_worst": float(np.min(each)),
            "ssim_8bit": float(np.mean(ssim(q_p, q_r, 255.0))) if p.shape[-1] >= WINDOW else None}
     mse = ((p_sum - r_sum) ** 2).mean(axis=(-3, -2, -1))
     peak = r_sum.max(axis=(-3, -2, -1))

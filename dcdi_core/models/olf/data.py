@@ -67,6 +67,7 @@ from ...psf.olf import encode_paper, encode_radial, inverse_depth, patch_centres
 PAPER_KERNEL = 41
 PAPER_DEPTHS_M = np.round(np.arange(0.7, 10.0 + 1e-9, 0.1), 1)     # the paper's 94 depths
 INFINITY_FRACTION = 0.1          # radial off-grid / held-out points drawn at infinity
+MAX_DEPOSIT_SIGMA_PX = 5.0       # a ray's Gaussian spread beyond this blurs the PSF itself
 
 
 @dataclass(frozen=True)
@@ -97,6 +98,9 @@ class PSFDataConfig:
     held_out_rays: int | None = None
     # the pitch the network learns at (mm; None: each lens's sensor pixels); coarser ones are area-resampled
     pixel_pitch_mm: float | None = None
+    # each ray's Gaussian spread (px) in every PSF, learned and held out (PSFSettings.deposit_sigma_px): 0 is
+    # the ray histogram, whose ray-grid moire differs between ray counts; the paper's sqrt(2)/3 smooths it
+    deposit_sigma_px: float = 0.0
     # kernels
     kernel_size: int | None = None     # radial: None = per lens (energy); paper: 41
     energy: float = 0.99
@@ -127,6 +131,9 @@ class PSFDataConfig:
         p = self.pixel_pitch_mm
         if p is not None and not (isinstance(p, (int, float)) and math.isfinite(p) and p > 0):
             raise InputRangeError("pixel_pitch_mm", p, "a pixel pitch > 0 mm, or None (each lens's sensor)")
+        g = self.deposit_sigma_px
+        if not (isinstance(g, (int, float)) and 0.0 <= g <= MAX_DEPOSIT_SIGMA_PX):
+            raise InputRangeError("deposit_sigma_px", g, f"0 to {MAX_DEPOSIT_SIGMA_PX} px")
         if self.held_out_rays is not None and self.held_out_rays < 2:
             raise InputRangeError("held_out_rays", self.held_out_rays, ">= 2 rays per pupil side, or None")
         if not (0.5 < self.energy <= 1.0):
@@ -138,7 +145,7 @@ class PSFDataConfig:
     def psf_settings(self, kernel_size: int, focus_m: float | None = None) -> PSFSettings:
         return PSFSettings(kernel_size=kernel_size, pupil_samples=self.pupil_samples,
                            n_wavelengths=self.n_wavelengths, focus_distance_m=focus_m,
-                           pixel_pitch_mm=self.pixel_pitch_mm)
+                           pixel_pitch_mm=self.pixel_pitch_mm, deposit_sigma_px=float(self.deposit_sigma_px))
 
     @property
     def grid(self) -> LibraryGrid:
@@ -163,6 +170,8 @@ class PSFDataConfig:
         d = asdict(self)
         for k in ("lenses", "focus_lenses", "focus_range_m"):
             d[k] = list(d[k])
+        if not d["deposit_sigma_px"]:        # the histogram: a run's settings and points as before the field
+            del d["deposit_sigma_px"]
         return d
 
     @classmethod
@@ -400,12 +409,21 @@ def _draw_paper_points(rng, n, config: PSFDataConfig):
     return rows, cols, depth
 
 
+CROP_CHUNK = 512                 # kernels normalised at a time (their float64 temporaries stay small)
+
+
 def crop_normalise(psf: np.ndarray, k: int) -> np.ndarray:
-    """Centred k x k crop of kernels (..., 3, K, K), each channel renormalised to 1."""
+    """Centred k x k crop of kernels (..., 3, K, K), each channel renormalised
+    to 1 (float32; summed in float64, ``CROP_CHUNK`` kernels at a time)."""
     r, h = psf.shape[-1] // 2, k // 2
-    c = psf[..., r - h:r + h + 1, r - h:r + h + 1].astype(np.float64)
-    s = c.sum(axis=(-1, -2), keepdims=True)
-    return np.where(s > 0, c / np.where(s > 0, s, 1.0), 0.0).astype(np.float32)
+    c = psf[..., r - h:r + h + 1, r - h:r + h + 1]
+    flat = c.reshape((-1,) + c.shape[-3:])
+    out = np.empty(flat.shape, np.float32)
+    for a in range(0, len(flat), CROP_CHUNK):
+        x = flat[a:a + CROP_CHUNK].astype(np.float64)
+        s = x.sum(axis=(-1, -2), keepdims=True)
+        out[a:a + CROP_CHUNK] = np.where(s > 0, x / np.where(s > 0, s, 1.0), 0.0)
+    return out.reshape(c.shape)
 
 
 def peak_normalise(psf: np.ndarray) -> np.ndarray:
@@ -438,6 +456,24 @@ def data_key(config: PSFDataConfig, lenses: list[Lens]) -> str:
     d = {"config": config.as_dict(), "fingerprints": [lens_fingerprint(l) for l in lenses],
          "psf_algorithm": ALGORITHM_VERSION, "format": 2}
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()
+
+
+# copies of one lens's library kernels held at once while its samples are made: the libraries, their
+# concatenation, the kernels with energy, and the cropped targets (float32 each)
+LIBRARY_COPIES = 4
+
+
+def _check_memory(config: PSFDataConfig) -> None:
+    """Refuse, before any work, data whose largest lens would not fit in memory
+    (its kernels at ``max_kernel``, or ``kernel_size``; ``LIBRARY_COPIES`` copies)."""
+    from ...memory import check_fits
+    k = config.kernel_size or (config.max_kernel | 1 if config.variant == "radial" else PAPER_KERNEL)
+    n_libs = (config.focus_bins + 1) if config.focus_lenses else 1
+    kernels = n_libs * config.n_fields * (config.n_depths + 1)
+    check_fits(LIBRARY_COPIES * kernels * 3 * k * k * 4.0,
+               f"the OLF's PSF data ({n_libs} libraries of {config.n_fields} fields x {config.n_depths + 1} "
+               f"depth bins at up to {k} px)",
+               "lower --focus-bins, --fields or --depths, or run one training at a time")
 
 
 def _open_library(lens, config, k, focus_m, cache_dir, progress):
@@ -495,6 +531,7 @@ def build_data(config: PSFDataConfig, *, cache_dir=None, points_file=None, lense
                "diopter_scale": diopter_scale}
     spec_d = OLFSpec(kernel_sizes=[1] * len(config.lenses), **spec_kw).as_dict()
     n_inputs = OLFSpec(kernel_sizes=[1] * len(config.lenses), **spec_kw).n_inputs
+    _check_memory(config)
     for li, lens in enumerate(lens_objs):
         k0 = config.kernel_size or PAPER_KERNEL
         say(f"{lens.id}: PSF library ({config.n_fields} fields x {config.n_depths + 1} depth bins"
