@@ -9,7 +9,7 @@
                                         resample-accuracy, focus-stack, raymap, aperture, catalogue-table,
                                         contact-sheet, large-bokeh, quality-tables, cli-reference,
                                         reproduce, traced-render, breathing, walk, olf-frame,
-                                        olf-basis
+                                        olf-basis, olf-rays
 
 `python -m lab COMMAND --help` says more; lab/README.md lists which figure or
 table of docs/ each one makes. The lab uses the engine (``dcdi_core``); the
@@ -66,6 +66,8 @@ MODULES = {
                                "pixel head (docs/olf.md)"),
     "olf-basis": ("olf_basis", "an OLF giving the coefficients of a basis of blur-scaled PSFs, against the basis "
                                "and the grid interpolated (docs/olf.md)"),
+    "olf-rays": ("olf_rays", "an OLF in ray space: an MLP giving where the rays land, deposited as the ray map's, "
+                             "against the ray map (docs/olf.md)"),
     "walk": ("walk", "a job's calls through the layers: `dcdi dof` and Apply Lens Bokeh cross into app once "
                      "(docs/design.md)"),
     "traced-render": ("traced_render", "the fast bokeh (--distort --focus) against a render traced through the lens, "

@@ -111,22 +111,24 @@ def interpolated(grid_x, grid_c, val_x) -> np.ndarray:
     return np.where(np.isnan(lin), near, lin)
 
 
-def train_mlp(f_train, c_train, f_val, score, seed: int, iters: int, width: int, layers: int, lr: float,
-              batch: int = 512, every: int = 1000, log=print) -> tuple[np.ndarray, list, float]:
-    """An MLP f -> coefficients: (held-out coefficients of the EMA, curve, seconds)."""
+def mlp(d_in: int, d_out: int, width: int, layers: int):
+    """An MLP of ``layers`` SiLU layers of ``width``, and its EMA (0.999)."""
     import torch
-    torch.manual_seed(seed)
-    rng = np.random.default_rng(seed)
-    dims = [f_train.shape[1]] + [width] * layers
+    dims = [d_in] + [width] * layers
     mods = []
     for a, b in zip(dims[:-1], dims[1:]):
         mods += [torch.nn.Linear(a, b), torch.nn.SiLU()]
-    net = torch.nn.Sequential(*mods, torch.nn.Linear(dims[-1], c_train.shape[1]))
+    net = torch.nn.Sequential(*mods, torch.nn.Linear(dims[-1], d_out))
     ema = torch.optim.swa_utils.AveragedModel(net, multi_avg_fn=torch.optim.swa_utils.get_ema_multi_avg_fn(0.999))
+    return net, ema
+
+
+def fit_steps(net, ema, xt, yt, rng, iters: int, lr: float, batch: int, every: int):
+    """Train ``net`` on (xt, yt) by MSE, AdamW without decay, the learning
+    rate cosine from ``lr`` to lr / 100, the EMA updated each step; yields
+    (step, the batch's loss) every ``every`` steps and at the last."""
+    import torch
     opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=0.0)
-    xt, yt = torch.from_numpy(f_train).float(), torch.from_numpy(c_train).float()
-    xv = torch.from_numpy(f_val).float()
-    curve, t0 = [], time.process_time()
     for step in range(1, iters + 1):
         for g in opt.param_groups:
             g["lr"] = lr * (0.01 + 0.99 * 0.5 * (1 + np.cos(np.pi * step / iters)))
@@ -137,10 +139,24 @@ def train_mlp(f_train, c_train, f_val, score, seed: int, iters: int, width: int,
         opt.step()
         ema.update_parameters(net)
         if step % every == 0 or step == iters:
-            with torch.no_grad():
-                pv = ema(xv).double().numpy()
-            curve.append({"step": step, "loss": loss.item(), "psnr_8bit": score(pv)["psnr_8bit"]})
-            log(f"step {step}: loss {loss.item():.3e}, held-out {curve[-1]['psnr_8bit']:.2f} dB")
+            yield step, loss.item()
+
+
+def train_mlp(f_train, c_train, f_val, score, seed: int, iters: int, width: int, layers: int, lr: float,
+              batch: int = 512, every: int = 1000, log=print) -> tuple[np.ndarray, list, float]:
+    """An MLP f -> coefficients: (held-out coefficients of the EMA, curve, seconds)."""
+    import torch
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    net, ema = mlp(f_train.shape[1], c_train.shape[1], width, layers)
+    xt, yt = torch.from_numpy(f_train).float(), torch.from_numpy(c_train).float()
+    xv = torch.from_numpy(f_val).float()
+    curve, t0 = [], time.process_time()
+    for step, loss in fit_steps(net, ema, xt, yt, rng, iters, lr, batch, every):
+        with torch.no_grad():
+            pv = ema(xv).double().numpy()
+        curve.append({"step": step, "loss": loss, "psnr_8bit": score(pv)["psnr_8bit"]})
+        log(f"step {step}: loss {loss:.3e}, held-out {curve[-1]['psnr_8bit']:.2f} dB")
     with torch.no_grad():
         pv = ema(xv).double().numpy()
     return pv, curve, time.process_time() - t0

@@ -434,9 +434,11 @@ def _check(meta: dict, arrays: dict, fail) -> None:
 
 
 # -------------------------------------------------------------------- build
-def build(lens: Lens, recipe: RayMapRecipe | None = None, *, progress=None) -> RayMap:
+def build(lens: Lens, recipe: RayMapRecipe | None = None, *, progress=None, precise: bool = False) -> RayMap:
     """Trace ``lens`` (as prescribed, wide open) at the recipe's grid and fit
-    its ray map. ``progress(done, total)`` per depth."""
+    its ray map. ``progress(done, total)`` per depth. ``precise``: the fits
+    kept in float64 (a study's data; a shipped map holds the landing and
+    clipping fits in float32, the chromatic differences in float16)."""
     recipe = recipe or RayMapRecipe()
     t_start = time.perf_counter()
     if lens.surfaces[lens.stop_index].blades:
@@ -535,7 +537,8 @@ def build(lens: Lens, recipe: RayMapRecipe | None = None, *, progress=None) -> R
             "clip_surfaces": [int(s) for s in clip],
             "clear_mm": [float(lens.surfaces[s].semi_diameter_mm) for s in clip],
             "fit_worst_mm": worst, "mask_mismatch": mismatch, "build_s": time.perf_counter() - t_start}
-    arrays = {"xy": xy.astype(np.float32), "chroma": chroma.astype(np.float16), "clip": clipc.astype(np.float32),
+    stored = (np.float64,) * 3 if precise else (np.float32, np.float16, np.float32)
+    arrays = {"xy": xy.astype(stored[0]), "chroma": chroma.astype(stored[1]), "clip": clipc.astype(stored[2]),
               "chief": chief, "aim": aim, "geometry": geometry, "reference_geometry": reference, "ok": ok}
     return RayMap(meta, arrays)
 
