@@ -173,3 +173,26 @@ def test_a_renderer_given_no_library_traces_a_lens_without_a_ray_map():
     lib = lens_library(lens, ImageGeometry.full_sensor(lens, 60, 90), PSFSettings(pupil_samples=8, n_wavelengths=3),
                        cache=False)
     assert type(lib).__name__ == "PSFLibrary" and not isinstance(lib, RayMapLibrary)
+
+
+def test_a_precise_map_keeps_its_fits_in_float64_and_serves_as_a_stored_one(small_map, tmp_path):
+    """``build(precise=True)`` (a study's training data) holds the very fits
+    a shipped map rounds (float32 landing points, float16 chromatic terms),
+    and is read and served by the same code."""
+    lens = load_lens(LENS)
+    stored = R.RayMap.load(small_map)
+    precise = R.build(lens, SMALL, precise=True)
+    assert {precise.arrays[k].dtype for k in ("xy", "chroma", "clip")} == {np.dtype(np.float64)}
+    assert stored.arrays["chroma"].dtype == np.float16
+    for k in ("xy", "chroma", "clip"):
+        np.testing.assert_array_equal(precise.arrays[k].astype(stored.arrays[k].dtype), stored.arrays[k])
+    rounding = np.abs(precise.arrays["chroma"] - stored.arrays["chroma"].astype(np.float64)).max()
+    assert rounding > 0.0            # the float16 rounding it removes
+    precise.save(tmp_path / "precise.npz")
+    again = R.RayMap.load(tmp_path / "precise.npz")
+    s = PSFSettings(kernel_size=31, pixel_pitch_mm=0.02, pupil_samples=48, n_wavelengths=3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", KernelTooSmallWarning)
+        a = R.RayMapLibrary(again, lens, s, LibraryGrid(n_fields=2, n_depths=2, near_m=0.7)).kernels(0.5, 1.5)
+        b = R.RayMapLibrary(stored, lens, s, LibraryGrid(n_fields=2, n_depths=2, near_m=0.7)).kernels(0.5, 1.5)
+    assert psnr(a, b) > 50.0
