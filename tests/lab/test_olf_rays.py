@@ -88,3 +88,26 @@ def test_the_command_refuses_a_lens_it_does_not_know(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no-such-lens" in err[0] and err[0].startswith("lab: error:")
     assert not any(tmp_path.iterdir())
+
+
+def test_the_command_scores_a_lens_keeps_its_row_and_refuses_mixed_settings(tmp_path, capsys, monkeypatch):
+    import json
+
+    import lab.raymap_report as rr
+    args = ["--out", str(tmp_path), "--lens", LENS, "--held-out", "1", "--rays", "48", "--train-sources", "256"]
+    assert main(args) == 0
+    table = capsys.readouterr().out
+    assert f"| `{LENS}` |" in table and "| all 1 lenses, 1 points |" in table
+    row = json.loads((tmp_path / "result.json").read_text())["lenses"][0]
+    assert row["olf_vs_map"][0] > 40.0 and row["store_val_um"] < 1.0 and len(row["points"]) == 1
+    # run again: the row is kept, nothing is traced
+    monkeypatch.setattr(rr, "_pitch_for", lambda *a: (_ for _ in ()).throw(AssertionError("traced again")))
+    assert main(args) == 0
+    assert json.loads((tmp_path / "result.json").read_text())["lenses"][0]["olf"] == row["olf"]
+    # other training settings into the same folder: refused in one line, the kept data untouched
+    capsys.readouterr()
+    kept = (tmp_path / LENS / "data.npz").read_bytes()
+    assert main(args[:-1] + ["300"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "train" in err[0] and err[0].startswith("lab: error:")
+    assert (tmp_path / LENS / "data.npz").read_bytes() == kept
