@@ -1,36 +1,41 @@
-"""`python -m lab olf-rays`: an Omni-Lens-Field in ray space. Does a
-network hold a photographic lens's PSFs at the ray map's accuracy when it
-gives where the rays land, not the PSF's pixels (docs/olf.md, "Learning
-from the ray maps")?
+"""`python -m lab olf-rays`: the Omni-Lens-Field in ray space, for every
+lens (docs/olf.md, "The OLF in ray space").
 
 Every store of the Nikkor 85 mm's kernels as pixels lost the wide discs'
-rims (28-35 dB); the ray map holds them (50 dB) because it stores where
-each ray lands and deposits the rays. Here an MLP learns the ray map's
-content as a function of the source, (field, 1/depth) -> the polynomials
-of the stop that say where its rays land on the two sensor planes, at
-every stored wavelength, and where they meet each clipping surface, with
-the chief ray and the illumination. A PSF is then made as the ray map's
-are (``psf.raymap``: any focus by the straight rays between the planes,
-any stop and iris by the stop grid, any pitch by the deposit), from the
-network's outputs at the source's own (field, depth): no grid between.
+rims (28-35 dB); the ray map holds them because it stores where each ray
+lands and deposits the rays. This store learns the ray map's values as a
+function of the source, (field, 1/depth) -> the polynomials of the stop
+that say where its rays land on the two sensor planes (at the design
+wavelength, and each stored wavelength's difference), where they meet each
+clipping surface, the chief ray and the illumination. A PSF is made as the
+map's are (``psf.raymap``: any focus by the straight rays between the
+planes, any stop and iris by the stop grid, any pitch by the deposit), from
+the store's values at the source's own (field, depth): no grid between.
 
-What it learns, in physical units: each polynomial is taken to an
-orthonormal basis of the stop (the monomials' QR on the map's fit grid),
-so a coefficient's error is the RMS of the landing points' error over the
-pupil, in mm. A tensor Legendre polynomial of (field, 1/depth), fitted by
-least squares, carries the smooth part; the MLP learns what it leaves
-(its output scaled to the residual's RMS). Its data are the ray map's own
-values at random sources (made once, ``OUT/data.npz``); the reachable
-disc, the usable sources and the axial illumination stay small tables.
+In physical units: each polynomial is taken to an orthonormal basis of the
+stop (the monomials' QR on the map's fit grid), so a coefficient's error is
+the RMS of the landing points' error over the pupil, in mm. The store is a
+tensor Legendre polynomial of (field, 1/depth) for each value, fitted by
+least squares weighed on the rays that pass each source (``fit_live``: a
+vignetted source's polynomial is wild outside them). Its data are the map's
+own values at random sources (``OUT/<lens>/data.npz``, made once); the
+reachable disc, the usable sources and the axial illumination stay small
+tables. The maps are the shipped ones (the paper's four lenses get one
+built here), or built here with ``--precise-maps`` / ``--map-recipe``.
 
-The held-out points are scored in pixels against their 512-ray traces,
-beside the ray map deposited with the same rays: a run's ``points.npz``
-(``--points``, the pixel-head pilot's: 64 points across focus, wide open),
-and the same points with the lens stopped down (``--f-number N``, traced
-here once, ``OUT/stopped.npz``).
+The catalogue (the default): each lens scored at ``lab raymap``'s held-out
+points (refocused, stopped down with blades, each at the pitch that holds
+its blur) against 512-ray traces, beside the map it learned from; a row per
+lens kept in ``OUT/<lens>/row.json``. ``--time-preview`` times a 480 x 270
+preview's PSFs from each lens's map and store.
 
-    python -m lab olf-rays --points RUN/points.npz --seed 0 --out OUT/rays-s0 \\
-        [--f-number 2.8 --f-number 5.6] [--iters 20000] [--rays 128]
+    python -m lab olf-rays --out OUT [--map-recipe n_wavelengths=16] [--lens ID ...] [--seed S]
+
+The pilot (``--points``): the Nikkor 85 mm on the pixel stores' 64 points
+(the pixel-head run's ``points.npz``, histogram kernels, 128 rays), with an
+MLP on the store's residual or, ``--mlp-alone``, on the values themselves.
+
+    python -m lab olf-rays --points RUN/points.npz --seed 0 --out OUT/rays-s0 [--iters 20000] [--mlp-alone]
 """
 from __future__ import annotations
 
@@ -391,11 +396,10 @@ def exact_predict(rm, layout: Layout):
 
 
 # --------------------------------------------------------------- scoring
-def held_out(points: Path, seed: int, f_numbers, out: Path, log=print) -> dict:
-    """{label: (lens, settings, field, depth_m, focus_m, traced kernels)}: the run's
-    points wide open, and the same points stopped down (traced once, ``OUT/stopped.npz``)."""
-    from dcdi_core.models.olf.data import PSFDataConfig, trace_points
-    from dcdi_core.optics.aperture import Aperture, stopped_down
+def held_out(points: Path, seed: int) -> dict:
+    """{label: (lens, settings, field, depth_m, focus_m, traced kernels)}: the
+    pixel-head run's held-out points (wide open, across focus)."""
+    from dcdi_core.models.olf.data import PSFDataConfig
     from dcdi_core.optics.lens import load_lens
     lens = load_lens(LENS)
     with np.load(points) as z:
@@ -404,21 +408,7 @@ def held_out(points: Path, seed: int, f_numbers, out: Path, log=print) -> dict:
     f, d, fm = p[f"{LENS}.val.field"], p[f"{LENS}.val.depth_m"], p[f"{LENS}.val.focus_m"]
     config = PSFDataConfig(seed=seed, **PILOT)
     s = replace(config.psf_settings(int(y.shape[-1])), pupil_samples=config.held_out_rays)
-    sets = {"wide open": (lens, s, f, d, fm, y)}
-    cache = out / "stopped.npz"
-    kept = dict(np.load(cache)) if cache.exists() else {}
-    for n in f_numbers or ():
-        key = f"f{n:g}"
-        stopped = stopped_down(lens, Aperture(float(n)))
-        if key not in kept:
-            t0 = time.perf_counter()
-            kept[key], _ = trace_points(stopped, s, f, d, fm)
-            log(f"f/{n:g}: {len(f)} points traced with {s.pupil_samples} rays in {time.perf_counter() - t0:.0f} s")
-            tmp = out / "stopped.tmp.npz"
-            np.savez(tmp, **kept)
-            tmp.replace(cache)
-        sets[f"f/{n:g}"] = (stopped, s, f, d, fm, kept[key])
-    return sets
+    return {"wide open": (lens, s, f, d, fm, y)}
 
 
 def scores(rm, sets: dict, rays: int) -> dict:
@@ -433,7 +423,7 @@ def scores(rm, sets: dict, rays: int) -> dict:
     return out
 
 
-def run_pilot(points: Path, seed: int, out: Path, *, f_numbers=(), iters: int = 20000, width: int = 256,
+def run_pilot(points: Path, seed: int, out: Path, *, iters: int = 20000, width: int = 256,
               layers: int = 3, lr: float = 1e-3, rays: int = 128, n_train: int = 16384, n_val: int = 2048,
               every: int = 1000, score_every: int = 5000, with_baseline: bool = True, log=print) -> dict:
     """The Nikkor 85 mm pilot on the pixel stores' points (module docstring)."""
@@ -448,7 +438,7 @@ def run_pilot(points: Path, seed: int, out: Path, *, f_numbers=(), iters: int = 
     layout = Layout(rm, lens)
     d_max = float(rm.diopters[0])
     data = make_data(rm, lens, layout, seed, n_train, n_val, out, log=log)
-    sets = held_out(points, seed, f_numbers, out, log=log)
+    sets = held_out(points, seed)
     result = {"lens": LENS, "seed": seed, "rays": rays, "mlp_on": "the Legendre fit's residual" if with_baseline
               else "the values (no Legendre fit)", "outputs": layout.size, "train_sources": len(data["train_f"]),
               "points": {k: int(len(v[2])) for k, v in sets.items()},
@@ -558,11 +548,11 @@ def _point_settings(p: dict, rays: int, kernel: int, sigma: float):
 
 
 def lens_study(lens_id: str, out: Path, *, seed: int = 0, n_points: int = 8, rays: int = 512, n_train: int = 2048,
-               n_val: int = 1024, iters: int = 0, width: int = 64, layers: int = 2, lr: float = 1e-3,
-               precise: bool = False, recipe: dict | None = None, log=print) -> dict:
-    """One catalogue lens: its ray-space OLF (the Legendre store, and an MLP on its residual where ``iters``)
-    fitted to its ray map, and both scored with the same rays as the reference trace at ``lab raymap``'s
-    held-out points: against the trace, and against the map (the store's own error)."""
+               n_val: int = 1024, precise: bool = False, recipe: dict | None = None, log=print) -> dict:
+    """One catalogue lens: its ray-space OLF (the Legendre store) fitted to
+    its ray map, and both scored with the same rays as the reference trace
+    at ``lab raymap``'s held-out points: against the trace, and against the
+    map (the store's own error)."""
     import warnings
 
     from dcdi_core.optics.lens import load_lens
@@ -571,14 +561,16 @@ def lens_study(lens_id: str, out: Path, *, seed: int = 0, n_points: int = 8, ray
     from .raymap_report import KERNEL, SIGMA_PX, _lens_at, _map_kernel, _psnr
     # a lens's row is kept (OUT/<lens>/row.json) with every setting that made it: a run over the catalogue
     # after runs over parts of it scores nothing twice
-    key = {"seed": seed, "points": n_points, "rays": rays, "train": n_train, "val": n_val, "iters": iters,
-           "width": width, "layers": layers, "lr": lr, "degrees": list(BASELINE_DEGREES), "mask": MASK_SAMPLES,
-           "precise": precise, **({"recipe": recipe} if recipe else {})}
+    key = {"seed": seed, "points": n_points, "rays": rays, "train": n_train, "val": n_val,
+           "degrees": list(BASELINE_DEGREES), "mask": MASK_SAMPLES, "precise": precise,
+           **({"recipe": recipe} if recipe else {})}
     precise = precise or bool(recipe)
     kept = out / lens_id / "row.json"
     if kept.exists():
         was = json.loads(kept.read_text())
-        if was.get("key") == key:
+        # (rows of this study's first runs also say iters 0: no MLP; an MLP's row is not this one)
+        old = {k: v for k, v in was.get("key", {}).items() if k not in ("iters", "width", "layers", "lr")}
+        if old == key and not was["key"].get("iters"):
             was["map_mb"] = _map_mb(lens_map(load_lens(lens_id), out, precise, recipe, log=log)[0])
             return was
     lens = load_lens(lens_id)
@@ -600,9 +592,6 @@ def lens_study(lens_id: str, out: Path, *, seed: int = 0, n_points: int = 8, ray
         return live_rms_um(layout, model(data["val_f"], data["val_d"]), data["val_y"], live["val"])
     row = {"lens": lens_id, "map_shipped": shipped, "map_mb": _map_mb(rm), "outputs": layout.size, "fit_cpu_s": fit_s,
            "plain_fit_um": val_um(RayField(plain, [], 0.0, d_max))}
-    if iters:
-        store, curve, cpu = train(data, d_max, seed, iters, width, layers, lr, base=base, log=log)
-        row.update(curve=curve, cpu_s=cpu, iterations=iters, width=width, layers=layers)
     row["store_val_um"] = val_um(store)
     row["store_mb"] = 4 * (store.floats + _table_floats(rm)) / 1e6
     nm = neural_map(rm, lens, layout, store)
@@ -743,12 +732,10 @@ def main(argv=None) -> int:
     p.add_argument("--points", default=None,
                    help="instead, the Nikkor 85 mm pilot: the pixel-head run's points.npz (its held-out traces)")
     p.add_argument("--seed", type=int, default=0, help="the draw's and the network's seed (the pilot: its points' key)")
-    p.add_argument("--f-number", type=float, action="append", default=None, dest="f_numbers", metavar="N",
-                   help="the pilot: also its points with the lens stopped to f/N (repeat; traced once)")
     p.add_argument("--iters", type=int, default=None,
-                   help="MLP iterations on the Legendre store's residual (default: none; the pilot 20000)")
-    p.add_argument("--width", type=int, default=None, help="MLP width (default 64; the pilot 256)")
-    p.add_argument("--layers", type=int, default=None, help="MLP hidden layers (default 2; the pilot 3)")
+                   help="the pilot: MLP iterations (default 20000; 0: the Legendre store alone)")
+    p.add_argument("--width", type=int, default=None, help="the pilot: MLP width (default 256)")
+    p.add_argument("--layers", type=int, default=None, help="the pilot: MLP hidden layers (default 3)")
     p.add_argument("--lr", type=float, default=1e-3, help="peak learning rate (default 1e-3)")
     p.add_argument("--rays", type=int, default=None,
                    help="rays a side in every scored PSF (default 512, the references'; the pilot 128)")
@@ -772,7 +759,7 @@ def main(argv=None) -> int:
     def opt(v, default):
         return default if v is None else v
     if a.points:
-        r = run_pilot(Path(a.points), a.seed, out, f_numbers=a.f_numbers or (), iters=opt(a.iters, 20000),
+        r = run_pilot(Path(a.points), a.seed, out, iters=opt(a.iters, 20000),
                       width=opt(a.width, 256), layers=opt(a.layers, 3), lr=a.lr, rays=opt(a.rays, 128),
                       n_train=opt(a.train_sources, 16384), with_baseline=not a.mlp_alone, log=say)
         for name in ("ray_map", "oracle", "baseline", "network"):
@@ -793,6 +780,10 @@ def main(argv=None) -> int:
             load_lens(lid)
     except DcdiError as e:
         print(f"lab: error: --lens: {e}", file=sys.stderr)
+        return 2
+    if a.iters or a.mlp_alone:
+        # an MLP's plain loss on the weighted fit's residual would chase the values where no ray passes
+        print("lab: error: --iters and --mlp-alone are the pilot's (with --points)", file=sys.stderr)
         return 2
     if a.n_points < 1 or opt(a.train_sources, 2048) < 64:
         print("lab: error: --held-out must be >= 1 and --train-sources >= 64", file=sys.stderr)
@@ -818,8 +809,7 @@ def main(argv=None) -> int:
         recipe[name] = int(value)
     try:
         rows = [lens_study(lid, out, seed=a.seed, n_points=a.n_points, rays=rays,
-                           n_train=opt(a.train_sources, 2048), iters=opt(a.iters, 0), width=opt(a.width, 64),
-                           layers=opt(a.layers, 2), lr=a.lr, precise=a.precise_maps,
+                           n_train=opt(a.train_sources, 2048), precise=a.precise_maps,
                            recipe=recipe, log=say)
                 for lid in lenses]
     except DcdiError as e:
