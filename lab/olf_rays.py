@@ -627,22 +627,16 @@ PREVIEW_PX = (270, 480)
 
 
 def stored(lens_id: str, out: Path, log=print):
-    """(lens, map, the map served from the store ``OUT/<lens>/store.npz`` that a study wrote)."""
+    """(lens, the map that serves it today (shipped, or built here with the
+    shipped recipe), the map served from the store ``OUT/<lens>/store.npz``
+    that a study wrote, with the map it learned from)."""
     from dcdi_core.optics.lens import load_lens
     lens = load_lens(lens_id)
-    rm, _ = lens_map(lens, out, log=log)
-    if not (out / lens_id / "store.npz").exists():        # a study's row without its store: fitted again
-        key = json.loads((out / lens_id / "row.json").read_text())["key"]
-        layout = Layout(rm, lens)
-        data = make_data(rm, lens, layout, key["seed"], key["train"], key["val"], out / lens_id, log=log)
-        live = np.unpackbits(data["train_live"], axis=1, count=len(layout.uv_mask)).astype(bool)
-        d_max = float(rm.diopters[0])
-        base = fit_live(layout, data["train_f"], data["train_d"], data["train_y"], live, d_max)
-        np.savez(out / lens_id / "store.npz", legendre=base.astype(np.float32), degrees=np.array(BASELINE_DEGREES),
-                 max_diopters=d_max)
+    key = json.loads((out / lens_id / "row.json").read_text())["key"]
+    rm, _ = lens_map(lens, out, key["precise"], key.get("recipe"), log=log)
     with np.load(out / lens_id / "store.npz") as z:
         store = RayField(z["legendre"].astype(np.float64), [], 0.0, float(z["max_diopters"]))
-    return lens, rm, neural_map(rm, lens, Layout(rm, lens), store)
+    return lens, lens_map(lens, out, log=log)[0], neural_map(rm, lens, Layout(rm, lens), store)
 
 
 def preview_seconds(rm, nm, lens, repeat: int = 3) -> dict:
