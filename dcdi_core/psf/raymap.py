@@ -386,6 +386,48 @@ MAX_COEFFICIENT_MM = 1e5
 def _check(meta: dict, arrays: dict, fail) -> None:
     """Every field of a ray map's metadata that serving reads, in its range,
     and its arrays shaped as its recipe says."""
+    rp, n_clip = check_map_meta(meta, fail)
+    rows = (rp.n_depths + 1, rp.n_fields)
+    no, ne = n_terms(rp.degree)
+    co, ce = n_terms(rp.clip_degree)
+    check_array(arrays, "xy", rows + (2, no + ne), fail)
+    ho, he = n_terms(rp.chroma_degree)
+    check_array(arrays, "chroma", rows + (rp.n_wavelengths, 2, ho + he), fail)
+    check_array(arrays, "clip", rows + (n_clip, co + ce), fail)
+    check_array(arrays, "chief", rows + (2,), fail)
+    check_array(arrays, "geometry", rows, fail)
+    check_tables(arrays, rp, fail)
+    # served positions are sums of these over monomials of at most 1 in magnitude: bounded here, they stay finite
+    # and within any integer conversion's range (coefficients scaled by 1e30 once ended in an OverflowError)
+    for name in ("xy", "chroma", "clip", "chief"):
+        check_bounded(arrays, name, MAX_COEFFICIENT_MM, fail)
+
+
+def check_bounded(arrays: dict, name: str, limit: float, fail, unit: str = " mm") -> None:
+    """``arrays[name]`` finite and at most ``limit`` in magnitude."""
+    a = arrays[name]
+    if a.size and not (np.isfinite(a).all() and np.abs(a).max() <= limit):
+        worst = float(np.nanmax(np.abs(np.where(np.isfinite(a), a, np.inf))))
+        raise fail(f"array {name!r} holds {worst:.3g}", field=name,
+                   allowed=f"finite values of at most {limit:g}{unit} in magnitude")
+
+
+def check_tables(arrays: dict, rp: "RayMapRecipe", fail) -> None:
+    """The tables a map serves beside its fits, on its grid: the reachable
+    disc ('aim'), the usable sources ('ok', one at least) and the axial
+    illumination ('reference_geometry')."""
+    rows = (rp.n_depths + 1, rp.n_fields)
+    check_array(arrays, "aim", rows + (2,), fail)
+    check_array(arrays, "reference_geometry", rows[:1], fail)
+    ok = check_array(arrays, "ok", rows, fail, kinds="b")
+    if not ok.any():                 # it would serve empty kernels at every field and depth
+        raise fail("no grid point of the map is usable (every source marked unreachable)", field="ok",
+                   allowed="a map with a usable source")
+    check_bounded(arrays, "aim", MAX_COEFFICIENT_MM, fail)
+
+
+def check_map_meta(meta: dict, fail) -> tuple["RayMapRecipe", int]:
+    """A ray map's metadata that serving reads, each field in its range: (its recipe, the clipping surfaces)."""
     rec = Record(meta, fail)
     rec.name("lens_id")
     rec.text("lens_fingerprint", max_chars=128)
@@ -408,29 +450,7 @@ def _check(meta: dict, arrays: dict, fail) -> None:
         raise fail(str(e), field="recipe") from None
     n_clip = len(rec.integers("clip_surfaces", 0, 1024, (0, 1024)))
     rec.numbers("clear_mm", 0.0, 1e4, (n_clip, n_clip), lo_open=True)
-    rows = (rp.n_depths + 1, rp.n_fields)
-    no, ne = n_terms(rp.degree)
-    co, ce = n_terms(rp.clip_degree)
-    check_array(arrays, "xy", rows + (2, no + ne), fail)
-    ho, he = n_terms(rp.chroma_degree)
-    check_array(arrays, "chroma", rows + (rp.n_wavelengths, 2, ho + he), fail)
-    check_array(arrays, "clip", rows + (n_clip, co + ce), fail)
-    check_array(arrays, "chief", rows + (2,), fail)
-    check_array(arrays, "aim", rows + (2,), fail)
-    check_array(arrays, "geometry", rows, fail)
-    check_array(arrays, "reference_geometry", rows[:1], fail)
-    ok = check_array(arrays, "ok", rows, fail, kinds="b")
-    if not ok.any():                 # it would serve empty kernels at every field and depth
-        raise fail("no grid point of the map is usable (every source marked unreachable)", field="ok",
-                   allowed="a map with a usable source")
-    # served positions are sums of these over monomials of at most 1 in magnitude: bounded here, they stay finite
-    # and within any integer conversion's range (coefficients scaled by 1e30 once ended in an OverflowError)
-    for name in ("xy", "chroma", "clip", "chief", "aim"):
-        a = arrays[name]
-        if a.size and not (np.isfinite(a).all() and np.abs(a).max() <= MAX_COEFFICIENT_MM):
-            worst = float(np.nanmax(np.abs(np.where(np.isfinite(a), a, np.inf))))
-            raise fail(f"array {name!r} holds {worst:.3g}", field=name,
-                       allowed=f"finite values of at most {MAX_COEFFICIENT_MM:g} mm in magnitude")
+    return rp, n_clip
 
 
 # -------------------------------------------------------------------- build
