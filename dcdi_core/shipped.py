@@ -15,6 +15,8 @@ SHIPPED_LENS_DIRS = (ENGINE_DIR.parent / "lenses", ENGINE_DIR / "lenses")
 WEIGHTS_DIR = Path(__file__).resolve().parent / "models" / "weights"
 BASIS_DIR = Path(__file__).resolve().parent / "psf" / "data" / "basis"
 RAYMAP_DIR = Path(__file__).resolve().parent / "psf" / "data" / "raymap"
+# the Omni-Lens-Field in ray space (``psf.rayfield``): the lenses no ray map ships for
+OLF_RAYS_FILE = Path(__file__).resolve().parent / "psf" / "data" / "olf" / "olf-rays.npz"
 
 
 @dataclass(frozen=True)
@@ -98,6 +100,11 @@ def basis_file(lens_id: str, focus_stack: bool = False) -> Path | None:
     name = f"{check_name(lens_id, 'lens id', error=InputRangeError)}.npz"
     p = (BASIS_DIR / "focus" if focus_stack else BASIS_DIR) / name
     return p if p.is_file() else None
+
+
+def olf_rays_file() -> Path | None:
+    """The shipped Omni-Lens-Field in ray space (psf/data/olf/olf-rays.npz), or None."""
+    return OLF_RAYS_FILE if OLF_RAYS_FILE.is_file() else None
 
 
 def raymap_file(lens_id: str) -> Path | None:

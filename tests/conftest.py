@@ -46,6 +46,14 @@ def singlet():
     return Lens.from_dict(singlet_dict())
 
 
+@pytest.fixture
+def no_ray_olf(monkeypatch):
+    """The source rule without the shipped OLF in ray space (``psf.rayfield``):
+    for a test of what another store refuses, or of the OLF network."""
+    import dcdi_core.psf.sources as sources
+    monkeypatch.setattr(sources, "olf_rays_file", lambda: None)
+
+
 @pytest.fixture(params=PAPER_LENSES)
 def paper_lens(request):
     return load_lens(request.param)

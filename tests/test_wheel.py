@@ -49,7 +49,7 @@ def test_wheel_holds_the_engine_only(wheel):
     long = {n: z.read(n).count(b"\n") for n in names if n.endswith(".py")}
     assert not {n: k for n, k in long.items() if k > 800}
     for data in ("dcdi_core/psf/data/", "dcdi_core/psf/data/basis/", "dcdi_core/psf/data/raymap/",
-                 "dcdi_core/models/weights/", "dcdi_core/lenses/"):
+                 "dcdi_core/psf/data/olf/", "dcdi_core/models/weights/", "dcdi_core/lenses/"):
         assert any(n.startswith(data) and not n.endswith(".py") for n in names), data
     assert "dcdi_core/lenses/mos-s1.toml" in names and "dcdi_core/models/weights/olf-radial.npz" in names
     assert any(n.startswith("dcdi_core/psf/data/") and n.endswith(".csv") for n in names)

@@ -77,7 +77,7 @@ def budgeted(lens, geometry, psf: PSFRequest, cache: SourceCache | None = None, 
              depth_m=None):
     """(the request with the PSF work its error budget needs, the plan or
     None): where ``psf.max_error_db`` is set and the source that serves it
-    makes PSFs (a ray map or a trace), the rays, wavelengths and field step
+    makes PSFs (a ray map, an OLF in ray space or a trace), the rays, wavelengths and field step
     the planner (``psf.budget``) chooses for this lens at ``geometry``'s
     pitch, the knobs in ``psf.fixed`` kept; a stored source (basis, OLF)
     serves as it is (None). ``fixed``: the render's own knobs the job
@@ -89,7 +89,7 @@ def budgeted(lens, geometry, psf: PSFRequest, cache: SourceCache | None = None, 
     from ..psf.budget import plan as plan_budget
     from ..psf.sources import choose
     src = cache.chosen(lens, geometry, psf) if cache is not None else choose(lens, geometry, psf)
-    if src.kind not in ("raymap", "trace"):
+    if not src.plans:
         return psf, None
     given = {k: _knob(psf, k) for k in psf.fixed if k in ("pupil_samples", "n_wavelengths", "field_step_px")}
     blur = widest_blur_px(lens, geometry.pixel_pitch_mm, psf.focus_m, depth_m)

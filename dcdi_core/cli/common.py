@@ -244,8 +244,8 @@ def check_olf_file(args) -> None:
     to tracing, saying why, as it does for a file that does not cover the
     request)."""
     if getattr(args, "olf", None) and getattr(args, "psf_source", None) != "trace":
-        from ..psf.olf import read_olf_file
-        read_olf_file(args.olf)
+        from ..psf.olf import load_olf_file
+        load_olf_file(args.olf)
     if getattr(args, "basis", None) and getattr(args, "psf_source", None) != "trace":
         from ..psf.basis import open_store
         open_store(args.basis)

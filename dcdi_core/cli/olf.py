@@ -69,29 +69,56 @@ def cmd_olf_points(args) -> int:
 
 def cmd_olf_info(args) -> int:
     from ..psf.sources import WEIGHTS_DIR, shipped_olf_files
-    from ..psf.olf import OmniLensField
-    from ..optics.lens import load_lens
-    files = args.file or shipped_olf_files()
+    from ..psf.olf import load_olf_file
+    from ..psf.rayfield import RayFieldOLF
+    from ..shipped import olf_rays_file
+    files = args.file or [p for p in [olf_rays_file()] if p is not None] + shipped_olf_files()
     if not files:
         print(f"no OLF file ships with this engine ({WEIGHTS_DIR} holds none); give one: dcdi olf info FILE.npz")
         return 0
     infos = []
     for path in files:
-        olf = OmniLensField.load(path)
+        olf = load_olf_file(path)
         info = olf.info()
         info["shipped"] = not args.file
         for entry in info["lenses"]:
-            try:
-                entry["prescription"] = "current" if olf.covers(load_lens(entry["id"])) else "differs (not served)"
-            except Exception as e:  # noqa: BLE001 - a lens that no longer loads is reported, not fatal
-                entry["prescription"] = f"not loadable ({e})"
+            entry["prescription"] = _prescription(olf, entry["id"])
         infos.append(info)
     if args.json:
         print(dump(infos[0] if args.file and len(infos) == 1 else infos))
         return 0
     for info in infos:
-        _print_olf_info(info)
+        (_print_rays_info if info["variant"] == "rays" else _print_olf_info)(info)
     return 0
+
+
+def _prescription(olf, lens_id: str) -> str:
+    """Whether the lens file of ``lens_id`` is the prescription the OLF learned."""
+    from ..optics.lens import load_lens
+    from ..psf.rayfield import RayFieldOLF
+    try:
+        lens = load_lens(lens_id)
+        if isinstance(olf, RayFieldOLF):
+            olf.map_for(lens_id).check_lens(lens)
+            return "current"
+        return "current" if olf.covers(lens) else "differs (not served)"
+    except Exception as e:  # noqa: BLE001 - a lens that no longer loads or differs is reported, not fatal
+        return "differs (not served)" if "fingerprint" in str(e) else f"not loadable ({e})"
+
+
+def _print_rays_info(info) -> None:
+    print(f"{info['file']}{' (shipped)' if info.get('shipped') else ''}: Omni-Lens-Field in ray space "
+          f"(Legendre polynomials of field and 1/depth), {len(info['lenses'])} lenses, {info['bytes']} bytes")
+    for e in info["lenses"]:
+        h = e.get("held_out") or {}
+        fig = (f"; held-out ({h['points']} points, refocused and stopped down, against {h['rays']}-ray traces) "
+               f"PSNR {h['psnr_8bit'][0]:.2f} dB mean, {h['psnr_8bit'][1]:.2f} worst (its map "
+               f"{h['map_psnr_8bit'][0]:.2f}, {h['map_psnr_8bit'][1]:.2f})" if h else "")
+        print(f"  {e['id']:<14} degrees {e['degrees'][0]} x {e['degrees'][1]}, {e['n_wavelengths']} wavelengths, "
+              f"depth from {e['near_m']} m; prescription {e['prescription']}{fig}")
+    t = info.get("training") or {}
+    if t.get("command"):
+        print(f"  made by: {t['command']}; checksum {info['checksum'][:16]}...")
 
 
 def _figures(h) -> str:

@@ -119,11 +119,12 @@ class QualityPlan:
     seconds: float = math.nan
 
     def apply(self, settings):
-        """``settings`` (``compute.PSFSettings``) with the plan's rays and
-        wavelengths (unchanged where nothing was planned)."""
+        """``settings`` (``compute.PSFSettings``; None: the defaults) with the
+        plan's rays and wavelengths (unchanged where nothing was planned)."""
         if not self.planned:
             return settings
-        return replace(settings, pupil_samples=self.pupil_samples, n_wavelengths=self.n_wavelengths)
+        from .compute import PSFSettings
+        return replace(settings or PSFSettings(), pupil_samples=self.pupil_samples, n_wavelengths=self.n_wavelengths)
 
     def as_dict(self) -> dict:
         if not self.planned:

@@ -95,6 +95,23 @@ def read_olf_file(path) -> tuple[dict, dict]:
     return meta, arrays
 
 
+def load_olf_file(path):
+    """An OLF file of either kind, read once and checked: the network
+    (:class:`OmniLensField`) or the store in ray space
+    (``psf.rayfield.RayFieldOLF``), by the format its record names."""
+    from . import rayfield
+    path = Path(path)
+    meta, arrays = read_npz_with_meta(path, "Omni-Lens-Field")
+    if meta.get("format") == rayfield.FORMAT:
+        return rayfield.RayFieldOLF.from_record(path, meta, arrays)
+    if meta.get("format") != FORMAT:
+        raise ModelFileError(path, f"format {str(meta.get('format'))[:80]!r}", field="format",
+                             allowed=f"{FORMAT!r} or {rayfield.FORMAT!r}")
+    check_header(path, meta, arrays, FORMAT, FORMAT_VERSION)
+    check_olf(meta, arrays, model_fail(path))
+    return OmniLensField(meta, arrays, path)
+
+
 def check_olf(meta: dict, arrays: dict, fail) -> None:
     """Every field of an OLF's metadata that the runtime reads, in its range,
     and every array the network names with the shape its spec gives (``fail``:

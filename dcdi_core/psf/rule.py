@@ -17,7 +17,8 @@ RULE_PHRASES = MappingProxyType({
     "basis": "the lens's PSF basis where it covers the lens (its prescription) and the request (pixel pitch, "
              "focus, PSF settings)",
     "raymap": "its ray map where one ships (the catalogue's lenses: any focus, f-number, blades and pitch)",
-    "olf": "the Omni-Lens-Field where it covers the request",
+    "olf": "the Omni-Lens-Field where it covers the request (in ray space for the paper's four lenses: any focus, "
+           "f-number, blades and pitch; else its network)",
 })
 
 

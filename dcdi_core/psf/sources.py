@@ -44,9 +44,10 @@ from .compute import KernelTooSmallWarning, PSFSettings
 from .library import MAX_FITTED_KERNEL, LibraryGrid, PSFLibrary, _fitted, open_library, valid_depth_mask  # noqa: F401 (served from here)
 from .sampling import field_grid
 from .pitch import SAME_GIVEN_RTOL, area_resample, check_downsampling, resampled_size, same_pitch
-from ..shipped import NETWORKS, WEIGHTS_DIR, for_lens, is_shipped_file
-from .olf import OmniLensField
+from ..shipped import NETWORKS, WEIGHTS_DIR, for_lens, is_shipped_file, olf_rays_file
+from .olf import OmniLensField, load_olf_file
 from .raymap import RayMap, RayMapLibrary, open_raymap
+from .rayfield import RayFieldOLF
 from .rule import RULE_ORDER, rule_text
 
 SHIPPED = WEIGHTS_DIR / "olf-radial.npz"
@@ -206,6 +207,18 @@ class PSFSource:
     # blur, then the deconvolution) shares the bins, and a kernel grown for the second starts from the first
     opened: dict = dataclasses.field(default_factory=dict, repr=False, compare=False)
 
+    @property
+    def plans(self) -> bool:
+        """Whether the job's error budget plans this source's PSF work
+        (rays, wavelengths, field step): a trace, a ray map or an OLF in ray
+        space makes its PSFs; a basis or a network serves them as stored."""
+        return self.kind == "trace" or self.deposits
+
+    @property
+    def deposits(self) -> bool:
+        """Whether its PSFs are deposited from rays (a ray map, an OLF in ray space)."""
+        return isinstance(self.library, RayMapLibrary)
+
     def at(self, geometry, request: "PSFRequest", *, fit_depth_m=None,
            control: Control | None = None) -> "PSFSourceResult":
         """This source's PSFs for an image at ``geometry`` (``render.geometry.
@@ -217,7 +230,7 @@ class PSFSource:
         PSFs made (stage 'PSFs') and stops them when cancelled."""
         control = control or Control()
         control.say(self.message)
-        if self.kind in ("basis", "olf"):
+        if self.kind in ("basis", "olf") and not self.deposits:
             return PSFSourceResult(self.kind, self.message, self.library, self.olf_file, self.basis_file)
         settings, quality = request.settings or PSFSettings(), "full"
         if request.preview:
@@ -226,9 +239,10 @@ class PSFSource:
             settings = replace(settings, kernel_size=request.kernel_size)
         fit = fit_depth_m if request.fit_kernel and request.kernel_size is None else None
         progress = control.counter("PSFs")
-        if self.kind == "raymap":      # the same settings as a trace would take, its kernel grown alike
+        if self.deposits:      # a ray map's (or an OLF's in ray space): the settings a trace would take
             library = self.library.at_geometry(geometry, settings, fit_depth_m=fit, progress=progress)
-            return PSFSourceResult("raymap", self.message, library, quality=quality, raymap_file=self.raymap_file)
+            return PSFSourceResult(self.kind, self.message, library, self.olf_file, quality=quality,
+                                   raymap_file=self.raymap_file)
         library = open_library(self.lens, geometry, settings, _request_grid(self.lens, geometry, request),
                                response=request.response, fit_depth_m=fit, progress=progress, kept=self.opened)
         return PSFSourceResult("trace", self.message, library, self.olf_file, self.basis_file, quality)
@@ -261,7 +275,7 @@ def _settings_differences(learned: dict, settings: PSFSettings | None, *, rays_a
 # a refocus, a new pixel pitch or another lens opens a new source, but not the
 # 10 MB file again (0.1-0.3 s of every focus change in the add-on's preview);
 # one file at a time: the shipped one, or the user's
-_load_olf = FileCache(OmniLensField.load, 1, "Omni-Lens-Field files")
+_load_olf = FileCache(load_olf_file, 2, "Omni-Lens-Field files")
 
 
 # the request's fields the source's messages name (errors.field: each front end shows them in its own words;
@@ -312,10 +326,12 @@ def _psf_source(lens, source, olf_file, pixel_pitch_mm, settings, kernel_size, f
         if kind == "raymap":
             src, why = _try_raymap(lens, pixel_pitch_mm, settings, kernel_size, custom_response and response is None,
                                    response, grid if grid is not None else olf_grid, w)
+        elif kind == "basis":
+            src, why = _try_basis(lens, basis_file, pixel_pitch_mm, settings, kernel_size, focus_m, custom_response,
+                                  grid, lab[kind], w)
         else:
-            src, why = (_try_basis if kind == "basis" else _try_olf)(
-                lens, basis_file if kind == "basis" else olf_file, pixel_pitch_mm, settings, kernel_size, focus_m,
-                custom_response, grid if kind == "basis" or grid is not None else olf_grid, lab[kind], w)
+            src, why = _try_olf(lens, olf_file, pixel_pitch_mm, settings, kernel_size, focus_m, custom_response,
+                                grid if grid is not None else olf_grid, lab[kind], w, response)
         if src is not None:
             return src
         if source == kind:
@@ -392,27 +408,69 @@ def _try_basis(lens, basis_file, pitch, settings, kernel_size, focus_m, custom_r
 
 
 def _try_olf(lens, olf_file, pitch, settings, kernel_size, focus_m, custom_response, grid, label="--olf",
-             w: SourceWords = DEFAULT_WORDS):
+             w: SourceWords = DEFAULT_WORDS, response=None):
     """(PSFSource, None) where the OLF serves the request, else (None, why); ``label``: the option that gives
-    an OLF file (None: none)."""
-    path = Path(olf_file) if olf_file else (SHIPPED if SHIPPED.exists() else None)
-    if path is None:
+    an OLF file (None: none). Without a file, the shipped ones in turn: the OLF in ray space (any focus and
+    stop of the lenses it holds), then the network."""
+    paths = [Path(olf_file)] if olf_file else [p for p in (olf_rays_file(), SHIPPED) if p is not None and p.exists()]
+    if not paths:
         return None, f"no OLF file ships with this engine{_none_given(label)}"
-    try:
-        olf = _load_olf(path)
-        reason = _why_not(olf, lens, pitch, settings, kernel_size, focus_m, custom_response, w)
-        if reason is not None:
-            return None, reason
-        lib = OLFLibrary(olf, lens, grid, pixel_pitch_mm=pitch, focus_m=focus_m)
-    except (LensMismatchError, ModelError, InputRangeError) as e:
-        return None, str(e)
+    reasons = []
+    for path in paths:
+        try:
+            olf = _load_olf(path)
+            if isinstance(olf, RayFieldOLF):
+                src, why = _try_olf_rays(olf, lens, pitch, settings, kernel_size, focus_m, custom_response,
+                                         response, grid, w)
+            else:
+                src, why = _try_olf_network(olf, lens, pitch, settings, kernel_size, focus_m, custom_response,
+                                            grid, w)
+        except (LensMismatchError, ModelError, InputRangeError) as e:
+            src, why = None, str(e)
+        if src is not None:
+            return src, None
+        reasons.append(why)
+    return None, "; ".join(reasons)
+
+
+def _try_olf_network(olf: OmniLensField, lens, pitch, settings, kernel_size, focus_m, custom_response, grid,
+                     w: SourceWords):
+    """(PSFSource, None) where the OLF network serves the request, else (None, why)."""
+    reason = _why_not(olf, lens, pitch, settings, kernel_size, focus_m, custom_response, w)
+    if reason is not None:
+        return None, reason
+    lib = OLFLibrary(olf, lens, grid, pixel_pitch_mm=pitch, focus_m=focus_m)
     k = lib.kernel_size
     pixels = (f"{lib.pixel_pitch_mm * 1000:.4g} um pixels, its {lib.learned_pitch_mm * 1000:.4g} um kernels "
               "area-resampled" if lib.resampled else f"{lib.pixel_pitch_mm * 1000:.4g} um pixels")
-    return PSFSource("olf", f"PSFs from {w.store('Omni-Lens-Field', path)} ({w.lead(lens, ': ')}its learned prescription, "
-                            f"{pixels}, {k} x {k} px, "
+    return PSFSource("olf", f"PSFs from {w.store('Omni-Lens-Field', olf.path)} ({w.lead(lens, ': ')}its learned "
+                            f"prescription, {pixels}, {k} x {k} px, "
                             + ("prescribed focus" if focus_m is None else f"focus {focus_m:.3g} m") + ")",
-                     lib, str(path)), None
+                     lib, str(olf.path)), None
+
+
+def _try_olf_rays(olf: RayFieldOLF, lens, pitch, settings, kernel_size, focus_m, custom_response, response, grid,
+                  w: SourceWords):
+    """(PSFSource, None) where the OLF in ray space serves the request (as a
+    ray map does: any focus, f-number, blades, pitch, rays and wavelengths of
+    a lens it holds), else (None, why)."""
+    f = w.file("Omni-Lens-Field", olf.path)
+    if lens.id not in olf.lens_ids:
+        return None, f"{f} did not learn {w.quoted(lens)} (it learned {', '.join(w.name(i) for i in olf.lens_ids)})"
+    if custom_response and response is None:
+        return None, "a custom spectral response was asked for without its curves"
+    s = settings or PSFSettings()
+    if s.focus_distance_m != focus_m:
+        s = replace(s, focus_distance_m=focus_m)
+    try:
+        lib = raymap_library(olf.map_for(lens.id), lens, pitch, s, kernel_size, response, grid)
+    except OpticsError as e:
+        return None, str(e)
+    focus = "prescribed focus" if focus_m is None else f"focus {focus_m:.3g} m"
+    iris = f"{lens.iris}, " if getattr(lens, "iris", "") else ""
+    return PSFSource("olf", f"PSFs from {w.store('Omni-Lens-Field', olf.path)} ({w.lead(lens)}in ray space, {iris}"
+                            f"{lib.pixel_pitch_mm * 1000:.4g} um pixels, {lib.kernel_size} x {lib.kernel_size} px, "
+                            f"{focus}; no tracing)", lib, str(olf.path)), None
 
 
 def _try_raymap(lens, pitch, settings, kernel_size, unknown_response, response, grid, w: SourceWords = DEFAULT_WORDS):

@@ -487,11 +487,10 @@ assert np.abs(out - img)[16:32, 20:44].max() < 1e-6 and np.abs(out - img)[depth 
 outr, infor = logic.run_bokeh(img, depth, lens, focus_m=1.0, keep=(0.9, 1.1))
 assert infor["psf_source"] == "basis" and "a focus stack" in infor["psf_source_message"], infor["psf_source_message"]
 assert np.abs(outr - img)[16:32, 20:44].max() < 1e-6 and np.abs(outr - img)[depth > 5].mean() > 1e-3
-try:
-    logic.run_bokeh(img, np.where(depth < 5, 0.5, depth).astype(np.float32), lens, focus_m=0.5, keep=(0.45, 0.55))
-    raise SystemExit("a focus nearer than the focus stack's 0.7 m was served without tracing")
-except RuntimeError as e:
-    assert "ray tracer" in str(e)
+# nearer: the OLF in ray space (any focus and stop of the paper's lenses), nothing traced
+_, infon = logic.run_bokeh(img, np.where(depth < 5, 0.5, depth).astype(np.float32), lens, focus_m=0.5,
+                           keep=(0.45, 0.55))
+assert infon["psf_source"] == "olf" and "in ray space" in infon["psf_source_message"], infon["psf_source_message"]
 # the 6P, learned across focus: refocused (Refocus Lens on, the default) inside the range, served
 lens6 = logic.load_lens_cached(dict((e.id, e.path) for e in logic.lens_catalogue())["6p"])
 out6, info6 = logic.run_bokeh(img, depth, lens6, focus_m=1.0, keep=(0.9, 1.1))
@@ -504,11 +503,9 @@ assert info6["psf_source"] == "olf" and "focus %.3g m" % used in info6["psf_sour
 assert np.abs(out6 - img)[16:32, 20:44].max() < 1e-6 and np.abs(out6 - img)[depth > 5].mean() > 1e-3
 near = depth.copy()
 near[16:32, 20:44] = 0.5
-try:                        # a focus nearer than the learned 0.7 m: traced
-    logic.run_bokeh(img, near, lens6, focus_m=0.5, keep=(0.45, 0.55))
-    raise SystemExit("a focus outside the learned range was served without tracing")
-except RuntimeError as e:
-    assert "ray tracer" in str(e)
+_, info6n = logic.run_bokeh(img, near, lens6, focus_m=0.5, keep=(0.45, 0.55))      # nearer than 0.7 m too
+assert info6n["psf_source"] == "olf" and "in ray space" in info6n["psf_source_message"] \
+    and "serve the focus at 0.5 m" in info6n["psf_source_message"], info6n
 assert "torch" not in sys.modules
 print("ok", info["psf_source_message"])
 """
@@ -518,8 +515,8 @@ def test_bundled_engine_serves_the_olf_with_torch_blocked(addon_zip, tmp_path):
     """The unpacked zip alone, torch blocked by an import hook: the vendored
     OLF serves kernels, and a bokeh of a shipped lens as prescribed runs
     through it with the tracer patched to raise (refocused: MOS-S1 from its
-    focus stack, the 6P from the OLF, learned across focus, each inside 0.7 m
-    to infinity and traced nearer)."""
+    focus stack inside 0.7 m to infinity, both lenses from the OLF in ray
+    space at any focus, nearer too)."""
     out = _isolated_run(_BUNDLED_OLF, addon_zip, tmp_path, DCDI_CACHE_DIR=str(tmp_path / "cache"),
                         OMP_NUM_THREADS="1")
     assert out.startswith("ok") and "area-resampled" in out, out
@@ -579,14 +576,14 @@ def test_a_catalogue_lens_stopped_down_and_refocused_traces_nothing(headless):
 
 def test_camera_aperture_stops_the_lens_down_to_the_cameras_f_stop(headless):
     """Camera Aperture on, the camera at f/4 with 6 blades: the 6P (matched
-    wide open, f/1.64) is stopped down and traced (the status says the
-    stores hold it wide open), the kept cube as before, the far wall less
+    wide open, f/1.64) is stopped down and served by the OLF in ray space
+    (the status says its stop), the kept cube as before, the far wall less
     blurred than wide open; an F-Stop wider than the lens's leaves it wide
     open, saying so."""
     assert headless["matched_fstop"] == pytest.approx(headless["readout"]["f_number"], rel=1e-3)
     run = headless["aperture_apply"]
     assert run["iris"] == "f/4, 6 blades" and run["result"] == ["FINISHED"], run
-    assert "is stopped down (f/4, 6 blades)" in run["status"], run["status"]
+    assert "in ray space, f/4, 6 blades" in run["status"], run["status"]
     aif = np.load(headless["dir"] / "aif.npy")
     depth = np.load(headless["dir"] / "depth.npy")[..., 0]
     f4, wide = np.load(headless["dir"] / "aperture-f4.npy"), np.load(headless["dir"] / "out.npy")
@@ -796,6 +793,7 @@ def test_psf_source_messages_on_corrects_path_name_no_option(monkeypatch):
     from dcdi_core.optics.lens import Lens
     from conftest import singlet_dict
     monkeypatch.setattr(library, "SHIPPED", Path("/nonexistent/olf.npz"))
+    monkeypatch.setattr(library, "olf_rays_file", lambda: None)
     lens = Lens.from_dict(singlet_dict())
     src = library.psf_source(lens, pixel_pitch_mm=0.01)
     assert src.kind == "trace" and "no PSF basis of test-singlet ships with this engine" in src.message
@@ -1132,6 +1130,7 @@ def test_the_preview_traces_what_no_shipped_source_holds_at_its_own_quality(tmp_
     shipped = sources.shipped_store
     monkeypatch.setattr(sources, "shipped_store", lambda lens_id, focus_stack=False:
                         None if focus_stack else shipped(lens_id))
+    monkeypatch.setattr(sources, "olf_rays_file", lambda: None)
     logic.clear_psf_sources()
     rng = np.random.default_rng(0)
     img = rng.random((36, 48, 3), dtype=np.float32)
@@ -1298,7 +1297,7 @@ def test_the_psf_source_line_names_no_path_and_no_lens_id(tmp_path):
     for lens_id, focus, want in (("6p", None, "PSFs from the PSF basis that ships with the add-on ("),
                                  ("6p", 2.0, "PSFs from the Omni-Lens-Field that ships with the add-on ("),
                                  ("mos-s1", 2.0, "PSFs from the PSF basis that ships with the add-on ("),
-                                 ("mos-s1", 0.5, "PSFs traced: "),
+                                 ("mos-s1", 0.5, "PSFs from the Omni-Lens-Field that ships with the add-on ("),
                                  ("nikkor-85mm-f1-4", 2.0, "PSFs from the ray map that ships with the add-on (")):
         lens = load_lens(lens_id)
         src = psf_source(lens, pixel_pitch_mm=0.05, focus_m=focus)
@@ -1308,6 +1307,13 @@ def test_the_psf_source_line_names_no_path_and_no_lens_id(tmp_path):
         assert got.startswith(want), got
         assert "/" not in got.replace("F/", "") and ".npz" not in got, got
         assert lens_id not in got, got
+    # a lens no store holds: traced, the reasons naming the shipped files by what they are
+    from conftest import singlet_dict
+    from dcdi_core.optics.lens import Lens
+    got = logic._note(psf_source(Lens.from_dict(singlet_dict()), pixel_pitch_mm=0.05,
+                                 words=logic.panel_words()).message)
+    assert got.startswith("PSFs traced: ") and "shipped Omni-Lens-Field" in got, got
+    assert "/" not in got and ".npz" not in got and "test-singlet" not in got, got
     # a user's file: by its name alone
     mine = tmp_path / "my-basis.npz"
     shutil.copy(BASIS_DIR / "6p.npz", mine)

@@ -94,10 +94,11 @@ def test_an_animated_focus_object_is_followed_frame_by_frame(rendered):
     assert all(abs(got[f] - want[f]) < 1e-6 for f in want)
     assert want[3] - want[1] == pytest.approx(1.0, abs=1e-6)         # the cube moved 1 m away
     # each new focus builds its PSFs, those of a focus within the blur tolerance shared (logic.FOCUS_TOLERANCE_PX;
-    # frame 1's focus was the still's: kept)
+    # frame 1's focus was the still's: kept); a source planned by the error budget is chosen for the request as
+    # given and as planned
     used = {f["frame"]: f["focus_used_m"] for f in mv["frames"]}
     assert all(used[f] >= want[f] for f in want) and used[3] > used[1]
-    assert sorted(mv["builds"]) == sorted({used[2], used[3]} - {used[1]})
+    assert sorted(set(mv["builds"])) == sorted({used[2], used[3]} - {used[1]})
 
 
 def test_a_fixed_focus_builds_its_psfs_once_for_every_frame(rendered):

@@ -18,7 +18,7 @@ def _run(capsys, *argv):
 def test_psf_json_npz_png(tmp_path, capsys):
     npz, png = tmp_path / "k.npz", tmp_path / "k.png"
     code, out, _ = _run(capsys, "psf", "mos-s1", "--field", "0.5", "--depth", "2", "--json",
-                        "--out", str(npz), "--png", str(png), *SMALL)
+                        "--out", str(npz), "--png", str(png), "--psf-source", "trace", *SMALL)
     assert code == 0
     r = json.loads(out)
     for c in "RGB":

@@ -132,6 +132,7 @@ def test_source_is_the_olf_where_it_covers_the_request_else_tracing(olf_file, tm
     # no OLF at all (none shipped, none given): tracing, saying so
     import dcdi_core.psf.sources as runtime_library
     monkeypatch.setattr(runtime_library, "SHIPPED", tmp_path / "none-shipped.npz")
+    monkeypatch.setattr(runtime_library, "olf_rays_file", lambda: None)
     src = psf_source(lens, olf_file=None, pixel_pitch_mm=PITCH, settings=learned)
     assert src.kind == "trace" and src.library is None and "no OLF file ships" in src.message
 

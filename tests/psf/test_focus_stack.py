@@ -112,7 +112,7 @@ def test_the_file_round_trip_and_its_refusals(stack, tmp_path):
             BasisStore.load(bad)
 
 
-def test_the_source_serves_a_refocused_lens_from_the_stack(stack, tmp_path):
+def test_the_source_serves_a_refocused_lens_from_the_stack(stack, tmp_path, no_ray_olf):
     lens, _, store = stack
     path = tmp_path / "stack.npz"
     store.save(path)

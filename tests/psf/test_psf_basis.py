@@ -204,7 +204,7 @@ def test_shipped_store_reproduces_traced_psfs(lens_id, field, depth, least):
     assert score["psnr_8bit"][0] >= least, score
 
 
-def test_psf_source_prefers_the_basis_and_says_why_not():
+def test_psf_source_prefers_the_basis_and_says_why_not(no_ray_olf):
     from dcdi_core.psf.sources import psf_source
     lens = load_lens("mos-s1")
     src = psf_source(lens, pixel_pitch_mm=0.0122)
@@ -226,7 +226,7 @@ def test_psf_source_prefers_the_basis_and_says_why_not():
         psf_source(load_lens("6p"), source="basis", focus_m=2.0)
 
 
-def test_cli_compress_and_serve(tmp_path, monkeypatch, capsys):
+def test_cli_compress_and_serve(tmp_path, monkeypatch, capsys, no_ray_olf):
     monkeypatch.setenv("DCDI_CACHE_DIR", str(tmp_path / "cache"))
     out = tmp_path / "b.npz"
     assert main(["psflib", "compress", "mos-s1", "-o", str(out), "--rays", "16", "--fields", "4", "--depths", "2",

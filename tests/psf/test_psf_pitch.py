@@ -93,7 +93,7 @@ def shipped():
     return OmniLensField.load(SHIPPED)
 
 
-def test_olf_library_at_a_coarser_pitch_serves_resampled_kernels(shipped):
+def test_olf_library_at_a_coarser_pitch_serves_resampled_kernels(shipped, no_ray_olf):
     from dcdi_core.psf.sources import OLFLibrary, psf_source
     from dcdi_core.optics.lens import load_lens
     from dcdi_core.render.geometry import ImageGeometry
@@ -119,7 +119,7 @@ def test_olf_library_at_a_coarser_pitch_serves_resampled_kernels(shipped):
     assert not OLFLibrary(shipped, lens, pixel_pitch_mm=full).resampled
 
 
-def test_olf_at_a_finer_pitch_is_traced_and_refused_by_the_library(shipped):
+def test_olf_at_a_finer_pitch_is_traced_and_refused_by_the_library(shipped, no_ray_olf):
     from dcdi_core.psf.sources import OLFLibrary, psf_source
     from dcdi_core.errors import ModelError
     from dcdi_core.optics.lens import load_lens
