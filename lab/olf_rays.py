@@ -49,6 +49,8 @@ from pathlib import Path
 
 import numpy as np
 
+from dcdi_core.psf.rayfield import SERVE_FIELDS, RayFieldMap
+
 from .olf_frame import LENS, PILOT
 
 # the network's inputs: field and 1/depth (as a fraction of the map's nearest) in [-1, 1], with sines and
@@ -60,45 +62,31 @@ BASELINE_DEGREES = (8, 8)
 RECIPE_FIELDS = ("n_fields", "n_depths", "n_wavelengths", "degree", "chroma_degree", "clip_degree", "fit_samples")
 # the stop grid (a side) on which a landing point's error is weighed where its ray passes
 MASK_SAMPLES = 48
-# fields the network is evaluated at for one depth (Lagrange between: the map's own rule on a finer grid)
-SERVE_FIELDS = 65
 
 
 # ------------------------------------------------------------- the layout
 class Layout:
     """One source's ray map values as one vector in physical units (mm):
-    each polynomial of the stop in an orthonormal basis of the stop (its
-    error is the RMS landing error over the pupil), the chief ray's height
-    and its slope times the far plane's distance, the illumination's
-    geometry. ``white``/``unwhite`` go between the map's arrays at sources
-    (S, ...) and (S, D)."""
+    the engine's :class:`~dcdi_core.psf.rayfield.StopBasis` (each polynomial
+    of the stop in an orthonormal basis of the stop: its error is the RMS
+    landing error over the pupil), with the stop grid on which a landing
+    point's error is weighed where its ray passes. ``white``/``unwhite`` go
+    between the map's arrays at sources (S, ...) and (S, D)."""
 
     def __init__(self, rm, lens):
         from dcdi_core.optics.aiming import stop_grid
-        from dcdi_core.psf.raymap import monomial_set, n_terms
+        from dcdi_core.psf.raymap import monomial_set
+        from dcdi_core.psf.rayfield import StopBasis
+        self.basis = b = StopBasis.of_map(rm, lens)
         r = rm.recipe
         opened, _ = rm.wide_open(lens)
-        uv = stop_grid(opened, r.fit_samples) / rm.stop_radius_mm
-        mono = monomial_set(uv, r)
-        self.R, self.Rinv = {}, {}
-        for key, m in mono.items():
-            _, rr = np.linalg.qr(m)
-            rr = rr / math.sqrt(len(m))
-            self.R[key], self.Rinv[key] = rr, np.linalg.inv(rr)
         # the rays that pass, on a coarser grid of the stop: where a landing point's error counts
         self.uv_mask = stop_grid(opened, MASK_SAMPLES) / rm.stop_radius_mm
         mono_mask = monomial_set(self.uv_mask, r)
-        self.Q = {key: mono_mask[key] @ self.Rinv[key] for key in mono_mask}      # landing = Q @ white
+        self.Q = {key: mono_mask[key] @ b.rinv[key] for key in mono_mask}      # landing = Q @ white
         self.clip_mono = (mono_mask[r.clip_degree, 1], mono_mask[r.clip_degree, 0])
         self.clear = np.asarray(rm.clear_mm, np.float64)
-        self.recipe, self.far = r, abs(float(rm.meta["far_plane_mm"]))
-        # the illumination's geometry relative to its largest axial value: 1e-3 of it weighs as 1 um
-        self.geometry_scale = float(np.abs(rm.arrays["reference_geometry"]).max()) or 1.0
-        self.n_clip = len(rm.clear_mm)
-        self.parts = [("xy", r.degree), ("chroma", r.chroma_degree), ("clip", r.clip_degree)]
-        self.terms = {deg: n_terms(deg) for _, deg in self.parts}
-        self.shapes = {"xy": (2,), "chroma": (r.n_wavelengths, 2), "clip": (self.n_clip,)}
-        self.size = sum(int(np.prod(self.shapes[n])) * sum(self.terms[d]) for n, d in self.parts) + 3
+        self.recipe, self.parts, self.terms, self.shapes, self.size = r, b.parts, b.terms, b.shapes, b.size
 
     def live(self, at: dict) -> np.ndarray:
         """(S, P) the mask grid's rays that pass at each source: inside the
@@ -117,7 +105,7 @@ class Layout:
         """(columns, (degree, parity)): each landing polynomial's whitened
         coefficients in the vector (the sensor planes', each wavelength's
         difference)."""
-        r, i = self.recipe, 0
+        i = 0
         for n, d in self.parts[:2]:
             no, ne = self.terms[d]
             for _ in range(int(np.prod(self.shapes[n]))):
@@ -125,30 +113,13 @@ class Layout:
                 yield np.arange(i + no, i + no + ne), (d, 0)
                 i += no + ne
 
-    def _each(self, a, deg, inverse: bool):
-        no, _ = self.terms[deg]
-        mo, me = (self.Rinv if inverse else self.R)[deg, 1], (self.Rinv if inverse else self.R)[deg, 0]
-        return np.concatenate([a[..., :no] @ mo.T, a[..., no:] @ me.T], axis=-1)
-
     def white(self, at: dict) -> np.ndarray:
         """(S, D) from the map's arrays at S sources."""
-        s = len(at["chief"])
-        cols = [self._each(np.asarray(at[n], np.float64), d, False).reshape(s, -1) for n, d in self.parts]
-        cols += [at["chief"][:, :1], at["chief"][:, 1:] * self.far,
-                 at["geometry"][:, None] / self.geometry_scale]
-        return np.concatenate(cols, axis=1)
+        return self.basis.white(at)
 
     def unwhite(self, vec: np.ndarray) -> dict:
         """The map's arrays at S sources from (S, D)."""
-        s, out, i = len(vec), {}, 0
-        for n, d in self.parts:
-            width = sum(self.terms[d])
-            count = int(np.prod(self.shapes[n])) * width
-            out[n] = self._each(vec[:, i:i + count].reshape((s,) + self.shapes[n] + (width,)), d, True)
-            i += count
-        out["chief"] = np.stack([vec[:, i], vec[:, i + 1] / self.far], axis=1)
-        out["geometry"] = vec[:, i + 2] * self.geometry_scale
-        return out
+        return self.basis.unwhite(vec)
 
 
 # -------------------------------------------------------------- the data
@@ -187,11 +158,9 @@ def features(fields, diopters, max_diopters: float) -> np.ndarray:
 
 
 def legendre_terms(fields, diopters, max_diopters: float, degrees=BASELINE_DEGREES) -> np.ndarray:
-    """(S, (df + 1)(dd + 1)) tensor Legendre polynomials of field and 1/depth."""
-    from numpy.polynomial import legendre
-    a = legendre.legvander(2.0 * np.asarray(fields, np.float64) - 1.0, degrees[0])
-    b = legendre.legvander(2.0 * np.asarray(diopters, np.float64) / max_diopters - 1.0, degrees[1])
-    return (a[:, :, None] * b[:, None, :]).reshape(len(a), -1)
+    """(S, (df + 1)(dd + 1)) tensor Legendre polynomials of field and 1/depth (the engine's)."""
+    from dcdi_core.psf.rayfield import legendre_terms as terms
+    return terms(fields, diopters, max_diopters, degrees)
 
 
 def make_data(rm, lens, layout: Layout, seed: int, n_train: int, n_val: int, out: Path, log=print) -> dict:
@@ -361,31 +330,16 @@ def train(data: dict, max_diopters: float, seed: int, iters: int, width: int, la
 
 # ------------------------------------------------------------- serving
 def neural_map(rm, lens, layout: Layout, predict, n_fields: int = SERVE_FIELDS):
-    """A ray map (``psf.raymap.RayMap``) whose values at a depth are
-    ``predict(fields, diopters) -> (S, D)`` (whitened, :class:`Layout`) at
-    ``n_fields`` fields; the reachable disc, the usable sources and the axial
-    illumination come from ``rm``'s tables."""
-    from dcdi_core.psf.raymap import RayMap, grid_weights
-
-    class NeuralRayMap(RayMap):
-        def __init__(self):
-            super().__init__(rm.meta, {k: rm.arrays[k] for k in ("aim", "ok", "reference_geometry")}, rm.path)
-            self.fields = np.linspace(0.0, 1.0, n_fields)
-
-        def _interpolated(self, x: float) -> dict:
-            g = rm.diopters
-            pos = np.array([(g[0] - x) / (g[0] - g[-1]) * (len(g) - 1)])
-            (idx,), (w,) = grid_weights(pos, len(g))
-            (i2,), (w2,) = grid_weights(pos, len(g), nodes=2)
-            out = layout.unwhite(predict(self.fields, np.full(n_fields, x)))
-            out["reference_geometry"] = float(w @ rm.arrays["reference_geometry"][idx])
-            aim = np.tensordot(w2, rm.arrays["aim"][i2], axes=1)                  # (F0, 2) on the map's fields
-            out["aim"] = np.stack([np.interp(self.fields, rm.fields, aim[:, c]) for c in (0, 1)], axis=1)
-            ok = rm.arrays["ok"][idx].all(axis=0)
-            pos_f = self.fields * (len(rm.fields) - 1)
-            out["ok"] = ok[np.floor(pos_f).astype(int)] & ok[np.ceil(pos_f).astype(int)]
-            return out
-    return NeuralRayMap()
+    """A ray map served as the engine serves a ray-space OLF
+    (``psf.rayfield.RayFieldMap``) whose values at sources are ``predict(fields,
+    diopters) -> (S, D)`` (whitened, :class:`Layout`) at ``n_fields`` fields:
+    an MLP's, or the map's own (:func:`exact_predict`)."""
+    class NeuralRayMap(RayFieldMap):
+        def values(self, fields, diopters):
+            return layout.unwhite(predict(fields, diopters))
+    nm = NeuralRayMap.of_fit(rm, layout.basis, np.zeros((1, layout.size)), (0, 0), float(rm.diopters[0]))
+    nm.fields = np.linspace(0.0, 1.0, n_fields)
+    return nm
 
 
 def exact_predict(rm, layout: Layout):
@@ -594,7 +548,7 @@ def lens_study(lens_id: str, out: Path, *, seed: int = 0, n_points: int = 8, ray
            "plain_fit_um": val_um(RayField(plain, [], 0.0, d_max))}
     row["store_val_um"] = val_um(store)
     row["store_mb"] = 4 * (store.floats + _table_floats(rm)) / 1e6
-    nm = neural_map(rm, lens, layout, store)
+    nm = RayFieldMap.of_fit(rm, layout.basis, base, BASELINE_DEGREES, d_max)         # as it ships
     pts = references(lens, n_points, seed, rays, out, log=log)
     ships = lens_map(lens, out, log=log)[0] if precise and shipped is False and _ships(lens_id) else None
     t0 = time.perf_counter()
@@ -623,6 +577,80 @@ def lens_study(lens_id: str, out: Path, *, seed: int = 0, n_points: int = 8, ray
     return json.loads(kept.read_text())
 
 
+def export(path: Path, rows: list[dict], out: Path, command: str, log=print) -> Path:
+    """The studied lenses' stores (``OUT/<lens>/store.npz``) as one OLF file in ray space, each lens with the
+    map it learned from and its held-out scores."""
+    from dcdi_core.optics.lens import load_lens
+    from dcdi_core.psf.rayfield import RayFieldOLF, StopBasis
+    items = []
+    for r in rows:
+        lens, key = load_lens(r["lens"]), r["key"]
+        rm, shipped = lens_map(lens, out, key["precise"], key.get("recipe"), log=log)
+        with np.load(out / r["lens"] / "store.npz") as z:
+            coeffs, degrees, d_max = z["legendre"], tuple(int(v) for v in z["degrees"]), float(z["max_diopters"])
+        held = {"points": key["points"], "seed": key["seed"], "rays": key["rays"], "psnr_8bit": list(r["olf"]),
+                "map_psnr_8bit": list(r["map"]), "against_map_psnr_8bit": list(r["olf_vs_map"]),
+                "map": "shipped" if shipped else "built here" + "".join(
+                    f", {k} {v}" for k, v in sorted((key.get("recipe") or {}).items())),
+                "landing_rms_um": r["store_val_um"]}
+        items.append((rm, StopBasis.of_map(rm, lens), coeffs, degrees, d_max, held))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    RayFieldOLF.write(path, items, {"training": {"command": command, "train_sources": rows[0]["key"]["train"],
+                                                 "seed": rows[0]["key"]["seed"], "fit": "least squares on the "
+                                                 "rays that pass each source (lab/olf_rays.py fit_live)"}})
+    return path
+
+
+def against_basis(lens_id: str, olf_file: Path, out: Path, n_points: int, log=print) -> dict:
+    """The lens's shipped PSF basis and the OLF in ray space at the same
+    points: ``lab report psf-source``'s off-grid draw at the basis's pitch,
+    kernel and focus (prescribed, wide open: all a basis holds), against its
+    1024-ray references (``OUT/references-<lens>.npz``, made once); the OLF's
+    kernels deposited with the references' rays."""
+    import warnings
+
+    from dcdi_core.optics.lens import load_lens
+    from dcdi_core.psf.basis import SHIPPED_RECIPES, BasisLibrary, open_store, shipped_store
+    from dcdi_core.psf.compute import KernelTooSmallWarning
+    from dcdi_core.psf.raymap import RayMapLibrary
+    from dcdi_core.psf.rayfield import RayFieldOLF
+
+    from .psf_source_report import REF_RAYS, REPORT_SEED, pad_to, references, summary
+    lens, recipe = load_lens(lens_id), SHIPPED_RECIPES[lens_id]
+    settings = replace(recipe.settings(lens), pupil_samples=REF_RAYS)
+    f, d, ref = references(lens, settings, recipe.grid, n_points, REPORT_SEED, out, log)
+    k = recipe.kernel_size
+    basis_path = shipped_store(lens_id)
+    basis = BasisLibrary(open_store(basis_path), lens).at(f, d)
+    lib = RayMapLibrary(RayFieldOLF.load(olf_file).map_for(lens_id), lens, settings, recipe.grid)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", KernelTooSmallWarning)
+        olf = np.stack([lib.kernels(fi, di) for fi, di in zip(f, d)])
+    row = {"lens": lens_id, "points": int(len(f)), "pixel_pitch_mm": settings.pixel_pitch_mm, "kernel": k,
+           "basis": summary(pad_to(basis, k), ref), "olf": summary(pad_to(olf, k), ref),
+           "basis_mb": basis_path.stat().st_size / 1e6}
+    net = _network(lens, settings.pixel_pitch_mm)
+    if net is not None:             # the OLF network where it serves these points (its kernels cropped to k)
+        row["network"] = summary(pad_to(net.kernels(f, d, dtype=np.float64), k), ref)
+    log(("" if net is None else f"{lens_id}: the OLF network {row['network']['psnr_8bit']:.2f} "
+         f"({row['network']['psnr_8bit_worst']:.2f}) dB\n")
+        + f"{lens_id}: at the basis's {len(f)} points ({settings.pixel_pitch_mm * 1000:.3g} um, {k} px, against "
+        f"{REF_RAYS}-ray traces): basis {row['basis']['psnr_8bit']:.2f} ({row['basis']['psnr_8bit_worst']:.2f}), "
+        f"OLF in ray space {row['olf']['psnr_8bit']:.2f} ({row['olf']['psnr_8bit_worst']:.2f}) dB")
+    return row
+
+
+def _network(lens, pitch_mm: float):
+    """The shipped OLF network's library of ``lens`` at ``pitch_mm``, or None where it does not serve it."""
+    from dcdi_core.errors import DcdiError
+    from dcdi_core.psf.olf import OmniLensField
+    from dcdi_core.psf.sources import SHIPPED, OLFLibrary
+    try:
+        return OLFLibrary(OmniLensField.load(SHIPPED), lens, pixel_pitch_mm=pitch_mm)
+    except (DcdiError, OSError):
+        return None
+
+
 PREVIEW_PX = (270, 480)
 
 
@@ -635,8 +663,8 @@ def stored(lens_id: str, out: Path, log=print):
     key = json.loads((out / lens_id / "row.json").read_text())["key"]
     rm, _ = lens_map(lens, out, key["precise"], key.get("recipe"), log=log)
     with np.load(out / lens_id / "store.npz") as z:
-        store = RayField(z["legendre"].astype(np.float64), [], 0.0, float(z["max_diopters"]))
-    return lens, lens_map(lens, out, log=log)[0], neural_map(rm, lens, Layout(rm, lens), store)
+        nm = RayFieldMap.of_fit(rm, Layout(rm, lens).basis, z["legendre"], tuple(z["degrees"]), float(z["max_diopters"]))
+    return lens, lens_map(lens, out, log=log)[0], nm
 
 
 def preview_seconds(rm, nm, lens, repeat: int = 3) -> dict:
@@ -669,6 +697,34 @@ def preview_seconds(rm, nm, lens, repeat: int = 3) -> dict:
                 whole.append(time.perf_counter() - t)
         out[name] = {"one_bin_s": min(one), "library_s": min(whole)}
     return out
+
+
+def preview_job_seconds(lens, focus_m: float | None = 1.5, repeat: int = 3, source: str = "olf") -> dict:
+    """Wall seconds (best of ``repeat``, one thread) of the PSFs of the
+    add-on's 480 x 270 viewport preview (``blender_addon.logic.run_bokeh``'s
+    request: its field step, focus tolerance and preview budget) from
+    ``source``, each from a cold source: a scene from 0.8 m to a wall at
+    10 m, the lens focused at ``focus_m`` (None: as prescribed, kept at 1.5 m)."""
+    from dcdi_core import app
+    from dcdi_core.app.sources import SourceCache
+    from dcdi_core.parallel import one_blas_thread
+    h, w = PREVIEW_PX
+    rng = np.random.default_rng(0)
+    image = rng.random((h, w, 3), dtype=np.float32)
+    depth = np.broadcast_to(np.geomspace(0.8, 10.0, w, dtype=np.float32), (h, w)).copy()
+    psf = app.PSFRequest(source=source, preview=True, field_step_px=16.0, focus_tolerance_px=0.25,
+                         max_error_db=app.DEFAULT_BUDGET_DB["preview"])
+    keep = (focus_m or 1.5) * 0.97, (focus_m or 1.5) * 1.03
+    request = app.BokehRequest(image, depth, lens, keep=keep, focus_m=focus_m,
+                               render=app.RenderRequest(lens, patch=16), psf=psf, image_name="the preview")
+    best = {}
+    for _ in range(repeat):
+        with one_blas_thread():
+            r = app.bokeh(request, cache=SourceCache())
+        for k, v in r.seconds.items():
+            best[k] = min(best.get(k, math.inf), float(v))
+    return {"seconds": best, "source": r.source.message if hasattr(r.source, "message") else str(r.source),
+            "plan": (r.info.get("quality") or {}).get("plan")}
 
 
 def catalogue_table(rows: list[dict], rays: int) -> str:
@@ -744,6 +800,15 @@ def main(argv=None) -> int:
     p.add_argument("--map-recipe", action="append", default=None, metavar="FIELD=N",
                    help="learn from maps built here with this RayMapRecipe field (repeat: "
                         + ", ".join(RECIPE_FIELDS) + "; float64)")
+    p.add_argument("--export", default=None, metavar="FILE",
+                   help="write the lenses' stores as one OLF file in ray space (psf.rayfield; --olf FILE serves "
+                        "it), each with its held-out scores")
+    p.add_argument("--against-basis", default=None, metavar="OLF_FILE",
+                   help="instead, score this OLF file in ray space and each of its lenses' shipped PSF basis at "
+                        "the basis's points (lab report psf-source's draw, --held-out of them, 1024-ray references)")
+    p.add_argument("--time-preview-job", default=None, metavar="OLF_FILE",
+                   help="instead, time the PSFs of the add-on's 480 x 270 viewport preview from this OLF file for "
+                        "each of its lenses (--lens: some; run on a quiet machine)")
     p.add_argument("--time-preview", action="store_true",
                    help="instead, time a 480 x 270 preview's PSFs from each lens's map and from its store (a study "
                         "into --out made it; run on a quiet machine)")
@@ -782,6 +847,20 @@ def main(argv=None) -> int:
     if a.n_points < 1 or opt(a.train_sources, 2048) < 64:
         print("lab: error: --held-out must be >= 1 and --train-sources >= 64", file=sys.stderr)
         return 2
+    if a.against_basis:
+        from dcdi_core.psf.basis import shipped_store
+        from dcdi_core.psf.rayfield import RayFieldOLF
+        held = [lid for lid in RayFieldOLF.load(a.against_basis).lens_ids if shipped_store(lid) is not None
+                and (a.lens is None or lid in a.lens)]
+        rows = [against_basis(lid, Path(a.against_basis), out, a.n_points, log=say) for lid in held]
+        (out / "against-basis.json").write_text(json.dumps(rows, indent=1) + "\n")
+        for r in rows:
+            print(f"| {r['lens']} | {r['points']} | {r['pixel_pitch_mm'] * 1000:.3g} um, {r['kernel']} px | "
+                  f"{r['basis_mb']:.2f} | {r['basis']['psnr_8bit']:.2f} ({r['basis']['psnr_8bit_worst']:.2f}) | "
+                  f"{r['olf']['psnr_8bit']:.2f} ({r['olf']['psnr_8bit_worst']:.2f}) | "
+                  + (f"{r['network']['psnr_8bit']:.2f} ({r['network']['psnr_8bit_worst']:.2f}) |" if "network" in r
+                     else "does not serve |"))
+        return 0
     if a.time_preview:
         times = {}
         for lid in lenses:
@@ -791,6 +870,23 @@ def main(argv=None) -> int:
                   f"{t['map']['one_bin_s']:.3f} / store {t['olf']['one_bin_s']:.3f} s, the library (21 bins) "
                   f"{t['map']['library_s']:.3f} / {t['olf']['library_s']:.3f} s")
         (out / "preview.json").write_text(json.dumps(times, indent=1) + "\n")
+        return 0
+    if a.time_preview_job:
+        from dcdi_core.psf.basis import shipped_store
+        from dcdi_core.psf.rayfield import RayFieldOLF
+        jobs = {}
+        for lid in RayFieldOLF.load(a.time_preview_job).lens_ids:
+            if a.lens and lid not in a.lens:
+                continue
+            lens = load_lens(lid)
+            jobs[lid] = t = {"refocused": preview_job_seconds(lens), "prescribed": preview_job_seconds(lens, None)}
+            if shipped_store(lid) is not None:
+                t["basis"] = preview_job_seconds(lens, None, source="basis")
+            print(f"{lid}: the add-on's 480 x 270 preview, PSF seconds: OLF refocused at 1.5 m "
+                  f"{t['refocused']['seconds']['psfs']:.3f}, as prescribed {t['prescribed']['seconds']['psfs']:.3f}"
+                  + (f", its PSF basis as prescribed {t['basis']['seconds']['psfs']:.3f}" if "basis" in t else "")
+                  + f" ({t['refocused']['plan']})")
+        (out / "preview-job.json").write_text(json.dumps(jobs, indent=1) + "\n")
         return 0
     rays = opt(a.rays, 512)
     recipe = {}
@@ -810,6 +906,10 @@ def main(argv=None) -> int:
         print(f"lab: error: {e}", file=sys.stderr)
         return 2
     table = catalogue_table(rows, rays)
+    if a.export:
+        given = ["OUT" if v == a.out else v for v in (sys.argv[1:] if argv is None else argv)]
+        path = export(Path(a.export), rows, out, " ".join(["python -m lab olf-rays"] + given), log=say)
+        say(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB, {len(rows)} lenses)")
     (out / "result.json").write_text(json.dumps({"rays": rays, "seed": a.seed, "lenses": rows}, indent=1,
                                                 default=float) + "\n")
     print(table)

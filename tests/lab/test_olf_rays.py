@@ -100,10 +100,18 @@ def test_the_command_scores_a_lens_keeps_its_row_and_refuses_mixed_settings(tmp_
     assert f"| `{LENS}` |" in table and "| all 1 lenses, 1 points |" in table
     row = json.loads((tmp_path / "result.json").read_text())["lenses"][0]
     assert row["olf_vs_map"][0] > 40.0 and row["store_val_um"] < 1.0 and len(row["points"]) == 1
-    # run again: the row is kept, nothing is traced
+    # run again: the row is kept, nothing is traced; its store written as an OLF file that serves the lens
     monkeypatch.setattr(rr, "_pitch_for", lambda *a: (_ for _ in ()).throw(AssertionError("traced again")))
-    assert main(args) == 0
+    olf = tmp_path / "olf.npz"
+    assert main(args + ["--export", str(olf)]) == 0
     assert json.loads((tmp_path / "result.json").read_text())["lenses"][0]["olf"] == row["olf"]
+    from dcdi_core.optics.lens import load_lens
+    from dcdi_core.psf.rayfield import RayFieldOLF
+    from dcdi_core.psf.sources import psf_source
+    f = RayFieldOLF.load(olf)
+    assert f.lens_ids == [LENS] and f.entry(LENS)["held_out"]["psnr_8bit"] == row["olf"]
+    src = psf_source(load_lens(LENS), olf_file=str(olf), pixel_pitch_mm=0.01)
+    assert src.kind == "olf" and "in ray space" in src.message
     # other training settings into the same folder: refused in one line, the kept data untouched
     capsys.readouterr()
     kept = (tmp_path / LENS / "data.npz").read_bytes()
