@@ -699,12 +699,14 @@ def preview_seconds(rm, nm, lens, repeat: int = 3) -> dict:
     return out
 
 
-def preview_job_seconds(lens, focus_m: float | None = 1.5, repeat: int = 3, source: str = "olf") -> dict:
+def preview_job_seconds(lens, focus_m: float | None = 1.5, repeat: int = 3, source: str = "olf",
+                        olf_file=None) -> dict:
     """Wall seconds (best of ``repeat``, one thread) of the PSFs of the
     add-on's 480 x 270 viewport preview (``blender_addon.logic.run_bokeh``'s
     request: its field step, focus tolerance and preview budget) from
     ``source``, each from a cold source: a scene from 0.8 m to a wall at
-    10 m, the lens focused at ``focus_m`` (None: as prescribed, kept at 1.5 m)."""
+    10 m, the lens focused at ``focus_m`` (None: as prescribed, kept at 1.5 m); ``olf_file``: the OLF
+    file (None: the shipped ones)."""
     from dcdi_core import app
     from dcdi_core.app.sources import SourceCache
     from dcdi_core.parallel import one_blas_thread
@@ -712,7 +714,7 @@ def preview_job_seconds(lens, focus_m: float | None = 1.5, repeat: int = 3, sour
     rng = np.random.default_rng(0)
     image = rng.random((h, w, 3), dtype=np.float32)
     depth = np.broadcast_to(np.geomspace(0.8, 10.0, w, dtype=np.float32), (h, w)).copy()
-    psf = app.PSFRequest(source=source, preview=True, field_step_px=16.0, focus_tolerance_px=0.25,
+    psf = app.PSFRequest(source=source, olf_file=None if olf_file is None else str(olf_file), preview=True, field_step_px=16.0, focus_tolerance_px=0.25,
                          max_error_db=app.DEFAULT_BUDGET_DB["preview"])
     keep = (focus_m or 1.5) * 0.97, (focus_m or 1.5) * 1.03
     request = app.BokehRequest(image, depth, lens, keep=keep, focus_m=focus_m,
@@ -879,12 +881,17 @@ def main(argv=None) -> int:
             if a.lens and lid not in a.lens:
                 continue
             lens = load_lens(lid)
-            jobs[lid] = t = {"refocused": preview_job_seconds(lens), "prescribed": preview_job_seconds(lens, None)}
+            olf = a.time_preview_job
+            jobs[lid] = t = {"refocused": preview_job_seconds(lens, olf_file=olf),
+                             "prescribed": preview_job_seconds(lens, None, olf_file=olf)}
             if shipped_store(lid) is not None:
                 t["basis"] = preview_job_seconds(lens, None, source="basis")
+            if _ships(lid):
+                t["raymap"] = preview_job_seconds(lens, source="raymap")
             print(f"{lid}: the add-on's 480 x 270 preview, PSF seconds: OLF refocused at 1.5 m "
                   f"{t['refocused']['seconds']['psfs']:.3f}, as prescribed {t['prescribed']['seconds']['psfs']:.3f}"
                   + (f", its PSF basis as prescribed {t['basis']['seconds']['psfs']:.3f}" if "basis" in t else "")
+                  + (f", its shipped ray map refocused {t['raymap']['seconds']['psfs']:.3f}" if "raymap" in t else "")
                   + f" ({t['refocused']['plan']})")
         (out / "preview-job.json").write_text(json.dumps(jobs, indent=1) + "\n")
         return 0
