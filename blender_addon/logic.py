@@ -311,7 +311,7 @@ def _source_info(source) -> dict:
 
 # where a job's blur came from, in an artist's words (the engine's message is the status line's tooltip)
 SOURCE_WORDS = {"raymap": "the lens's ray map", "trace": "rays traced through the lens",
-                "basis": "the lens's PSF basis", "olf": "the Omni-Lens-Field"}
+                "basis": "the lens's PSF basis", "olf": "the OLF"}
 
 
 def source_words(info: dict) -> str:
